@@ -1,0 +1,232 @@
+"""Configuration: frozen dataclasses loaded once from TOML.
+
+Every section is a frozen dataclass with safe defaults; :func:`load_config` reads a TOML file,
+refuses unknown keys and wrong types, and names the offending field (``press.x_th``) and value
+in the error. Sections that later parts of the runtime need are added here, next to these.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from edge.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The tactile stream (XELA ``xela_server`` WebSocket)."""
+
+    url: str = "ws://127.0.0.1:5000"
+    model: str = "XR1944"
+    pads: int = 2
+    taxels_per_pad: int = 16
+    # No fresh frame for this long means the stream is stale: never press on it.
+    stale_timeout_s: float = 0.1
+    reconnect_max_backoff_s: float = 5.0
+
+    def validate(self, path: str) -> None:
+        _require(self.pads >= 1, path, "pads", self.pads, "must be >= 1")
+        _require(self.taxels_per_pad >= 1, path, "taxels_per_pad", self.taxels_per_pad,
+                 "must be >= 1")
+        _require(self.stale_timeout_s > 0, path, "stale_timeout_s", self.stale_timeout_s,
+                 "must be > 0")
+        _require(self.url.startswith(("ws://", "wss://")), path, "url", self.url,
+                 "must be a ws:// or wss:// URL")
+
+    @property
+    def channels(self) -> int:
+        return self.pads * self.taxels_per_pad * 3
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """The Dynamixel bus (U2D2, Protocol 2.0)."""
+
+    port: str = "/dev/ttyUSB0"
+    baudrate: int = 1_000_000
+    joint_ids: tuple[int, ...] = (11, 12, 13, 14)
+    gripper_id: int = 15
+    # Goal Current cap of the gripper in raw units (~2.69 mA each): limits the squeeze.
+    gripper_goal_current: int = 200
+    # Bus Watchdog period while torque is on; the register counts in 20 ms units.
+    watchdog_ms: int = 100
+
+    def validate(self, path: str) -> None:
+        ids = (*self.joint_ids, self.gripper_id)
+        _require(len(set(ids)) == len(ids), path, "joint_ids", self.joint_ids,
+                 "motor IDs must be distinct (gripper_id included)")
+        for motor_id in ids:
+            _require(0 <= motor_id <= 252, path, "joint_ids", motor_id, "IDs are 0..252")
+        _require(0 < self.gripper_goal_current <= 1193, path, "gripper_goal_current",
+                 self.gripper_goal_current, "must be 1..1193 (XM430 Current Limit)")
+        _require(self.watchdog_ms % 20 == 0 and 20 <= self.watchdog_ms <= 127 * 20, path,
+                 "watchdog_ms", self.watchdog_ms, "must be a multiple of 20 in 20..2540")
+
+
+@dataclass(frozen=True)
+class PressConfig:
+    """The press of DESIGN section 1."""
+
+    # Tactile norm threshold in tactile units ((raw - tare) / 65536); 0.003 for fragile objects.
+    x_th: float = 0.004
+    dt_stopping_s: float = 0.2
+    # Gripper gap closing speed while searching for contact.
+    close_speed_mps: float = 0.01
+    # Unloaded samples averaged into the tare before every press.
+    tare_s: float = 0.3
+    # A norm this many times x_th means the stop came too late: abort and open.
+    abort_factor: float = 25.0
+
+    def validate(self, path: str) -> None:
+        _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")
+        _require(self.dt_stopping_s >= 0, path, "dt_stopping_s", self.dt_stopping_s,
+                 "must be >= 0")
+        _require(0 < self.close_speed_mps <= 0.1, path, "close_speed_mps",
+                 self.close_speed_mps, "must be in (0, 0.1] m/s (a gentle push)")
+        _require(self.tare_s > 0, path, "tare_s", self.tare_s, "must be > 0")
+        _require(self.abort_factor > 1, path, "abort_factor", self.abort_factor,
+                 "must be > 1")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The simulated robot."""
+
+    seed: int = 0
+    object: str = "stainless_cube"
+    sensor_rate_hz: float = 125.0
+    # Time from the frame that crosses x_th to the stop taking effect at the motor.
+    reaction_latency_s: float = 0.002
+
+    def validate(self, path: str) -> None:
+        _require(1 <= self.sensor_rate_hz <= 1000, path, "sensor_rate_hz",
+                 self.sensor_rate_hz, "must be in [1, 1000] Hz")
+        _require(0 <= self.reaction_latency_s < 1, path, "reaction_latency_s",
+                 self.reaction_latency_s, "must be in [0, 1) s")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration; ``mode`` says whether devices are real or emulated."""
+
+    mode: Literal["sim", "robot"] = "sim"
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
+    press: PressConfig = field(default_factory=PressConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:
+    if not ok:
+        raise ConfigError(f"{path}.{name} = {value!r}: {why}")
+
+
+def load_config(path: str | Path) -> Config:
+    """Read ``path`` (TOML) into a validated :class:`Config`."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {path} cannot be read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    return config_from_dict(raw, source=str(path))
+
+
+def config_from_dict(raw: dict[str, Any], source: str = "<config>") -> Config:
+    try:
+        return from_dict(Config, raw, "")
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def from_dict(cls: type, raw: Any, path: str) -> Any:
+    """Build dataclass ``cls`` from a TOML table, checking keys and types recursively."""
+    where = path or "top level"
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where} must be a table, got {type(raw).__name__} {raw!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown key {_join(path, unknown[0])!r}; known keys of {where}: "
+            + ", ".join(sorted(fields))
+        )
+    values = {name: _convert(hints[name], raw[name], _join(path, name)) for name in raw}
+    obj = cls(**values)
+    validate = getattr(obj, "validate", None)
+    if validate is not None:
+        validate(path or "config")
+    return obj
+
+
+def _join(path: str, name: str) -> str:
+    return f"{path}.{name}" if path else name
+
+
+def _convert(tp: Any, value: Any, path: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, path)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(arg, value, path)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError("; ".join(errors))
+    if origin is Literal:
+        if value not in args:
+            raise ConfigError(f"{path} = {value!r}: must be one of {', '.join(map(repr, args))}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{path} = {value!r}: must be an array")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ConfigError(f"{path} = {value!r}: must have {len(args)} elements")
+        return tuple(_convert(a, v, f"{path}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path} = {value!r}: must be a table")
+        return {str(k): _convert(args[1], v, f"{path}.{k}") for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path} = {value!r}: must be true or false")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path} = {value!r}: must be an integer")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{path} = {value!r}: must be a number")
+        if not math.isfinite(value):
+            raise ConfigError(f"{path} = {value!r}: must be finite")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path} = {value!r}: must be a string")
+        return value
+    if tp is Path:
+        if not isinstance(value, str) or not value:
+            raise ConfigError(f"{path} = {value!r}: must be a non-empty path string")
+        return Path(value)
+    raise ConfigError(f"{path}: unsupported type {tp!r} in the config schema")

@@ -1,0 +1,60 @@
+"""The project's exception hierarchy.
+
+Everything the project raises on purpose derives from :class:`EdgeError`. Subclasses also
+inherit the matching builtin, so callers that already catch ``TimeoutError`` or
+``ValueError`` keep working.
+"""
+
+from __future__ import annotations
+
+
+class EdgeError(Exception):
+    """Root of every error raised on purpose by vtzero."""
+
+
+class ConfigError(EdgeError, ValueError):
+    """A configuration file or value is invalid; the message names the field."""
+
+
+class RecordingError(EdgeError, ValueError):
+    """A press recording is malformed, truncated or of an unknown schema."""
+
+
+class PreprocessError(EdgeError, ValueError):
+    """Tactile data cannot be turned into model input (e.g. the crop leaves the stream)."""
+
+
+class DeviceError(EdgeError, OSError):
+    """A hardware device (or its emulator) failed or answered wrongly."""
+
+
+class DeviceTimeoutError(DeviceError, TimeoutError):
+    """A device did not answer within its named timeout."""
+
+
+class SensorError(DeviceError):
+    """The tactile sensor stream is broken (bad frame, wrong layout)."""
+
+
+class StaleSensorError(SensorError, TimeoutError):
+    """No fresh tactile frame arrived within the stale timeout: never press on it."""
+
+
+class MotorError(DeviceError):
+    """A Dynamixel motor reported an error or did not answer."""
+
+    def __init__(self, message: str, motor_id: int | None = None) -> None:
+        super().__init__(message)
+        self.motor_id = motor_id
+
+
+class ModelError(EdgeError, ValueError):
+    """The encoder or reference database is missing, corrupt or inconsistent."""
+
+
+class VLMError(EdgeError):
+    """The vision-language model could not give a valid answer."""
+
+
+class BusyError(EdgeError, RuntimeError):
+    """A press is already running; one press at a time."""

@@ -1,0 +1,1 @@
+"""vtzero offline training: VQ-VAE tactile encoder, ONNX export, reference database."""
