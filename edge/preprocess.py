@@ -1,0 +1,144 @@
+"""Preprocessing of tactile streams: the single implementation used by the robot and by
+training, so what the model is trained on and what the robot feeds it cannot drift apart.
+
+Tactile units are ``(raw - tare) / 65536`` per channel. The model sees a window of
+``[t_stop - 0.4 s, t_stop + 0.6 s)`` on an ideal 125 Hz grid placed from frame timestamps
+(so a late sampler wake-up never shifts the data), subsampled to 25 Hz at an offset 0..4.
+The training target is the same window smoothed with a Gaussian (sigma 3 samples) and
+subsampled the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+
+from edge.errors import PreprocessError
+
+UNITS_SCALE = 65536.0
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    """Where and how the model's input is cut from the stream (DESIGN section 1)."""
+
+    rate_hz: float = 125.0
+    before_s: float = 0.4
+    after_s: float = 0.6
+    subsample: int = 5
+    sigma_samples: float = 3.0
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def n_window(self) -> int:
+        return round((self.before_s + self.after_s) * self.rate_hz)
+
+    @property
+    def n_steps(self) -> int:
+        return self.n_window // self.subsample
+
+    def grid(self, t_stop: float) -> np.ndarray:
+        """The ideal sample times of the window around ``t_stop``."""
+        return t_stop - self.before_s + np.arange(self.n_window) * self.period_s
+
+
+DEFAULT_WINDOW = WindowSpec()
+
+
+def tare(raw: np.ndarray) -> np.ndarray:
+    """Per-channel mean of unloaded raw samples, shape (C,)."""
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or raw.shape[0] == 0:
+        raise PreprocessError("tare needs at least one unloaded frame (shape (N, C))")
+    return raw.astype(np.float64).mean(axis=0)
+
+
+def to_units(raw: np.ndarray, tare_counts: np.ndarray) -> np.ndarray:
+    """Raw counts to tactile units, float32."""
+    return ((np.asarray(raw, dtype=np.float64) - tare_counts) / UNITS_SCALE).astype(np.float32)
+
+
+def norm(units: np.ndarray) -> np.ndarray | float:
+    """L2 norm over channels: the quantity compared with x_th."""
+    return np.linalg.norm(units, axis=-1)
+
+
+def resample(times: np.ndarray, values: np.ndarray, grid: np.ndarray,
+             method: Literal["linear", "hold"] = "linear") -> np.ndarray:
+    """Values of an irregular stream at ``grid`` times.
+
+    ``linear`` interpolates between the frames around each grid time; ``hold`` takes the
+    latest frame at or before it (what a sample-and-hold sampler sees). The grid must lie
+    within the stream: extrapolation would invent data.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    values = np.asarray(values)
+    if times.ndim != 1 or values.shape[0] != times.shape[0] or times.shape[0] < 2:
+        raise PreprocessError("resample needs >= 2 frames with one time each")
+    if grid[0] < times[0] or grid[-1] > times[-1]:
+        raise PreprocessError(
+            f"window [{grid[0]:.3f}, {grid[-1]:.3f}] s leaves the stream "
+            f"[{times[0]:.3f}, {times[-1]:.3f}] s: record longer around the stop")
+    right = np.searchsorted(times, grid, side="right")
+    if method == "hold":
+        return values[right - 1].astype(np.float32)
+    right = np.clip(right, 1, times.shape[0] - 1)
+    left = right - 1
+    span = times[right] - times[left]
+    w = np.where(span > 0, (grid - times[left]) / np.where(span > 0, span, 1.0), 1.0)
+    w = np.clip(w, 0.0, 1.0)[:, None]
+    lo = values[left].astype(np.float64)
+    hi = values[right].astype(np.float64)
+    return (lo + w * (hi - lo)).astype(np.float32)
+
+
+def crop(times: np.ndarray, units: np.ndarray, t_stop: float,
+         spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
+    """The 125 Hz window around ``t_stop``, shape (n_window, C)."""
+    return resample(times, units, spec.grid(t_stop))
+
+
+def subsample(window: np.ndarray, offset: int, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
+    """Every ``subsample``-th row starting at ``offset``: shape (n_steps, C)."""
+    if not 0 <= offset < spec.subsample:
+        raise PreprocessError(f"offset {offset} must be in 0..{spec.subsample - 1}")
+    if window.shape[0] != spec.n_window:
+        raise PreprocessError(f"window has {window.shape[0]} rows, expected {spec.n_window}")
+    return window[offset::spec.subsample]
+
+
+def smooth(window: np.ndarray, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
+    """Gaussian smoothing along time: the reconstruction target before subsampling."""
+    return gaussian_filter1d(window, spec.sigma_samples, axis=0, mode="nearest")
+
+
+def model_input(times: np.ndarray, units: np.ndarray, t_stop: float,
+                spec: WindowSpec = DEFAULT_WINDOW, offset: int = 0) -> np.ndarray:
+    """Recognition-time input X: one subsampled window, shape (n_steps, C), float32."""
+    return subsample(crop(times, units, t_stop, spec), offset, spec)
+
+
+def training_pairs(times: np.ndarray, units: np.ndarray, t_stop: float,
+                   spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """All offsets of one press: inputs X and targets X_bar, each (subsample, n_steps, C)."""
+    window = crop(times, units, t_stop, spec)
+    target = smooth(window, spec)
+    xs = np.stack([subsample(window, o, spec) for o in range(spec.subsample)])
+    ts = np.stack([subsample(target, o, spec) for o in range(spec.subsample)])
+    return xs.astype(np.float32), ts.astype(np.float32)
+
+
+def recording_units(rec) -> np.ndarray:
+    """A recording's frames in tactile units against its own tare, (N, C) float32."""
+    return to_units(rec.frames, rec.tare)
+
+
+def recording_pairs(rec, spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """Training pairs (X, X_bar) of a :class:`edge.recording.Recording`."""
+    return training_pairs(rec.recv_time, recording_units(rec), rec.t_stop, spec)

@@ -1,0 +1,64 @@
+from pathlib import Path
+
+import pytest
+
+from edge.config import Config, config_from_dict, load_config
+from edge.errors import ConfigError, EdgeError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", ["sim.toml", "robot.toml"])
+def test_example_configs_load(name):
+    cfg = load_config(ROOT / "configs" / name)
+    assert isinstance(cfg, Config)
+    assert cfg.mode == name.removesuffix(".toml")
+    assert cfg.sensor.channels == 96
+    assert cfg.press.x_th == pytest.approx(0.004)
+
+
+def test_defaults_are_the_paper_press():
+    cfg = config_from_dict({})
+    assert cfg.press.x_th == 0.004 and cfg.press.dt_stopping_s == 0.2
+    assert cfg.bus.gripper_id == 15 and cfg.bus.joint_ids == (11, 12, 13, 14)
+
+
+@pytest.mark.parametrize(
+    ("raw", "needle"),
+    [
+        ({"press": {"x_th": "high"}}, "press.x_th = 'high': must be a number"),
+        ({"press": {"x_th": 2.0}}, "press.x_th = 2.0: must be in (0, 1)"),
+        ({"press": {"xth": 0.1}}, "unknown key 'press.xth'"),
+        ({"mode": "real"}, "mode = 'real': must be one of 'sim', 'robot'"),
+        ({"bus": {"joint_ids": [11, 12, 13, 15]}}, "must be distinct"),
+        ({"bus": {"watchdog_ms": 30}}, "bus.watchdog_ms = 30"),
+        ({"bus": {"gripper_id": True}}, "bus.gripper_id = True: must be an integer"),
+        ({"sensor": "ws://x"}, "sensor must be a table"),
+        ({"sensor": {"url": "http://x"}}, "sensor.url = 'http://x'"),
+        ({"press": {"x_th": float("nan")}}, "must be finite"),
+    ],
+)
+def test_bad_values_name_the_field(raw, needle):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(raw)
+    assert needle in str(err.value)
+    assert isinstance(err.value, EdgeError) and isinstance(err.value, ValueError)
+
+
+def test_bad_files_are_refused_clearly(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[press\nx_th = 1")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[press]\nx_th = -1\n")
+    with pytest.raises(ConfigError, match=r"wrong\.toml: press\.x_th = -1"):
+        load_config(wrong)
+
+
+def test_config_is_frozen():
+    cfg = config_from_dict({})
+    with pytest.raises(AttributeError):
+        cfg.press.x_th = 0.1  # type: ignore[misc]
