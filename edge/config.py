@@ -113,6 +113,36 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class ApiConfig:
+    """The HTTP API: loopback by default; a bearer token is required anywhere else."""
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    # The token itself, or better a file holding it (kept out of the config file).
+    token: str = ""
+    token_file: str = ""
+    max_candidates: int = 32
+    max_body_bytes: int = 10 * 1024 * 1024
+    # Default candidates for the button and SIGUSR1 triggers.
+    default_candidates: tuple[str, ...] = ()
+
+    def validate(self, path: str) -> None:
+        _require(0 <= self.port <= 65535, path, "port", self.port, "must be 0..65535")
+        _require(1 <= self.max_candidates <= 256, path, "max_candidates",
+                 self.max_candidates, "must be 1..256")
+        _require(1024 <= self.max_body_bytes <= 100 * 1024 * 1024, path, "max_body_bytes",
+                 self.max_body_bytes, "must be 1 KiB..100 MiB")
+        _require(not (self.token and self.token_file), path, "token", "***",
+                 "set token or token_file, not both")
+        _require(len(set(self.default_candidates)) == len(self.default_candidates), path,
+                 "default_candidates", self.default_candidates, "must not repeat a label")
+
+    @property
+    def loopback_only(self) -> bool:
+        return self.host in ("127.0.0.1", "::1", "localhost") or self.host.startswith("127.")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration; ``mode`` says whether devices are real or emulated."""
 
@@ -121,6 +151,7 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     press: PressConfig = field(default_factory=PressConfig)
     sim: SimConfig = field(default_factory=SimConfig)
+    api: ApiConfig = field(default_factory=ApiConfig)
 
 
 def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:

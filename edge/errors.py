@@ -58,3 +58,11 @@ class VLMError(EdgeError):
 
 class BusyError(EdgeError, RuntimeError):
     """A press is already running; one press at a time."""
+
+
+class StoreError(EdgeError, OSError):
+    """The episode store cannot write or read (disk full, permissions, corrupt entry)."""
+
+
+class NotFoundError(EdgeError, KeyError):
+    """A named thing (episode, pose, object) does not exist."""

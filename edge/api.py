@@ -1,0 +1,273 @@
+"""The HTTP API (aiohttp): trigger recognitions, read episodes, follow events.
+
+Routes: ``POST /v1/recognize``, ``GET /v1/episodes/{id}``, ``GET /v1/events`` (server-sent
+events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text).
+Loopback only by default; bound anywhere else it refuses to start without a bearer token,
+and then every route but ``/healthz`` requires it. Bad input gets a 4xx with a message a
+person can act on, and nothing is half-done: validation happens before any arm motion.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import binascii
+import hmac
+import json
+import logging
+import os
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from aiohttp import web
+
+from edge.config import ApiConfig
+from edge.errors import BusyError, ConfigError, EdgeError, NotFoundError
+
+log = logging.getLogger(__name__)
+
+MAX_LABEL_CHARS = 80
+SSE_KEEPALIVE_S = 15.0
+_RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
+_IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
+
+
+class Runtime(Protocol):
+    """What the API needs from the daemon."""
+
+    async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
+                        timeout_s: float | None, source: str) -> dict[str, Any]: ...
+
+    async def abort(self) -> bool: ...
+
+    async def episode(self, episode_id: str) -> dict[str, Any]: ...
+
+    def subscribe(self) -> AsyncIterator[dict[str, Any]]: ...
+
+    def health(self) -> dict[str, Any]: ...
+
+    def metrics_text(self) -> str: ...
+
+
+class BadRequest(EdgeError, ValueError):
+    pass
+
+
+def load_token(cfg: ApiConfig) -> str:
+    """The bearer token from the config, its file, or ``$VTZERO_API_TOKEN``."""
+    token = cfg.token or os.environ.get("VTZERO_API_TOKEN", "")
+    if cfg.token_file:
+        try:
+            token = Path(cfg.token_file).read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise ConfigError(f"api.token_file {cfg.token_file}: cannot read: {exc}") from None
+    if not cfg.loopback_only and len(token) < 16:
+        raise ConfigError(
+            f"api.host = {cfg.host!r} exposes the API beyond this machine: set a bearer token "
+            "of at least 16 characters (api.token_file or $VTZERO_API_TOKEN), or bind "
+            "127.0.0.1")
+    return token
+
+
+def _error(status: int, message: str, **extra: Any) -> web.Response:
+    return web.json_response({"error": message, **extra}, status=status)
+
+
+def validate_candidates(value: Any, max_candidates: int) -> list[str]:
+    if not isinstance(value, list) or not value:
+        raise BadRequest("candidates must be a non-empty JSON list of labels")
+    if len(value) > max_candidates:
+        raise BadRequest(f"too many candidates: {len(value)} (at most {max_candidates})")
+    out = []
+    for item in value:
+        if not isinstance(item, str) or not item.strip():
+            raise BadRequest(f"every candidate must be a non-empty string, got {item!r}")
+        label = item.strip()
+        if len(label) > MAX_LABEL_CHARS or not label.isprintable():
+            raise BadRequest(f"candidate {label[:MAX_LABEL_CHARS]!r}... must be printable and "
+                             f"at most {MAX_LABEL_CHARS} characters")
+        if label in out:
+            raise BadRequest(f"duplicate candidate {label!r}")
+        out.append(label)
+    return out
+
+
+def validate_image(data: bytes, max_bytes: int) -> bytes:
+    if not data:
+        raise BadRequest("image is empty")
+    if len(data) > max_bytes:
+        raise BadRequest(f"image has {len(data)} bytes (at most {max_bytes})")
+    if not data.startswith(_IMAGE_MAGIC):
+        raise BadRequest("image must be a JPEG or PNG file")
+    return data
+
+
+@dataclass
+class _Parsed:
+    candidates: list[str]
+    image: bytes | None
+    wait: bool
+    timeout_s: float | None
+
+
+class Api:
+    def __init__(self, runtime: Runtime, cfg: ApiConfig) -> None:
+        self.runtime = runtime
+        self.cfg = cfg
+        self.token = load_token(cfg)
+        self.app = web.Application(client_max_size=cfg.max_body_bytes,
+                                   middlewares=[self._errors, self._auth])
+        self.app.add_routes([
+            web.post("/v1/recognize", self.recognize),
+            web.get("/v1/episodes/{id}", self.episode),
+            web.get("/v1/events", self.events),
+            web.post("/v1/abort", self.abort),
+            web.get("/healthz", self.healthz),
+            web.get("/metrics", self.metrics),
+        ])
+        self._runner: web.AppRunner | None = None
+        self.port: int | None = None
+
+    @web.middleware
+    async def _errors(self, request: web.Request, handler):
+        try:
+            return await handler(request)
+        except BadRequest as exc:
+            return _error(400, str(exc))
+        except NotFoundError as exc:
+            return _error(404, str(exc).strip("'\""))
+        except web.HTTPRequestEntityTooLarge:
+            return _error(413, f"request body too large (at most {self.cfg.max_body_bytes} "
+                               "bytes)")
+        except web.HTTPException:
+            raise
+        except EdgeError as exc:
+            log.warning("%s %s failed: %s", request.method, request.path, exc)
+            return _error(503, str(exc))
+
+    @web.middleware
+    async def _auth(self, request: web.Request, handler):
+        if self.token and request.path != "/healthz":
+            given = request.headers.get("Authorization", "")
+            expected = f"Bearer {self.token}"
+            if not hmac.compare_digest(given.encode(), expected.encode()):
+                return web.json_response({"error": "missing or wrong bearer token"},
+                                         status=401,
+                                         headers={"WWW-Authenticate": "Bearer"})
+        return await handler(request)
+
+    async def start(self) -> int:
+        self._runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.cfg.host, self.cfg.port)
+        await site.start()
+        server = site._server
+        self.port = server.sockets[0].getsockname()[1] if server and server.sockets else None
+        log.info("API listening on http://%s:%s%s", self.cfg.host, self.port,
+                 " (bearer token required)" if self.token else "")
+        return self.port or 0
+
+    async def close(self) -> None:
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    async def _parse_recognize(self, request: web.Request) -> _Parsed:
+        image: bytes | None = None
+        if request.content_type == "multipart/form-data":
+            fields: dict[str, Any] = {}
+            reader = await request.multipart()
+            async for part in reader:
+                name = part.name or ""
+                if name not in _RECOGNIZE_FIELDS:
+                    raise BadRequest(f"unknown field {name!r}; known: "
+                                     + ", ".join(sorted(_RECOGNIZE_FIELDS)))
+                if name == "image":
+                    image = validate_image(await part.read(), self.cfg.max_body_bytes)
+                else:
+                    text = await part.text()
+                    try:
+                        fields[name] = json.loads(text)
+                    except ValueError:
+                        fields[name] = text
+        elif request.content_type == "application/json":
+            try:
+                fields = await request.json()
+            except ValueError:
+                raise BadRequest("body is not valid JSON") from None
+            if not isinstance(fields, dict):
+                raise BadRequest("body must be a JSON object")
+            unknown = sorted(set(fields) - _RECOGNIZE_FIELDS)
+            if unknown:
+                raise BadRequest(f"unknown field {unknown[0]!r}; known: "
+                                 + ", ".join(sorted(_RECOGNIZE_FIELDS)))
+            if "image" in fields:
+                if not isinstance(fields["image"], str):
+                    raise BadRequest("image must be a base64 string")
+                try:
+                    raw = base64.b64decode(fields["image"], validate=True)
+                except (binascii.Error, ValueError):
+                    raise BadRequest("image is not valid base64") from None
+                image = validate_image(raw, self.cfg.max_body_bytes)
+        else:
+            raise BadRequest("send application/json or multipart/form-data")
+        wait = fields.get("wait", False)
+        if not isinstance(wait, bool):
+            raise BadRequest("wait must be true or false")
+        timeout = fields.get("timeout_s")
+        if timeout is not None and (isinstance(timeout, bool)
+                                    or not isinstance(timeout, int | float)
+                                    or not 0 < timeout <= 600):
+            raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
+        candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
+        return _Parsed(candidates, image, wait, timeout)
+
+    async def recognize(self, request: web.Request) -> web.Response:
+        parsed = await self._parse_recognize(request)
+        try:
+            episode = await self.runtime.recognize(parsed.candidates, parsed.image,
+                                                   parsed.wait, parsed.timeout_s, "api")
+        except BusyError as exc:
+            return _error(409, str(exc), episode=getattr(exc, "episode_id", None))
+        status = 200 if parsed.wait else 202
+        return web.json_response(episode, status=status)
+
+    async def episode(self, request: web.Request) -> web.Response:
+        return web.json_response(await self.runtime.episode(request.match_info["id"]))
+
+    async def abort(self, request: web.Request) -> web.Response:
+        aborted = await self.runtime.abort()
+        return web.json_response({"aborted": aborted})
+
+    async def healthz(self, request: web.Request) -> web.Response:
+        health = self.runtime.health()
+        return web.json_response(health, status=200 if health.get("ok") else 503)
+
+    async def metrics(self, request: web.Request) -> web.Response:
+        return web.Response(text=self.runtime.metrics_text(),
+                            content_type="text/plain", charset="utf-8",
+                            headers={"X-Content-Type-Options": "nosniff"})
+
+    async def events(self, request: web.Request) -> web.StreamResponse:
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                           "Cache-Control": "no-cache"})
+        await resp.prepare(request)
+        stream = self.runtime.subscribe()
+        try:
+            while True:
+                try:
+                    event = await asyncio.wait_for(anext(stream), SSE_KEEPALIVE_S)
+                except TimeoutError:
+                    await resp.write(b": keepalive\n\n")
+                    continue
+                except StopAsyncIteration:
+                    break
+                kind = event.get("type", "message")
+                await resp.write(f"event: {kind}\ndata: {json.dumps(event)}\n\n".encode())
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            await stream.aclose()
+        return resp

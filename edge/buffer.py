@@ -1,0 +1,134 @@
+"""The tactile ring buffer and its 125 Hz sampler.
+
+Every arriving frame is written, with its receive time and sequence number, into a
+preallocated ring (no allocation on the per-frame path). The crop around ``t_stop`` is cut
+from these timestamped frames on an ideal 8 ms grid (:mod:`edge.preprocess`), so a late
+wake-up of the sampler never shifts the data.
+
+The sampler runs on an absolute 125 Hz deadline grid and records, per tick, the latest frame
+(sample-and-hold) into its own ring: the live 125 Hz stream. It counts ticks without a new
+frame (gaps), frames that arrived between ticks beyond the first (several per tick), and
+its own lateness, which is what the benchmark reports as the period error.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Window:
+    """A copy of the frames received in a time interval."""
+
+    raw: np.ndarray  # (N, C) uint16
+    recv_time: np.ndarray  # (N,)
+    sensor_time: np.ndarray  # (N,)
+    seq: np.ndarray  # (N,)
+
+
+class FrameRing:
+    """Preallocated ring of raw frames with their times; single writer (the sensor task)."""
+
+    def __init__(self, channels: int, capacity: int) -> None:
+        self.capacity = capacity
+        self.raw = np.zeros((capacity, channels), dtype=np.uint16)
+        self.recv_time = np.full(capacity, -np.inf)
+        self.sensor_time = np.zeros(capacity)
+        self.seq = np.zeros(capacity, dtype=np.int64)
+        self.count = 0  # frames ever written
+
+    def push(self, raw: np.ndarray, recv_time: float, sensor_time: float, seq: int) -> None:
+        i = self.count % self.capacity
+        self.raw[i] = raw
+        self.recv_time[i] = recv_time
+        self.sensor_time[i] = sensor_time
+        self.seq[i] = seq
+        self.count += 1
+
+    @property
+    def latest_index(self) -> int:
+        return (self.count - 1) % self.capacity if self.count else -1
+
+    def latest_time(self) -> float:
+        return float(self.recv_time[self.latest_index]) if self.count else -np.inf
+
+    def window(self, t_from: float, t_to: float) -> Window:
+        """Frames with ``t_from <= recv_time <= t_to``, oldest first."""
+        n = min(self.count, self.capacity)
+        start = self.count - n
+        order = (np.arange(start, self.count) % self.capacity)
+        times = self.recv_time[order]
+        keep = order[(times >= t_from) & (times <= t_to)]
+        return Window(self.raw[keep].copy(), self.recv_time[keep].copy(),
+                      self.sensor_time[keep].copy(), self.seq[keep].copy())
+
+    def oldest_time(self) -> float:
+        if self.count == 0:
+            return np.inf
+        return float(self.recv_time[(self.count - min(self.count, self.capacity))
+                                    % self.capacity])
+
+
+@dataclass
+class SamplerStats:
+    ticks: int = 0
+    gaps: int = 0  # ticks with no new frame since the previous tick
+    extra_frames: int = 0  # frames beyond one per tick (they are kept in the frame ring)
+    missed_ticks: int = 0  # deadlines skipped because the loop was too late
+    max_late_s: float = 0.0
+
+
+class Sampler:
+    """Samples the latest frame at a fixed rate on an absolute deadline grid."""
+
+    def __init__(self, ring: FrameRing, rate_hz: float = 125.0, capacity: int = 8192,
+                 record_lateness: bool = False) -> None:
+        self.ring = ring
+        self.period_s = 1.0 / rate_hz
+        self.stats = SamplerStats()
+        self.tick_time = np.zeros(capacity)
+        self.tick_frame = np.full(capacity, -1, dtype=np.int64)  # frame count at the tick
+        self.capacity = capacity
+        # Lateness of each wake-up, for benchmarks; off in production to stay allocation-free.
+        self.lateness_s: list[float] | None = [] if record_lateness else None
+
+    def sample(self, now: float) -> None:
+        st = self.stats
+        i = st.ticks % self.capacity
+        frames = self.ring.count
+        prev = self.tick_frame[(st.ticks - 1) % self.capacity] if st.ticks else frames - 1
+        new = frames - prev
+        if new <= 0:
+            st.gaps += 1
+        elif new > 1:
+            st.extra_frames += new - 1
+        self.tick_time[i] = now
+        self.tick_frame[i] = frames
+        st.ticks += 1
+
+    async def run(self) -> None:
+        """Tick until cancelled. Sleeps to each absolute deadline; never drifts."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.period_s
+        while True:
+            await asyncio.sleep(max(0.0, deadline - loop.time()))
+            now = loop.time()
+            late = now - deadline
+            if late > self.period_s:
+                # The loop was blocked for more than a period: skip ahead, count the misses.
+                skipped = int(late // self.period_s)
+                self.stats.missed_ticks += skipped
+                deadline += skipped * self.period_s
+                late -= skipped * self.period_s
+            self.stats.max_late_s = max(self.stats.max_late_s, late)
+            if self.lateness_s is not None:
+                self.lateness_s.append(late)
+            self.sample(time.monotonic())
+            deadline += self.period_s

@@ -1,0 +1,116 @@
+"""Cameras: one still image per recognition.
+
+``Camera`` is the contract; implementations: a still-capture command (any program that
+writes a JPEG, e.g. ``libcamera-still`` or ``fswebcam``), a V4L2/USB camera through OpenCV
+(optional extra ``camera``), and :class:`edge.sim.camera.SimCamera` for the simulated robot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import shlex
+import tempfile
+from pathlib import Path
+from typing import Protocol
+
+from edge.errors import DeviceError, DeviceTimeoutError
+
+log = logging.getLogger(__name__)
+
+CAPTURE_TIMEOUT_S = 10.0
+MAX_IMAGE_BYTES = 20 * 1024 * 1024
+
+
+class Camera(Protocol):
+    async def capture(self) -> bytes:
+        """One still image, JPEG or PNG bytes."""
+        ...
+
+
+class CommandCamera:
+    """Runs ``command`` with ``{out}`` replaced by a temp file path, then reads the file."""
+
+    def __init__(self, command: str, timeout_s: float = CAPTURE_TIMEOUT_S) -> None:
+        if "{out}" not in command:
+            raise DeviceError(f"camera command {command!r} must contain {{out}} for the file")
+        self.command = command
+        self.timeout_s = timeout_s
+
+    async def capture(self) -> bytes:
+        with tempfile.TemporaryDirectory(prefix="vtzero-cam-") as tmp:
+            out = Path(tmp) / "still.jpg"
+            argv = [a.replace("{out}", str(out)) for a in shlex.split(self.command)]
+            try:
+                proc = await asyncio.create_subprocess_exec(
+                    *argv, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
+            except OSError as exc:
+                raise DeviceError(f"camera command {argv[0]!r} cannot start: {exc}") from None
+            try:
+                _, err = await asyncio.wait_for(proc.communicate(), self.timeout_s)
+            except TimeoutError:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+                raise DeviceTimeoutError(
+                    f"camera command did not finish within {self.timeout_s} s") from None
+            if proc.returncode != 0:
+                msg = err.decode(errors="replace").strip()[-300:]
+                raise DeviceError(f"camera command failed (exit {proc.returncode}): {msg}")
+            try:
+                size = out.stat().st_size
+            except FileNotFoundError:
+                raise DeviceError(f"camera command wrote no file at {out}") from None
+            if not 0 < size <= MAX_IMAGE_BYTES:
+                raise DeviceError(f"camera image has {size} bytes; expected 1..{MAX_IMAGE_BYTES}")
+            return await asyncio.to_thread(out.read_bytes)
+
+
+class V4L2Camera:
+    """A USB camera through OpenCV (``pip install 'vtzero[camera]'``); grabs in a thread."""
+
+    def __init__(self, device: str | int = 0, warmup_frames: int = 3) -> None:
+        try:
+            import cv2  # noqa: F401  (optional extra)
+        except ImportError:
+            raise DeviceError(
+                "V4L2 camera needs OpenCV: pip install 'vtzero[camera]', or use a "
+                "still-capture command camera") from None
+        self.device = device
+        self.warmup_frames = warmup_frames
+
+    def _grab(self) -> bytes:
+        import cv2
+
+        cap = cv2.VideoCapture(self.device)
+        try:
+            if not cap.isOpened():
+                raise DeviceError(f"camera {self.device!r} cannot be opened")
+            frame = None
+            # Auto-exposure settles over the first frames.
+            for _ in range(self.warmup_frames + 1):
+                ok, frame = cap.read()
+                if not ok:
+                    raise DeviceError(f"camera {self.device!r} returned no frame")
+            ok, buf = cv2.imencode(".jpg", frame)
+            if not ok:
+                raise DeviceError("camera frame could not be encoded as JPEG")
+            return buf.tobytes()
+        finally:
+            cap.release()
+
+    async def capture(self) -> bytes:
+        return await asyncio.wait_for(asyncio.to_thread(self._grab), CAPTURE_TIMEOUT_S)
+
+
+class FakeCamera:
+    """Returns fixed bytes; counts captures."""
+
+    def __init__(self, image: bytes) -> None:
+        self.image = image
+        self.captures = 0
+
+    async def capture(self) -> bytes:
+        self.captures += 1
+        return self.image

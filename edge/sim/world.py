@@ -1,0 +1,91 @@
+"""The simulated world: one object between the gripper's fingers, shared by the emulators.
+
+The Dynamixel emulator's motion loop reports the gripper position through :meth:`load`
+(which advances the contact physics and returns the load current the motor feels); the
+XELA emulator reads raw frames through :meth:`frame`. Both run in different threads, so the
+state is guarded by a lock. Time is the host's monotonic clock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from edge.sim.catalogue import get
+from edge.sim.contact import Contact, ObjectInstance
+from edge.sim.skin import Skin, SkinDraw
+
+# Gripper geometry (DESIGN section 2): width in metres from the raw position.
+WIDTH_PER_RAW_M = 1.7626621790e-5
+WIDTH_OFFSET_M = 0.036099321
+# Current-to-force of the gripper: Goal Current 200 (~538 mA) squeezes ~10 N per finger.
+FORCE_PER_MA_N = 10.0 / (200 * 2.69)
+PHYSICS_DT_S = 0.0005
+
+
+def width_from_raw(raw: float) -> float:
+    return raw * WIDTH_PER_RAW_M - WIDTH_OFFSET_M
+
+
+def raw_from_width(width_m: float) -> float:
+    return (width_m + WIDTH_OFFSET_M) / WIDTH_PER_RAW_M
+
+
+class SimWorld:
+    """Holds the object, advances the contact physics and renders tactile frames."""
+
+    def __init__(self, object_name: str, seed: int = 0, gripper_id: int = 15) -> None:
+        self._lock = threading.Lock()
+        self._rng = np.random.default_rng(seed)
+        self._skin_draw = SkinDraw.draw(self._rng)
+        self.gripper_id = gripper_id
+        self._t0 = time.monotonic()
+        self._t = self._t0
+        self._gap = 0.07
+        self.place(object_name)
+
+    def place(self, object_name: str) -> None:
+        """Put a new draw of ``object_name`` between the fingers (a new press)."""
+        inst = ObjectInstance.draw(get(object_name), self._rng)
+        with self._lock:
+            self.object_name = object_name
+            self._contact = Contact(inst)
+            self._skin = Skin(inst, self._rng, self._skin_draw)
+            self.peak_force_n = 0.0
+
+    def _advance(self, t: float) -> None:
+        # Called with the lock held: step the physics up to t at a fixed step.
+        while self._t + PHYSICS_DT_S <= t:
+            self._contact.step(self._gap, PHYSICS_DT_S)
+            self._t += PHYSICS_DT_S
+            self.peak_force_n = max(self.peak_force_n, self._contact.force)
+        if self._t < t - 1.0:
+            self._t = t  # a long pause (process stopped): do not replay it step by step
+
+    def load(self, motor_id: int, position_raw: float) -> float:
+        """The Dynamixel emulator's hook: load current in mA resisting the gripper closing."""
+        if motor_id != self.gripper_id:
+            return 0.0
+        with self._lock:
+            self._advance(time.monotonic())
+            self._gap = max(width_from_raw(position_raw), 0.0)
+            return self._contact.force / FORCE_PER_MA_N
+
+    def frame(self, t: float) -> np.ndarray:
+        """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
+        with self._lock:
+            self._advance(t)
+            return self._skin.frame(t - self._t0, self._contact.force,
+                                    self._contact.contact_radius())
+
+    @property
+    def force_n(self) -> float:
+        with self._lock:
+            return self._contact.force
+
+    @property
+    def gap_m(self) -> float:
+        with self._lock:
+            return self._gap

@@ -1,0 +1,186 @@
+"""The episode store: every recognition kept, written atomically.
+
+One directory per episode under ``root``: ``episode.json`` (status, candidates, press
+summary, top-k, description, prompt, VLM request/response, label, timings) plus data files
+(the raw press window as a recording, the model input and embedding, the image). A new
+episode is assembled in a hidden temp directory, every file fsynced, then renamed into place:
+a reader, or a daemon restarted after ``kill -9``, sees the whole episode or none of it.
+Updates of ``episode.json`` are atomic file replacements. Episodes whose VLM call could not
+complete stay ``pending`` and are retried, also after a restart.
+
+All methods block (file I/O): the daemon calls them through ``asyncio.to_thread``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import os
+import re
+import secrets
+import shutil
+import tarfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from edge.atomic import _fsync_dir, atomic_write_text
+from edge.errors import NotFoundError, StoreError
+
+log = logging.getLogger(__name__)
+
+EPISODE_FILE = "episode.json"
+_ID_RE = re.compile(r"^\d{8}T\d{6}\d{3}Z-[0-9a-f]{6}$")
+_TMP_PREFIX = ".tmp-"
+# Statuses: pending (VLM not done yet, retried), done, invalid_answer, not_configured,
+# failed (the press itself failed: no contact, stale sensor, abort).
+FINAL_STATUSES = frozenset({"done", "invalid_answer", "not_configured", "failed"})
+
+
+def new_id(now: float | None = None) -> str:
+    ts = datetime.fromtimestamp(now if now is not None else time.time(), UTC)
+    return f"{ts:%Y%m%dT%H%M%S}{ts.microsecond // 1000:03d}Z-{secrets.token_hex(3)}"
+
+
+def valid_id(episode_id: str) -> bool:
+    return bool(_ID_RE.match(episode_id))
+
+
+class EpisodeStore:
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"episode store {self.root} cannot be created: {exc}") from None
+
+    def recover(self) -> int:
+        """Remove episodes that were never completed (a crash while writing); returns count."""
+        removed = 0
+        for tmp in self.root.glob(f"{_TMP_PREFIX}*"):
+            shutil.rmtree(tmp, ignore_errors=True)
+            removed += 1
+        for tmp in self.root.glob(f"*/.{EPISODE_FILE}.*.tmp"):
+            tmp.unlink(missing_ok=True)
+        if removed:
+            log.warning("discarded %d incomplete episode(s) left by an interrupted write",
+                        removed)
+        return removed
+
+    def _dir(self, episode_id: str) -> Path:
+        if not valid_id(episode_id):
+            raise NotFoundError(f"no episode {episode_id!r} (not an episode id)")
+        return self.root / episode_id
+
+    def create(self, episode: dict[str, Any], files: dict[str, bytes]) -> str:
+        """Write a new episode with its data files; returns its id."""
+        episode_id = episode.get("id") or new_id()
+        episode = {**episode, "id": episode_id, "created": time.time(), "updated": time.time()}
+        tmp = self.root / f"{_TMP_PREFIX}{episode_id}"
+        try:
+            tmp.mkdir()
+            for name, data in {**files, EPISODE_FILE: _dumps(episode)}.items():
+                if "/" in name or name.startswith("."):
+                    raise ValueError(f"bad episode file name {name!r}")
+                with open(tmp / name, "wb") as fh:
+                    fh.write(data)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            _fsync_dir(tmp)
+            os.rename(tmp, self.root / episode_id)
+            _fsync_dir(self.root)
+        except OSError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise _store_error(f"episode {episode_id} could not be written", exc) from None
+        return episode_id
+
+    def update(self, episode_id: str, **fields: Any) -> dict[str, Any]:
+        """Merge ``fields`` into the episode's JSON, atomically."""
+        path = self._dir(episode_id) / EPISODE_FILE
+        episode = self.get(episode_id)
+        episode.update(fields, updated=time.time())
+        try:
+            atomic_write_text(path, _dumps(episode).decode())
+        except OSError as exc:
+            raise _store_error(f"episode {episode_id} could not be updated", exc) from None
+        return episode
+
+    def add_file(self, episode_id: str, name: str, data: bytes) -> None:
+        from edge.atomic import atomic_write_bytes
+
+        if "/" in name or name.startswith(".") or name == EPISODE_FILE:
+            raise ValueError(f"bad episode file name {name!r}")
+        try:
+            atomic_write_bytes(self._dir(episode_id) / name, data)
+        except OSError as exc:
+            raise _store_error(f"episode {episode_id}: {name} could not be written",
+                               exc) from None
+
+    def get(self, episode_id: str) -> dict[str, Any]:
+        path = self._dir(episode_id) / EPISODE_FILE
+        try:
+            return json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise NotFoundError(f"no episode {episode_id}") from None
+        except (OSError, ValueError) as exc:
+            raise StoreError(f"episode {episode_id} cannot be read: {exc}") from None
+
+    def file(self, episode_id: str, name: str) -> Path:
+        path = self._dir(episode_id) / name
+        if "/" in name or not path.is_file():
+            raise NotFoundError(f"episode {episode_id} has no file {name!r}")
+        return path
+
+    def ids(self) -> list[str]:
+        return sorted(p.name for p in self.root.iterdir() if valid_id(p.name) and p.is_dir())
+
+    def list(self, status: str | None = None, limit: int | None = None) -> list[dict[str, Any]]:
+        """Episodes, newest first; unreadable entries are skipped with a warning."""
+        out = []
+        for episode_id in reversed(self.ids()):
+            try:
+                episode = self.get(episode_id)
+            except StoreError as exc:
+                log.warning("%s", exc)
+                continue
+            if status is None or episode.get("status") == status:
+                out.append(episode)
+                if limit is not None and len(out) >= limit:
+                    break
+        return out
+
+    def pending(self) -> list[dict[str, Any]]:
+        return list(reversed(self.list(status="pending")))
+
+    def export(self, episode_id: str, dest: str | Path) -> Path:
+        """A .tar.gz of the whole episode directory."""
+        src = self._dir(episode_id)
+        if not src.is_dir():
+            raise NotFoundError(f"no episode {episode_id}")
+        dest = Path(dest)
+        if dest.is_dir():
+            dest = dest / f"{episode_id}.tar.gz"
+        tmp = dest.with_name(f".{dest.name}.tmp")
+        try:
+            with tarfile.open(tmp, "w:gz") as tar:
+                tar.add(src, arcname=episode_id)
+            os.replace(tmp, dest)
+        except OSError as exc:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            raise _store_error(f"episode {episode_id} could not be exported", exc) from None
+        return dest
+
+
+def _dumps(obj: Any) -> bytes:
+    return (json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n").encode()
+
+
+def _store_error(what: str, exc: OSError) -> StoreError:
+    if exc.errno == errno.ENOSPC:
+        return StoreError(f"{what}: the disk is full; free space on the store's filesystem "
+                          "(older episodes are intact)")
+    return StoreError(f"{what}: {exc}")
