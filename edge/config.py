@@ -30,15 +30,48 @@ class SensorConfig:
     # No fresh frame for this long means the stream is stale: never press on it.
     stale_timeout_s: float = 0.1
     reconnect_max_backoff_s: float = 5.0
+    # TCP + WebSocket handshake with xela_server.
+    connect_timeout_s: float = 2.0
+    # No fresh frame for this long on an open connection: hang up and dial again (a host
+    # that vanished leaves TCP open; a hung server may keep resending its last frame).
+    dead_timeout_s: float = 2.0
 
     def validate(self, path: str) -> None:
         _require(self.pads >= 1, path, "pads", self.pads, "must be >= 1")
-        _require(self.taxels_per_pad >= 1, path, "taxels_per_pad", self.taxels_per_pad,
-                 "must be >= 1")
-        _require(self.stale_timeout_s > 0, path, "stale_timeout_s", self.stale_timeout_s,
-                 "must be > 0")
-        _require(self.url.startswith(("ws://", "wss://")), path, "url", self.url,
-                 "must be a ws:// or wss:// URL")
+        _require(
+            self.taxels_per_pad >= 1, path, "taxels_per_pad", self.taxels_per_pad, "must be >= 1"
+        )
+        _require(
+            self.stale_timeout_s > 0, path, "stale_timeout_s", self.stale_timeout_s, "must be > 0"
+        )
+        _require(
+            self.url.startswith(("ws://", "wss://")),
+            path,
+            "url",
+            self.url,
+            "must be a ws:// or wss:// URL",
+        )
+        _require(
+            self.reconnect_max_backoff_s > 0,
+            path,
+            "reconnect_max_backoff_s",
+            self.reconnect_max_backoff_s,
+            "must be > 0",
+        )
+        _require(
+            self.connect_timeout_s > 0,
+            path,
+            "connect_timeout_s",
+            self.connect_timeout_s,
+            "must be > 0",
+        )
+        _require(
+            self.dead_timeout_s > self.stale_timeout_s,
+            path,
+            "dead_timeout_s",
+            self.dead_timeout_s,
+            f"must be > stale_timeout_s ({self.stale_timeout_s})",
+        )
 
     @property
     def channels(self) -> int:
@@ -60,14 +93,29 @@ class BusConfig:
 
     def validate(self, path: str) -> None:
         ids = (*self.joint_ids, self.gripper_id)
-        _require(len(set(ids)) == len(ids), path, "joint_ids", self.joint_ids,
-                 "motor IDs must be distinct (gripper_id included)")
+        _require(
+            len(set(ids)) == len(ids),
+            path,
+            "joint_ids",
+            self.joint_ids,
+            "motor IDs must be distinct (gripper_id included)",
+        )
         for motor_id in ids:
             _require(0 <= motor_id <= 252, path, "joint_ids", motor_id, "IDs are 0..252")
-        _require(0 < self.gripper_goal_current <= 1193, path, "gripper_goal_current",
-                 self.gripper_goal_current, "must be 1..1193 (XM430 Current Limit)")
-        _require(self.watchdog_ms % 20 == 0 and 20 <= self.watchdog_ms <= 127 * 20, path,
-                 "watchdog_ms", self.watchdog_ms, "must be a multiple of 20 in 20..2540")
+        _require(
+            0 < self.gripper_goal_current <= 1193,
+            path,
+            "gripper_goal_current",
+            self.gripper_goal_current,
+            "must be 1..1193 (XM430 Current Limit)",
+        )
+        _require(
+            self.watchdog_ms % 20 == 0 and 20 <= self.watchdog_ms <= 127 * 20,
+            path,
+            "watchdog_ms",
+            self.watchdog_ms,
+            "must be a multiple of 20 in 20..2540",
+        )
 
 
 @dataclass(frozen=True)
@@ -86,13 +134,16 @@ class PressConfig:
 
     def validate(self, path: str) -> None:
         _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")
-        _require(self.dt_stopping_s >= 0, path, "dt_stopping_s", self.dt_stopping_s,
-                 "must be >= 0")
-        _require(0 < self.close_speed_mps <= 0.1, path, "close_speed_mps",
-                 self.close_speed_mps, "must be in (0, 0.1] m/s (a gentle push)")
+        _require(self.dt_stopping_s >= 0, path, "dt_stopping_s", self.dt_stopping_s, "must be >= 0")
+        _require(
+            0 < self.close_speed_mps <= 0.1,
+            path,
+            "close_speed_mps",
+            self.close_speed_mps,
+            "must be in (0, 0.1] m/s (a gentle push)",
+        )
         _require(self.tare_s > 0, path, "tare_s", self.tare_s, "must be > 0")
-        _require(self.abort_factor > 1, path, "abort_factor", self.abort_factor,
-                 "must be > 1")
+        _require(self.abort_factor > 1, path, "abort_factor", self.abort_factor, "must be > 1")
 
 
 @dataclass(frozen=True)
@@ -106,10 +157,20 @@ class SimConfig:
     reaction_latency_s: float = 0.002
 
     def validate(self, path: str) -> None:
-        _require(1 <= self.sensor_rate_hz <= 1000, path, "sensor_rate_hz",
-                 self.sensor_rate_hz, "must be in [1, 1000] Hz")
-        _require(0 <= self.reaction_latency_s < 1, path, "reaction_latency_s",
-                 self.reaction_latency_s, "must be in [0, 1) s")
+        _require(
+            1 <= self.sensor_rate_hz <= 1000,
+            path,
+            "sensor_rate_hz",
+            self.sensor_rate_hz,
+            "must be in [1, 1000] Hz",
+        )
+        _require(
+            0 <= self.reaction_latency_s < 1,
+            path,
+            "reaction_latency_s",
+            self.reaction_latency_s,
+            "must be in [0, 1) s",
+        )
 
 
 @dataclass(frozen=True)

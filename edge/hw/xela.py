@@ -1,0 +1,478 @@
+"""XELA uSkin through ``xela_server``: the frame parser and an aiohttp WebSocket client.
+
+The server sends one JSON text frame per update: bookkeeping keys (``message`` = sequence
+number, ``time``, ``sensors``, ...) plus one object per sensor under its number (``"1"``,
+``"2"``) whose ``data`` holds x, y, z hex words per taxel (1.7.7: a list of ints; 1.8 adds
+``integer``, ``temp``, ``ups``). See DESIGN section 2 and ``shared/fixtures/xela/``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import re
+import time
+from collections.abc import AsyncIterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Self
+
+import aiohttp
+import numpy as np
+
+from edge.config import SensorConfig
+from edge.errors import SensorError, StaleSensorError
+from edge.hw.tactile import StreamStats, TactileFrame
+
+log = logging.getLogger(__name__)
+
+# A 2-sensor 1.8 frame with calibration is ~7 kB; far above that is a broken or hostile peer.
+MAX_FRAME_CHARS = 256 * 1024
+# First reconnect delay; it doubles per failed attempt up to reconnect_max_backoff_s.
+_RECONNECT_MIN_BACKOFF_S = 0.05
+# Waiting for the server's close reply when we hang up; a dead server never answers.
+_CLOSE_TIMEOUT_S = 0.5
+# A consumer this many frames behind loses the oldest ones (about 2 s at 125 Hz).
+_QUEUE_FRAMES = 256
+
+_HEX_WORD = re.compile(r"[0-9A-Fa-f]{1,4}")
+
+
+class SensorLayoutError(SensorError):
+    """The server's sensors do not match the configured pads/taxels: fix the configuration."""
+
+
+@dataclass(frozen=True, eq=False)
+class ParsedFrame:
+    """One data frame as the server sent it; sensors in number order."""
+
+    seq: int
+    time: float
+    raw: np.ndarray  # (sum of taxels * 3,) uint16, channel order of edge.hw.tactile
+    sensors: tuple[str, ...]  # sensor numbers, e.g. ("1", "2")
+    models: tuple[str, ...]
+    taxels: tuple[int, ...]
+
+    def describe(self) -> str:
+        """The layout in words, e.g. ``2 sensors: 1 = uSPa46 x 24 taxels, 2 = ...``."""
+        parts = ", ".join(
+            f"{s} = {m} x {n} taxels"
+            for s, m, n in zip(self.sensors, self.models, self.taxels, strict=True)
+        )
+        return f"{len(self.sensors)} sensor{'s' if len(self.sensors) != 1 else ''}: {parts}"
+
+
+def parse_layout_free(msg: str | bytes | Mapping[str, Any]) -> ParsedFrame | None:
+    """Parse one server frame without a layout expectation; None for the Welcome frame.
+
+    Raises SensorError, naming what is wrong, for anything that is not a well-formed frame.
+    """
+    obj = _load(msg)
+    seq = obj.get("message")
+    if seq == "Welcome":
+        return None
+    if type(seq) is not int:
+        raise SensorError(
+            f"XELA frame: 'message' (sequence number) must be an int, got {seq!r:.40}"
+        )
+    # Sensor objects sit under their number; every other key is bookkeeping.
+    numbers = sorted(
+        (k for k in obj if isinstance(k, str) and k.isascii() and k.isdecimal()), key=int
+    )
+    if not numbers:
+        raise SensorError(f"XELA frame {seq}: no sensor keys ('1', '2', ...) in the frame")
+    arrays, models, taxels = [], [], []
+    for number in numbers:
+        words = _sensor_words(obj[number], seq, number)
+        if len(words) % 3:
+            raise SensorError(
+                f"XELA frame {seq}, sensor {number}: {len(words)} values is not x, y, z per taxel"
+            )
+        sensor = obj[number]
+        declared = sensor.get("taxels")
+        if declared is not None and declared != len(words) // 3:
+            raise SensorError(
+                f"XELA frame {seq}, sensor {number}: says {declared!r:.20} taxels but sends "
+                f"{len(words)} values"
+            )
+        model = sensor.get("model", "?")
+        models.append(model[:40] if isinstance(model, str) else repr(model)[:40])
+        taxels.append(len(words) // 3)
+        arrays.append(words)
+    raw = arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+    return ParsedFrame(
+        seq, _frame_time(obj, seq, numbers[0]), raw, tuple(numbers), tuple(models), tuple(taxels)
+    )
+
+
+def _frame_time(obj: Mapping[str, Any], seq: int, first_sensor: str) -> float:
+    # XELA's own 1.7 ROS bridge reads only the per-sensor time and defaults it, so do not
+    # insist on the top-level one: fall back to sensor 1's, else NaN (the seq still counts).
+    t = obj.get("time")
+    if t is None:
+        t = obj[first_sensor].get("time")
+        if t is None:
+            return math.nan
+    if type(t) not in (int, float) or not math.isfinite(t):
+        raise SensorError(f"XELA frame {seq}: 'time' must be a finite number, got {t!r:.40}")
+    return float(t)
+
+
+def parse_frame(
+    msg: str | bytes | Mapping[str, Any],
+    expected_pads: int,
+    expected_taxels: int,
+    *,
+    expected_model: str | None = None,
+) -> ParsedFrame | None:
+    """Parse one frame and check it has ``expected_pads`` sensors of ``expected_taxels``.
+
+    Returns None for the Welcome frame. Raises SensorLayoutError when the layout differs
+    (the message names both sides) and SensorError for a malformed frame.
+    """
+    frame = parse_layout_free(msg)
+    if frame is None:
+        return None
+    configured = (
+        f"configured {expected_pads} x {expected_model or 'sensor'} ({expected_taxels} taxels each)"
+    )
+    if len(frame.sensors) != expected_pads:
+        raise SensorLayoutError(
+            f"XELA layout mismatch: {configured} but the server sends {frame.describe()}. "
+            "Check that every pad is connected and listed in xela_server's configuration, "
+            "or set sensor.pads to match."
+        )
+    for number, model, n in zip(frame.sensors, frame.models, frame.taxels, strict=True):
+        if n != expected_taxels:
+            raise SensorLayoutError(
+                f"XELA layout mismatch: {configured} but the server sends sensor {number} "
+                f"model {model} with {n} taxels ({frame.describe()}). Set sensor.model and "
+                "sensor.taxels_per_pad to the hardware, or fix xela_server's configuration."
+            )
+    return frame
+
+
+def _load(msg: str | bytes | Mapping[str, Any]) -> Mapping[str, Any]:
+    if isinstance(msg, Mapping):
+        return msg
+    if not isinstance(msg, str | bytes | bytearray):
+        raise SensorError(f"XELA frame must be text or a JSON object, got {type(msg).__name__}")
+    if len(msg) > MAX_FRAME_CHARS:
+        raise SensorError(
+            f"XELA frame of {len(msg)} characters exceeds the {MAX_FRAME_CHARS} limit"
+        )
+    try:
+        obj = json.loads(msg)
+    except (ValueError, RecursionError) as exc:
+        # UnicodeDecodeError is a ValueError; RecursionError comes from absurd nesting.
+        raise SensorError(f"XELA frame is not JSON ({exc}): {msg[:60]!r}") from None
+    if not isinstance(obj, dict):
+        raise SensorError(f"XELA frame must be a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _sensor_words(sensor: Any, seq: int, number: str) -> np.ndarray:
+    if not isinstance(sensor, Mapping):
+        raise SensorError(f"XELA frame {seq}: sensor {number} is not an object")
+    # 1.8 sends the same words as ints in `integer`: cheaper than hex, so prefer it.
+    values = sensor.get("integer")
+    if values is None:
+        values = sensor.get("data")
+    if isinstance(values, str):
+        return _hex_words(values, seq, number)
+    if isinstance(values, list):
+        return _int_words(values, seq, number)
+    if values is None:
+        raise SensorError(f"XELA frame {seq}: sensor {number} has no 'data' or 'integer'")
+    raise SensorError(
+        f"XELA frame {seq}: sensor {number} 'data' must be a hex string or a list of ints, "
+        f"got {type(values).__name__}"
+    )
+
+
+def _hex_words(text: str, seq: int, number: str) -> np.ndarray:
+    n = text.count(",") + 1
+    # Fast path for the usual "8125,81B2,...": commas exactly every 5th character, so every
+    # word is 4 characters; fromhex then rejects non-hex, and a short result means whitespace.
+    if len(text) == 5 * n - 1 and text[4::5] == "," * (n - 1):
+        try:
+            packed = bytes.fromhex(text.replace(",", ""))
+        except ValueError:
+            packed = b""
+        if len(packed) == 2 * n:
+            return np.frombuffer(packed, dtype=">u2").astype(np.uint16)
+    words = [w.strip() for w in text.split(",")]
+    for i, word in enumerate(words):
+        if not _HEX_WORD.fullmatch(word):
+            raise SensorError(
+                f"XELA frame {seq}, sensor {number}: value {i} {word[:20]!r} is not a 16-bit "
+                "hex word"
+            )
+    return np.array([int(w, 16) for w in words], dtype=np.uint16)
+
+
+def _int_words(values: list[Any], seq: int, number: str) -> np.ndarray:
+    if not all(type(v) is int for v in values):
+        bad = next(v for v in values if type(v) is not int)
+        raise SensorError(f"XELA frame {seq}, sensor {number}: value {bad!r:.20} is not an int")
+    if values and (min(values) < 0 or max(values) > 0xFFFF):
+        raise SensorError(
+            f"XELA frame {seq}, sensor {number}: values must be 0..65535, got "
+            f"{min(values)}..{max(values)}"
+        )
+    return np.array(values, dtype=np.uint16)
+
+
+_CLOSED = object()
+
+
+class XelaClient:
+    """:class:`~edge.hw.tactile.TactileSource` reading ``xela_server`` over WebSocket.
+
+    A background task owns the connection: it skips the Welcome frame, drops repeated
+    frames (counted), timestamps fresh ones with ``time.monotonic()`` and queues them; it
+    reconnects with capped exponential backoff. Malformed frames are skipped and counted in
+    ``stats.skipped`` (a stream of them reads as stale); a layout that does not match the
+    configuration stops the client and ``frames()`` raises :class:`SensorLayoutError`.
+    """
+
+    def __init__(self, config: SensorConfig) -> None:
+        self._cfg = config
+        self.stats = StreamStats()
+        self.server_layout: str | None = None  # what the server sends, in words
+        self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=_QUEUE_FRAMES)
+        self._task: asyncio.Task[None] | None = None
+        self._session: aiohttp.ClientSession | None = None
+        self._fatal: SensorError | None = None
+        self._last_fresh: float | None = None  # monotonic time of the last fresh frame
+        self._connected = False
+        self._connections = 0
+        self._closed = False
+        self._stale_reported = False
+        self._model_warned = False
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    async def start(self) -> None:
+        if self._closed:
+            raise RuntimeError("XelaClient cannot be restarted after close()")
+        if self._task is not None:
+            return
+        # No session-wide total timeout: a WebSocket stays open for days.
+        timeout = aiohttp.ClientTimeout(total=None, connect=self._cfg.connect_timeout_s)
+        self._session = aiohttp.ClientSession(timeout=timeout)
+        self._task = asyncio.create_task(self._run(), name=f"xela-client {self._cfg.url}")
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        if self._session is not None:
+            await self._session.close()
+        self._connected = False
+        self._put(_CLOSED)
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.close()
+
+    def is_fresh(self) -> bool:
+        """True while the last fresh frame is younger than ``stale_timeout_s``."""
+        return (
+            self._fatal is None
+            and not self._closed
+            and self._last_fresh is not None
+            and time.monotonic() - self._last_fresh < self._cfg.stale_timeout_s
+        )
+
+    async def frames(self, *, first_timeout_s: float | None = None) -> AsyncIterator[TactileFrame]:
+        """Yield fresh frames; raise StaleSensorError after ``stale_timeout_s`` without one.
+
+        ``first_timeout_s`` allows longer for the first frame (e.g. while connecting at
+        start-up). After a StaleSensorError the client keeps (re)connecting: call again.
+        """
+        if self._task is None:
+            raise RuntimeError("XelaClient.frames() before start()")
+        loop = asyncio.get_running_loop()
+        # Frames carry time.monotonic(); deadlines are in loop time (the same clock on
+        # CPython's loop, not necessarily on others).
+        to_loop_s = loop.time() - time.monotonic()
+        stale_s = self._cfg.stale_timeout_s
+        deadline = loop.time() + (stale_s if first_timeout_s is None else first_timeout_s)
+        if self._last_fresh is not None:
+            deadline = max(deadline, self._last_fresh + to_loop_s + stale_s)
+        while not self._closed:
+            if self._fatal is not None:
+                raise self._fatal
+            try:
+                async with asyncio.timeout_at(deadline):
+                    item = await self._queue.get()
+            except TimeoutError:
+                raise self._stale_error() from None
+            if item is _CLOSED:
+                return
+            if isinstance(item, SensorError):
+                raise item
+            assert isinstance(item, TactileFrame)
+            deadline = item.recv_time + to_loop_s + stale_s
+            yield item
+
+    def _stale_error(self) -> StaleSensorError:
+        age = None if self._last_fresh is None else time.monotonic() - self._last_fresh
+        state = "connected" if self._connected else "not connected"
+        since = "no frame yet" if age is None else f"last fresh frame {age:.3f} s ago"
+        msg = (
+            f"XELA stream at {self._cfg.url} is stale: {since} (stale_timeout_s="
+            f"{self._cfg.stale_timeout_s}), {state}, {self.stats.repeats} repeated and "
+            f"{self.stats.skipped} malformed frames so far"
+        )
+        if not self._stale_reported:
+            self._stale_reported = True
+            log.warning("%s", msg)
+        return StaleSensorError(msg)
+
+    def _put(self, item: object) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+            self.stats.overruns += 1
+            if self.stats.overruns % 100 == 1:
+                log.warning("tactile consumer is behind: %d frames dropped", self.stats.overruns)
+        self._queue.put_nowait(item)
+
+    async def _run(self) -> None:
+        min_backoff_s = min(_RECONNECT_MIN_BACKOFF_S, self._cfg.reconnect_max_backoff_s)
+        backoff_s = min_backoff_s
+        attempt = 0
+        while True:
+            attempt += 1
+            try:
+                if await self._connect_and_read(attempt):
+                    backoff_s, attempt = min_backoff_s, 0
+            except SensorLayoutError as exc:
+                # Not transient: reconnecting gives the same layout. Stop and tell the consumer.
+                log.error("%s", exc)
+                self._fatal = exc
+                self._put(exc)
+                return
+            except (aiohttp.ClientError, OSError, TimeoutError) as exc:
+                log.warning(
+                    "XELA server %s: attempt %d failed (%s); next try in %.2f s",
+                    self._cfg.url,
+                    attempt,
+                    str(exc) or type(exc).__name__,
+                    backoff_s,
+                )
+            except Exception:
+                # A bug here must not silently end the sensor path: log loudly, keep trying.
+                log.exception("XELA client: unexpected error; next try in %.2f s", backoff_s)
+            finally:
+                self._connected = False
+            await asyncio.sleep(backoff_s)
+            backoff_s = min(backoff_s * 2, self._cfg.reconnect_max_backoff_s)
+
+    async def _connect_and_read(self, attempt: int) -> bool:
+        """One connection; returns whether it delivered a fresh frame."""
+        assert self._session is not None
+        async with asyncio.timeout(self._cfg.connect_timeout_s):
+            ws = await self._session.ws_connect(
+                self._cfg.url,
+                timeout=aiohttp.ClientWSTimeout(ws_receive=None, ws_close=_CLOSE_TIMEOUT_S),
+                max_msg_size=MAX_FRAME_CHARS,
+            )
+        self._connected = True
+        if self._connections:
+            self.stats.reconnects += 1
+        self.stats.new_connection()
+        self._connections += 1
+        log.info(
+            "%s XELA server %s (attempt %d)",
+            "reconnected to" if self.stats.reconnects else "connected to",
+            self._cfg.url,
+            attempt,
+        )
+        delivered = False
+        loop = asyncio.get_running_loop()
+        # A server that hangs (or a host that vanished without closing TCP) sends nothing
+        # fresh: give up on the connection after dead_timeout_s and dial again.
+        progress = loop.time()
+        try:
+            while True:
+                remaining = progress + self._cfg.dead_timeout_s - loop.time()
+                try:
+                    # aiohttp reads a zero timeout as "none": keep it positive.
+                    msg = await ws.receive(timeout=max(remaining, 1e-3))
+                except TimeoutError:
+                    log.warning(
+                        "XELA server %s: no fresh frame for %.1f s; reconnecting",
+                        self._cfg.url,
+                        self._cfg.dead_timeout_s,
+                    )
+                    return delivered
+                recv_time = time.monotonic()
+                if msg.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
+                    if self._handle(msg.data, recv_time):
+                        delivered = True
+                        progress = loop.time()
+                elif msg.type in (
+                    aiohttp.WSMsgType.CLOSE,
+                    aiohttp.WSMsgType.CLOSING,
+                    aiohttp.WSMsgType.CLOSED,
+                    aiohttp.WSMsgType.ERROR,
+                ):
+                    log.warning(
+                        "XELA server %s: connection lost (%s %s %s)",
+                        self._cfg.url,
+                        msg.type.name,
+                        msg.data,
+                        msg.extra or "",
+                    )
+                    return delivered
+        finally:
+            await ws.close()
+
+    def _handle(self, data: str | bytes, recv_time: float) -> bool:
+        """Parse, count and queue one message; True when it was a fresh frame."""
+        cfg = self._cfg
+        try:
+            frame = parse_frame(data, cfg.pads, cfg.taxels_per_pad, expected_model=cfg.model)
+        except SensorLayoutError:
+            raise
+        except SensorError as exc:
+            self.stats.skipped += 1
+            if self.stats.skipped % 100 == 1:
+                log.warning(
+                    "skipping malformed XELA frame (%d so far): %s", self.stats.skipped, exc
+                )
+            return False
+        if frame is None:
+            log.debug("XELA server welcome skipped")
+            return False
+        if self.server_layout is None:
+            self.server_layout = frame.describe()
+            log.info("XELA server sends %s", self.server_layout)
+        if not self._model_warned and any(m != cfg.model for m in frame.models):
+            self._model_warned = True
+            log.warning(
+                "XELA server reports models %s, configured %s; the layout matches, going on",
+                ", ".join(frame.models),
+                cfg.model,
+            )
+        if not self.stats.observe(frame.seq, frame.time):
+            return False
+        if self._stale_reported:
+            self._stale_reported = False
+            log.info("XELA stream fresh again (frame %d)", frame.seq)
+        self._last_fresh = recv_time
+        self._put(TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models))
+        return True

@@ -1,0 +1,331 @@
+"""An emulator of XELA's ``xela_server`` on loopback, speaking its WebSocket JSON.
+
+Each client gets the Welcome frame, then one JSON text frame per tick, in the 1.7 dialect
+(``data`` hex string, ``calibrated: null``), 1.7.7 (``data`` as a list of ints) or 1.8 (adds
+``integer``, ``temp`` in kelvin, ``ups``). A :class:`FrameSource` gives the raw counts. Faults
+can be switched at run time to test the client: silence, a frozen frame, dropped
+connections, garbage.
+
+Run one by hand: ``python -m edge.sim.xela_server --port 5000``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import enum
+import json
+import logging
+import time
+from typing import Literal, Protocol, Self
+
+import numpy as np
+from aiohttp import WSCloseCode, web
+
+log = logging.getLogger(__name__)
+
+Dialect = Literal["1.7", "1.7.7", "1.8"]
+DEFAULT_PORT = 5000
+# Frames a slow client may fall behind before it loses the oldest (about 1 s at 125 Hz).
+_CLIENT_QUEUE_FRAMES = 128
+# Grace for clients to answer our close frame when the emulator stops.
+_CLOSE_TIMEOUT_S = 0.5
+
+
+class FrameSource(Protocol):
+    def frame(self, t: float) -> np.ndarray:
+        """(sensors * taxels * 3,) uint16 raw counts for monotonic time ``t``."""
+        ...
+
+
+class IdleSource:
+    """An unloaded sensor: x, y near 32768, z near 37000, fixed offsets, ~2 counts noise."""
+
+    def __init__(self, channels: int = 96, *, seed: int = 0, noise_counts: float = 2.0) -> None:
+        self._rng = np.random.default_rng(seed)
+        base = np.tile(np.array([32768.0, 32768.0, 37000.0]), channels // 3)
+        # Every real taxel idles at its own value: that is why the runtime tares.
+        self._base = base + self._rng.uniform(-100.0, 100.0, channels)
+        self._noise = noise_counts
+
+    def frame(self, t: float) -> np.ndarray:
+        noisy = self._base + self._rng.normal(0.0, self._noise, self._base.shape)
+        return np.clip(np.rint(noisy), 0, 0xFFFF).astype(np.uint16)
+
+
+class Fault(enum.Enum):
+    NONE = "none"
+    SILENT = "silent"  # connections stay open, nothing is sent
+    FREEZE = "freeze"  # the last frame is resent unchanged (same seq and time)
+    GARBAGE = "garbage"  # non-JSON or wrongly shaped frames instead of data
+
+
+# What a broken server or link might emit; all of it must be refused by the client.
+GARBAGE_FRAMES = (
+    "not json {",
+    '{"message": 1, "time": 1.0, "1": {"data": "ZZZZ,0000,0000"}}',
+    '{"message": 1, "time": 1.0}',
+    "[1, 2, 3]",
+    '{"message": 1, "time": 1.0, "1": {"data": [70000, -1, 5]}}',
+)
+
+
+def encode_frame(
+    seq: int,
+    wall_time: float,
+    raw: np.ndarray,
+    *,
+    sensors: int = 2,
+    taxels: int = 16,
+    model: str = "XR1944",
+    dialect: Dialect = "1.8",
+) -> str:
+    """One data frame as ``xela_server`` of ``dialect`` would send it."""
+    per = taxels * 3
+    frame: dict[str, object] = {"message": seq, "time": wall_time, "sensors": sensors}
+    if dialect == "1.8":
+        frame |= {"type": "routine", "version": "1.8.0-vtzero-emulator"}
+    for i in range(sensors):
+        words = raw[i * per : (i + 1) * per]
+        ints = words.tolist()
+        sensor: dict[str, object] = {
+            "time": wall_time,
+            "sensor": str(i + 1),
+            "model": model,
+            "taxels": taxels,
+        }
+        if dialect == "1.7.7":
+            sensor["data"] = ints
+        else:
+            sensor["data"] = ",".join(f"{v:04X}" for v in ints)
+        if dialect == "1.8":
+            # XR1944 has no calibration: 1.8 leaves `calibrated` out, 1.7 sends null.
+            sensor |= {"integer": ints, "temp": [303.15] * taxels, "ups": [125.0] * taxels}
+        else:
+            sensor["calibrated"] = None
+        frame[str(i + 1)] = sensor
+    if dialect == "1.8":
+        frame["sendtime"] = time.time()
+    return json.dumps(frame, separators=(",", ":"))
+
+
+def welcome_frame(sensors: int) -> str:
+    return json.dumps({"message": "Welcome", "time": time.time(), "sensors": sensors})
+
+
+class XelaServerEmulator:
+    """A ``xela_server`` stand-in on ``host:port`` (port 0: ephemeral, read ``.port``)."""
+
+    def __init__(
+        self,
+        source: FrameSource | None = None,
+        *,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        rate_hz: float = 125.0,
+        sensors: int = 2,
+        taxels: int = 16,
+        model: str = "XR1944",
+        dialect: Dialect = "1.8",
+    ) -> None:
+        if not 0 < rate_hz <= 2000:
+            raise ValueError(f"rate_hz must be in (0, 2000], got {rate_hz!r}")
+        self._source = source or IdleSource(sensors * taxels * 3)
+        self._host, self._port = host, port
+        self._period_s = 1.0 / rate_hz
+        self._sensors, self._taxels, self._model = sensors, taxels, model
+        self._dialect: Dialect = dialect
+        self.fault = Fault.NONE
+        self.frames_sent = 0  # data frames produced (each goes to every client)
+        self.late_ticks = 0  # ticks skipped because the loop woke more than a period late
+        self._seq = 0
+        self._last_text: str | None = None
+        self._garbage_index = 0
+        # Per connection: its request (for the transport) and its queue of frames to send.
+        self._clients: dict[web.WebSocketResponse, tuple[web.Request, asyncio.Queue[str]]] = {}
+        self._handlers: set[asyncio.Task[object]] = set()
+        self._runner: web.AppRunner | None = None
+        self._ticker: asyncio.Task[None] | None = None
+
+    @property
+    def port(self) -> int:
+        return self._port
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self._host}:{self._port}/"
+
+    @property
+    def clients(self) -> int:
+        return len(self._clients)
+
+    async def start(self) -> None:
+        app = web.Application()
+        app.router.add_get("/", self._handle)
+        self._runner = web.AppRunner(
+            app, access_log=None, handle_signals=False, shutdown_timeout=_CLOSE_TIMEOUT_S
+        )
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self._host, self._port)
+        await site.start()
+        self._port = self._runner.addresses[0][1]
+        self._ticker = asyncio.create_task(self._tick_loop(), name=f"xela-emulator:{self._port}")
+        log.info(
+            "XELA emulator on %s at %.0f Hz, %d x %s, dialect %s",
+            self.url,
+            1 / self._period_s,
+            self._sensors,
+            self._model,
+            self._dialect,
+        )
+
+    async def stop(self) -> None:
+        """Stop ticking, close every connection, free the port. Idempotent."""
+        ticker, self._ticker = self._ticker, None
+        failure: Exception | None = None
+        if ticker is not None:
+            ticker.cancel()
+            try:
+                await ticker
+            except asyncio.CancelledError:
+                pass
+            except Exception as exc:
+                # A broken frame source: free the port first, then say so.
+                failure = exc
+        await self.drop_connections()
+        runner, self._runner = self._runner, None
+        if runner is not None:
+            await runner.cleanup()
+        if failure is not None:
+            raise failure
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.stop()
+
+    async def drop_connections(self, *, abrupt: bool = False) -> None:
+        """Close every client connection (``abrupt``: reset TCP, no close handshake)."""
+        for ws, (request, _) in list(self._clients.items()):
+            if abrupt and request.transport is not None:
+                request.transport.abort()
+            else:
+                await ws.close(code=WSCloseCode.GOING_AWAY, message=b"emulator drop")
+        handlers = list(self._handlers)
+        if handlers:
+            await asyncio.wait(handlers, timeout=_CLOSE_TIMEOUT_S * 2)
+
+    async def _handle(self, request: web.Request) -> web.WebSocketResponse:
+        ws = web.WebSocketResponse(compress=False, timeout=_CLOSE_TIMEOUT_S)
+        await ws.prepare(request)
+        task = asyncio.current_task()
+        assert task is not None
+        self._handlers.add(task)
+        queue: asyncio.Queue[str] = asyncio.Queue(maxsize=_CLIENT_QUEUE_FRAMES)
+        queue.put_nowait(welcome_frame(self._sensors))
+        self._clients[ws] = (request, queue)
+        sender = asyncio.create_task(self._send_loop(ws, queue), name="xela-emulator-send")
+        log.info("XELA emulator: client %s connected", request.remote)
+        try:
+            # Reading keeps the close handshake and pings answered while the sender sends.
+            async for _ in ws:
+                pass
+        finally:
+            sender.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sender
+            self._clients.pop(ws, None)
+            self._handlers.discard(task)
+            log.info("XELA emulator: client %s gone", request.remote)
+        return ws
+
+    async def _send_loop(self, ws: web.WebSocketResponse, queue: asyncio.Queue[str]) -> None:
+        try:
+            while True:
+                await ws.send_str(await queue.get())
+        except (ConnectionError, RuntimeError) as exc:
+            # The peer went away mid-send; the handler's read loop sees it and cleans up.
+            log.debug("XELA emulator: send failed: %s", exc)
+
+    async def _tick_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time()
+        while True:
+            deadline += self._period_s
+            now = loop.time()
+            if now > deadline + self._period_s:
+                # Woke far too late (a stalled loop): skip the missed ticks, do not burst.
+                missed = int((now - deadline) / self._period_s)
+                self.late_ticks += missed
+                deadline += missed * self._period_s
+            await asyncio.sleep(deadline - now)
+            try:
+                text = self._next_text(time.monotonic())
+            except Exception:
+                log.exception("XELA emulator: frame source failed; no more frames")
+                raise
+            if text is None:
+                continue
+            for _, queue in self._clients.values():
+                if queue.full():
+                    queue.get_nowait()
+                queue.put_nowait(text)
+
+    def _next_text(self, t: float) -> str | None:
+        fault = self.fault
+        if fault is Fault.SILENT:
+            return None
+        if fault is Fault.FREEZE and self._last_text is not None:
+            return self._last_text
+        if fault is Fault.GARBAGE:
+            self._garbage_index += 1
+            return GARBAGE_FRAMES[self._garbage_index % len(GARBAGE_FRAMES)]
+        raw = np.asarray(self._source.frame(t))
+        expected = self._sensors * self._taxels * 3
+        if raw.shape != (expected,) or raw.dtype != np.uint16:
+            raise ValueError(
+                f"frame source gave {raw.dtype} {raw.shape}, need uint16 ({expected},)"
+            )
+        self._seq += 1
+        self.frames_sent += 1
+        self._last_text = encode_frame(
+            self._seq,
+            time.time(),
+            raw,
+            sensors=self._sensors,
+            taxels=self._taxels,
+            model=self._model,
+            dialect=self._dialect,
+        )
+        return self._last_text
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Emulate xela_server (idle XR1944 pads).")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT)
+    parser.add_argument("--rate", type=float, default=125.0, help="frames per second")
+    parser.add_argument("--sensors", type=int, default=2)
+    parser.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+
+    async def serve() -> None:
+        async with XelaServerEmulator(
+            host=args.host,
+            port=args.port,
+            rate_hz=args.rate,
+            sensors=args.sensors,
+            dialect=args.dialect,
+        ):
+            await asyncio.Event().wait()
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve())
+
+
+if __name__ == "__main__":
+    main()
