@@ -131,6 +131,8 @@ class PressConfig:
     tare_s: float = 0.3
     # A norm this many times x_th means the stop came too late: abort and open.
     abort_factor: float = 25.0
+    # Gripper width (ROBOTIS joint value, -0.010 closed .. 0.019 fully open) before closing.
+    open_width_m: float = 0.019
 
     def validate(self, path: str) -> None:
         _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")
@@ -144,6 +146,8 @@ class PressConfig:
         )
         _require(self.tare_s > 0, path, "tare_s", self.tare_s, "must be > 0")
         _require(self.abort_factor > 1, path, "abort_factor", self.abort_factor, "must be > 1")
+        _require(-0.010 < self.open_width_m <= 0.019, path, "open_width_m", self.open_width_m,
+                 "must be in (-0.010, 0.019] m (the gripper's range)")
 
 
 @dataclass(frozen=True)
@@ -171,6 +175,69 @@ class SimConfig:
             self.reaction_latency_s,
             "must be in [0, 1) s",
         )
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Where the still image comes from when a request brings none."""
+
+    kind: Literal["none", "command", "v4l2", "http"] = "none"
+    # kind = "command": a program writing a JPEG to {out}, e.g. "fswebcam -q --no-banner {out}".
+    command: str = ""
+    device: str = "/dev/video0"
+    # kind = "http": a snapshot URL (IP cameras; the simulated robot serves one).
+    url: str = ""
+    timeout_s: float = 10.0
+
+    def validate(self, path: str) -> None:
+        _require(self.kind != "command" or "{out}" in self.command, path, "command",
+                 self.command, "must contain {out}, the file the program writes")
+        _require(self.kind != "http" or self.url.startswith(("http://", "https://")), path,
+                 "url", self.url, "must be an http(s) URL")
+        _require(self.timeout_s > 0, path, "timeout_s", self.timeout_s, "must be > 0")
+
+
+@dataclass(frozen=True)
+class ButtonConfig:
+    kind: Literal["none", "serial", "gpio"] = "none"
+    port: str = ""  # serial: e.g. /dev/ttyUSB1
+    line: str = "cts"  # serial: cts or dsr; gpio: the line offset
+    chip: str = "/dev/gpiochip0"
+
+    def validate(self, path: str) -> None:
+        _require(self.kind != "serial" or bool(self.port), path, "port", self.port,
+                 "a serial button needs its port")
+        _require(self.kind != "serial" or self.line in ("cts", "dsr"), path, "line",
+                 self.line, "must be cts or dsr for a serial button")
+        _require(self.kind != "gpio" or self.line.isdigit(), path, "line", self.line,
+                 "must be the GPIO line offset (a number) for a gpio button")
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    """Paths and the press controller's timeouts."""
+
+    models_dir: str = "models"
+    # Episodes go here; under systemd $VTZERO_STATE_DIR (StateDirectory) wins.
+    state_dir: str = "state"
+    # Duration of each arm move between poses (time-based profile).
+    move_time_s: float = 1.5
+    move_timeout_s: float = 5.0
+    # Closing without crossing x_th for this long ends the press with "no contact".
+    close_timeout_s: float = 8.0
+    vlm_retry_base_s: float = 5.0
+    vlm_retry_max_s: float = 300.0
+
+    def validate(self, path: str) -> None:
+        for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
+                     "vlm_retry_max_s"):
+            _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
+
+
+def _default_poses() -> dict[str, tuple[int, ...]]:
+    # Raw Goal Positions of joints 11-14; teach real ones with `vt-edge pose teach NAME`.
+    return {"rest": (2048, 1024, 3072, 2048), "above": (2048, 1650, 2650, 2048),
+            "lowered": (2048, 1850, 2600, 1900)}
 
 
 @dataclass(frozen=True)
@@ -213,6 +280,21 @@ class Config:
     press: PressConfig = field(default_factory=PressConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     api: ApiConfig = field(default_factory=ApiConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    button: ButtonConfig = field(default_factory=ButtonConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    poses: dict[str, tuple[int, ...]] = field(default_factory=_default_poses)
+
+    def validate(self, path: str) -> None:
+        for name in ("rest", "above", "lowered"):
+            if name not in self.poses:
+                raise ConfigError(f"poses.{name} is missing: add it, or teach it with "
+                                  f"`vt-edge pose teach {name}`")
+        for name, pose in self.poses.items():
+            _require(len(pose) == len(self.bus.joint_ids), "poses", name, pose,
+                     f"needs one raw position per joint {self.bus.joint_ids}")
+            _require(all(0 <= v <= 4095 for v in pose), "poses", name, pose,
+                     "raw positions are 0..4095")
 
 
 def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:

@@ -114,3 +114,30 @@ class FakeCamera:
     async def capture(self) -> bytes:
         self.captures += 1
         return self.image
+
+
+class HttpCamera:
+    """A snapshot URL (IP cameras; the simulated robot serves one)."""
+
+    def __init__(self, url: str, timeout_s: float = CAPTURE_TIMEOUT_S) -> None:
+        self.url = url
+        self.timeout_s = timeout_s
+
+    async def capture(self) -> bytes:
+        import aiohttp
+
+        timeout = aiohttp.ClientTimeout(total=self.timeout_s)
+        try:
+            async with aiohttp.ClientSession(timeout=timeout) as session, \
+                    session.get(self.url) as resp:
+                if resp.status != 200:
+                    raise DeviceError(f"camera {self.url} answered HTTP {resp.status}")
+                data = await resp.content.read(MAX_IMAGE_BYTES + 1)
+        except TimeoutError:
+            raise DeviceTimeoutError(
+                f"camera {self.url} gave no image within {self.timeout_s} s") from None
+        except aiohttp.ClientError as exc:
+            raise DeviceError(f"camera {self.url} unreachable: {exc}") from None
+        if not 0 < len(data) <= MAX_IMAGE_BYTES:
+            raise DeviceError(f"camera image has {len(data)} bytes; expected 1..{MAX_IMAGE_BYTES}")
+        return data

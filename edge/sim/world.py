@@ -25,12 +25,21 @@ FORCE_PER_MA_N = 10.0 / (200 * 2.69)
 PHYSICS_DT_S = 0.0005
 
 
+# The ROBOTIS "width" is the gripper joint value (-0.010 closed .. 0.019 open); both fingers
+# move by it, so the gap between the pads is twice its distance from the closed end.
+CLOSED_WIDTH_M = -0.010
+
+
 def width_from_raw(raw: float) -> float:
     return raw * WIDTH_PER_RAW_M - WIDTH_OFFSET_M
 
 
 def raw_from_width(width_m: float) -> float:
     return (width_m + WIDTH_OFFSET_M) / WIDTH_PER_RAW_M
+
+
+def gap_from_raw(raw: float) -> float:
+    return max(2.0 * (width_from_raw(raw) - CLOSED_WIDTH_M), 0.0)
 
 
 class SimWorld:
@@ -70,7 +79,7 @@ class SimWorld:
             return 0.0
         with self._lock:
             self._advance(time.monotonic())
-            self._gap = max(width_from_raw(position_raw), 0.0)
+            self._gap = gap_from_raw(position_raw)
             return self._contact.force / FORCE_PER_MA_N
 
     def frame(self, t: float) -> np.ndarray:

@@ -1,0 +1,58 @@
+"""Build the daemon's devices from the configuration (real drivers in both modes: in sim
+mode they talk to the emulated robot)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+
+from edge.config import Config
+from edge.hw.arm import DynamixelArm, DynamixelGripper
+from edge.hw.button import GPIOButton, SerialButton
+from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
+from edge.hw.dynamixel import DynamixelBus
+from edge.hw.xela import XelaClient
+from edge.runtime import Devices
+
+log = logging.getLogger(__name__)
+
+
+def make_camera(cfg: Config):
+    c = cfg.camera
+    if c.kind == "command":
+        return CommandCamera(c.command, c.timeout_s)
+    if c.kind == "v4l2":
+        return V4L2Camera(c.device)
+    if c.kind == "http":
+        return HttpCamera(c.url, c.timeout_s)
+    return None
+
+
+def make_button(cfg: Config):
+    b = cfg.button
+    if b.kind == "serial":
+        return SerialButton(b.port, b.line)  # type: ignore[arg-type]
+    if b.kind == "gpio":
+        return GPIOButton(b.chip, int(b.line))
+    return None
+
+
+async def open_devices(cfg: Config) -> Devices:
+    """Connect everything; on failure, close what was opened and re-raise."""
+    tactile = XelaClient(cfg.sensor)
+    bus = DynamixelBus(cfg.bus)
+    try:
+        await tactile.start()
+        await bus.connect()
+        await bus.set_torque(True)
+        gripper = DynamixelGripper(bus, open_width_m=cfg.press.open_width_m)
+        arm = DynamixelArm(bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
+        devices = Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),
+                          button=make_button(cfg), bus=bus)
+    except BaseException:
+        with contextlib.suppress(Exception):
+            await bus.close()
+        with contextlib.suppress(Exception):
+            await tactile.close()
+        raise
+    return devices

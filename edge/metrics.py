@@ -1,0 +1,84 @@
+"""Prometheus text metrics of the daemon (no dependency: the format is a few lines)."""
+
+from __future__ import annotations
+
+import bisect
+from typing import Any
+
+
+class Histogram:
+    def __init__(self, buckets: tuple[float, ...]) -> None:
+        self.buckets = buckets
+        self.counts = [0] * (len(buckets) + 1)
+        self.total = 0.0
+        self.n = 0
+
+    def observe(self, value: float) -> None:
+        self.counts[bisect.bisect_left(self.buckets, value)] += 1
+        self.total += value
+        self.n += 1
+
+    def render(self, name: str, help_text: str) -> list[str]:
+        lines = [f"# HELP {name} {help_text}", f"# TYPE {name} histogram"]
+        cumulative = 0
+        for bound, count in zip(self.buckets, self.counts, strict=False):
+            cumulative += count
+            lines.append(f'{name}_bucket{{le="{bound:g}"}} {cumulative}')
+        lines.append(f'{name}_bucket{{le="+Inf"}} {self.n}')
+        lines.append(f"{name}_sum {self.total:.6f}")
+        lines.append(f"{name}_count {self.n}")
+        return lines
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.frames = 0
+        self.stale_events = 0
+        self.vlm_errors = 0
+        self.discarded_partial = 0
+        self.presses: dict[str, int] = {}
+        self.stop_latency = Histogram((0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05))
+        self.vlm_latency = Histogram((0.25, 0.5, 1, 2, 5, 10, 30, 60))
+
+    def observe_press(self, outcome: Any) -> None:
+        self.presses[outcome.result] = self.presses.get(outcome.result, 0) + 1
+        if outcome.stop_latency_s is not None:
+            self.stop_latency.observe(outcome.stop_latency_s)
+
+    def observe_vlm(self, latency_s: float) -> None:
+        self.vlm_latency.observe(latency_s)
+
+    def render(self, runtime: Any) -> str:
+        st = runtime.sampler.stats
+        lines = [
+            "# HELP vtzero_presses_total Presses by result.",
+            "# TYPE vtzero_presses_total counter",
+        ]
+        for result in sorted(self.presses) or ["ok"]:
+            lines.append(f'vtzero_presses_total{{result="{result}"}} '
+                         f"{self.presses.get(result, 0)}")
+        lines += self.stop_latency.render(
+            "vtzero_stop_latency_seconds", "Frame over x_th received to stop packet written.")
+        lines += self.vlm_latency.render("vtzero_vlm_latency_seconds",
+                                         "Duration of successful VLM calls.")
+        lines += [
+            "# HELP vtzero_vlm_errors_total VLM calls that failed and were left pending.",
+            "# TYPE vtzero_vlm_errors_total counter",
+            f"vtzero_vlm_errors_total {self.vlm_errors}",
+            "# HELP vtzero_tactile_frames_total Tactile frames received.",
+            "# TYPE vtzero_tactile_frames_total counter",
+            f"vtzero_tactile_frames_total {self.frames}",
+            "# HELP vtzero_tactile_stale_total Times the tactile stream went stale.",
+            "# TYPE vtzero_tactile_stale_total counter",
+            f"vtzero_tactile_stale_total {self.stale_events}",
+            "# HELP vtzero_sampler_gaps_total 125 Hz ticks without a new frame.",
+            "# TYPE vtzero_sampler_gaps_total counter",
+            f"vtzero_sampler_gaps_total {st.gaps}",
+            "# HELP vtzero_sampler_missed_ticks_total Ticks skipped because the loop lagged.",
+            "# TYPE vtzero_sampler_missed_ticks_total counter",
+            f"vtzero_sampler_missed_ticks_total {st.missed_ticks}",
+            "# HELP vtzero_loop_lag_max_seconds Largest lateness of the 125 Hz sampler.",
+            "# TYPE vtzero_loop_lag_max_seconds gauge",
+            f"vtzero_loop_lag_max_seconds {st.max_late_s:.6f}",
+        ]
+        return "\n".join(lines) + "\n"

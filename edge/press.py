@@ -1,0 +1,281 @@
+"""The press controller: the state machine of one press (DESIGN sections 1 and 4).
+
+idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -> idle
+
+The threshold is checked on every arriving frame by the sensor task (:meth:`on_frame`),
+which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
+closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
+(``abort_factor * x_th``) opens at once (``aborted``); a stale sensor opens and fails the
+press. Whatever happens, the gripper is opened before the press returns.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from edge import preprocess
+from edge.buffer import FrameRing, Window
+from edge.config import Config
+from edge.errors import DeviceError, EdgeError, StaleSensorError
+from edge.hw.arm import Arm, Gripper, GripperState
+from edge.hw.control_table import CURRENT_MA_PER_UNIT
+
+log = logging.getLogger(__name__)
+
+# Extra stream kept on each side of the model's window in the stored recording.
+RECORD_MARGIN_S = 0.2
+GRIPPER_TRACE_PERIOD_S = 0.02
+# A stream this long without a fresh frame means the press must not start.
+FRESH_FRAME_S = 0.1
+
+
+@dataclass
+class PressOutcome:
+    result: str = "error"  # ok | no_contact | aborted | stale | error
+    message: str = ""
+    t_cross: float | None = None  # receive time of the first frame over x_th
+    t_stop: float | None = None  # when the stop write went out
+    stop_latency_s: float | None = None
+    peak_level: float = 0.0
+    level_at_cross: float = 0.0
+    tare: np.ndarray | None = None
+    window: Window | None = None
+    gripper_trace: list[GripperState] = field(default_factory=list)
+    states: list[tuple[str, float]] = field(default_factory=list)
+
+    @property
+    def contact(self) -> bool:
+        return self.result == "ok"
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "result": self.result,
+            "message": self.message,
+            "contact": self.contact,
+            "t_cross": self.t_cross,
+            "t_stop": self.t_stop,
+            "stop_latency_ms": None if self.stop_latency_s is None
+            else self.stop_latency_s * 1e3,
+            "peak_level": self.peak_level,
+            "level_at_cross": self.level_at_cross,
+            "peak_squeeze_ma": max((s.squeeze_ma for s in self.gripper_trace), default=None),
+            "states": self.states,
+        }
+
+
+class _Armed:
+    """Threshold state while closing/holding; touched only on the event loop."""
+
+    def __init__(self, tare: np.ndarray, x_th: float, abort_level: float) -> None:
+        self.tare = tare
+        self.x_th = x_th
+        self.abort_level = abort_level
+        self.crossed = asyncio.Event()
+        self.abort = asyncio.Event()
+        self.t_cross: float | None = None
+        self.level_at_cross = 0.0
+        self.peak = 0.0
+        self.stopping = False
+
+
+class PressController:
+    def __init__(self, cfg: Config, gripper: Gripper, arm: Arm, ring: FrameRing,
+                 on_state: Callable[[str], None] | None = None) -> None:
+        self.cfg = cfg
+        self.gripper = gripper
+        self.arm = arm
+        self.ring = ring
+        self.on_state = on_state or (lambda state: None)
+        self.state = "idle"
+        self._armed: _Armed | None = None
+        self._outcome: PressOutcome | None = None
+        self._stale = asyncio.Event()
+        self._user_abort = asyncio.Event()
+
+    # --- called by the sensor task -------------------------------------------------------
+    async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
+        armed = self._armed
+        if armed is None:
+            return
+        level = float(np.linalg.norm(raw - armed.tare)) / preprocess.UNITS_SCALE
+        if level > armed.peak:
+            armed.peak = level
+        if armed.t_cross is None and level > armed.x_th:
+            armed.t_cross = recv_time
+            armed.level_at_cross = level
+            armed.stopping = True
+            try:
+                await self.gripper.stop_now()
+                t_sent = time.monotonic()
+                if self._outcome is not None:
+                    self._outcome.t_stop = t_sent
+                    self._outcome.stop_latency_s = t_sent - recv_time
+            finally:
+                armed.crossed.set()
+        elif level > armed.abort_level:
+            armed.abort.set()
+
+    def sensor_stale(self, exc: BaseException) -> None:
+        self._stale.set()
+        if self._armed is not None:
+            self._armed.abort.set()
+
+    def sensor_fresh(self) -> None:
+        self._stale.clear()
+
+    def request_abort(self) -> bool:
+        if self.state in ("idle", "returning"):
+            return False
+        self._user_abort.set()
+        if self._armed is not None:
+            self._armed.abort.set()
+        return True
+
+    # --- the press ------------------------------------------------------------------------
+    def _enter(self, outcome: PressOutcome, state: str) -> None:
+        self.state = state
+        outcome.states.append((state, time.monotonic()))
+        self.on_state(state)
+
+    async def run(self) -> PressOutcome:
+        outcome = PressOutcome()
+        self._outcome = outcome
+        self._user_abort.clear()
+        trace_task: asyncio.Task | None = None
+        try:
+            self._check_fresh()
+            self._enter(outcome, "above")
+            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+            self._enter(outcome, "lowered")
+            await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
+            self._enter(outcome, "tare")
+            outcome.tare = await self._tare()
+            press = self.cfg.press
+            armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
+            self._armed = armed
+            self._enter(outcome, "closing")
+            trace_task = asyncio.create_task(self._trace(outcome), name="gripper-trace")
+            goal_ma = self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT
+            # Both fingers move: each closes at half the gap speed.
+            await self.gripper.close(press.close_speed_mps / 2, goal_ma)
+            await self._wait_closing(armed, outcome)
+            if outcome.result == "ok":
+                self._enter(outcome, "holding")
+                assert outcome.t_stop is not None
+                hold_left = outcome.t_stop + press.dt_stopping_s - time.monotonic()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
+                if armed.abort.is_set():
+                    self._abort_reason(outcome, armed)
+        except StaleSensorError as exc:
+            outcome.result, outcome.message = "stale", str(exc)
+        except EdgeError as exc:
+            outcome.result, outcome.message = "error", str(exc)
+            log.error("press failed: %s", exc)
+        finally:
+            self._armed = None
+            await self._open_safely(outcome)
+            if trace_task is not None:
+                trace_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await trace_task
+        try:
+            self._enter(outcome, "returning")
+            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+        except EdgeError as exc:
+            log.error("arm did not return above the object: %s", exc)
+            if outcome.result == "ok":
+                outcome.result, outcome.message = "error", f"return failed: {exc}"
+        if outcome.t_stop is not None:
+            # The window reaches 0.6 s past the stop; normally the opening took that long.
+            spec = preprocess.DEFAULT_WINDOW
+            wait = outcome.t_stop + spec.after_s + RECORD_MARGIN_S - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
+                                              outcome.t_stop + spec.after_s + RECORD_MARGIN_S)
+        self._enter(outcome, "idle")
+        self._outcome = None
+        return outcome
+
+    def _check_fresh(self) -> None:
+        age = time.monotonic() - self.ring.latest_time()
+        if self._stale.is_set() or age > FRESH_FRAME_S:
+            raise StaleSensorError(
+                f"tactile stream is stale (last frame {age:.2f} s ago): not pressing; check "
+                "that xela_server runs and the pads are connected")
+
+    async def _tare(self) -> np.ndarray:
+        tare_s = self.cfg.press.tare_s
+        t0 = time.monotonic()
+        await asyncio.sleep(tare_s)
+        self._check_fresh()
+        window = self.ring.window(t0, time.monotonic())
+        if len(window.raw) < max(3, int(tare_s * 50)):
+            raise StaleSensorError(
+                f"only {len(window.raw)} frames in the {tare_s} s tare: the stream is too slow")
+        return preprocess.tare(window.raw)
+
+    async def _wait_closing(self, armed: _Armed, outcome: PressOutcome) -> None:
+        crossed = asyncio.create_task(armed.crossed.wait())
+        aborted = asyncio.create_task(armed.abort.wait())
+        try:
+            await asyncio.wait({crossed, aborted},
+                               timeout=self.cfg.runtime.close_timeout_s,
+                               return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            crossed.cancel()
+            aborted.cancel()
+        outcome.peak_level = armed.peak
+        if armed.crossed.is_set():
+            outcome.t_cross = armed.t_cross
+            outcome.level_at_cross = armed.level_at_cross
+            outcome.result = "ok"
+            return
+        if armed.abort.is_set():
+            self._abort_reason(outcome, armed)
+            return
+        outcome.result = "no_contact"
+        outcome.message = (f"no contact: the norm stayed below x_th = {armed.x_th} for "
+                           f"{self.cfg.runtime.close_timeout_s} s of closing")
+
+    def _abort_reason(self, outcome: PressOutcome, armed: _Armed) -> None:
+        outcome.peak_level = max(outcome.peak_level, armed.peak)
+        if self._stale.is_set():
+            outcome.result = "stale"
+            outcome.message = "tactile stream went stale during the press: gripper opened"
+        elif self._user_abort.is_set():
+            outcome.result, outcome.message = "aborted", "aborted on request"
+        else:
+            outcome.result = "aborted"
+            outcome.message = (f"force far past the threshold (norm {armed.peak:.4f} > "
+                               f"{armed.abort_level:.4f}): gripper opened")
+
+    async def _open_safely(self, outcome: PressOutcome) -> None:
+        self._enter(outcome, "opening")
+        for attempt in range(3):
+            try:
+                await self.gripper.open()
+                return
+            except DeviceError as exc:
+                log.error("opening the gripper failed (attempt %d): %s", attempt + 1, exc)
+        if outcome.result == "ok":
+            outcome.result = "error"
+        outcome.message = (outcome.message + "; " if outcome.message else "") + (
+            "GRIPPER MAY STILL BE CLOSED: opening failed three times")
+
+    async def _trace(self, outcome: PressOutcome) -> None:
+        while True:
+            try:
+                outcome.gripper_trace.append(await self.gripper.state())
+            except DeviceError as exc:
+                log.debug("gripper trace read failed: %s", exc)
+            await asyncio.sleep(GRIPPER_TRACE_PERIOD_S)

@@ -1,0 +1,442 @@
+"""The on-robot daemon: one asyncio loop, one root TaskGroup, every task named.
+
+Tasks: ``sensor`` (frames -> ring buffer + per-frame threshold), ``sampler`` (125 Hz),
+``api`` (HTTP), ``button``, ``vlm-retry`` (pending episodes), ``watchdog`` (sd_notify only
+while frames keep arriving), and one ``recognize`` task per request. The bus has its own
+owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT stop taking
+work, open the gripper and flush the store; SIGHUP reloads model, database and press
+settings between presses; SIGUSR1 triggers a recognition with the default candidates.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import logging
+import signal
+import time
+from collections.abc import AsyncIterator
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from edge import __version__, preprocess, recording
+from edge.buffer import FrameRing, Sampler
+from edge.config import Config
+from edge.errors import BusyError, EdgeError, NotFoundError, SensorError, StaleSensorError
+from edge.metrics import Metrics
+from edge.press import PressController, PressOutcome
+from edge.store import EpisodeStore, new_id
+from edge.systemd import Notifier, watchdog_period_s
+
+log = logging.getLogger(__name__)
+
+RING_SECONDS = 30.0
+SENSOR_RETRY_S = 0.2
+EVENT_QUEUE = 256
+TOPK = 3
+FIRST_FRAME_TIMEOUT_S = 5.0
+
+
+@dataclass
+class Devices:
+    """Everything the daemon talks to; built by :mod:`edge.devices`."""
+
+    tactile: Any  # TactileSource
+    gripper: Any  # Gripper
+    arm: Any  # Arm
+    camera: Any | None = None  # Camera
+    button: Any | None = None  # Button
+    bus: Any | None = None  # DynamixelBus: closed (safe pose, torque off) on shutdown
+
+
+class Runtime:
+    def __init__(self, cfg: Config, devices: Devices, model: Any, vlm: Any,
+                 store: EpisodeStore, notifier: Notifier | None = None,
+                 reload: Any = None) -> None:
+        self.cfg = cfg
+        self.devices = devices
+        self.model = model
+        self.vlm = vlm
+        self.store = store
+        self.notifier = notifier or Notifier("")
+        self._reload = reload  # callable returning (cfg, model, vlm) on SIGHUP
+        rate = 125.0
+        self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * rate * 1.5))
+        self.sampler = Sampler(self.ring, rate)
+        self.metrics = Metrics()
+        self.press = PressController(cfg, devices.gripper, devices.arm, self.ring,
+                                     on_state=self._on_press_state)
+        self._press_lock = asyncio.Lock()
+        self._current: str | None = None
+        self._subscribers: set[asyncio.Queue] = set()
+        self._stopping = asyncio.Event()
+        self._tg: asyncio.TaskGroup | None = None
+        self._work: set[asyncio.Task] = set()
+        self._retry_wakeup = asyncio.Event()
+        self.ready = asyncio.Event()
+        self.started_at = time.monotonic()
+
+    # --- events -----------------------------------------------------------------------
+    def publish(self, event: dict[str, Any]) -> None:
+        event = {"t": time.time(), **event}
+        for queue in list(self._subscribers):
+            if queue.full():
+                with contextlib.suppress(asyncio.QueueEmpty):
+                    queue.get_nowait()  # a slow client loses the oldest event, not the daemon
+            queue.put_nowait(event)
+
+    async def subscribe(self) -> AsyncIterator[dict[str, Any]]:
+        queue: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
+        self._subscribers.add(queue)
+        try:
+            yield {"type": "hello", "state": self.press.state, "episode": self._current}
+            while True:
+                yield await queue.get()
+        finally:
+            self._subscribers.discard(queue)
+
+    def _on_press_state(self, state: str) -> None:
+        self.publish({"type": "state", "state": state, "episode": self._current})
+
+    # --- the tasks --------------------------------------------------------------------
+    async def _sensor(self) -> None:
+        source = self.devices.tactile
+        while True:
+            try:
+                async for frame in source.frames():
+                    self.ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
+                    self.metrics.frames += 1
+                    await self.press.on_frame(frame.raw, frame.recv_time)
+                    if self.press._stale.is_set():
+                        self.press.sensor_fresh()
+                        log.info("tactile stream fresh again")
+            except StaleSensorError as exc:
+                if not self.press._stale.is_set():
+                    log.warning("%s", exc)
+                self.metrics.stale_events += 1
+                self.press.sensor_stale(exc)
+            except SensorError as exc:
+                # A wrong layout is fatal for pressing; keep serving the API and say why.
+                log.error("tactile sensor unusable: %s", exc)
+                self.press.sensor_stale(exc)
+                self.notifier.status(f"sensor error: {exc}")
+            await asyncio.sleep(SENSOR_RETRY_S)
+
+    async def _watchdog(self) -> None:
+        period = watchdog_period_s()
+        if period is None:
+            return
+        while True:
+            await asyncio.sleep(period)
+            # WATCHDOG=1 only while the sensor path makes progress.
+            if time.monotonic() - self.ring.latest_time() < max(1.0, period):
+                self.notifier.watchdog()
+
+    async def _button(self) -> None:
+        button = self.devices.button
+        if button is None:
+            return
+        async for _ in button.presses():
+            await self._trigger_default("button")
+
+    async def _trigger_default(self, source: str) -> None:
+        candidates = list(self.cfg.api.default_candidates)
+        if not candidates:
+            log.warning("%s trigger ignored: api.default_candidates is empty", source)
+            return
+        try:
+            episode = await self.recognize(candidates, None, False, None, source)
+            log.info("%s trigger: episode %s", source, episode["id"])
+        except BusyError as exc:
+            log.warning("%s trigger ignored: %s", source, exc)
+
+    async def _vlm_retry(self) -> None:
+        cfg = self.cfg.runtime
+        while True:
+            pending = await asyncio.to_thread(self.store.pending)
+            now = time.time()
+            next_due = now + cfg.vlm_retry_max_s
+            for episode in pending:
+                due = episode.get("next_retry_at", 0.0)
+                if due <= now:
+                    await self._ask_vlm(episode["id"], retry=True)
+                else:
+                    next_due = min(next_due, due)
+            self._retry_wakeup.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._retry_wakeup.wait(), max(0.05, next_due - now))
+
+    # --- recognition ------------------------------------------------------------------
+    async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
+                        timeout_s: float | None, source: str) -> dict[str, Any]:
+        if self._stopping.is_set():
+            raise BusyError("the daemon is shutting down; not starting a press")
+        if self._press_lock.locked():
+            err = BusyError(f"a press is running (episode {self._current}); one at a time")
+            err.episode_id = self._current  # type: ignore[attr-defined]
+            raise err
+        episode_id = new_id()
+        self._current = episode_id
+        await self._press_lock.acquire()  # free: checked above, no await in between
+        done = asyncio.get_running_loop().create_future()
+        task = asyncio.create_task(self._recognize(episode_id, candidates, image, source, done),
+                                   name=f"recognize {episode_id}")
+        self._work.add(task)
+        task.add_done_callback(self._work.discard)
+        if not wait:
+            return {"id": episode_id, "status": "running", "candidates": candidates}
+        try:
+            await asyncio.wait_for(asyncio.shield(done), timeout_s)
+        except TimeoutError:
+            return {"id": episode_id, "status": "running", "candidates": candidates,
+                    "note": f"not finished within {timeout_s} s; poll /v1/episodes/{episode_id}"}
+        return await self.episode(episode_id)
+
+    async def _recognize(self, episode_id: str, candidates: list[str], image: bytes | None,
+                         source: str, done: asyncio.Future) -> None:
+        t0 = time.monotonic()
+        timings: dict[str, float] = {}
+        try:
+            self.publish({"type": "episode", "episode": episode_id, "status": "running"})
+            camera_task = None
+            if image is None and self.devices.camera is not None:
+                # The photo is taken while the arm moves.
+                camera_task = asyncio.create_task(self.devices.camera.capture(), name="camera")
+            try:
+                outcome = await self.press.run()
+            finally:
+                self._press_lock.release()
+            timings["press_s"] = time.monotonic() - t0
+            self.metrics.observe_press(outcome)
+            if camera_task is not None:
+                try:
+                    image = await camera_task
+                except EdgeError as exc:
+                    log.warning("camera failed: %s", exc)
+            episode = await self._analyse(episode_id, candidates, image, source, outcome,
+                                          timings)
+            if episode["status"] == "pending":
+                await self._ask_vlm(episode_id, retry=False)
+        except Exception as exc:
+            log.exception("episode %s failed", episode_id)
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(self.store.create, {
+                    "id": episode_id, "status": "failed", "error": str(exc),
+                    "candidates": candidates, "source": source}, {})
+        finally:
+            if self._current == episode_id:
+                self._current = None
+            if not done.done():
+                done.set_result(None)
+            self.publish({"type": "episode", "episode": episode_id, "status": "finished"})
+
+    async def _analyse(self, episode_id: str, candidates: list[str], image: bytes | None,
+                       source: str, outcome: PressOutcome,
+                       timings: dict[str, float]) -> dict[str, Any]:
+        episode: dict[str, Any] = {
+            "id": episode_id, "source": source, "candidates": candidates,
+            "press": outcome.summary(), "software_version": __version__,
+            "x_th": self.cfg.press.x_th, "timings": timings,
+            "vlm_mode": getattr(self.vlm, "mode", None),
+        }
+        files: dict[str, bytes] = {}
+        if image is not None:
+            files["image" + (".png" if image.startswith(b"\x89PNG") else ".jpg")] = image
+        if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
+            episode.update(status="failed", error=outcome.message or outcome.result)
+            await asyncio.to_thread(self.store.create, episode, files)
+            return episode
+        t = time.monotonic()
+        analysed = await asyncio.to_thread(self._encode, outcome)
+        timings["encode_s"] = time.monotonic() - t
+        rec, window, x, z, code, topk, description = analysed
+        files["press.press.npz"] = recording.to_bytes(rec)
+        buf = io.BytesIO()
+        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+        files["model_io.npz"] = buf.getvalue()
+        episode.update(
+            status="pending", code=int(code),
+            z=[float(v) for v in z],
+            topk=[{"label": label, "distance": float(d)} for label, d in topk],
+            description=description, attempts=0, next_retry_at=0.0,
+        )
+        await asyncio.to_thread(self.store.create, episode, files)
+        self.publish({"type": "tactile", "episode": episode_id, "description": description,
+                      "topk": episode["topk"]})
+        return episode
+
+    def _encode(self, outcome: PressOutcome):
+        """CPU work off the loop: recording, crop, encoder, top-k, description."""
+        win = outcome.window
+        assert win is not None and outcome.t_stop is not None and outcome.tare is not None
+        rec = recording.Recording(
+            frames=win.raw, recv_time=win.recv_time, sensor_time=win.sensor_time,
+            seq=win.seq, tare=outcome.tare, t_stop=outcome.t_stop, label="unknown",
+            threshold=self.cfg.press.x_th, sensor_model=self.cfg.sensor.model,
+            gripper_time=np.array([s.t for s in outcome.gripper_trace]),
+            gripper_width_m=np.array([s.width_m for s in outcome.gripper_trace]),
+            gripper_current_ma=np.array([s.squeeze_ma for s in outcome.gripper_trace]),
+            source=self.cfg.mode, extra={"stop_latency_s": outcome.stop_latency_s})
+        units = preprocess.recording_units(rec)
+        window = preprocess.crop(rec.recv_time, units, rec.t_stop)
+        x = preprocess.subsample(window, 0)
+        z, code = self.model.encode(x)
+        topk = self.model.topk(z, TOPK)
+        description = self.model.describe([label for label, _ in topk])
+        return rec, window, x, np.asarray(z).reshape(-1), int(np.asarray(code).reshape(-1)[0]), \
+            topk, description
+
+    async def _ask_vlm(self, episode_id: str, retry: bool) -> None:
+        episode = await asyncio.to_thread(self.store.get, episode_id)
+        image = None
+        for name in ("image.jpg", "image.png"):
+            with contextlib.suppress(NotFoundError):
+                path = self.store.file(episode_id, name)
+                image = await asyncio.to_thread(path.read_bytes)
+        t = time.monotonic()
+        attempts = episode.get("attempts", 0) + 1
+        try:
+            answer = await self.vlm.ask(image, episode["description"], episode["candidates"])
+        except EdgeError as exc:
+            delay = min(self.cfg.runtime.vlm_retry_base_s * 2 ** (attempts - 1),
+                        self.cfg.runtime.vlm_retry_max_s)
+            self.metrics.vlm_errors += 1
+            log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode_id, exc,
+                        delay)
+            await asyncio.to_thread(self.store.update, episode_id, attempts=attempts,
+                                    last_error=str(exc), next_retry_at=time.time() + delay)
+            self.publish({"type": "episode", "episode": episode_id, "status": "pending",
+                          "error": str(exc)})
+            return
+        latency = time.monotonic() - t
+        self.metrics.observe_vlm(latency)
+        answer_dict = answer.to_dict() if hasattr(answer, "to_dict") else asdict(answer)
+        status = {"ok": "done"}.get(answer.status, answer.status)
+        timings = {**episode.get("timings", {}), "vlm_s": latency}
+        await asyncio.to_thread(self.store.update, episode_id, status=status,
+                                label=answer.label, vlm=answer_dict, attempts=attempts,
+                                timings=timings)
+        self.publish({"type": "result", "episode": episode_id, "status": status,
+                      "label": answer.label})
+        log.info("episode %s: %s%s", episode_id, status,
+                 f" -> {answer.label}" if answer.label else "")
+
+    async def episode(self, episode_id: str) -> dict[str, Any]:
+        return await asyncio.to_thread(self.store.get, episode_id)
+
+    async def abort(self) -> bool:
+        return self.press.request_abort()
+
+    def health(self) -> dict[str, Any]:
+        age = time.monotonic() - self.ring.latest_time()
+        return {"ok": self.ready.is_set() and age < 1.0, "ready": self.ready.is_set(),
+                "state": self.press.state, "episode": self._current,
+                "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
+                "version": __version__}
+
+    def metrics_text(self) -> str:
+        return self.metrics.render(self)
+
+    # --- lifecycle --------------------------------------------------------------------
+    async def run(self, api: Any | None = None) -> None:
+        """Run until SIGTERM/SIGINT (or :meth:`stop`)."""
+        loop = asyncio.get_running_loop()
+        installed = []
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            for sig, handler in ((signal.SIGTERM, self.stop), (signal.SIGINT, self.stop),
+                                 (signal.SIGHUP, self._sighup), (signal.SIGUSR1, self._sigusr1)):
+                loop.add_signal_handler(sig, handler)
+                installed.append(sig)
+        removed = await asyncio.to_thread(self.store.recover)
+        if removed:
+            self.metrics.discarded_partial = removed
+        try:
+            async with asyncio.TaskGroup() as tg:
+                self._tg = tg
+                tg.create_task(self._sensor(), name="sensor")
+                tg.create_task(self.sampler.run(), name="sampler")
+                tg.create_task(self._watchdog(), name="watchdog")
+                tg.create_task(self._button(), name="button")
+                tg.create_task(self._vlm_retry(), name="vlm-retry")
+                if api is not None:
+                    await api.start()
+                await self._wait_first_frame()
+                self.ready.set()
+                self.notifier.ready(f"ready: {self.cfg.mode} mode")
+                log.info("ready (%s mode) in %.2f s", self.cfg.mode,
+                         time.monotonic() - self.started_at)
+                await self._stopping.wait()
+                await self._shutdown(api)
+                raise _Stop
+        except* _Stop:
+            pass
+        finally:
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+
+    async def _wait_first_frame(self) -> None:
+        deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        while self.ring.count == 0 and time.monotonic() < deadline:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)  # polled: the sensor task must stay allocation-free
+        if self.ring.count == 0:
+            log.warning("no tactile frame within 5 s; serving anyway (presses are refused)")
+
+    def stop(self) -> None:
+        if not self._stopping.is_set():
+            log.info("stopping: no new work; making the arm safe")
+            self._stopping.set()
+
+    def _sigusr1(self) -> None:
+        asyncio.get_running_loop().create_task(self._trigger_default("SIGUSR1"),
+                                               name="sigusr1")
+
+    def _sighup(self) -> None:
+        if self._reload is None:
+            log.warning("SIGHUP: nothing to reload")
+            return
+        asyncio.get_running_loop().create_task(self._do_reload(), name="reload")
+
+    async def _do_reload(self) -> None:
+        try:
+            cfg, model, vlm = await asyncio.to_thread(self._reload)
+        except EdgeError as exc:
+            log.error("reload refused, keeping the running configuration: %s", exc)
+            return
+        async with self._press_lock:  # never swap under a press in progress
+            self.cfg = replace(self.cfg, press=cfg.press, api=replace(
+                self.cfg.api, default_candidates=cfg.api.default_candidates))
+            self.press.cfg = self.cfg
+            self.model = model
+            self.vlm = vlm
+        log.info("reloaded model, database and press settings")
+
+    async def _shutdown(self, api: Any | None) -> None:
+        self.notifier.stopping()
+        if api is not None:
+            await api.close()
+        if self.press.state not in ("idle",):
+            self.press.request_abort()
+        # Let a running press open the gripper; the press controller always does.
+        for task in list(self._work):
+            with contextlib.suppress(asyncio.TimeoutError, Exception):
+                await asyncio.wait_for(asyncio.shield(task), 10.0)
+        with contextlib.suppress(Exception):
+            await self.devices.gripper.open()
+        if self.devices.bus is not None:
+            try:
+                await self.devices.bus.close(
+                    safe_pose=lambda: self.devices.arm.move_to("rest", 5.0))
+            except Exception as exc:
+                log.error("bus shutdown: %s", exc)
+        with contextlib.suppress(Exception):
+            await self.devices.tactile.close()
+        if self.devices.button is not None:
+            await self.devices.button.close()
+        log.info("stopped")
+
+
+class _Stop(Exception):
+    """Ends the root TaskGroup after an orderly shutdown."""

@@ -1,0 +1,98 @@
+"""The whole emulated robot: the world, the ``xela_server`` emulator on loopback and the
+Dynamixel bus emulator on a pseudo-terminal, plus a small control endpoint (place an object,
+take a picture). The runtime connects to it with the real drivers; only the device addresses
+in its configuration differ from the real robot's.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+from aiohttp import web
+
+from edge.config import Config
+from edge.sim import camera as sim_camera
+from edge.sim.catalogue import get
+from edge.sim.dxl_emulator import DxlEmulator
+from edge.sim.world import SimWorld, raw_from_width
+from edge.sim.xela_server import XelaServerEmulator
+
+log = logging.getLogger(__name__)
+
+
+class SimRobot:
+    def __init__(self, object_name: str = "stainless_cube", seed: int = 0, *,
+                 xela_port: int = 0, control_port: int = 0, rate_hz: float = 125.0,
+                 dialect: str = "1.8", reply_latency_s: float = 0.0,
+                 initial_width_m: float = 0.010, cfg: Config | None = None) -> None:
+        get(object_name)
+        bus = (cfg or Config()).bus
+        self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id)
+        poses = (cfg or Config()).poses
+        positions = {mid: float(v) for mid, v in zip(bus.joint_ids, poses["rest"], strict=True)}
+        positions[bus.gripper_id] = raw_from_width(initial_width_m)
+        self.dxl = DxlEmulator((*bus.joint_ids, bus.gripper_id), load=self.world.load,
+                               reply_latency_s=reply_latency_s, initial_positions=positions)
+        self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
+                                       dialect=dialect)  # type: ignore[arg-type]
+        self._control_port = control_port
+        self._runner: web.AppRunner | None = None
+        self.control_url = ""
+
+    async def start(self) -> SimRobot:
+        self.dxl.start()
+        await self.xela.start()
+        app = web.Application()
+        app.add_routes([web.get("/object", self._get_object), web.post("/object", self._place),
+                        web.get("/camera.jpg", self._camera)])
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, "127.0.0.1", self._control_port)
+        await site.start()
+        port = site._server.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+        self.control_url = f"http://127.0.0.1:{port}"
+        log.info("emulated robot: xela %s, bus %s, control %s", self.xela.url, self.dxl.port,
+                 self.control_url)
+        return self
+
+    async def stop(self) -> None:
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+        await self.xela.stop()
+        self.dxl.stop()
+
+    async def __aenter__(self) -> SimRobot:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    def runtime_config(self, cfg: Config) -> Config:
+        """``cfg`` pointed at this robot: only the device addresses change."""
+        return replace(
+            cfg,
+            sensor=replace(cfg.sensor, url=self.xela.url),
+            bus=replace(cfg.bus, port=self.dxl.port),
+            camera=replace(cfg.camera, kind="http", url=f"{self.control_url}/camera.jpg"),
+        )
+
+    async def _get_object(self, request: web.Request) -> web.Response:
+        return web.json_response({"object": self.world.object_name,
+                                  "peak_force_n": self.world.peak_force_n})
+
+    async def _place(self, request: web.Request) -> web.Response:
+        try:
+            body = await request.json()
+            name = body["name"]
+            self.world.place(name)
+        except (ValueError, KeyError, TypeError) as exc:
+            return web.json_response({"error": f"send {{\"name\": OBJECT}}: {exc}"}, status=400)
+        return web.json_response({"object": name})
+
+    async def _camera(self, request: web.Request) -> web.Response:
+        import asyncio
+
+        data = await asyncio.to_thread(sim_camera.render, self.world.object_name)
+        return web.Response(body=data, content_type="image/jpeg")
