@@ -103,7 +103,7 @@ class Sampler:
         st = self.stats
         i = st.ticks % self.capacity
         frames = self.ring.count
-        prev = self.tick_frame[(st.ticks - 1) % self.capacity] if st.ticks else frames - 1
+        prev = self.tick_frame[(st.ticks - 1) % self.capacity] if st.ticks else max(frames - 1, 0)
         new = frames - prev
         if new <= 0:
             st.gaps += 1

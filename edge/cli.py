@@ -47,11 +47,82 @@ def _cmd_sim_press(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from edge.sim.press import PressParams
-    from edge.sim.summary import DEMO_OBJECTS, print_press_table
+    from edge.demo import run_demo
 
-    print("vtzero demo: simulated presses (press physics, threshold stop, crop)\n")
-    print_press_table(list(DEMO_OBJECTS), seed=args.seed, params=PressParams())
+    return run_demo(args.config)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from edge.daemon import run
+
+    return run(args.config)
+
+
+def _cmd_sim_serve(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from edge import tomledit
+    from edge.config import load_config
+    from edge.sim.robot import SimRobot
+
+    cfg = load_config(args.config)
+
+    async def serve() -> None:
+        robot = SimRobot(args.object, cfg.sim.seed, xela_port=args.xela_port,
+                         rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg)
+        async with robot:
+            print(f"xela_server emulator: {robot.xela.url}", flush=True)
+            print(f"Dynamixel bus (pty):  {robot.dxl.port}", flush=True)
+            print(f"control + camera:     {robot.control_url}", flush=True)
+            if args.write_config:
+                tomledit.update(args.config, args.write_config, {
+                    "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port},
+                    "camera": {"kind": "http", "url": f"{robot.control_url}/camera.jpg"}})
+                print(f"runtime config:       {args.write_config}", flush=True)
+            stop = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, stop.set)
+            await stop.wait()
+
+    asyncio.run(serve())
+    return 0
+
+
+def _cmd_episodes(args: argparse.Namespace) -> int:
+    import json
+
+    from edge.config import load_config
+    from edge.daemon import state_dir
+    from edge.store import EpisodeStore
+
+    store = EpisodeStore(state_dir(load_config(args.config)) / "episodes")
+    if args.episodes_command == "list":
+        for ep in store.list(status=args.status, limit=args.limit):
+            print(f"{ep['id']}  {ep.get('status', '?'):15s} {ep.get('label') or '-':28s} "
+                  f"{ep.get('description', ep.get('error', ''))[:60]}")
+    elif args.episodes_command == "show":
+        print(json.dumps(store.get(args.id), indent=2))
+    else:
+        print(store.export(args.id, args.out))
+    return 0
+
+
+def _cmd_install_service(args: argparse.Namespace) -> int:
+    import shutil
+    from pathlib import Path
+
+    from edge import systemd
+
+    exe = shutil.which("vt-edge") or f"{sys.executable} -m edge"
+    unit = systemd.unit_text(exe, str(Path(args.config).resolve()), args.user)
+    if not args.install:
+        print(unit, end="")
+        return 0
+    path = systemd.install(unit)
+    print(f"installed {path}; now: systemctl daemon-reload && systemctl enable --now "
+          f"{systemd.UNIT_NAME}")
     return 0
 
 
@@ -61,9 +132,33 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="the main job: presses on the simulated robot")
-    demo.add_argument("--seed", type=int, default=0)
+    demo = sub.add_parser("demo", help="the main job: recognitions on the emulated robot")
+    demo.add_argument("--config", default="configs/sim.toml")
     demo.set_defaults(func=_cmd_demo)
+
+    run = sub.add_parser("run", help="run the daemon")
+    run.add_argument("--config", required=True)
+    run.set_defaults(func=_cmd_run)
+
+    eps = sub.add_parser("episodes", help="stored recognitions")
+    eps.add_argument("--config", default="configs/robot.toml")
+    epsub = eps.add_subparsers(dest="episodes_command", required=True)
+    ls = epsub.add_parser("list")
+    ls.add_argument("--status", default=None)
+    ls.add_argument("--limit", type=int, default=50)
+    show = epsub.add_parser("show")
+    show.add_argument("id")
+    export = epsub.add_parser("export")
+    export.add_argument("id")
+    export.add_argument("--out", default=".")
+    eps.set_defaults(func=_cmd_episodes)
+
+    svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
+    svc.add_argument("--config", default="/etc/vtzero/robot.toml")
+    svc.add_argument("--user", default="vtzero")
+    svc.add_argument("--install", action="store_true",
+                     help="write /etc/systemd/system/vtzero-edge.service")
+    svc.set_defaults(func=_cmd_install_service)
 
     sim = sub.add_parser("sim", help="the simulated robot")
     simsub = sim.add_subparsers(dest="sim_command", required=True)
@@ -78,6 +173,15 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--latency-ms", type=float, default=2.0, help="controller reaction")
     rec.add_argument("-q", "--quiet", action="store_true")
     rec.set_defaults(func=_cmd_sim_record)
+
+    serve = simsub.add_parser("serve", help="run the emulated robot until stopped")
+    serve.add_argument("--config", default="configs/sim.toml")
+    serve.add_argument("--object", default="stainless_cube")
+    serve.add_argument("--xela-port", type=int, default=0, help="0: any free port")
+    serve.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
+    serve.add_argument("--write-config", default=None,
+                       help="write the config with this robot's addresses here")
+    serve.set_defaults(func=_cmd_sim_serve)
 
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")

@@ -1,0 +1,139 @@
+"""The main job (``make run``): the emulated robot, the daemon, recognitions over HTTP.
+
+Three processes, as on a robot: ``vt-edge sim serve`` (the emulated arm and pads),
+``vt-edge run`` (the daemon, unchanged but for device addresses), and this client, which
+places objects on the emulated table and asks the daemon's HTTP API to recognise them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from edge.sim.catalogue import names
+
+CUBE = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash", "boiled_kabocha_squash")
+FOOD = ("macaron", "resin_replica_macaron", "canele", "resin_replica_konjac")
+START_TIMEOUT_S = 60.0
+RECOGNIZE_TIMEOUT_S = 60.0
+
+VLM_HELP = """\
+No VLM is configured, so no label is given (none is ever invented). Point the daemon at any
+OpenAI-compatible endpoint and run again:
+  OpenAI:  VTZERO_VLM_URL=https://api.openai.com/v1 VTZERO_VLM_MODEL=gpt-4o \\
+           VTZERO_VLM_API_KEY=sk-... make run
+  Ollama:  VTZERO_VLM_URL=http://localhost:11434/v1 VTZERO_VLM_MODEL=llama3.2-vision make run
+  vLLM:    VTZERO_VLM_URL=http://localhost:8000/v1 VTZERO_VLM_MODEL=Qwen/Qwen2-VL-7B-Instruct \\
+           make run"""
+
+
+def _http(method: str, url: str, body: dict | None = None, timeout: float = 10.0) -> dict:
+    data = json.dumps(body).encode() if body is not None else None
+    req = urllib.request.Request(url, data=data, method=method,
+                                 headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as resp:
+            return json.loads(resp.read())
+    except urllib.error.HTTPError as exc:
+        return {"http_status": exc.code, **json.loads(exc.read() or b"{}")}
+
+
+def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"{what}: process exited with {proc.returncode}")
+        try:
+            if predicate():
+                return
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.1)
+    raise RuntimeError(f"{what}: not ready within {timeout_s} s")
+
+
+def _stop(proc: subprocess.Popen, name: str) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    if proc.returncode not in (0, -signal.SIGTERM):
+        print(f"warning: {name} exited with {proc.returncode}", file=sys.stderr)
+    return proc.returncode
+
+
+def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
+    press = ep.get("press", {})
+    print(f"\n== {name}")
+    if ep.get("status") == "failed":
+        print(f"   press failed: {ep.get('error')}")
+        return
+    lat = press.get("stop_latency_ms")
+    print(f"   press: contact {press.get('contact')}, t_stop {press.get('t_stop'):.3f} s, "
+          f"stop latency {lat:.2f} ms, peak norm {press.get('peak_level', 0):.4f}"
+          + (f", peak force {peak_n:.2f} N" if peak_n is not None else ""))
+    topk = ", ".join(f"{t['label']} ({t['distance']:.3f})" for t in ep.get("topk", []))
+    print(f"   touch: top-3 {topk}")
+    print(f"   sentence: \"{ep.get('description')}\"")
+    if ep.get("label"):
+        print(f"   VLM label: {ep['label']}  ({'right' if ep['label'] == name else 'wrong'})")
+    else:
+        print(f"   VLM: {ep.get('status')}")
+
+
+def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE + FOOD) -> int:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    with tempfile.TemporaryDirectory(prefix="vtzero-demo-") as tmp:
+        run_cfg = Path(tmp) / "sim-run.toml"
+        env["VTZERO_STATE_DIR"] = str(Path(tmp) / "state")
+        print("starting the emulated robot and the daemon ...", flush=True)
+        sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config", config,
+                                "--write-config", str(run_cfg), "--object", objects[0]],
+                               env=env)
+        daemon = None
+        try:
+            _wait_for(run_cfg.exists, START_TIMEOUT_S, "emulated robot", sim)
+            from edge.config import load_config
+
+            cfg = load_config(run_cfg)
+            control = cfg.camera.url.rsplit("/", 1)[0]
+            api = f"http://{cfg.api.host}:{cfg.api.port}"
+            daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
+                                       str(run_cfg)], env=env)
+            _wait_for(lambda: _http("GET", f"{api}/healthz").get("ok"), START_TIMEOUT_S,
+                      "daemon", daemon)
+            shown_prompt = False
+            for name in objects:
+                dataset = "cube" if name in names("cube") else "foodreplica"
+                _http("POST", f"{control}/object", {"name": name})
+                ep = _http("POST", f"{api}/v1/recognize",
+                           {"candidates": names(dataset), "wait": True,
+                            "timeout_s": RECOGNIZE_TIMEOUT_S}, timeout=RECOGNIZE_TIMEOUT_S + 5)
+                peak = _http("GET", f"{control}/object").get("peak_force_n")
+                if "http_status" in ep:
+                    print(f"\n== {name}: HTTP {ep['http_status']}: {ep.get('error')}")
+                    continue
+                _print_episode(name, ep, peak)
+                if ep.get("status") == "not_configured" and not shown_prompt:
+                    prompt = (ep.get("vlm") or {}).get("prompt")
+                    print("\n   The prompt it would send (with the photo):\n")
+                    print("   " + str(prompt).replace("\n", "\n   "))
+                    shown_prompt = True
+            if shown_prompt:
+                print("\n" + VLM_HELP)
+        finally:
+            if daemon is not None:
+                _stop(daemon, "daemon")
+            _stop(sim, "emulated robot")
+    return 0

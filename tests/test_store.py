@@ -1,0 +1,84 @@
+import errno
+import json
+import os
+import subprocess
+import sys
+import tarfile
+
+import pytest
+
+from edge.errors import NotFoundError, StoreError
+from edge.store import EpisodeStore, new_id, valid_id
+
+
+def test_create_get_update_list(tmp_path):
+    store = EpisodeStore(tmp_path)
+    a = store.create({"status": "pending", "candidates": ["x", "y"]}, {"image.jpg": b"\xff\xd8"})
+    b = store.create({"status": "done", "label": "y"}, {})
+    assert valid_id(a) and valid_id(b)
+    assert store.get(a)["candidates"] == ["x", "y"]
+    assert store.file(a, "image.jpg").read_bytes() == b"\xff\xd8"
+    store.update(a, status="done", label="x")
+    assert store.get(a)["label"] == "x"
+    assert [e["id"] for e in store.list()] == sorted([a, b], reverse=True)
+    assert store.pending() == []
+    assert not list(tmp_path.glob(".tmp-*")) and not list(tmp_path.glob("*/.*.tmp"))
+
+
+def test_ids_cannot_escape_the_store(tmp_path):
+    store = EpisodeStore(tmp_path)
+    for bad in ("../etc", "..", "a/b", "", new_id() + "/x"):
+        with pytest.raises(NotFoundError):
+            store.get(bad)
+
+
+def test_export_is_a_complete_tarball(tmp_path):
+    store = EpisodeStore(tmp_path / "s")
+    eid = store.create({"status": "done"}, {"press.press.npz": b"abc"})
+    out = store.export(eid, tmp_path)
+    with tarfile.open(out) as tar:
+        names = tar.getnames()
+    assert f"{eid}/episode.json" in names and f"{eid}/press.press.npz" in names
+
+
+KILL_WHILE_WRITING = """
+import os, sys
+from edge.store import EpisodeStore
+store = EpisodeStore(sys.argv[1])
+orig = os.rename
+def die(*a, **k):
+    os.kill(os.getpid(), 9)  # killed after the files, before the rename
+os.rename = die
+store.create({"status": "pending"}, {"big.bin": b"x" * 1_000_000})
+"""
+
+
+def test_kill_9_mid_write_loses_nothing_committed(tmp_path):
+    store = EpisodeStore(tmp_path)
+    done = store.create({"status": "done", "label": "a"}, {})
+    proc = subprocess.run([sys.executable, "-c", KILL_WHILE_WRITING, str(tmp_path)])
+    assert proc.returncode == -9
+    assert list(tmp_path.glob(".tmp-*")), "the interrupted episode left its temp dir"
+    reopened = EpisodeStore(tmp_path)
+    assert reopened.recover() == 1
+    assert [e["id"] for e in reopened.list()] == [done]
+    assert reopened.get(done)["label"] == "a"
+
+
+def test_disk_full_is_a_clear_error_and_keeps_older_episodes(tmp_path, monkeypatch):
+    store = EpisodeStore(tmp_path)
+    old = store.create({"status": "done"}, {})
+    real_open = open
+
+    def full(path, mode="r", *a, **k):
+        if "w" in mode and ".tmp-" in str(path):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real_open(path, mode, *a, **k)
+
+    monkeypatch.setattr("builtins.open", full)
+    with pytest.raises(StoreError, match="disk is full"):
+        store.create({"status": "pending"}, {"x": b"1"})
+    monkeypatch.undo()
+    assert [e["id"] for e in store.list()] == [old]
+    assert not list(tmp_path.glob(".tmp-*"))
+    assert json.loads((tmp_path / old / "episode.json").read_text())["status"] == "done"
