@@ -277,21 +277,21 @@ class DynamixelBus:
     async def close(self, safe_pose: Callable[[], Awaitable[object]] | None = None) -> None:
         """Leave the arm safe and release the port.
 
-        With torque on, ``safe_pose`` (e.g. ``lambda: arm.move_to("rest")``) runs first, then
-        the watchdog is disarmed and torque turned off; a failing safe pose is logged and
-        torque goes off where the arm is.
+        With torque on, ``safe_pose`` (e.g. ``lambda: arm.move_to("rest")``) runs first; a
+        failing safe pose is logged and torque goes off where the arm is. The watchdog is
+        disarmed and torque turned off on every motor in any case, since a torque-on that
+        failed half way leaves some motors on.
         """
         if self._thread is None:
             return
         try:
-            if self._torque_on:
-                if safe_pose is not None:
-                    try:
-                        await safe_pose()
-                    except Exception:
-                        _log.exception("safe pose before torque off failed; "
-                                       "turning torque off where the arm stands")
-                await self.set_torque(False)
+            if self._torque_on and safe_pose is not None:
+                try:
+                    await safe_pose()
+                except Exception:
+                    _log.exception("safe pose before torque off failed; "
+                                   "turning torque off where the arm stands")
+            await self.set_torque(False)
         except DeviceError:
             _log.exception("turning torque off at shutdown failed")
         finally:

@@ -23,8 +23,9 @@ motion model stepped on a fixed simulated step (1 ms) of ``time.monotonic``:
 
 Physics hook: ``load(motor_id, position_raw) -> mA`` gives the external load current opposing
 the closing direction (decreasing position with the default Drive Mode, increasing position
-with Drive Mode bit 0 set; positive = resists closing). Present Current reports it, with the
-motor's sign convention: a motor pushing toward decreasing position draws negative current.
+with Drive Mode bit 0 set; positive = resists closing). Present Current reports it (capped at
+Goal Current in current-based position mode, at Current Limit otherwise), with the motor's
+sign convention: a motor pushing toward decreasing position draws negative current.
 ``true_position(motor_id)`` reads the true position (raw, float) from any thread.
 
 Modelling gaps: no wire time (10 us/byte at 1 Mbps), no velocity/PWM/current operating-mode
@@ -523,7 +524,12 @@ class DxlEmulator:
         profile = m.profile
         if m.torque_on and self._load is not None:
             load = self._call_load(m)
+            # The motor's current cannot exceed its cap: Goal Current in current-based
+            # position mode (a stall overshoots the cap by at most one step of load), the
+            # Current Limit otherwise.
             limit_ma = m.get("Current Limit") * CURRENT_MA_PER_UNIT
+            if m.mem[11] == MODE_CURRENT_BASED_POSITION:
+                limit_ma = min(limit_ma, abs(m.get("Goal Current")) * CURRENT_MA_PER_UNIT)
             current_ma = m.closing_sign * max(-limit_ma, min(limit_ma, load))
         else:
             current_ma = 0.0
@@ -649,6 +655,7 @@ class DxlEmulator:
     def _handle_unicast(self, m: _Motor, inst: int, params: bytes,
                         now: float) -> list[tuple[_Motor, bytes]]:
         level = m.mem[68]
+        addressed = m.id
         if inst == INST_READ:
             if len(params) != 4:
                 return [(m, self._status(m, ERR_DATA_LENGTH))] if level >= 1 else []
@@ -670,7 +677,8 @@ class DxlEmulator:
             self._reboot(m, now)
         else:
             error = ERR_INSTRUCTION
-        return [(m, self._status(m, error))] if level >= 2 else []
+        # The status comes from the ID addressed, even when the write changed it.
+        return [(m, self._status(m, error, reply_id=addressed))] if level >= 2 else []
 
     def _unicast(self, m: _Motor, inst: int, address: int, data: bytes, now: float) -> int:
         if inst == INST_WRITE:
@@ -748,9 +756,10 @@ class DxlEmulator:
     def _error_byte(self, m: _Motor, error: int) -> int:
         return error | (ERR_ALERT if m.mem[70] else 0)
 
-    def _status(self, m: _Motor, error: int, params: bytes = b"") -> bytes:
-        packet = bytearray(encode_packet(m.id, bytes((INST_STATUS, self._error_byte(m, error)))
-                                         + params))
+    def _status(self, m: _Motor, error: int, params: bytes = b"",
+                reply_id: int | None = None) -> bytes:
+        body = bytes((INST_STATUS, self._error_byte(m, error))) + params
+        packet = bytearray(encode_packet(m.id if reply_id is None else reply_id, body))
         if m.corrupt_left:
             packet[-1] ^= 0xFF
             if m.corrupt_left > 0:
