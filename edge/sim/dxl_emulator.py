@@ -319,9 +319,11 @@ class DxlEmulator:
     """XM430-W350 motors on a Protocol 2.0 bus behind a pty, served by one thread.
 
     ``ids``: the motors on the bus (OpenMANIPULATOR-X: joints 11-14, gripper 15).
-    ``load``: optional physics hook, see the module docstring; called from the emulator's
-    thread (and from ``true_position`` callers) with the emulator's lock held, so it must be
-    quick and must not wait on another thread that calls into the emulator.
+    ``load``: optional physics hook, see the module docstring; called for every motor with
+    torque on, from the emulator's thread (and from ``true_position`` callers) with the
+    emulator's lock held. It must be quick, and must not take a lock that another thread
+    holds while calling into the emulator (a physics thread calling ``true_position`` under
+    its own lock would deadlock against a ``load`` that takes that lock).
     ``reply_latency_s``: added once before the status packets of every instruction (a USB
     adapter's latency timer, a slow bus); settable while running.
     ``initial_positions``: raw positions at power-up (default 2048, the centre).
