@@ -1,0 +1,321 @@
+"""Arm and gripper contracts, their implementations over the Dynamixel bus, and fakes.
+
+Positions are raw Dynamixel counts (4096 per turn) unless a name says metres. The gripper's
+width follows the current ROBOTIS description of the OpenMANIPULATOR-X:
+``width_m = raw * 1.7626621790e-5 - 0.036099321`` with the default Drive Mode (closing
+toward decreasing raw). With Drive Mode bit 0 (reverse) the driver mirrors the raw value
+(``4096 - raw``) before that formula, so closing is toward increasing raw: an assumption to
+check on an arm that really runs reversed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+from edge.errors import DeviceTimeoutError
+from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
+from edge.hw.dynamixel import DynamixelBus
+
+GRIPPER_M_PER_RAW = 1.7626621790e-5
+GRIPPER_OFFSET_M = 0.036099321
+# The OpenMANIPULATOR-X gripper joint range (ROBOTIS description).
+GRIPPER_OPEN_WIDTH_M = 0.019
+GRIPPER_CLOSED_WIDTH_M = -0.010
+
+DEFAULT_MOVE_TIMEOUT_S = 5.0
+DEFAULT_GRIPPER_TIMEOUT_S = 3.0
+
+JointPose = tuple[int, int, int, int]
+
+
+def gripper_width_m(raw: float, reverse: bool = False) -> float:
+    """Gripper width in metres from the gripper motor's raw position."""
+    if reverse:
+        raw = RAW_PER_REV - raw
+    return raw * GRIPPER_M_PER_RAW - GRIPPER_OFFSET_M
+
+
+def gripper_raw(width_m: float, reverse: bool = False) -> int:
+    """The gripper motor's raw position for a width in metres (inverse of the above)."""
+    raw = round((width_m + GRIPPER_OFFSET_M) / GRIPPER_M_PER_RAW)
+    return RAW_PER_REV - raw if reverse else raw
+
+
+@dataclass(frozen=True)
+class GripperState:
+    """``t``: monotonic time of the reading; ``squeeze_ma``: motor current pushing the fingers
+    closed (positive while squeezing, whatever the Drive Mode)."""
+
+    t: float
+    width_m: float
+    squeeze_ma: float
+    position_raw: int
+
+
+@runtime_checkable
+class Gripper(Protocol):
+    async def open(self) -> None:
+        """Open fully and wait until open (``DeviceTimeoutError`` past the timeout)."""
+        ...
+
+    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
+        """Start closing at ``speed_mps`` with the squeeze capped at ``current_cap_ma``;
+        returns once commanded (watch :meth:`state` and call :meth:`stop_now`)."""
+        ...
+
+    async def stop_now(self) -> int:
+        """Stop at once, keeping the squeeze: one Goal Position write a little past the
+        present position in the closing direction, ahead of anything queued. Returns the
+        goal (raw)."""
+        ...
+
+    async def state(self) -> GripperState:
+        ...
+
+
+@runtime_checkable
+class Arm(Protocol):
+    @property
+    def poses(self) -> Mapping[str, JointPose]:
+        """Named joint poses (raw positions of the four joints, in joint ID order)."""
+        ...
+
+    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
+        """Move to a named pose and wait for arrival (``DeviceTimeoutError`` past
+        ``timeout_s``)."""
+        ...
+
+    async def joints(self) -> JointPose:
+        """Present raw joint positions."""
+        ...
+
+
+def _pose_or_raise(poses: Mapping[str, JointPose], pose: str) -> JointPose:
+    try:
+        return poses[pose]
+    except KeyError:
+        raise ValueError(f"unknown arm pose {pose!r}; known: {', '.join(sorted(poses))}") from None
+
+
+class DynamixelGripper:
+    """The gripper motor (current-based position) on a connected :class:`DynamixelBus`."""
+
+    def __init__(
+        self,
+        bus: DynamixelBus,
+        *,
+        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
+        closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
+        open_speed_mps: float = 0.02,
+        stop_past_raw: int = 8,
+        tolerance_raw: int = 15,
+        timeout_s: float = DEFAULT_GRIPPER_TIMEOUT_S,
+        poll_interval_s: float = 0.01,
+    ) -> None:
+        self._bus = bus
+        self._id = bus.config.gripper_id
+        self._open_width_m = open_width_m
+        self._closed_width_m = closed_width_m
+        self._open_speed_mps = open_speed_mps
+        # How far past the present position the stop goal lies: enough to keep squeezing
+        # (the present position itself would remove the squeeze), small enough not to crush.
+        self._stop_past_raw = stop_past_raw
+        self._tolerance_raw = tolerance_raw
+        self._timeout_s = timeout_s
+        self._poll_interval_s = poll_interval_s
+
+    @property
+    def _reverse(self) -> bool:
+        return self._bus.motors[self._id].reverse
+
+    @property
+    def closing_sign(self) -> int:
+        """+1 if closing increases the raw position (reverse Drive Mode), else -1."""
+        return 1 if self._reverse else -1
+
+    async def open(self) -> None:
+        goal = gripper_raw(self._open_width_m, self._reverse)
+        await self._bus.write(self._id, "Goal Current", self._bus.config.gripper_goal_current)
+        await self._bus.write(self._id, "Profile Velocity", _velocity_units(self._open_speed_mps))
+        await self._bus.write(self._id, "Goal Position", goal)
+        deadline = time.monotonic() + self._timeout_s
+        while True:
+            state = await self._bus.read_state()
+            if abs(state.motors[self._id].position - goal) <= self._tolerance_raw:
+                return
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(
+                    f"gripper (motor {self._id}) not open within {self._timeout_s} s: at "
+                    f"{state.motors[self._id].position}, goal {goal}")
+            await asyncio.sleep(self._poll_interval_s)
+
+    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
+        cap = round(current_cap_ma / CURRENT_MA_PER_UNIT)
+        limit = self._bus.motors[self._id].current_limit
+        if not 1 <= cap <= limit:
+            raise ValueError(f"current_cap_ma {current_cap_ma} is {cap} units; the gripper "
+                             f"takes 1..{limit} (Current Limit, 2.69 mA each)")
+        await self._bus.write(self._id, "Goal Current", cap)
+        await self._bus.write(self._id, "Profile Velocity", _velocity_units(speed_mps))
+        await self._bus.write(self._id, "Goal Position",
+                              gripper_raw(self._closed_width_m, self._reverse))
+
+    async def stop_now(self) -> int:
+        return await self._bus.stop_past_present(self._id,
+                                                 self.closing_sign * self._stop_past_raw)
+
+    async def state(self) -> GripperState:
+        bus_state = await self._bus.read_state()
+        motor = bus_state.motors[self._id]
+        # Closing draws current of the closing direction's sign.
+        squeeze = motor.current * self.closing_sign * CURRENT_MA_PER_UNIT
+        return GripperState(bus_state.t, gripper_width_m(motor.position, self._reverse),
+                            squeeze, motor.position)
+
+
+def _velocity_units(speed_mps: float) -> int:
+    """Profile Velocity units (0.229 rev/min) for a gripper width speed in m/s (at least 1:
+    0 would mean "as fast as possible")."""
+    if speed_mps <= 0:
+        raise ValueError(f"gripper speed must be > 0 m/s, got {speed_mps}")
+    return max(1, round(speed_mps / GRIPPER_M_PER_RAW / RAW_PER_S_PER_VELOCITY_UNIT))
+
+
+class DynamixelArm:
+    """The four joints (position mode, time-based profile) on a connected bus."""
+
+    def __init__(
+        self,
+        bus: DynamixelBus,
+        poses: Mapping[str, JointPose],
+        *,
+        move_time_s: float = 2.0,
+        accel_time_s: float = 0.4,
+        tolerance_raw: int = 15,
+        poll_interval_s: float = 0.02,
+    ) -> None:
+        self._bus = bus
+        self._joint_ids = tuple(bus.config.joint_ids)
+        for name, pose in poses.items():
+            if len(pose) != len(self._joint_ids):
+                raise ValueError(f"arm pose {name!r} has {len(pose)} joints, the arm has "
+                                 f"{len(self._joint_ids)}")
+        self._poses = dict(poses)
+        self._move_time_ms = round(move_time_s * 1000)
+        self._accel_time_ms = round(accel_time_s * 1000)
+        self._tolerance_raw = tolerance_raw
+        self._poll_interval_s = poll_interval_s
+
+    @property
+    def poses(self) -> Mapping[str, JointPose]:
+        return self._poses
+
+    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
+        goals = dict(zip(self._joint_ids, _pose_or_raise(self._poses, pose), strict=True))
+        await self._bus.sync_write("Profile Acceleration",
+                                   dict.fromkeys(self._joint_ids, self._accel_time_ms))
+        await self._bus.sync_write("Profile Velocity",
+                                   dict.fromkeys(self._joint_ids, self._move_time_ms))
+        await self._bus.write_goal_positions(goals)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = await self._bus.read_state()
+            off = {i: state.motors[i].position for i in self._joint_ids
+                   if abs(state.motors[i].position - goals[i]) > self._tolerance_raw}
+            if not off:
+                return
+            if time.monotonic() > deadline:
+                detail = ", ".join(f"joint {i} at {p} (goal {goals[i]})" for i, p in off.items())
+                raise DeviceTimeoutError(f"arm did not reach pose {pose!r} within "
+                                         f"{timeout_s} s: {detail}")
+            await asyncio.sleep(self._poll_interval_s)
+
+    async def joints(self) -> JointPose:
+        state = await self._bus.read_state()
+        a, b, c, d = (state.motors[i].position for i in self._joint_ids)
+        return (a, b, c, d)
+
+
+class FakeGripper:
+    """In-memory gripper for unit tests: closes at the commanded speed and stops against an
+    object of width ``object_width_m`` (None: nothing between the fingers), squeezing at the
+    current cap there. Every call is appended to ``calls``."""
+
+    def __init__(
+        self,
+        *,
+        object_width_m: float | None = None,
+        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
+        closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.object_width_m = object_width_m
+        self._open_width_m = open_width_m
+        self._closed_width_m = closed_width_m
+        self._clock = clock
+        self._width = open_width_m
+        self._t0 = clock()
+        self._speed = 0.0
+        self._cap_ma = 0.0
+        self.calls: list[str] = []
+
+    def _width_now(self) -> float:
+        if self._speed <= 0:
+            return self._width
+        width = max(self._closed_width_m, self._width - self._speed * (self._clock() - self._t0))
+        if self.object_width_m is not None:
+            width = max(width, self.object_width_m)
+        return width
+
+    def _squeeze_ma(self, width: float) -> float:
+        touching = self.object_width_m is not None and width <= self.object_width_m + 1e-9
+        return self._cap_ma if touching else 0.0
+
+    async def open(self) -> None:
+        self.calls.append("open")
+        self._width, self._speed, self._cap_ma = self._open_width_m, 0.0, 0.0
+
+    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
+        self.calls.append(f"close {speed_mps} {current_cap_ma}")
+        self._width, self._t0 = self._width_now(), self._clock()
+        self._speed, self._cap_ma = speed_mps, current_cap_ma
+
+    async def stop_now(self) -> int:
+        self.calls.append("stop_now")
+        self._width, self._speed = self._width_now(), 0.0
+        return gripper_raw(self._width) - 8
+
+    async def state(self) -> GripperState:
+        width = self._width_now()
+        return GripperState(self._clock(), width, self._squeeze_ma(width), gripper_raw(width))
+
+
+class FakeArm:
+    """In-memory arm for unit tests: arrives at once; ``history`` lists the poses visited;
+    set ``fail_next`` to make the next move raise it."""
+
+    def __init__(self, poses: Mapping[str, JointPose], start: str | None = None) -> None:
+        self._poses = dict(poses)
+        first = start if start is not None else next(iter(self._poses))
+        self._joints = _pose_or_raise(self._poses, first)
+        self.history: list[str] = []
+        self.fail_next: Exception | None = None
+
+    @property
+    def poses(self) -> Mapping[str, JointPose]:
+        return self._poses
+
+    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
+        target = _pose_or_raise(self._poses, pose)
+        if self.fail_next is not None:
+            exc, self.fail_next = self.fail_next, None
+            raise exc
+        self._joints = target
+        self.history.append(pose)
+
+    async def joints(self) -> JointPose:
+        return self._joints

@@ -1,0 +1,673 @@
+"""The Dynamixel bus driver: the real ``dynamixel_sdk`` (Protocol 2.0) behind one owner thread.
+
+The SDK is blocking and not thread-safe, so exactly one thread (``dxl-bus``) ever calls it.
+The asyncio side submits operations and awaits futures that the thread resolves with
+``loop.call_soon_threadsafe``; no SDK call ever runs on the event loop. Operations run one at a
+time in submission order, except stops: they go to an urgent queue the thread empties before
+taking anything else, so a stop waits at most for the one transaction already on the wire
+(the bus is half duplex: a transaction in flight cannot be interrupted without colliding with
+the replies).
+
+The SDK waits for status packets by spinning in pure Python, which holds the GIL and delays
+the event loop by up to the interpreter's switch interval (5 ms). :class:`BlockingPortHandler`
+replaces the spin: its reads wait in ``select()`` (GIL released) for the bytes or the SDK's own
+packet deadline. ``tests/hw/test_dxl_bus.py`` measures the difference.
+
+Every SDK failure becomes :class:`MotorError` with the motor ID and the SDK's own message
+(``getTxRxResult`` / ``getRxPacketError``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import dynamixel_sdk as sdk
+
+from edge.config import BusConfig
+from edge.errors import DeviceError, EdgeError, MotorError
+from edge.hw.control_table import (
+    BUS_WATCHDOG_UNIT_S,
+    DRIVE_MODE_REVERSE,
+    DRIVE_MODE_TIME_BASED_PROFILE,
+    MODE_CURRENT_BASED_POSITION,
+    MODE_POSITION,
+    XM430_W350,
+    Register,
+    describe_hardware_error,
+)
+
+_log = logging.getLogger(__name__)
+
+LATENCY_TIMER_DIR = Path("/sys/bus/usb-serial/devices")
+LATENCY_TIMER_UDEV_RULE = (
+    'ACTION=="add", SUBSYSTEM=="usb-serial", DRIVER=="ftdi_sio", ATTR{latency_timer}="1"'
+)
+# What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
+SDK_LATENCY_TIMER_MS = 16.0
+# Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
+_READ_DEADLINE_SLACK_S = 0.0002
+THREAD_JOIN_TIMEOUT_S = 2.0
+# Models the driver is written for; others get a warning (their tables may differ).
+XM430_MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}
+
+_T = XM430_W350
+MODEL_NUMBER = _T["Model Number"]
+FIRMWARE_VERSION = _T["Firmware Version"]
+RETURN_DELAY_TIME = _T["Return Delay Time"]
+DRIVE_MODE = _T["Drive Mode"]
+OPERATING_MODE = _T["Operating Mode"]
+CURRENT_LIMIT = _T["Current Limit"]
+TORQUE_ENABLE = _T["Torque Enable"]
+STATUS_RETURN_LEVEL = _T["Status Return Level"]
+HARDWARE_ERROR_STATUS = _T["Hardware Error Status"]
+BUS_WATCHDOG = _T["Bus Watchdog"]
+GOAL_CURRENT = _T["Goal Current"]
+PROFILE_ACCELERATION = _T["Profile Acceleration"]
+PROFILE_VELOCITY = _T["Profile Velocity"]
+GOAL_POSITION = _T["Goal Position"]
+MOVING = _T["Moving"]
+PRESENT_CURRENT = _T["Present Current"]
+PRESENT_VELOCITY = _T["Present Velocity"]
+PRESENT_POSITION = _T["Present Position"]
+# One sync read covers Present Current (126), Present Velocity (128), Present Position (132).
+_STATE_START = PRESENT_CURRENT.address
+_STATE_LENGTH = PRESENT_POSITION.end - _STATE_START
+
+
+class BlockingPortHandler(sdk.PortHandler):
+    """A ``PortHandler`` whose reads block in ``select()`` instead of spinning.
+
+    The SDK's receive loop calls ``readPort`` until the packet is complete or
+    ``isPacketTimeout()``; the stock handler returns at once (pyserial timeout 0), so the loop
+    spins holding the GIL. Here ``readPort`` first waits, GIL released, until a byte is
+    readable or the SDK's packet deadline passes, then returns what is there. The SDK's
+    deadlines stay its own; ``latency_timer_ms`` replaces its hard-coded 16 ms in them once the
+    driver has read the adapter's real latency timer.
+    """
+
+    def __init__(self, port_name: str) -> None:
+        super().__init__(port_name)
+        self.latency_timer_ms = SDK_LATENCY_TIMER_MS
+
+    def setPacketTimeout(self, packet_length: int) -> None:
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = (self.tx_time_per_byte * packet_length
+                               + self.latency_timer_ms * 2.0 + 2.0)
+
+    def readPort(self, length: int) -> bytes:
+        if length <= 0:
+            return b""
+        remaining_s = (self.packet_timeout - self.getTimeSinceStart()) / 1000.0
+        if remaining_s > 0:
+            select.select([self.ser.fileno()], [], [], remaining_s + _READ_DEADLINE_SLACK_S)
+        return self.ser.read(length)
+
+
+@dataclass(frozen=True)
+class MotorInfo:
+    """What ``connect()`` found (and set) on one motor."""
+
+    motor_id: int
+    model_number: int
+    firmware: int
+    drive_mode: int
+    operating_mode: int
+    current_limit: int
+
+    @property
+    def reverse(self) -> bool:
+        """Drive Mode bit 0: positions count the other way round."""
+        return bool(self.drive_mode & DRIVE_MODE_REVERSE)
+
+    @property
+    def time_based_profile(self) -> bool:
+        """Drive Mode bit 2: Profile Velocity/Acceleration are times in ms."""
+        return bool(self.drive_mode & DRIVE_MODE_TIME_BASED_PROFILE)
+
+
+@dataclass(frozen=True)
+class MotorState:
+    """Present values of one motor, raw units (position counts, 0.229 rev/min, 2.69 mA)."""
+
+    position: int
+    velocity: int
+    current: int
+
+
+@dataclass(frozen=True)
+class BusState:
+    """One sync read of all motors; ``t`` is ``time.monotonic()`` when it completed."""
+
+    t: float
+    motors: Mapping[int, MotorState]
+
+
+class _Op:
+    """One operation for the bus thread, and the future its caller awaits."""
+
+    __slots__ = ("abandoned", "fn", "future", "label", "loop", "must_run")
+
+    def __init__(self, label: str, fn: Callable[[], Any], loop: asyncio.AbstractEventLoop,
+                 future: asyncio.Future[Any], must_run: bool) -> None:
+        self.label, self.fn, self.loop, self.future = label, fn, loop, future
+        self.must_run = must_run
+        self.abandoned = False
+
+    def on_done(self, future: asyncio.Future[Any]) -> None:
+        # Runs on the loop: a caller that gave up on a queued read needs no bus time. A stop
+        # is sent even then.
+        if future.cancelled() and not self.must_run:
+            self.abandoned = True
+
+    def settle(self, value: Any, exc: BaseException | None) -> None:
+        try:
+            self.loop.call_soon_threadsafe(_settle, self.future, value, exc)
+        except RuntimeError:
+            pass  # the loop is closed: nobody is waiting any more
+
+
+def _settle(future: asyncio.Future[Any], value: Any, exc: BaseException | None) -> None:
+    if future.done():
+        return
+    if exc is not None:
+        future.set_exception(exc)
+    else:
+        future.set_result(value)
+
+
+class DynamixelBus:
+    """The Dynamixel bus of the arm: joints ``config.joint_ids``, gripper ``config.gripper_id``.
+
+    Use ``async with DynamixelBus(config) as bus`` (connect, then close), or call
+    :meth:`connect` and :meth:`close`. ``port_handler_factory`` builds the SDK port handler
+    (default :class:`BlockingPortHandler`; ``dynamixel_sdk.PortHandler`` is the stock one).
+    """
+
+    def __init__(
+        self,
+        config: BusConfig,
+        *,
+        port_handler_factory: Callable[[str], sdk.PortHandler] = BlockingPortHandler,
+        latency_timer_dir: Path = LATENCY_TIMER_DIR,
+    ) -> None:
+        self._config = config
+        self._ids = (*config.joint_ids, config.gripper_id)
+        self._port_handler_factory = port_handler_factory
+        self._latency_timer_dir = latency_timer_dir
+        self._ph = sdk.PacketHandler(2.0)
+        self._port: sdk.PortHandler | None = None
+        self._cond = threading.Condition()
+        self._urgent: collections.deque[_Op] = collections.deque()
+        self._normal: collections.deque[_Op] = collections.deque()
+        self._accepting = False
+        self._thread_exit = False
+        self._thread: threading.Thread | None = None
+        self._motors: dict[int, MotorInfo] = {}
+        self._torque_on = False
+        self._feed_task: asyncio.Task[None] | None = None
+        self._last_traffic = 0.0
+        self.last_state: BusState | None = None
+
+    # ---------------------------------------------------------------- properties
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return self._ids
+
+    @property
+    def config(self) -> BusConfig:
+        return self._config
+
+    @property
+    def motors(self) -> Mapping[int, MotorInfo]:
+        """What :meth:`connect` found, by motor ID."""
+        return self._motors
+
+    @property
+    def torque_on(self) -> bool:
+        return self._torque_on
+
+    @property
+    def thread_id(self) -> int | None:
+        """``threading.get_ident()`` of the bus thread (the only one calling the SDK)."""
+        return self._thread.ident if self._thread is not None else None
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def __aenter__(self) -> DynamixelBus:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def connect(self) -> Mapping[int, MotorInfo]:
+        """Open the port, find every motor and configure it; torque stays off.
+
+        Pings every ID (a missing one raises :class:`MotorError` naming it), reads model and
+        firmware, reads Drive Mode and keeps its direction bit as found (joints get the
+        time-based profile bit, the gripper the velocity-based one), sets Operating Mode (3
+        for joints, 5 for the gripper) and Return Delay Time 0 with torque off, sets the
+        gripper's Goal Current, and checks the USB latency timer.
+        """
+        if self._thread is not None:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is already connected")
+        self._thread_exit = False
+        self._accepting = True
+        self._thread = threading.Thread(target=self._run, name="dxl-bus", daemon=True)
+        self._thread.start()
+        try:
+            self._motors = await self._call("connect", self._connect_sync)
+        except BaseException:
+            await self._shutdown_thread()
+            raise
+        return self._motors
+
+    async def close(self, safe_pose: Callable[[], Awaitable[object]] | None = None) -> None:
+        """Leave the arm safe and release the port.
+
+        With torque on, ``safe_pose`` (e.g. ``lambda: arm.move_to("rest")``) runs first; a
+        failing safe pose is logged and torque goes off where the arm is. The watchdog is
+        disarmed and torque turned off on every motor in any case, since a torque-on that
+        failed half way leaves some motors on.
+        """
+        if self._thread is None:
+            return
+        try:
+            if self._torque_on and safe_pose is not None:
+                try:
+                    await safe_pose()
+                except Exception:
+                    _log.exception("safe pose before torque off failed; "
+                                   "turning torque off where the arm stands")
+            await self.set_torque(False)
+        except DeviceError:
+            _log.exception("turning torque off at shutdown failed")
+        finally:
+            await self._shutdown_thread()
+
+    # ---------------------------------------------------------------- operations
+
+    async def read(self, motor_id: int, name: str) -> int:
+        """One register of one motor (sign applied)."""
+        reg = _T[name]
+        return await self._call(f"read {name}", lambda: self._read(motor_id, reg))
+
+    async def write(self, motor_id: int, name: str, value: int) -> None:
+        """One register of one motor, waiting for its status packet."""
+        reg = _T[name]
+        await self._call(f"write {name}", lambda: self._write(motor_id, reg, value))
+
+    async def read_state(self) -> BusState:
+        """Present position, velocity and current of every motor in one sync read."""
+        return await self._call("sync read state", self._read_state_sync)
+
+    async def sync_write(self, name: str, values: Mapping[int, int]) -> None:
+        """One register on several motors in one SYNC WRITE packet (no status packets)."""
+        reg = _T[name]
+        items = dict(values)
+        await self._call(f"sync write {name}", lambda: self._sync_write(reg, items))
+
+    async def write_goal_positions(self, goals: Mapping[int, int]) -> None:
+        """Goal Position of several motors in one SYNC WRITE packet."""
+        await self.sync_write(GOAL_POSITION.name, goals)
+
+    async def stop(self, motor_id: int, goal_position: int) -> None:
+        """Write Goal Position ahead of everything queued (one WRITE, status awaited)."""
+        await self._call("stop", lambda: self._write(motor_id, GOAL_POSITION, goal_position),
+                         urgent=True)
+
+    async def stop_past_present(self, motor_id: int, offset_raw: int) -> int:
+        """Ahead of everything queued: read Present Position, write Goal Position =
+        present + ``offset_raw``; returns the goal written.
+
+        Reading on the spot, not a cached position, guarantees the goal is past where the
+        motor really is, so a stop never backs off the squeeze.
+        """
+        def op() -> int:
+            goal = self._read(motor_id, PRESENT_POSITION) + offset_raw
+            self._write(motor_id, GOAL_POSITION, goal)
+            return goal
+
+        return await self._call("stop past present", op, urgent=True)
+
+    async def set_torque(self, enabled: bool) -> None:
+        """Torque on (goals set to present positions first, then the Bus Watchdog armed and
+        fed) or off (watchdog disarmed first)."""
+        if enabled:
+            await self._call("torque on", self._torque_on_sync)
+            self._torque_on = True
+            if self._feed_task is None:
+                self._feed_task = asyncio.create_task(self._feed_watchdog(),
+                                                      name="dxl-watchdog-feed")
+        else:
+            await self._stop_feed()
+            self._torque_on = False
+            await self._call("torque off", self._torque_off_sync)
+
+    async def recover_watchdog(self) -> list[int]:
+        """Clear Bus Watchdog trips: write 0, hold the present position, re-arm.
+
+        Returns the IDs that had tripped.
+        """
+        return await self._call("recover watchdog", self._recover_watchdog_sync)
+
+    # ---------------------------------------------------------------- the asyncio side
+
+    async def _call(self, label: str, fn: Callable[[], Any], *, urgent: bool = False) -> Any:
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Any] = loop.create_future()
+        op = _Op(label, fn, loop, future, must_run=urgent)
+        future.add_done_callback(op.on_done)
+        with self._cond:
+            if not self._accepting:
+                raise DeviceError(f"Dynamixel bus on {self._config.port} is not connected")
+            (self._urgent if urgent else self._normal).append(op)
+            self._cond.notify()
+        return await future
+
+    async def _feed_watchdog(self) -> None:
+        # Feeding from the loop, not the bus thread: a stalled event loop stops the feed, so
+        # the watchdog catches a dead host as well as a dead process. Any traffic counts.
+        interval_s = self._config.watchdog_ms / 1000.0 / 4
+        failing = False
+        while True:
+            await asyncio.sleep(interval_s)
+            if time.monotonic() - self._last_traffic < interval_s:
+                continue
+            try:
+                await self.read_state()
+            except DeviceError as exc:
+                if not failing:
+                    _log.warning("Bus Watchdog feed failed: %s", exc)
+                failing = True
+            else:
+                if failing:
+                    _log.info("Bus Watchdog feed works again")
+                failing = False
+
+    async def _stop_feed(self) -> None:
+        task, self._feed_task = self._feed_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _shutdown_thread(self) -> None:
+        await self._stop_feed()
+        thread = self._thread
+        if thread is None:
+            return
+        with self._cond:
+            self._accepting = False
+            self._thread_exit = True
+            self._cond.notify()
+        await asyncio.to_thread(thread.join, THREAD_JOIN_TIMEOUT_S)
+        if thread.is_alive():
+            _log.error("Dynamixel bus thread did not stop within %.1f s", THREAD_JOIN_TIMEOUT_S)
+        self._thread = None
+        self._torque_on = False
+
+    # ---------------------------------------------------------------- the bus thread
+
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._cond:
+                    while not (self._urgent or self._normal or self._thread_exit):
+                        self._cond.wait()
+                    if self._urgent:
+                        op = self._urgent.popleft()
+                    elif self._normal:
+                        op = self._normal.popleft()
+                    else:
+                        break
+                if op.abandoned:
+                    continue
+                value, exc = None, None
+                try:
+                    value = op.fn()
+                except EdgeError as e:
+                    exc = e
+                except OSError as e:  # pyserial's SerialException among them
+                    exc = DeviceError(f"Dynamixel bus on {self._config.port}: {op.label}: {e}")
+                    exc.__cause__ = e
+                except Exception as e:
+                    _log.exception("unexpected error in bus operation %s", op.label)
+                    exc = e
+                self._last_traffic = time.monotonic()
+                op.settle(value, exc)
+        finally:
+            self._close_port()
+
+    def _close_port(self) -> None:
+        port, self._port = self._port, None
+        if port is not None and port.is_open:
+            with contextlib.suppress(OSError):
+                port.closePort()
+
+    def _check(self, motor_id: int, what: str, result: int, error: int) -> None:
+        if result != sdk.COMM_SUCCESS:
+            raise MotorError(f"motor {motor_id}: {what}: {self._ph.getTxRxResult(result)}",
+                             motor_id)
+        if error:
+            message = self._ph.getRxPacketError(error)
+            if error & sdk.ERRBIT_ALERT:
+                other = error & ~sdk.ERRBIT_ALERT
+                if other:
+                    message += " " + self._ph.getRxPacketError(other)
+                message += f" Hardware Error Status: {self._hardware_error_detail(motor_id)}"
+            raise MotorError(f"motor {motor_id}: {what}: {message}", motor_id)
+
+    def _hardware_error_detail(self, motor_id: int) -> str:
+        status, result, _ = self._ph.read1ByteTxRx(self._port, motor_id,
+                                                   HARDWARE_ERROR_STATUS.address)
+        if result != sdk.COMM_SUCCESS:
+            return "unreadable"
+        return f"0x{status:02x} ({describe_hardware_error(status)})"
+
+    def _read(self, motor_id: int, reg: Register) -> int:
+        read = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx,
+                4: self._ph.read4ByteTxRx}[reg.size]
+        raw, result, error = read(self._port, motor_id, reg.address)
+        self._check(motor_id, f"read {reg.name}", result, error)
+        return reg.from_unsigned(raw)
+
+    def _write(self, motor_id: int, reg: Register, value: int) -> None:
+        write = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx,
+                 4: self._ph.write4ByteTxRx}[reg.size]
+        result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+        self._check(motor_id, f"write {reg.name} = {value}", result, error)
+
+    def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
+        param: list[int] = []
+        for motor_id, value in values.items():
+            param += [motor_id, *reg.encode(value)]
+        result = self._ph.syncWriteTxOnly(self._port, reg.address, reg.size, param, len(param))
+        if result != sdk.COMM_SUCCESS:
+            first = next(iter(values), None)
+            raise MotorError(f"motors {sorted(values)}: sync write {reg.name}: "
+                             f"{self._ph.getTxRxResult(result)}", first)
+
+    def _read_state_sync(self) -> BusState:
+        # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
+        # its motor and the error byte (e.g. a hardware alert) is checked, which
+        # GroupSyncRead.rxPacket drops.
+        result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH, list(self._ids),
+                                     len(self._ids), False)
+        if result != sdk.COMM_SUCCESS:
+            raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
+                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
+        motors = {}
+        for motor_id in self._ids:
+            data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
+            self._check(motor_id, "sync read of present state", result, error)
+            motors[motor_id] = MotorState(
+                position=_field(PRESENT_POSITION, data),
+                velocity=_field(PRESENT_VELOCITY, data),
+                current=_field(PRESENT_CURRENT, data),
+            )
+        state = BusState(time.monotonic(), motors)
+        self.last_state = state
+        return state
+
+    def _connect_sync(self) -> dict[int, MotorInfo]:
+        cfg = self._config
+        port = self._port_handler_factory(cfg.port)
+        try:
+            # setBaudRate opens the port (the SDK's openPort is setBaudRate of its default).
+            opened = port.setBaudRate(cfg.baudrate)
+        except OSError as exc:
+            raise DeviceError(f"cannot open Dynamixel port {cfg.port}: {exc}") from exc
+        if not opened:
+            raise DeviceError(f"Dynamixel port {cfg.port}: baud rate {cfg.baudrate} is not one "
+                              "the SDK supports")
+        self._port = port
+        self._check_latency_timer(port)
+
+        models: dict[int, int] = {}
+        missing: list[tuple[int, str]] = []
+        for motor_id in self._ids:
+            model, result, error = self._ph.ping(port, motor_id)
+            if result != sdk.COMM_SUCCESS:
+                missing.append((motor_id, self._ph.getTxRxResult(result)))
+                continue
+            self._check(motor_id, "ping", result, error)
+            models[motor_id] = model
+        if missing:
+            names = ", ".join(str(i) for i, _ in missing)
+            raise MotorError(
+                f"motor {names} did not answer a ping on {cfg.port} at {cfg.baudrate} bps: "
+                f"{missing[0][1]} (check power, cabling, ID and baud rate)", missing[0][0])
+
+        infos = {}
+        for motor_id in self._ids:
+            infos[motor_id] = self._configure_motor(motor_id, models[motor_id])
+
+        gripper = infos[cfg.gripper_id]
+        if cfg.gripper_goal_current > gripper.current_limit:
+            raise MotorError(
+                f"motor {cfg.gripper_id}: gripper_goal_current {cfg.gripper_goal_current} "
+                f"exceeds the motor's Current Limit {gripper.current_limit}", cfg.gripper_id)
+        self._write(cfg.gripper_id, GOAL_CURRENT, cfg.gripper_goal_current)
+        _log.info("Dynamixel bus on %s at %d bps: motors %s ready (torque off)",
+                  cfg.port, cfg.baudrate, ", ".join(map(str, self._ids)))
+        return infos
+
+    def _configure_motor(self, motor_id: int, model: int) -> MotorInfo:
+        is_gripper = motor_id == self._config.gripper_id
+        if model not in XM430_MODELS:
+            _log.warning("motor %d: model number %d is not an XM430 (%s); its control table "
+                         "may differ", motor_id, model, ", ".join(map(str, XM430_MODELS)))
+        firmware = self._read(motor_id, FIRMWARE_VERSION)
+        self._ensure_status_return_level(motor_id)
+        # A watchdog trip left by an earlier run refuses goal writes until cleared; then torque
+        # off, since the EEPROM registers below are writable only with torque off.
+        self._write(motor_id, BUS_WATCHDOG, 0)
+        self._write(motor_id, TORQUE_ENABLE, 0)
+
+        drive = self._read(motor_id, DRIVE_MODE)
+        # The direction bit is the arm's business: keep it as found, never assume it. Joints
+        # move on time-based profiles, the gripper on a velocity (its closing speed).
+        want = drive & ~DRIVE_MODE_TIME_BASED_PROFILE
+        if not is_gripper:
+            want |= DRIVE_MODE_TIME_BASED_PROFILE
+        if want != drive:
+            self._write(motor_id, DRIVE_MODE, want)
+        mode = self._read(motor_id, OPERATING_MODE)
+        want_mode = MODE_CURRENT_BASED_POSITION if is_gripper else MODE_POSITION
+        if mode != want_mode:
+            self._write(motor_id, OPERATING_MODE, want_mode)
+        if self._read(motor_id, RETURN_DELAY_TIME) != 0:
+            self._write(motor_id, RETURN_DELAY_TIME, 0)
+        current_limit = self._read(motor_id, CURRENT_LIMIT)
+        _log.info("motor %d: %s firmware %d, drive mode %d (%s direction, %s profile), "
+                  "operating mode %d -> %d", motor_id, XM430_MODELS.get(model, model), firmware,
+                  want, "reverse" if want & DRIVE_MODE_REVERSE else "normal",
+                  "time-based" if want & DRIVE_MODE_TIME_BASED_PROFILE else "velocity-based",
+                  mode, want_mode)
+        return MotorInfo(motor_id, model, firmware, want, want_mode, current_limit)
+
+    def _ensure_status_return_level(self, motor_id: int) -> None:
+        # Below 2 a motor answers writes with silence, which would read as timeouts.
+        level = self._read(motor_id, STATUS_RETURN_LEVEL)
+        if level == 2:
+            return
+        _log.warning("motor %d: Status Return Level %d; setting 2", motor_id, level)
+        result = self._ph.write1ByteTxOnly(self._port, motor_id, STATUS_RETURN_LEVEL.address, 2)
+        self._check(motor_id, "write Status Return Level = 2", result, 0)
+        if self._read(motor_id, STATUS_RETURN_LEVEL) != 2:
+            raise MotorError(f"motor {motor_id}: Status Return Level does not stay at 2",
+                             motor_id)
+
+    def _check_latency_timer(self, port: sdk.PortHandler) -> None:
+        tty = Path(os.path.realpath(self._config.port)).name
+        path = self._latency_timer_dir / tty / "latency_timer"
+        try:
+            value = int(path.read_text().strip())
+        except FileNotFoundError:
+            _log.debug("no USB latency timer at %s (not a USB serial adapter)", path)
+            return
+        except (OSError, ValueError) as exc:
+            _log.warning("cannot read the USB latency timer %s: %s", path, exc)
+            return
+        if isinstance(port, BlockingPortHandler):
+            port.latency_timer_ms = float(value)
+        if value != 1:
+            _log.warning(
+                "%s: USB latency timer is %d ms, which adds up to %d ms to every reply; set it "
+                "to 1 now with `echo 1 | sudo tee %s`, and for good with the udev rule %s in "
+                "/etc/udev/rules.d/99-dynamixel.rules", self._config.port, value, value, path,
+                LATENCY_TIMER_UDEV_RULE)
+
+    def _torque_on_sync(self) -> None:
+        state = self._read_state_sync()
+        # Torque on holds wherever the goal says: make that where each motor stands.
+        self._sync_write(GOAL_POSITION, {i: s.position for i, s in state.motors.items()})
+        for motor_id in self._ids:
+            self._write(motor_id, TORQUE_ENABLE, 1)
+        units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
+        for motor_id in self._ids:
+            self._write(motor_id, BUS_WATCHDOG, units)
+
+    def _torque_off_sync(self) -> None:
+        # Try every motor even if one fails: as many as possible end up limp.
+        first: MotorError | None = None
+        for motor_id in self._ids:
+            try:
+                self._write(motor_id, BUS_WATCHDOG, 0)
+                self._write(motor_id, TORQUE_ENABLE, 0)
+            except MotorError as exc:
+                _log.error("torque off: %s", exc)
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def _recover_watchdog_sync(self) -> list[int]:
+        tripped = [i for i in self._ids if self._read(i, BUS_WATCHDOG) == -1]
+        units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
+        for motor_id in tripped:
+            self._write(motor_id, BUS_WATCHDOG, 0)
+            self._write(motor_id, GOAL_POSITION, self._read(motor_id, PRESENT_POSITION))
+            if self._torque_on:
+                self._write(motor_id, BUS_WATCHDOG, units)
+        if tripped:
+            _log.warning("Bus Watchdog had tripped on motors %s; cleared, holding position",
+                         tripped)
+        return tripped
+
+
+def _field(reg: Register, data: list[int]) -> int:
+    start = reg.address - _STATE_START
+    return reg.decode(bytes(data[start:start + reg.size]))

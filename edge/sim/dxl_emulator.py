@@ -1,0 +1,847 @@
+"""A Dynamixel Protocol 2.0 bus of XM430-W350 motors, emulated behind a pseudo-terminal.
+
+The emulator opens a pty pair and serves the slave side (``emulator.port``, e.g.
+``/dev/pts/7``), so the real ``dynamixel_sdk.PortHandler(emulator.port)`` talks to it byte for
+byte: header ``FF FF FD 00``, CRC-16 (poly 0x8005), byte stuffing both ways, status packets,
+Return Delay Time, Status Return Level, broadcast rules (no status for broadcast writes).
+Instructions: PING (unicast and broadcast), READ, WRITE, REG_WRITE, ACTION, REBOOT, SYNC READ,
+FAST SYNC READ, SYNC WRITE, BULK READ, BULK WRITE.
+
+Each motor has the XM430 control table in memory with the EEPROM/RAM rules (EEPROM writes
+answer the Access error while torque is on), the static and dependent write limits, and a
+motion model stepped on a fixed simulated step (1 ms) of ``time.monotonic``:
+
+- profile motion to Goal Position, velocity-based or time-based per Drive Mode bit 2, as a
+  trapezoid re-planned from rest at every goal write (a real motor blends from its present
+  velocity; the emulator does not);
+- current-based position (Operating Mode 5): the motor cannot advance toward its goal in the
+  closing direction while the external load is at least Goal Current (raw * 2.69 mA); the
+  profile pauses while it is stalled;
+- the Bus Watchdog: while torque is on and the watchdog is armed, an interval without any
+  instruction packet longer than its period stops the motion, the register reads -1 and goal
+  writes (Goal PWM/Current/Velocity/Position) answer the Data Range error until 0 is written.
+
+Physics hook: ``load(motor_id, position_raw) -> mA`` gives the external load current opposing
+the closing direction (decreasing position with the default Drive Mode, increasing position
+with Drive Mode bit 0 set; positive = resists closing). Present Current reports it (capped at
+Goal Current in current-based position mode, at Current Limit otherwise), with the motor's
+sign convention: a motor pushing toward decreasing position draws negative current.
+``true_position(motor_id)`` reads the true position (raw, float) from any thread.
+
+Modelling gaps: no wire time (10 us/byte at 1 Mbps), no velocity/PWM/current operating-mode
+dynamics (goals are stored, nothing moves), Baud Rate changes are stored but ignored, and
+Torque Enable = 1 sets Goal Position to the present position (the driver writes it before
+torque on anyway, so it never depends on this).
+
+Fault switches: ``set_missing`` (a motor that does not answer at all), ``corrupt_crc`` (replies
+with a wrong CRC), ``set_hardware_error`` (Hardware Error Status bits, the alert bit in every
+status packet and torque off, as a real shutdown does).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import errno
+import fcntl
+import logging
+import math
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+
+from edge.hw.control_table import (
+    BUS_WATCHDOG_UNIT_S,
+    CURRENT_MA_PER_UNIT,
+    DRIVE_MODE_REVERSE,
+    DRIVE_MODE_TIME_BASED_PROFILE,
+    MODE_CURRENT_BASED_POSITION,
+    MODE_EXTENDED_POSITION,
+    MODE_POSITION,
+    OPERATING_MODES,
+    RAW_PER_S2_PER_ACCELERATION_UNIT,
+    RAW_PER_S_PER_VELOCITY_UNIT,
+    RETURN_DELAY_UNIT_S,
+    XM430_W350,
+    Area,
+    Register,
+)
+
+_log = logging.getLogger(__name__)
+
+LoadFn = Callable[[int, float], float]
+
+BROADCAST_ID = 0xFE
+HEADER = b"\xff\xff\xfd\x00"
+MAX_PACKET_LENGTH = 1024
+
+INST_PING = 0x01
+INST_READ = 0x02
+INST_WRITE = 0x03
+INST_REG_WRITE = 0x04
+INST_ACTION = 0x05
+INST_REBOOT = 0x08
+INST_STATUS = 0x55
+INST_SYNC_READ = 0x82
+INST_SYNC_WRITE = 0x83
+INST_FAST_SYNC_READ = 0x8A
+INST_BULK_READ = 0x92
+INST_BULK_WRITE = 0x93
+
+ERR_RESULT_FAIL = 0x01
+ERR_INSTRUCTION = 0x02
+ERR_CRC = 0x03
+ERR_DATA_RANGE = 0x04
+ERR_DATA_LENGTH = 0x05
+ERR_DATA_LIMIT = 0x06
+ERR_ACCESS = 0x07
+ERR_ALERT = 0x80
+
+# A packet whose declared length never arrives is dropped after this long, so one corrupt
+# length field cannot wedge the parser.
+PARTIAL_PACKET_TIMEOUT_S = 0.05
+# The thread wakes at least this often to step the motion model while the bus is quiet.
+IDLE_WAKE_S = 0.01
+STOP_JOIN_TIMEOUT_S = 2.0
+# Firmware of the XM430s on our arm.
+DEFAULT_FIRMWARE = 48
+# Hardware no-load speed of the XM430-W350 at 12 V is about 46 rev/min (200 velocity units):
+# a Profile Velocity of 0 ("infinite") still moves at most this fast.
+_MAX_VELOCITY_UNITS = 200
+
+_TABLE = XM430_W350
+_GOALS = frozenset({"Goal PWM", "Goal Current", "Goal Velocity", "Goal Position"})
+
+
+def _make_crc_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else crc << 1
+        table.append(crc & 0xFFFF)
+    return table
+
+
+_CRC_TABLE = _make_crc_table()
+
+
+def crc16(data: bytes | bytearray, crc: int = 0) -> int:
+    """CRC-16 of Protocol 2.0 (poly 0x8005, initial 0, not reflected), as the SDK computes it."""
+    for byte in data:
+        crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ byte) & 0xFF]) & 0xFFFF
+    return crc
+
+
+def stuff(body: bytes | bytearray) -> bytes:
+    """Insert an ``FD`` after every ``FF FF FD`` of a packet body (instruction to last param)."""
+    out = bytearray()
+    prev2 = prev1 = 0
+    for byte in body:
+        out.append(byte)
+        if byte == 0xFD and prev1 == 0xFF and prev2 == 0xFF:
+            out.append(0xFD)
+        prev2, prev1 = prev1, byte
+    return bytes(out)
+
+
+def unstuff(body: bytes | bytearray) -> bytes:
+    """Undo :func:`stuff`: ``FF FF FD FD`` becomes ``FF FF FD``."""
+    out = bytearray()
+    i = 0
+    while i < len(body):
+        byte = body[i]
+        out.append(byte)
+        if (byte == 0xFD and len(out) >= 3 and out[-2] == 0xFF and out[-3] == 0xFF
+                and i + 1 < len(body) and body[i + 1] == 0xFD):
+            i += 1
+        i += 1
+    return bytes(out)
+
+
+def encode_packet(packet_id: int, body: bytes | bytearray) -> bytes:
+    """A whole Protocol 2.0 packet: header, ID, length, stuffed body, CRC."""
+    stuffed = stuff(body)
+    length = len(stuffed) + 2
+    packet = HEADER + bytes((packet_id, length & 0xFF, length >> 8)) + stuffed
+    return packet + crc16(packet).to_bytes(2, "little")
+
+
+@dataclass(frozen=True)
+class Instruction:
+    """One parsed instruction packet (body unstuffed)."""
+
+    motor_id: int
+    instruction: int
+    params: bytes
+    crc_ok: bool
+
+
+@dataclass(frozen=True)
+class Received:
+    """One instruction as the emulator took it off the wire (for tests to check ordering)."""
+
+    t: float
+    motor_id: int
+    instruction: int
+    params: bytes
+
+
+def parse_packet(buf: bytearray) -> Instruction | None:
+    """Take the first complete packet off the front of ``buf``; drop garbage before it.
+
+    Returns None when no complete packet is there yet (``buf`` then starts with a possible
+    header, or holds at most the last three bytes of garbage).
+    """
+    while True:
+        idx = buf.find(HEADER)
+        if idx < 0:
+            del buf[: max(0, len(buf) - 3)]
+            return None
+        del buf[:idx]
+        if len(buf) < 7:
+            return None
+        length = buf[5] | (buf[6] << 8)
+        if length < 3 or length > MAX_PACKET_LENGTH:
+            del buf[:1]
+            continue
+        total = 7 + length
+        if len(buf) < total:
+            return None
+        packet = bytes(buf[:total])
+        del buf[:total]
+        crc_ok = crc16(packet[:-2]) == int.from_bytes(packet[-2:], "little")
+        body = unstuff(packet[7:-2])
+        return Instruction(packet[4], body[0], body[1:], crc_ok)
+
+
+class _Profile:
+    """A trapezoidal move from ``start`` to ``goal`` beginning at ``t0``."""
+
+    __slots__ = ("dist", "duration", "goal", "sign", "start", "t0", "t_acc", "v")
+
+    def __init__(self, start: float, goal: float, t0: float, duration: float,
+                 t_acc: float) -> None:
+        self.start, self.goal, self.t0 = start, goal, t0
+        self.dist = abs(goal - start)
+        self.sign = 1.0 if goal >= start else -1.0
+        self.duration = duration
+        self.t_acc = min(t_acc, duration / 2)
+        cruise = duration - self.t_acc
+        self.v = self.dist / cruise if cruise > 0 else 0.0
+
+    @classmethod
+    def velocity_based(cls, start: float, goal: float, t0: float, v: float,
+                       a: float) -> _Profile:
+        dist = abs(goal - start)
+        if dist == 0 or v <= 0:
+            return cls(start, goal, t0, 0.0, 0.0)
+        t_acc = v / a if math.isfinite(a) else 0.0
+        if v * t_acc > dist:  # never reaches v: a triangle
+            t_acc = math.sqrt(dist / a)
+            v = a * t_acc
+        return cls(start, goal, t0, dist / v + t_acc, t_acc)
+
+    def position(self, t: float) -> float:
+        tau = t - self.t0
+        if tau <= 0:
+            return self.start
+        if tau >= self.duration:
+            return self.goal
+        v, ta = self.v, self.t_acc
+        if tau < ta:
+            x = 0.5 * v / ta * tau * tau
+        elif tau <= self.duration - ta:
+            x = 0.5 * v * ta + v * (tau - ta)
+        else:
+            r = self.duration - tau
+            x = self.dist - 0.5 * v / ta * r * r
+        return self.start + self.sign * x
+
+    def done(self, t: float) -> bool:
+        return t - self.t0 >= self.duration
+
+
+class _Motor:
+    """Control table memory and physical state of one emulated motor."""
+
+    def __init__(self, motor_id: int, position: float, firmware: int) -> None:
+        self.mem = bytearray(_TABLE.size)
+        for reg in _TABLE.values():
+            self.mem[reg.address:reg.end] = reg.encode(reg.default)
+        self.id = motor_id
+        self.put("ID", motor_id)
+        self.put("Firmware Version", firmware)
+        # An OpenMANIPULATOR-X ships with its motors at 1 Mbps.
+        self.put("Baud Rate", 3)
+        self.put("Goal Position", round(position))
+        self.pos = float(position)
+        self.vel = 0.0
+        self.load_ma = 0.0
+        self.profile: _Profile | None = None
+        self.stalled = False
+        self.watchdog_last = 0.0
+        self.pending: tuple[int, bytes] | None = None  # REG_WRITE waiting for ACTION
+        self.missing = False
+        self.corrupt_left = 0  # replies still to corrupt; -1 forever
+        self.load_failed = False
+
+    def get(self, name: str) -> int:
+        reg = _TABLE[name]
+        return reg.decode(self.mem[reg.address:reg.end])
+
+    def put(self, name: str, value: int) -> None:
+        reg = _TABLE[name]
+        self.mem[reg.address:reg.end] = reg.encode(value)
+
+    @property
+    def torque_on(self) -> bool:
+        return self.mem[64] == 1
+
+    @property
+    def closing_sign(self) -> float:
+        return 1.0 if self.mem[10] & DRIVE_MODE_REVERSE else -1.0
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self.mem[98] == 0xFF
+
+    @property
+    def return_delay_s(self) -> float:
+        return self.mem[9] * RETURN_DELAY_UNIT_S
+
+
+class DxlEmulator:
+    """XM430-W350 motors on a Protocol 2.0 bus behind a pty, served by one thread.
+
+    ``ids``: the motors on the bus (OpenMANIPULATOR-X: joints 11-14, gripper 15).
+    ``load``: optional physics hook, see the module docstring; called for every motor with
+    torque on, from the emulator's thread (and from ``true_position`` callers) with the
+    emulator's lock held. It must be quick, and must not take a lock that another thread
+    holds while calling into the emulator (a physics thread calling ``true_position`` under
+    its own lock would deadlock against a ``load`` that takes that lock).
+    ``reply_latency_s``: added once before the status packets of every instruction (a USB
+    adapter's latency timer, a slow bus); settable while running.
+    ``initial_positions``: raw positions at power-up (default 2048, the centre).
+    """
+
+    def __init__(
+        self,
+        ids: Iterable[int] = (11, 12, 13, 14, 15),
+        *,
+        load: LoadFn | None = None,
+        reply_latency_s: float = 0.0,
+        step_s: float = 0.001,
+        initial_positions: Mapping[int, float] | None = None,
+        firmware: int = DEFAULT_FIRMWARE,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        positions = dict(initial_positions or {})
+        self._motors = {i: _Motor(i, positions.get(i, 2048.0), firmware) for i in ids}
+        self._load = load
+        self.reply_latency_s = reply_latency_s
+        self._step_s = step_s
+        self._clock = clock
+        self._lock = threading.RLock()
+        self._sim_t = clock()
+        self.received: collections.deque[Received] = collections.deque(maxlen=10_000)
+        self.port = ""
+        self._master = self._slave = self._wake_r = self._wake_w = -1
+        self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def start(self) -> DxlEmulator:
+        if self._thread is not None:
+            raise RuntimeError("emulator already started")
+        self._master, self._slave = os.openpty()
+        # Raw from the start: no echo, no CR/LF translation, before any client opens the port.
+        tty.setraw(self._slave)
+        # Keep the slave open ourselves so the master never reads EIO between clients.
+        self.port = os.ttyname(self._slave)
+        fl = fcntl.fcntl(self._master, fcntl.F_GETFL)
+        fcntl.fcntl(self._master, fcntl.F_SETFL, fl | os.O_NONBLOCK)
+        self._wake_r, self._wake_w = os.pipe()
+        with self._lock:
+            self._sim_t = self._clock()
+            for motor in self._motors.values():
+                motor.watchdog_last = self._sim_t
+        self._thread = threading.Thread(target=self._run, name="dxl-emulator", daemon=True)
+        self._thread.start()
+        _log.debug("Dynamixel emulator serving %s, motors %s", self.port, sorted(self._motors))
+        return self
+
+    def stop(self) -> None:
+        if self._thread is None:
+            return
+        self._stopping.set()
+        os.write(self._wake_w, b"x")
+        self._thread.join(STOP_JOIN_TIMEOUT_S)
+        if self._thread.is_alive():
+            _log.error("Dynamixel emulator thread did not stop within %.1f s", STOP_JOIN_TIMEOUT_S)
+        self._thread = None
+        for fd in (self._master, self._slave, self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._master = self._slave = self._wake_r = self._wake_w = -1
+
+    def __enter__(self) -> DxlEmulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- test and physics API
+
+    def true_position(self, motor_id: int) -> float:
+        """The motor's true position (raw counts), advanced to now."""
+        with self._lock:
+            self._advance(self._clock())
+            return self._motors[motor_id].pos
+
+    def get_register(self, motor_id: int, name: str) -> int:
+        """A register as the motor would answer it now (bypasses the bus)."""
+        with self._lock:
+            self._advance(self._clock())
+            motor = self._motors[motor_id]
+            self._refresh(motor)
+            return motor.get(name)
+
+    def set_register(self, motor_id: int, name: str, value: int) -> None:
+        """Set a register behind the bus's back (no access rules), e.g. Return Delay Time 0.
+
+        ``Present Position`` moves the motor there (and its Goal Position with it).
+        """
+        with self._lock:
+            self._advance(self._clock())
+            motor = self._motors[motor_id]
+            if name == "Present Position":
+                motor.pos = float(value)
+                motor.profile = None
+                motor.put("Goal Position", value)
+                return
+            reg = _TABLE[name]
+            motor.mem[reg.address:reg.end] = reg.encode(value)
+            self._after_write(motor, reg, value, self._sim_t)
+
+    def set_missing(self, motor_id: int, missing: bool = True) -> None:
+        """A missing motor hears nothing and answers nothing (unplugged, wrong ID or baud)."""
+        with self._lock:
+            self._motors[motor_id].missing = missing
+
+    def corrupt_crc(self, motor_id: int, count: int = 1) -> None:
+        """Send the next ``count`` status packets of this motor with a wrong CRC (-1: all;
+        0: stop)."""
+        with self._lock:
+            self._motors[motor_id].corrupt_left = count
+
+    def set_hardware_error(self, motor_id: int, bits: int) -> None:
+        """Raise Hardware Error Status bits (0 clears): the motor shuts down (torque off) and
+        every status packet carries the alert bit until cleared."""
+        with self._lock:
+            self._advance(self._clock())
+            motor = self._motors[motor_id]
+            motor.put("Hardware Error Status", bits)
+            if bits:
+                motor.put("Torque Enable", 0)
+                motor.profile = None
+                motor.vel = 0.0
+
+    # ---------------------------------------------------------------- motion model
+
+    def _advance(self, now: float) -> None:
+        dt = self._step_s
+        while self._sim_t + dt <= now:
+            self._sim_t += dt
+            for motor in self._motors.values():
+                self._step(motor, self._sim_t, dt)
+
+    def _step(self, m: _Motor, t: float, dt: float) -> None:
+        if not m.torque_on:
+            m.vel = 0.0
+            return
+        wd = m.mem[98]
+        if 0 < wd <= 127 and t - m.watchdog_last > wd * BUS_WATCHDOG_UNIT_S:
+            # Torque stays on, the motor holds where it is, goal writes are refused.
+            m.mem[98] = 0xFF
+            m.profile = None
+            m.vel = 0.0
+            m.put("Goal Position", round(m.pos))
+            _log.info("emulated motor %d: Bus Watchdog tripped", m.id)
+            return
+        profile = m.profile
+        if profile is None:
+            m.vel = 0.0
+            return
+        desired = profile.position(t)
+        if (m.mem[11] == MODE_CURRENT_BASED_POSITION and self._load is not None
+                and (desired - m.pos) * m.closing_sign > 0):
+            load = self._call_load(m)
+            cap_ma = abs(m.get("Goal Current")) * CURRENT_MA_PER_UNIT
+            if load >= cap_ma:
+                # Stalled on the object: the profile waits, the motor pushes at the cap.
+                profile.t0 += dt
+                m.stalled = True
+                m.vel = 0.0
+                return
+        m.stalled = False
+        m.vel = (desired - m.pos) / dt
+        m.pos = desired
+        if profile.done(t):
+            m.profile = None
+            m.vel = 0.0
+
+    def _call_load(self, m: _Motor) -> float:
+        if self._load is None:
+            return 0.0
+        try:
+            load = float(self._load(m.id, m.pos))
+        except Exception:
+            if not m.load_failed:
+                _log.exception("load hook failed for motor %d; using 0 mA", m.id)
+                m.load_failed = True
+            return 0.0
+        m.load_ma = load
+        return load
+
+    def _start_profile(self, m: _Motor, goal: int, t: float) -> None:
+        pv = m.get("Profile Velocity")
+        pa = m.get("Profile Acceleration")
+        limit_units = m.get("Velocity Limit") or _MAX_VELOCITY_UNITS
+        v_max = min(limit_units, _MAX_VELOCITY_UNITS) * RAW_PER_S_PER_VELOCITY_UNIT
+        if m.mem[10] & DRIVE_MODE_TIME_BASED_PROFILE and pv > 0:
+            m.profile = _Profile(m.pos, goal, t, pv / 1000.0, pa / 1000.0)
+        else:
+            v = min(pv * RAW_PER_S_PER_VELOCITY_UNIT, v_max) if pv > 0 else v_max
+            a = pa * RAW_PER_S2_PER_ACCELERATION_UNIT if pa > 0 else math.inf
+            m.profile = _Profile.velocity_based(m.pos, goal, t, v, a)
+
+    def _refresh(self, m: _Motor) -> None:
+        """Copy the physical state into the Present registers before a read."""
+        profile = m.profile
+        if m.torque_on and self._load is not None:
+            load = self._call_load(m)
+            # The motor's current cannot exceed its cap: Goal Current in current-based
+            # position mode (a stall overshoots the cap by at most one step of load), the
+            # Current Limit otherwise.
+            limit_ma = m.get("Current Limit") * CURRENT_MA_PER_UNIT
+            if m.mem[11] == MODE_CURRENT_BASED_POSITION:
+                limit_ma = min(limit_ma, abs(m.get("Goal Current")) * CURRENT_MA_PER_UNIT)
+            current_ma = m.closing_sign * max(-limit_ma, min(limit_ma, load))
+        else:
+            current_ma = 0.0
+        moving = profile is not None and not m.stalled
+        m.put("Present Position", round(m.pos))
+        m.put("Present Velocity", round(m.vel / RAW_PER_S_PER_VELOCITY_UNIT))
+        m.put("Present Current", round(current_ma / CURRENT_MA_PER_UNIT))
+        m.put("Moving", int(moving))
+        in_position = not moving and abs(m.get("Goal Position") - m.pos) <= 1
+        m.put("Moving Status", (0x02 if profile is not None else 0) | int(in_position))
+        desired = profile.position(self._sim_t) if profile is not None else m.pos
+        m.put("Position Trajectory", round(desired))
+        m.put("Realtime Tick", int(self._sim_t * 1000) % 32768)
+
+    # ---------------------------------------------------------------- control table writes
+
+    def _check_write(self, m: _Motor, address: int, data: bytes) -> int:
+        """The error a WRITE of ``data`` at ``address`` answers, 0 if it is accepted."""
+        regs = _TABLE.covering(address, len(data))
+        if regs is None:
+            return ERR_ACCESS
+        for reg in regs:
+            value = reg.decode(data[reg.address - address:reg.end - address])
+            if not reg.writable or (reg.area is Area.EEPROM and m.torque_on):
+                return ERR_ACCESS
+            if reg.name in _GOALS and m.watchdog_tripped:
+                return ERR_DATA_RANGE
+            if not reg.check(value):
+                return ERR_DATA_RANGE
+            error = self._check_dependent(m, reg, value)
+            if error:
+                return error
+        return 0
+
+    def _check_dependent(self, m: _Motor, reg: Register, value: int) -> int:
+        name = reg.name
+        if name == "Operating Mode" and value not in OPERATING_MODES:
+            return ERR_DATA_RANGE
+        if name == "Drive Mode" and value & ~0x0D:
+            return ERR_DATA_RANGE
+        if name == "Torque Enable" and value and m.get("Hardware Error Status"):
+            return ERR_RESULT_FAIL  # shut down: only a reboot clears it
+        if name == "Goal Current" and abs(value) > m.get("Current Limit"):
+            return ERR_DATA_LIMIT
+        if name == "Goal Velocity" and abs(value) > m.get("Velocity Limit"):
+            return ERR_DATA_LIMIT
+        if name == "Goal PWM" and abs(value) > m.get("PWM Limit"):
+            return ERR_DATA_LIMIT
+        if (name == "Goal Position" and m.mem[11] == MODE_POSITION
+                and not m.get("Min Position Limit") <= value <= m.get("Max Position Limit")):
+            return ERR_DATA_LIMIT
+        return 0
+
+    def _write(self, m: _Motor, address: int, data: bytes, t: float) -> int:
+        error = self._check_write(m, address, data)
+        if error:
+            return error
+        for reg in _TABLE.covering(address, len(data)) or ():
+            chunk = data[reg.address - address:reg.end - address]
+            m.mem[reg.address:reg.end] = chunk
+            self._after_write(m, reg, reg.decode(chunk), t)
+        return 0
+
+    def _after_write(self, m: _Motor, reg: Register, value: int, t: float) -> None:
+        name = reg.name
+        if name == "Torque Enable":
+            m.profile = None
+            m.vel = 0.0
+            if value:
+                m.put("Goal Position", round(m.pos))
+                m.watchdog_last = t
+        elif name == "Goal Position":
+            if m.torque_on and m.mem[11] in (MODE_POSITION, MODE_EXTENDED_POSITION,
+                                             MODE_CURRENT_BASED_POSITION):
+                self._start_profile(m, value, t)
+        elif name == "Bus Watchdog":
+            m.watchdog_last = t
+        elif name == "Operating Mode":
+            m.profile = None
+        elif name == "ID" and value != m.id:
+            self._motors.pop(m.id, None)
+            m.id = value
+            self._motors[value] = m
+
+    # ---------------------------------------------------------------- instructions
+
+    def _handle(self, ins: Instruction, now: float) -> list[tuple[_Motor, bytes]]:
+        """Execute one instruction; return the status packets to send, in bus order."""
+        present = [m for m in self._motors.values() if not m.missing]
+        if not ins.crc_ok:
+            m = self._motors.get(ins.motor_id)
+            if m is None or m.missing:
+                return []
+            return [(m, self._status(m, ERR_CRC))]
+        for m in present:
+            # Every instruction packet on the bus counts as communication for the watchdog.
+            m.watchdog_last = now
+        inst, params, target = ins.instruction, ins.params, ins.motor_id
+        if inst == INST_PING:
+            targets = present if target == BROADCAST_ID else [
+                m for m in present if m.id == target]
+            return [(m, self._status(m, 0, _TABLE["Model Number"].encode(_TABLE.model_number)
+                                     + bytes((m.mem[6],)))) for m in sorted(targets, key=_id)]
+        if inst in (INST_SYNC_READ, INST_FAST_SYNC_READ, INST_SYNC_WRITE, INST_BULK_READ,
+                    INST_BULK_WRITE):
+            if target != BROADCAST_ID:
+                return []
+            return self._handle_group(inst, params, now)
+        if target == BROADCAST_ID:
+            if inst in (INST_WRITE, INST_REG_WRITE) and len(params) >= 3:
+                address = int.from_bytes(params[:2], "little")
+                for m in present:
+                    self._unicast(m, inst, address, params[2:], now)
+            elif inst == INST_ACTION:
+                for m in present:
+                    self._action(m, now)
+            return []
+        m = self._motors.get(target)
+        if m is None or m.missing:
+            return []
+        return self._handle_unicast(m, inst, params, now)
+
+    def _handle_unicast(self, m: _Motor, inst: int, params: bytes,
+                        now: float) -> list[tuple[_Motor, bytes]]:
+        level = m.mem[68]
+        addressed = m.id
+        if inst == INST_READ:
+            if len(params) != 4:
+                return [(m, self._status(m, ERR_DATA_LENGTH))] if level >= 1 else []
+            address = int.from_bytes(params[:2], "little")
+            length = int.from_bytes(params[2:], "little")
+            if level < 1:
+                return []
+            return [(m, self._read_status(m, address, length))]
+        if inst in (INST_WRITE, INST_REG_WRITE):
+            if len(params) < 3:
+                error = ERR_DATA_LENGTH
+            else:
+                error = self._unicast(m, inst, int.from_bytes(params[:2], "little"), params[2:],
+                                      now)
+        elif inst == INST_ACTION:
+            error = self._action(m, now)
+        elif inst == INST_REBOOT:
+            error = 0
+            self._reboot(m, now)
+        else:
+            error = ERR_INSTRUCTION
+        # The status comes from the ID addressed, even when the write changed it.
+        return [(m, self._status(m, error, reply_id=addressed))] if level >= 2 else []
+
+    def _unicast(self, m: _Motor, inst: int, address: int, data: bytes, now: float) -> int:
+        if inst == INST_WRITE:
+            return self._write(m, address, data, now)
+        error = self._check_write(m, address, data)
+        if not error:
+            m.pending = (address, bytes(data))
+            m.put("Registered Instruction", 1)
+        return error
+
+    def _action(self, m: _Motor, now: float) -> int:
+        if m.pending is None:
+            return 0
+        address, data = m.pending
+        m.pending = None
+        m.put("Registered Instruction", 0)
+        return self._write(m, address, data, now)
+
+    def _reboot(self, m: _Motor, now: float) -> None:
+        for reg in _TABLE.values():
+            if reg.area is Area.RAM:
+                m.mem[reg.address:reg.end] = reg.encode(reg.default)
+        m.profile = None
+        m.vel = 0.0
+        m.pending = None
+        m.put("Goal Position", round(m.pos))
+        m.watchdog_last = now
+
+    def _handle_group(self, inst: int, params: bytes,
+                      now: float) -> list[tuple[_Motor, bytes]]:
+        if inst == INST_BULK_READ:
+            replies = []
+            for i in range(0, len(params) - 4, 5):
+                m = self._motors.get(params[i])
+                if m is None or m.missing:
+                    continue
+                address = int.from_bytes(params[i + 1:i + 3], "little")
+                length = int.from_bytes(params[i + 3:i + 5], "little")
+                if m.mem[68] >= 1:
+                    replies.append((m, self._read_status(m, address, length)))
+            return replies
+        if inst == INST_BULK_WRITE:
+            i = 0
+            while i + 5 <= len(params):
+                address = int.from_bytes(params[i + 1:i + 3], "little")
+                length = int.from_bytes(params[i + 3:i + 5], "little")
+                m = self._motors.get(params[i])
+                if m is not None and not m.missing:
+                    self._write(m, address, params[i + 5:i + 5 + length], now)
+                i += 5 + length
+            return []
+        if len(params) < 4:
+            return []
+        address = int.from_bytes(params[:2], "little")
+        length = int.from_bytes(params[2:4], "little")
+        rest = params[4:]
+        if inst == INST_SYNC_WRITE:
+            for i in range(0, len(rest) - length, length + 1):
+                m = self._motors.get(rest[i])
+                if m is not None and not m.missing:
+                    self._write(m, address, rest[i + 1:i + 1 + length], now)
+            return []
+        motors = [self._motors.get(i) for i in rest]
+        if inst == INST_SYNC_READ:
+            return [(m, self._read_status(m, address, length)) for m in motors
+                    if m is not None and not m.missing and m.mem[68] >= 1]
+        # FAST SYNC READ: one status packet, ID 0xFE, one [error, id, data, crc] block per
+        # motor; each block's CRC covers the packet so far, the last one is the packet CRC.
+        if not motors or any(m is None or m.missing for m in motors):
+            return []  # the daisy chain breaks at a missing motor: the host times out
+        return [(motors[0], self._fast_sync_status(motors, address, length))]  # type: ignore[arg-type]
+
+    # ---------------------------------------------------------------- status packets
+
+    def _error_byte(self, m: _Motor, error: int) -> int:
+        return error | (ERR_ALERT if m.mem[70] else 0)
+
+    def _status(self, m: _Motor, error: int, params: bytes = b"",
+                reply_id: int | None = None) -> bytes:
+        body = bytes((INST_STATUS, self._error_byte(m, error))) + params
+        packet = bytearray(encode_packet(m.id if reply_id is None else reply_id, body))
+        if m.corrupt_left:
+            packet[-1] ^= 0xFF
+            if m.corrupt_left > 0:
+                m.corrupt_left -= 1
+        return bytes(packet)
+
+    def _read_status(self, m: _Motor, address: int, length: int) -> bytes:
+        if length == 0 or address + length > _TABLE.size:
+            return self._status(m, ERR_ACCESS)
+        self._refresh(m)
+        return self._status(m, 0, bytes(m.mem[address:address + length]))
+
+    def _fast_sync_status(self, motors: list[_Motor], address: int, length: int) -> bytes:
+        # Length field: the instruction byte plus the blocks (the last CRC is the packet's).
+        # Not byte-stuffed: the SDK's fast path does not unstuff.
+        body_len = 1 + (length + 4) * len(motors)
+        packet = bytearray(HEADER + bytes((BROADCAST_ID, body_len & 0xFF, body_len >> 8,
+                                           INST_STATUS)))
+        for m in motors:
+            self._refresh(m)
+            packet += bytes((self._error_byte(m, 0), m.id)) + m.mem[address:address + length]
+            packet += crc16(packet).to_bytes(2, "little")
+        return bytes(packet)
+
+    # ---------------------------------------------------------------- the thread
+
+    def _run(self) -> None:
+        buf = bytearray()
+        partial_since: float | None = None
+        try:
+            while not self._stopping.is_set():
+                ready, _, _ = select.select([self._master, self._wake_r], [], [], IDLE_WAKE_S)
+                if self._wake_r in ready:
+                    break
+                now = self._clock()
+                if self._master in ready:
+                    try:
+                        buf += os.read(self._master, 4096)
+                    except BlockingIOError:
+                        pass
+                    except OSError as exc:
+                        if exc.errno != errno.EIO:
+                            raise
+                with self._lock:
+                    self._advance(now)
+                while True:
+                    ins = parse_packet(buf)
+                    if ins is None:
+                        break
+                    self.received.append(Received(now, ins.motor_id, ins.instruction,
+                                                  ins.params))
+                    with self._lock:
+                        replies = self._handle(ins, now)
+                    if not self._send(replies, now):
+                        return
+                if buf:
+                    partial_since = partial_since if partial_since is not None else now
+                    if now - partial_since > PARTIAL_PACKET_TIMEOUT_S:
+                        del buf[:1]
+                        partial_since = None
+                else:
+                    partial_since = None
+        except Exception:
+            _log.exception("Dynamixel emulator thread died")
+
+    def _send(self, replies: list[tuple[_Motor, bytes]], arrival: float) -> bool:
+        """Write the status packets with their delays; False if asked to stop meanwhile."""
+        due = arrival + self.reply_latency_s
+        for motor, packet in replies:
+            due += motor.return_delay_s
+            wait = due - self._clock()
+            if wait > 0 and select.select([self._wake_r], [], [], wait)[0]:
+                return False
+            try:
+                os.write(self._master, packet)
+            except BlockingIOError:
+                _log.warning("emulated motor %d: pty full, status packet dropped", motor.id)
+            due = max(due, self._clock())
+        return True
+
+
+def _id(m: _Motor) -> int:
+    return m.id
