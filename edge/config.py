@@ -133,6 +133,9 @@ class PressConfig:
     abort_factor: float = 25.0
     # Gripper width (ROBOTIS joint value, -0.010 closed .. 0.019 fully open) before closing.
     open_width_m: float = 0.019
+    # The stop goal lies this many encoder counts past the present position: keeps a gentle
+    # squeeze (0 would release it; each count is ~0.035 mm of finger gap).
+    stop_squeeze_raw: int = 2
 
     def validate(self, path: str) -> None:
         _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")
@@ -148,6 +151,8 @@ class PressConfig:
         _require(self.abort_factor > 1, path, "abort_factor", self.abort_factor, "must be > 1")
         _require(-0.010 < self.open_width_m <= 0.019, path, "open_width_m", self.open_width_m,
                  "must be in (-0.010, 0.019] m (the gripper's range)")
+        _require(0 <= self.stop_squeeze_raw <= 20, path, "stop_squeeze_raw",
+                 self.stop_squeeze_raw, "must be 0..20 counts")
 
 
 @dataclass(frozen=True)

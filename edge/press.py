@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from edge import preprocess
+from edge import preprocess, recording
 from edge.buffer import FrameRing, Window
 from edge.config import Config
 from edge.errors import DeviceError, EdgeError, StaleSensorError
@@ -279,3 +279,22 @@ class PressController:
             except DeviceError as exc:
                 log.debug("gripper trace read failed: %s", exc)
             await asyncio.sleep(GRIPPER_TRACE_PERIOD_S)
+
+
+def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"
+                      ) -> recording.Recording:
+    """The stored form of a press (recordings format): raw window, tare, gripper trace."""
+    win = outcome.window
+    if win is None or outcome.t_stop is None or outcome.tare is None:
+        raise EdgeError(f"press has no window to record ({outcome.result}: {outcome.message})")
+    trace = outcome.gripper_trace
+    return recording.Recording(
+        frames=win.raw, recv_time=win.recv_time, sensor_time=win.sensor_time, seq=win.seq,
+        tare=outcome.tare, t_stop=outcome.t_stop, label=label, threshold=cfg.press.x_th,
+        sensor_model=cfg.sensor.model,
+        gripper_time=np.array([s.t for s in trace], dtype=np.float64),
+        gripper_width_m=np.array([s.width_m for s in trace], dtype=np.float64),
+        gripper_current_ma=np.array([s.squeeze_ma for s in trace], dtype=np.float64),
+        source=cfg.mode,
+        extra={"stop_latency_s": outcome.stop_latency_s, "t_cross": outcome.t_cross,
+               "peak_level": outcome.peak_level, "result": outcome.result})

@@ -27,7 +27,7 @@ from edge.buffer import FrameRing, Sampler
 from edge.config import Config
 from edge.errors import BusyError, EdgeError, NotFoundError, SensorError, StaleSensorError
 from edge.metrics import Metrics
-from edge.press import PressController, PressOutcome
+from edge.press import PressController, PressOutcome, outcome_recording
 from edge.store import EpisodeStore, new_id
 from edge.systemd import Notifier, watchdog_period_s
 
@@ -270,16 +270,7 @@ class Runtime:
 
     def _encode(self, outcome: PressOutcome):
         """CPU work off the loop: recording, crop, encoder, top-k, description."""
-        win = outcome.window
-        assert win is not None and outcome.t_stop is not None and outcome.tare is not None
-        rec = recording.Recording(
-            frames=win.raw, recv_time=win.recv_time, sensor_time=win.sensor_time,
-            seq=win.seq, tare=outcome.tare, t_stop=outcome.t_stop, label="unknown",
-            threshold=self.cfg.press.x_th, sensor_model=self.cfg.sensor.model,
-            gripper_time=np.array([s.t for s in outcome.gripper_trace]),
-            gripper_width_m=np.array([s.width_m for s in outcome.gripper_trace]),
-            gripper_current_ma=np.array([s.squeeze_ma for s in outcome.gripper_trace]),
-            source=self.cfg.mode, extra={"stop_latency_s": outcome.stop_latency_s})
+        rec = outcome_recording(outcome, self.cfg)
         units = preprocess.recording_units(rec)
         window = preprocess.crop(rec.recv_time, units, rec.t_stop)
         x = preprocess.subsample(window, 0)

@@ -25,8 +25,8 @@ def test_sim_record_writes_a_loadable_deterministic_dataset(tmp_path):
         assert (b / f.relative_to(a)).read_bytes() == f.read_bytes()
 
 
-def test_demo_prints_a_press_summary():
-    out = run("demo")
+def test_sim_press_prints_a_press_summary():
+    out = run("sim", "press", "boiled_kiri_mochi", "stainless_cube")
     assert out.returncode == 0, out.stderr
     assert "boiled_kiri_mochi" in out.stdout and "X 25x96" in out.stdout
 

@@ -9,9 +9,7 @@ import numpy as np
 from edge import preprocess
 from edge.sim.press import PressParams, PressResult, simulate_press
 
-DEMO_OBJECTS = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash",
-                "boiled_kabocha_squash", "macaron", "resin_replica_macaron", "stainless_cube",
-                "gelatin_soft")
+
 
 
 def press_row(name: str, result: PressResult) -> dict:

@@ -1,0 +1,94 @@
+"""The real drivers against the emulated robot: a whole press through the press controller."""
+
+import asyncio
+import contextlib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from edge import preprocess, recording
+from edge.buffer import FrameRing
+from edge.config import Config
+from edge.devices import open_devices
+from edge.press import PressController, outcome_recording
+from edge.sim.robot import SimRobot
+
+
+def fast_config() -> Config:
+    cfg = Config()
+    return replace(cfg, press=replace(cfg.press, open_width_m=0.006),
+                   runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0))
+
+
+async def press_once(robot: SimRobot, cfg: Config):
+    rcfg = robot.runtime_config(cfg)
+    devices = await open_devices(rcfg)
+    ring = FrameRing(96, 4000)
+    controller = PressController(rcfg, devices.gripper, devices.arm, ring)
+
+    async def sensor():
+        async for frame in devices.tactile.frames():
+            ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
+            await controller.on_frame(frame.raw, frame.recv_time)
+
+    task = asyncio.create_task(sensor())
+    try:
+        await asyncio.sleep(0.3)
+        outcome = await controller.run()
+        width = (await devices.gripper.state()).width_m
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        await devices.bus.close()
+        await devices.tactile.close()
+    return rcfg, outcome, width
+
+
+@pytest.mark.asyncio
+async def test_press_stops_on_the_threshold_and_records(tmp_path):
+    cfg = fast_config()
+    async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
+        rcfg, outcome, width = await press_once(robot, cfg)
+        peak_n = robot.world.peak_force_n
+    assert outcome.result == "ok", outcome.message
+    lat_ms = outcome.stop_latency_s * 1e3
+    print(f"stop latency {lat_ms:.2f} ms after the crossing frame; peak force {peak_n:.2f} N; "
+          f"norm at crossing {outcome.level_at_cross:.4f}")
+    assert lat_ms < 20.0  # generous: the figure is benchmarked, not tested
+    assert outcome.level_at_cross > rcfg.press.x_th
+    assert peak_n < 10.0  # the stop held: far below the gripper's force cap
+    assert width > 0.005  # the gripper opened again
+    states = [s for s, _ in outcome.states]
+    assert states[:4] == ["above", "lowered", "tare", "closing"]
+    assert "holding" in states and states[-1] == "idle"
+    rec = outcome_recording(outcome, rcfg, label="stainless_cube")
+    path = recording.save(rec, tmp_path / "p.press.npz")
+    back = recording.load(path)
+    x = preprocess.model_input(back.recv_time, preprocess.recording_units(back), back.t_stop)
+    assert x.shape == (25, 96)
+    # The window shows the press: the norm rises around t_stop and falls after opening.
+    level = preprocess.norm(preprocess.recording_units(back))
+    assert level.max() > rcfg.press.x_th and level[-1] < rcfg.press.x_th
+    assert len(back.gripper_time) > 10
+
+
+@pytest.mark.asyncio
+async def test_soft_object_takes_longer_and_no_object_means_no_contact():
+    cfg = fast_config()
+    async with SimRobot("gelatin_soft", seed=2, cfg=cfg) as robot:
+        _, soft, _ = await press_once(robot, cfg)
+    assert soft.result == "ok", soft.message
+    closing = dict(soft.states)["closing"]
+    print(f"gelatin: closing -> crossing {soft.t_cross - closing:.3f} s")
+    # A press on nothing: the fingers close fully, no crossing, "no contact", gripper open.
+    cfg2 = replace(cfg, runtime=replace(cfg.runtime, close_timeout_s=1.5))
+    async with SimRobot("stainless_cube", seed=3, cfg=cfg2) as robot:
+        robot.world.place("cotton_ball")
+        # An x_th no object reaches under the current cap.
+        _, nothing, width = await press_once(robot, replace(
+            cfg2, press=replace(cfg2.press, x_th=0.9, abort_factor=1.05)))
+    assert nothing.result == "no_contact" and "no contact" in nothing.message
+    assert width > 0.005
+    assert np.isfinite(nothing.peak_level)
