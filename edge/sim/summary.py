@@ -10,8 +10,6 @@ from edge import preprocess
 from edge.sim.press import PressParams, PressResult, simulate_press
 
 
-
-
 def press_row(name: str, result: PressResult) -> dict:
     rec = result.recording
     units = preprocess.recording_units(rec)
