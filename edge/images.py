@@ -10,6 +10,7 @@ event loop, e.g. ``await asyncio.to_thread(prepare_image, ...)``.
 from __future__ import annotations
 
 import base64
+import functools
 import hashlib
 import io
 import logging
@@ -51,7 +52,7 @@ class PreparedImage:
     source_height: int
     reencoded: bool
 
-    @property
+    @functools.cached_property
     def sha256(self) -> str:
         return hashlib.sha256(self.data).hexdigest()
 

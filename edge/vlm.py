@@ -461,9 +461,9 @@ class OpenAIVLM:
             log.warning("VLM answer %r is not a candidate; asking once more",
                         self._redact(raw[:EXCERPT_CHARS]))
             correction = {"role": "user", "content": correction_message(labels)}
-            wire += [{"role": "assistant", "content": raw[:MAX_ECHO_CHARS]}, correction]
-            stored += [{"role": "assistant", "content": self._redact(raw[:MAX_ECHO_CHARS])},
-                       correction]
+            echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
+            wire += [{"role": "assistant", "content": echo}, correction]
+            stored += [{"role": "assistant", "content": self._redact(echo)}, correction]
             response, raw = await self._complete({**head, "messages": wire}, trace)
             label = parse_label(raw, labels)
         status: Status = "ok" if label is not None else "invalid_answer"
@@ -652,6 +652,7 @@ def _encode_json(body: dict[str, Any]) -> bytes:
 
 def _prepare(image: bytes, max_side_px: int, max_bytes: int) -> tuple[PreparedImage, str]:
     prepared = prepare_image(image, max_side_px, max_bytes)
+    _ = prepared.sha256  # hashed here, off the loop
     return prepared, prepared.data_url()
 
 

@@ -7,11 +7,13 @@ import io
 import json
 import logging
 import socket
+import threading
 import time
 
 import pytest
 from PIL import Image
 
+import edge.vlm as vlm_module
 from edge.errors import ConfigError, EdgeError, VLMError
 from edge.images import ImageError
 from edge.prompt import load_template
@@ -397,3 +399,19 @@ async def test_make_vlm_and_repr(fake):
     await client.close()
     with pytest.raises(ConfigError, match="no VLM configured"):
         OpenAIVLM(VLMConfig())
+
+
+@pytest.mark.asyncio
+async def test_cpu_work_runs_off_the_event_loop(fake, monkeypatch):
+    threads = []
+
+    def spy(real):
+        def wrapper(*args, **kwargs):
+            threads.append((real.__name__, threading.current_thread() is threading.main_thread()))
+            return real(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(vlm_module, "prepare_image", spy(vlm_module.prepare_image))
+    monkeypatch.setattr(vlm_module, "_encode_json", spy(vlm_module._encode_json))
+    await ask(fast_config(fake.base_url), image_bytes(2000, 1500, noise=True))
+    assert threads == [("prepare_image", False), ("_encode_json", False)]
