@@ -1,0 +1,441 @@
+"""A fake OpenAI-compatible VLM server on loopback, for tests and demos.
+
+It checks requests the way the real servers do and a little more strictly (the shape the
+runtime promises: ``model``, ``messages`` with a data-URL image that decodes, ``temperature``
+0, a strict ``json_schema`` response format with an enum of candidates), answers 400 to a
+malformed one, 401 to a wrong key, 404 to an unknown model, 413 to an oversized body, and
+records every request it received (``fake.requests``) for assertions.
+
+What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
+(a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
+trickle, a dropped connection, latency); when the queue is empty it answers the label that
+``choose`` picks (default: the first candidate).
+
+    async with FakeVLM(model="fake") as fake:
+        fake.script(Reply.error(503), Reply(label="wood_cube"))
+        client = OpenAIVLM(VLMConfig(base_url=fake.base_url, model="fake"))
+
+Standalone, for demos: ``python -m edge.sim.fake_vlm --port 8011``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import binascii
+import collections
+import contextlib
+import io
+import json
+import logging
+import re
+import signal
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from aiohttp import web
+from PIL import Image, UnidentifiedImageError
+
+log = logging.getLogger(__name__)
+
+DATA_URL = re.compile(r"data:(image/(?:jpeg|png|webp|gif));base64,(.*)", re.S)
+DEFAULT_MAX_REQUEST_BYTES = 20 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One scripted answer; the defaults answer 200 with the chosen label."""
+
+    status: int = 200
+    # The label answered as {"label": ...}; None = the one ``choose`` picks.
+    label: str | None = None
+    # The message content verbatim (overrides label): bad JSON, prose, a code fence...
+    content: str | None = None
+    # The HTTP body verbatim (overrides everything above): non-JSON, huge...
+    body: bytes | None = None
+    headers: Mapping[str, str] = field(default_factory=dict)
+    # Wait this long before answering.
+    delay_s: float = 0.0
+    # Trickle: send the body in ``chunk_bytes`` pieces this far apart.
+    chunk_delay_s: float = 0.0
+    chunk_bytes: int = 16
+    # Send without Content-Length (chunked transfer encoding).
+    chunked: bool = False
+    # Close the connection without any answer.
+    drop: bool = False
+
+    @classmethod
+    def error(cls, status: int, message: str = "fake error", *,
+              retry_after: str | float | None = None) -> Reply:
+        headers = {} if retry_after is None else {"Retry-After": str(retry_after)}
+        body = json.dumps({"error": {"message": message, "type": "fake_error",
+                                     "code": status}}).encode()
+        return cls(status=status, body=body, headers=headers)
+
+    @classmethod
+    def huge(cls, n_bytes: int, *, chunked: bool = False) -> Reply:
+        """A JSON-looking 200 body of ``n_bytes`` (with or without Content-Length)."""
+        head = b'{"choices":[{"message":{"role":"assistant","content":"'
+        tail = b'"}}]}'
+        pad = max(0, n_bytes - len(head) - len(tail))
+        return cls(body=head + b"x" * pad + tail, chunked=chunked)
+
+    @classmethod
+    def dropped(cls) -> Reply:
+        return cls(drop=True)
+
+
+@dataclass
+class FakeRequest:
+    """One request as received, parsed as far as it goes."""
+
+    method: str
+    path: str
+    headers: dict[str, str]
+    raw: bytes
+    body: dict[str, Any] | None = None
+    # Why it was refused (None if it was well formed) and the status answered.
+    error: str | None = None
+    status: int = 0
+    candidates: list[str] = field(default_factory=list)
+    # The text parts of the first user message, joined; and every decoded image.
+    prompt: str = ""
+    images: list[bytes] = field(default_factory=list)
+    image_mimes: list[str] = field(default_factory=list)
+
+    @property
+    def description(self) -> str:
+        """The tactile description, if the prompt says "... similar to <it>." (shipped)."""
+        m = re.search(r"similar to (.+?)\.?\s*$", self.prompt, re.M)
+        return m.group(1) if m else ""
+
+
+Chooser = Callable[[FakeRequest], str]
+
+
+def first_candidate(req: FakeRequest) -> str:
+    return req.candidates[0]
+
+
+def choose_by_description(req: FakeRequest) -> str:
+    """The candidate sharing the most words with the tactile description (ties: first)."""
+    words = set(re.findall(r"[a-z]+", req.description.lower()))
+
+    def score(label: str) -> int:
+        return len(set(re.findall(r"[a-z]+", label.lower())) & words)
+
+    return max(req.candidates, key=score)
+
+
+def validate_chat_request(body: Any) -> tuple[str | None, dict[str, Any]]:
+    """(error or None, parsed pieces) for a /chat/completions body, as the runtime sends."""
+    got: dict[str, Any] = {"candidates": [], "prompt": "", "images": [], "mimes": []}
+    if not isinstance(body, dict):
+        return "request body must be a JSON object", got
+    if not isinstance(body.get("model"), str) or not body["model"]:
+        return "model: required string", got
+    messages = body.get("messages")
+    if not isinstance(messages, list) or not messages:
+        return "messages: required non-empty array", got
+    prompt_done = False
+    for i, msg in enumerate(messages):
+        if not isinstance(msg, dict) or msg.get("role") not in ("system", "user", "assistant"):
+            return f"messages[{i}]: needs a role of system, user or assistant", got
+        content = msg.get("content")
+        if isinstance(content, str):
+            parts: list[Any] = [{"type": "text", "text": content}]
+        elif isinstance(content, list) and content:
+            parts = content
+        else:
+            return f"messages[{i}].content: must be a string or a non-empty array", got
+        texts = []
+        for j, part in enumerate(parts):
+            where = f"messages[{i}].content[{j}]"
+            kind = part.get("type") if isinstance(part, dict) else None
+            if kind == "text":
+                if not isinstance(part.get("text"), str):
+                    return f"{where}.text: required string", got
+                texts.append(part["text"])
+            elif kind == "image_url":
+                url = part.get("image_url")
+                url = url.get("url") if isinstance(url, dict) else None
+                if not isinstance(url, str):
+                    return f"{where}.image_url.url: required string", got
+                err, mime, data = _decode_data_url(url)
+                if err:
+                    return f"{where}.image_url.url: {err}", got
+                got["images"].append(data)
+                got["mimes"].append(mime)
+            else:
+                return f"{where}: unknown content type {kind!r}", got
+        if msg["role"] == "user" and not prompt_done:
+            got["prompt"] = "\n".join(texts)
+            prompt_done = True
+    temperature = body.get("temperature")
+    if isinstance(temperature, bool) or not isinstance(temperature, int | float):
+        return "temperature: required number (the runtime always sends 0)", got
+    if temperature != 0:
+        return f"temperature: must be 0 for recognition, got {temperature!r}", got
+    seed = body.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        return "seed: must be an integer", got
+    if body.get("stream") not in (None, False):
+        return "stream: this fake does not stream", got
+    err, candidates = _check_response_format(body.get("response_format"))
+    if err:
+        return f"response_format: {err}", got
+    got["candidates"] = candidates
+    return None, got
+
+
+def _decode_data_url(url: str) -> tuple[str | None, str, bytes]:
+    if url.startswith(("http://", "https://")):
+        return "only data: URLs are accepted (like Ollama), not http(s) URLs", "", b""
+    m = DATA_URL.fullmatch(url)
+    if not m:
+        return "must be data:image/<jpeg|png|webp|gif>;base64,<data>", "", b""
+    try:
+        data = base64.b64decode(m.group(2), validate=True)
+    except (binascii.Error, ValueError):
+        return "base64 data does not decode", "", b""
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            img.verify()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError):
+        return "data is not a decodable image", "", b""
+    return None, m.group(1), data
+
+
+def _check_response_format(rf: Any) -> tuple[str | None, list[str]]:
+    if not isinstance(rf, dict) or rf.get("type") != "json_schema":
+        return 'must be {"type": "json_schema", ...}', []
+    js = rf.get("json_schema")
+    if not isinstance(js, dict) or not isinstance(js.get("name"), str) or not js["name"]:
+        return "json_schema.name: required string", []
+    if js.get("strict") is not True:
+        return "json_schema.strict: must be true", []
+    schema = js.get("schema")
+    if not isinstance(schema, dict) or schema.get("type") != "object":
+        return "json_schema.schema.type: must be object", []
+    props = schema.get("properties")
+    label = props.get("label") if isinstance(props, dict) else None
+    if not isinstance(label, dict) or label.get("type") != "string":
+        return "json_schema.schema.properties.label: must be a string property", []
+    enum = label.get("enum")
+    if (not isinstance(enum, list) or not enum or not all(isinstance(e, str) and e for e in enum)
+            or len(set(enum)) != len(enum)):
+        return "json_schema.schema.properties.label.enum: non-empty distinct strings", []
+    if schema.get("required") != ["label"] or schema.get("additionalProperties") is not False:
+        return 'json_schema.schema: needs required ["label"], additionalProperties false', []
+    if set(props) != {"label"}:
+        return "json_schema.schema.properties: only label", []
+    return None, list(enum)
+
+
+class FakeVLM:
+    """The fake server; an async context manager exposing ``base_url``."""
+
+    def __init__(
+        self,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 0,
+        model: str | None = "fake-vlm",
+        api_key: str | None = None,
+        choose: Chooser = first_candidate,
+        latency_s: float = 0.0,
+        max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        echo_key_in_errors: bool = False,
+    ) -> None:
+        self.host = host
+        self.port = port
+        # None accepts any model name.
+        self.model = model
+        self.api_key = api_key
+        self.choose = choose
+        self.latency_s = latency_s
+        self.max_request_bytes = max_request_bytes
+        # A careless server that quotes the key it got (to test that the client redacts it).
+        self.echo_key_in_errors = echo_key_in_errors
+        self.requests: list[FakeRequest] = []
+        self._replies: collections.deque[Reply] = collections.deque()
+        self._runner: web.AppRunner | None = None
+        self._count = 0
+
+    @property
+    def base_url(self) -> str:
+        return f"http://{self.host}:{self.port}/v1"
+
+    @property
+    def chat_requests(self) -> list[FakeRequest]:
+        return [r for r in self.requests if r.path.endswith("/chat/completions")]
+
+    def script(self, *replies: Reply) -> None:
+        """Queue replies, used one per well-formed request, in order."""
+        self._replies.extend(replies)
+
+    @property
+    def pending(self) -> int:
+        return len(self._replies)
+
+    async def start(self) -> FakeVLM:
+        app = web.Application(client_max_size=self.max_request_bytes)
+        app.router.add_post("/v1/chat/completions", self._chat)
+        app.router.add_get("/v1/models", self._models)
+        self._runner = web.AppRunner(app, handler_cancellation=True, shutdown_timeout=0.5,
+                                     access_log=None)
+        await self._runner.setup()
+        await web.TCPSite(self._runner, self.host, self.port).start()
+        self.port = self._runner.addresses[0][1]  # the bound port when port=0
+        log.info("fake VLM listening on %s", self.base_url)
+        return self
+
+    async def stop(self) -> None:
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    async def __aenter__(self) -> FakeVLM:
+        return await self.start()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # -- handlers --
+
+    async def _models(self, request: web.Request) -> web.Response:
+        return web.json_response({"object": "list", "data": [
+            {"id": self.model or "fake-vlm", "object": "model", "owned_by": "vtzero"}]})
+
+    async def _chat(self, request: web.Request) -> web.StreamResponse:
+        rec = FakeRequest(request.method, request.path, dict(request.headers), b"")
+        self.requests.append(rec)
+        try:
+            rec.raw = await request.read()
+        except web.HTTPRequestEntityTooLarge:
+            return self._error(rec, 413, f"request body larger than {self.max_request_bytes} "
+                                         "bytes", "request_too_large")
+        if self.api_key is not None:
+            auth = request.headers.get("Authorization", "")
+            if auth != f"Bearer {self.api_key}":
+                message = "Incorrect API key provided"
+                if self.echo_key_in_errors:
+                    message += f": {auth.removeprefix('Bearer ')}"
+                return self._error(rec, 401, message, "invalid_api_key")
+        try:
+            rec.body = json.loads(rec.raw)
+        except (ValueError, RecursionError):
+            return self._error(rec, 400, "request body is not valid JSON", "invalid_json")
+        err, got = validate_chat_request(rec.body)
+        rec.candidates, rec.prompt = got["candidates"], got["prompt"]
+        rec.images, rec.image_mimes = got["images"], got["mimes"]
+        if err:
+            return self._error(rec, 400, err, "invalid_request_error")
+        assert isinstance(rec.body, dict)
+        if self.model is not None and rec.body["model"] != self.model:
+            return self._error(rec, 404, f"model {rec.body['model']!r} not found, try "
+                                         "pulling it first", "model_not_found")
+        reply = self._replies.popleft() if self._replies else Reply()
+        rec.status = reply.status
+        if self.latency_s or reply.delay_s:
+            await asyncio.sleep(self.latency_s + reply.delay_s)
+        if reply.drop:
+            rec.status = 0
+            assert request.transport is not None
+            request.transport.abort()
+            raise asyncio.CancelledError  # nothing more to say on a dead connection
+        return await self._send(request, rec, reply)
+
+    async def _send(self, request: web.Request, rec: FakeRequest,
+                    reply: Reply) -> web.StreamResponse:
+        if reply.body is not None:
+            body = reply.body
+        else:
+            content = reply.content
+            if content is None:
+                label = reply.label if reply.label is not None else self.choose(rec)
+                content = json.dumps({"label": label})
+            body = json.dumps(self._completion(rec, content)).encode()
+        headers = {"Content-Type": "application/json", **reply.headers}
+        if not reply.chunked and not reply.chunk_delay_s:
+            return web.Response(status=reply.status, body=body, headers=headers)
+        resp = web.StreamResponse(status=reply.status, headers=headers)
+        if reply.chunked:
+            resp.enable_chunked_encoding()
+        else:
+            resp.content_length = len(body)
+        await resp.prepare(request)
+        step = max(1, reply.chunk_bytes if reply.chunk_delay_s else 64 * 1024)
+        for i in range(0, len(body), step):
+            await resp.write(body[i:i + step])
+            if reply.chunk_delay_s:
+                await asyncio.sleep(reply.chunk_delay_s)
+        await resp.write_eof()
+        return resp
+
+    def _completion(self, rec: FakeRequest, content: str) -> dict[str, Any]:
+        self._count += 1
+        body = rec.body or {}
+        prompt_tokens = len(rec.prompt.split()) + 256 * len(rec.images)
+        completion_tokens = max(1, len(content) // 4)
+        return {
+            "id": f"chatcmpl-fake-{self._count}", "object": "chat.completion",
+            "created": int(time.time()), "model": body.get("model", self.model),
+            "system_fingerprint": "fake-vlm",
+            "choices": [{"index": 0, "finish_reason": "stop",
+                         "message": {"role": "assistant", "content": content}}],
+            "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": completion_tokens,
+                      "total_tokens": prompt_tokens + completion_tokens},
+        }
+
+    def _error(self, rec: FakeRequest, status: int, message: str, code: str) -> web.Response:
+        rec.error, rec.status = message, status
+        log.debug("fake VLM refused a request: %d %s", status, message)
+        return web.json_response(
+            {"error": {"message": message, "type": "invalid_request_error", "code": code}},
+            status=status)
+
+
+async def _serve(args: argparse.Namespace) -> None:
+    choose: Chooser = first_candidate
+    if args.choose == "description":
+        choose = choose_by_description
+    elif args.choose.startswith("label:"):
+        fixed = args.choose.removeprefix("label:")
+
+        def choose(req: FakeRequest) -> str:
+            return fixed
+
+    fake = FakeVLM(host=args.host, port=args.port, model=args.model or None,
+                   choose=choose, latency_s=args.latency_s)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    async with fake:
+        print(f"fake VLM at {fake.base_url} (model {fake.model or 'any'}); Ctrl-C stops",
+              flush=True)
+        await stop.wait()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m edge.sim.fake_vlm",
+                                     description="A fake OpenAI-compatible VLM on loopback.")
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8011)
+    parser.add_argument("--model", default="fake-vlm", help="model name to accept ('' = any)")
+    parser.add_argument("--choose", default="first",
+                        help="first | description | label:<name> (default first)")
+    parser.add_argument("--latency-s", type=float, default=0.0)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    asyncio.run(_serve(args))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,702 @@
+"""The VLM client (DESIGN section 4): ask an OpenAI-compatible server for one label.
+
+``OpenAIVLM.ask(image, description, candidates)`` renders the prompt, prepares the image off
+the loop, POSTs ``{base_url}/chat/completions`` with the image as a base64 data URL,
+``temperature: 0``, ``seed`` and a strict ``json_schema`` whose enum is the candidates, and
+checks the answer: a candidate (or a case/spacing variant of one) is ``ok``; anything else
+gets one corrective retry, then an explicit ``invalid_answer``. A label is never invented.
+
+Transport failures (408, 409, 429, 5xx, connection errors, timeouts) are retried with capped
+exponential backoff and jitter, honouring ``Retry-After``; other statuses are never retried.
+When retries run out the error is a :class:`VLMUnavailableError`: the episode should wait in
+the store and be asked again later. The API key is read from the environment or a file, sent
+as a Bearer token, and never logged, stored or put in an exception.
+
+``NoVLM`` stands in when no VLM is configured: it answers ``not_configured`` with the exact
+prompt that would have been sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import email.utils
+import json
+import logging
+import math
+import os
+import random
+import re
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC
+from pathlib import Path
+from typing import Any, Literal, Protocol, runtime_checkable
+from urllib.parse import urlsplit
+
+import aiohttp
+
+from edge.errors import ConfigError, VLMError
+from edge.images import ImageError, PreparedImage, prepare_image
+from edge.prompt import (
+    PromptMode,
+    PromptTemplate,
+    check_candidates,
+    format_candidates,
+    load_template,
+)
+
+log = logging.getLogger(__name__)
+
+# Statuses worth another try: the server was busy, timed out, or conflicted.
+RETRYABLE_STATUSES = frozenset({408, 409, 429, *range(500, 600)})
+# The most of an error body quoted in an exception or a log line.
+EXCERPT_CHARS = 200
+# Answers longer than this are not a label (and not worth a regex).
+MAX_ANSWER_CHARS = 100_000
+# The most of a bad answer echoed back in the corrective retry.
+MAX_ECHO_CHARS = 2_000
+SCHEMA_NAME = "label"
+
+Status = Literal["ok", "invalid_answer", "not_configured"]
+
+
+# --- errors -------------------------------------------------------------------------------
+
+class VLMUnavailableError(VLMError):
+    """The VLM could not be reached or stayed busy after every retry: try again later."""
+
+
+class VLMTimeoutError(VLMUnavailableError, TimeoutError):
+    """No complete answer within ``total_timeout_s`` (or no connection in ``connect_timeout_s``)."""
+
+
+class VLMConnectionError(VLMUnavailableError, ConnectionError):
+    """Connection refused, reset or dropped before a complete answer."""
+
+
+class VLMHTTPError(VLMError):
+    """The server answered an HTTP error; ``status`` and a short ``excerpt`` of its body."""
+
+    def __init__(self, message: str, status: int, excerpt: str = "") -> None:
+        super().__init__(message)
+        self.status = status
+        self.excerpt = excerpt
+
+
+class VLMServerError(VLMHTTPError, VLMUnavailableError):
+    """408/409/429/5xx, still so after every retry."""
+
+
+class VLMRejectedError(VLMHTTPError):
+    """A status that is never retried (400, 401, 403, 404, 413, other 4xx, a redirect)."""
+
+
+class VLMResponseError(VLMError, ValueError):
+    """The server's 200 answer is unusable: not JSON, no choices, or an error object."""
+
+
+class VLMResponseTooLargeError(VLMResponseError):
+    """The response body is larger than ``max_response_bytes``."""
+
+
+# --- configuration -----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class VLMConfig:
+    """The ``[vlm]`` section. An empty ``base_url`` means no VLM is configured (``NoVLM``)."""
+
+    # OpenAI-compatible endpoint up to and including /v1, e.g. "http://localhost:11434/v1"
+    # (Ollama), "http://localhost:8000/v1" (vLLM), "https://api.openai.com/v1".
+    base_url: str = ""
+    model: str = ""
+    mode: PromptMode = "vision_tactile"
+    # Directory of <mode>.txt templates; None = the shipped models/prompts.
+    prompt_dir: Path | None = None
+    # The API key: from this file if set, else from this environment variable; none is fine
+    # for a local server.
+    api_key_env: str = "VTZERO_VLM_API_KEY"
+    api_key_file: Path | None = None
+    seed: int = 0
+    # Per attempt: to get a connection, and for the whole request and response.
+    connect_timeout_s: float = 5.0
+    total_timeout_s: float = 60.0
+    # Transport retries after the first attempt (the corrective retry is separate).
+    max_retries: int = 3
+    backoff_base_s: float = 0.5
+    backoff_cap_s: float = 8.0
+    # A server's Retry-After is honoured up to this long.
+    retry_after_cap_s: float = 30.0
+    max_image_side_px: int = 1024
+    max_image_bytes: int = 1_000_000
+    max_response_bytes: int = 1_000_000
+
+    @property
+    def configured(self) -> bool:
+        return bool(self.base_url)
+
+    def validate(self, path: str) -> None:
+        if self.base_url:
+            parts = urlsplit(self.base_url)
+            _require(parts.scheme in ("http", "https") and bool(parts.hostname), path,
+                     "base_url", self.base_url, "must be an http:// or https:// URL")
+            _require(parts.username is None and parts.password is None, path, "base_url",
+                     "<redacted>", "must not hold credentials; use api_key_env/api_key_file")
+            _require(not parts.query and not parts.fragment, path, "base_url",
+                     self.base_url, "must not have a query or fragment")
+            _require(bool(self.model.strip()), path, "model", self.model,
+                     "must name the model when base_url is set")
+        _require(self.api_key_env == "" or re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*",
+                                                         self.api_key_env) is not None,
+                 path, "api_key_env", self.api_key_env, "must be an environment variable name")
+        _require(0 <= self.seed < 2**31, path, "seed", self.seed, "must be in [0, 2**31)")
+        _require(self.connect_timeout_s > 0, path, "connect_timeout_s",
+                 self.connect_timeout_s, "must be > 0")
+        _require(self.total_timeout_s >= self.connect_timeout_s, path, "total_timeout_s",
+                 self.total_timeout_s, "must be >= connect_timeout_s")
+        _require(0 <= self.max_retries <= 10, path, "max_retries", self.max_retries,
+                 "must be in 0..10")
+        _require(self.backoff_base_s > 0, path, "backoff_base_s", self.backoff_base_s,
+                 "must be > 0")
+        _require(self.backoff_cap_s >= self.backoff_base_s, path, "backoff_cap_s",
+                 self.backoff_cap_s, "must be >= backoff_base_s")
+        _require(self.retry_after_cap_s >= 0, path, "retry_after_cap_s",
+                 self.retry_after_cap_s, "must be >= 0")
+        _require(64 <= self.max_image_side_px <= 8192, path, "max_image_side_px",
+                 self.max_image_side_px, "must be in 64..8192")
+        _require(self.max_image_bytes >= 10_000, path, "max_image_bytes",
+                 self.max_image_bytes, "must be >= 10000")
+        _require(self.max_response_bytes >= 1024, path, "max_response_bytes",
+                 self.max_response_bytes, "must be >= 1024")
+
+
+def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:
+    if not ok:
+        raise ConfigError(f"{path}.{name} = {value!r}: {why}")
+
+
+# --- the answer --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class VLMAnswer:
+    """One recognition question and its answer, everything needed to store and audit it."""
+
+    status: Status
+    label: str | None
+    # The text content of the last answer ("" when none came).
+    raw: str
+    # The rendered prompt of the first request.
+    prompt: str
+    candidates: tuple[str, ...]
+    model: str
+    # The last request body sent (the whole conversation), image data elided.
+    request: dict[str, Any] | None
+    # The last response body (JSON).
+    response: dict[str, Any] | None
+    # PreparedImage.info() of the image sent: mime, bytes, sha256, sizes; None if none.
+    image: dict[str, Any] | None
+    # HTTP attempts, transport retries and the corrective retry included.
+    attempts: int
+    latency_s: tuple[float, ...]
+    # Per attempt: the HTTP status ("200", "503") or "timeout", "connection", "too_large".
+    outcomes: tuple[str, ...]
+    # From ask() to the answer, image preparation and backoff waits included.
+    elapsed_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@runtime_checkable
+class VLMClient(Protocol):
+    """What the runtime needs from a VLM."""
+
+    async def ask(self, image: bytes | None, description: str,
+                  candidates: Sequence[str]) -> VLMAnswer: ...
+
+    async def close(self) -> None: ...
+
+
+# --- answer parsing ----------------------------------------------------------------------
+
+_FENCE = re.compile(r"```[A-Za-z0-9_+-]*[ \t]*\n?(.*?)```", re.S)
+_SEPARATORS = re.compile(r"[\s_\-]+")
+
+
+def normalise_label(text: str) -> str:
+    """The comparison key of a label: "Raw Kiri-Mochi." -> "raw_kiri_mochi"."""
+    text = text.strip().strip("\"'`").strip().rstrip(".").casefold()
+    return _SEPARATORS.sub("_", text).strip("_")
+
+
+def match_label(value: str, candidates: Sequence[str]) -> str | None:
+    """``value`` as a candidate: exactly, else by :func:`normalise_label` if unambiguous."""
+    if value in candidates:
+        return value
+    key = normalise_label(value)
+    if not key:
+        return None
+    found = [c for c in candidates if normalise_label(c) == key]
+    return found[0] if len(found) == 1 else None
+
+
+def parse_label(text: str, candidates: Sequence[str]) -> str | None:
+    """The candidate an answer names, or None. Never raises on any answer text.
+
+    Accepts ``{"label": "..."}``, the same inside a code fence or after a ``<think>`` block,
+    a JSON string, or a bare label; each mapped by :func:`match_label`. A JSON label that is
+    not a candidate is None, never a guess.
+    """
+    if not isinstance(text, str) or len(text) > MAX_ANSWER_CHARS:
+        return None
+    end_think = text.lower().rfind("</think>")  # reasoning models: the answer follows
+    if end_think >= 0:
+        text = text[end_think + len("</think>"):]
+    text = text.strip()
+    fence = _FENCE.search(text)
+    bodies = [fence.group(1).strip(), text] if fence else [text]
+    for body in bodies:
+        value = _json_label(body)
+        if value is None and "{" in body and "}" in body:
+            value = _json_label(body[body.find("{"): body.rfind("}") + 1])
+        if value is not None:
+            return match_label(value, candidates)
+        if body and "\n" not in body:
+            found = match_label(body, candidates)
+            if found is not None:
+                return found
+    return None
+
+
+def _json_label(text: str) -> str | None:
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+    if isinstance(value, dict):
+        value = value.get("label")
+    return value if isinstance(value, str) else None
+
+
+# --- request pieces ----------------------------------------------------------------------
+
+def response_format(candidates: Sequence[str]) -> dict[str, Any]:
+    """The strict ``json_schema`` response format: one ``label`` from the candidates."""
+    return {
+        "type": "json_schema",
+        "json_schema": {
+            "name": SCHEMA_NAME,
+            "strict": True,
+            "schema": {
+                "type": "object",
+                "properties": {"label": {"type": "string", "enum": list(candidates)}},
+                "required": ["label"],
+                "additionalProperties": False,
+            },
+        },
+    }
+
+
+def correction_message(candidates: Sequence[str]) -> str:
+    return (
+        "That answer is not one of the candidates. Answer again with exactly one label from "
+        f"the candidates, spelled exactly as given: {format_candidates(candidates)}. "
+        'Reply only with JSON: {"label": "<candidate>"}'
+    )
+
+
+def _user_message(prompt: str, image_url: str | None) -> dict[str, Any]:
+    if image_url is None:
+        return {"role": "user", "content": prompt}
+    return {"role": "user", "content": [
+        {"type": "text", "text": prompt},
+        {"type": "image_url", "image_url": {"url": image_url}},
+    ]}
+
+
+def _elided(image: PreparedImage) -> str:
+    return f"<elided {image.mime} image, {len(image.data)} bytes, sha256:{image.sha256}>"
+
+
+def parse_retry_after(value: str | None, now: float | None = None) -> float | None:
+    """Seconds to wait from a ``Retry-After`` value (delta seconds or an HTTP date)."""
+    if not value:
+        return None
+    value = value.strip()
+    try:
+        seconds = float(value)
+    except ValueError:
+        try:
+            when = email.utils.parsedate_to_datetime(value)
+        except (TypeError, ValueError, IndexError, OverflowError):
+            return None
+        if when.tzinfo is None:
+            when = when.replace(tzinfo=UTC)
+        seconds = when.timestamp() - (time.time() if now is None else now)
+    if not math.isfinite(seconds):
+        return None
+    return max(0.0, seconds)
+
+
+def backoff_delay(retry: int, base_s: float, cap_s: float, rng: random.Random) -> float:
+    """Capped exponential backoff with jitter: in [d/2, d], d = min(cap, base * 2**retry)."""
+    d = min(cap_s, base_s * 2.0 ** min(retry, 60))
+    return d / 2 + rng.uniform(0, d / 2)
+
+
+def load_api_key(config: VLMConfig) -> str | None:
+    """The API key from ``api_key_file`` if set, else ``api_key_env``; None if neither."""
+    if config.api_key_file is not None:
+        path = config.api_key_file
+        try:
+            mode = path.stat().st_mode
+            key = path.read_text(encoding="utf-8").strip()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"vlm.api_key_file = {str(path)!r}: cannot be read "
+                              f"({type(exc).__name__})") from None
+        if mode & 0o077:
+            log.warning("vlm.api_key_file %s is readable by group or others (mode %o): "
+                        "chmod 600 it", path, mode & 0o777)
+        source = f"vlm.api_key_file = {str(path)!r}"
+        if not key:
+            raise ConfigError(f"{source}: the file is empty")
+    elif config.api_key_env and os.environ.get(config.api_key_env, "").strip():
+        key = os.environ[config.api_key_env].strip()
+        source = f"environment variable {config.api_key_env}"
+    else:
+        return None
+    if not key.isascii() or not key.isprintable() or " " in key:
+        raise ConfigError(f"{source}: the API key holds characters not allowed in a header")
+    return key
+
+
+class _Trace:
+    """Per-attempt bookkeeping of one ask()."""
+
+    def __init__(self) -> None:
+        self.latency_s: list[float] = []
+        self.outcomes: list[str] = []
+
+    def add(self, started: float, outcome: str) -> None:
+        self.latency_s.append(time.monotonic() - started)
+        self.outcomes.append(outcome)
+
+
+# --- the real client ---------------------------------------------------------------------
+
+class OpenAIVLM:
+    """:class:`VLMClient` for an OpenAI-compatible ``/chat/completions`` endpoint (aiohttp).
+
+    ``sleep`` and ``rng`` are injectable (tests record or scale the backoff). A ``session``
+    passed in is used and left open; otherwise one is created on first use and closed by
+    :meth:`close` (or ``async with``).
+    """
+
+    def __init__(
+        self,
+        config: VLMConfig,
+        *,
+        template: PromptTemplate | None = None,
+        session: aiohttp.ClientSession | None = None,
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
+        rng: random.Random | None = None,
+    ) -> None:
+        config.validate("vlm")
+        if not config.configured:
+            raise ConfigError("vlm.base_url = '': no VLM configured (use NoVLM)")
+        self.config = config
+        self.template = template or load_template(config.mode, config.prompt_dir)
+        self.url = config.base_url.rstrip("/") + "/chat/completions"
+        self._api_key = load_api_key(config)
+        self._session = session
+        self._own_session = session is None
+        self._sleep = sleep
+        self._rng = rng or random.Random()
+        host = urlsplit(self.url).hostname or ""
+        if self._api_key and self.url.startswith("http://") and not _is_loopback(host):
+            log.warning("the VLM API key will cross the network in clear text to %s: "
+                        "use https://", host)
+
+    def __repr__(self) -> str:
+        return (f"OpenAIVLM(url={self.url!r}, model={self.config.model!r}, "
+                f"mode={self.template.mode!r}, api_key={'set' if self._api_key else 'none'})")
+
+    async def __aenter__(self) -> OpenAIVLM:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        if self._own_session and self._session is not None:
+            await self._session.close()
+            self._session = None
+
+    async def ask(self, image: bytes | None, description: str,
+                  candidates: Sequence[str]) -> VLMAnswer:
+        started = time.monotonic()
+        labels = check_candidates(candidates)
+        prompt = self.template.render(description, labels)
+        prepared: PreparedImage | None = None
+        wire_url = stored_url = None
+        if self.template.uses_image:
+            if image is None:
+                raise ImageError(f"VLM mode {self.template.mode} needs an image; none given")
+            cfg = self.config
+            prepared, wire_url = await asyncio.to_thread(
+                _prepare, image, cfg.max_image_side_px, cfg.max_image_bytes)
+            stored_url = _elided(prepared)
+        elif image is not None:
+            log.debug("VLM mode %s: image not sent", self.template.mode)
+
+        head = {"model": self.config.model, "temperature": 0, "seed": self.config.seed,
+                "stream": False, "response_format": response_format(labels)}
+        wire = [_user_message(prompt, wire_url)]
+        stored = [_user_message(prompt, stored_url)]
+        trace = _Trace()
+        response, raw = await self._complete({**head, "messages": wire}, trace)
+        label = parse_label(raw, labels)
+        if label is None:
+            log.warning("VLM answer %r is not a candidate; asking once more",
+                        self._redact(raw[:EXCERPT_CHARS]))
+            correction = {"role": "user", "content": correction_message(labels)}
+            echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
+            wire += [{"role": "assistant", "content": echo}, correction]
+            stored += [{"role": "assistant", "content": self._redact(echo)}, correction]
+            response, raw = await self._complete({**head, "messages": wire}, trace)
+            label = parse_label(raw, labels)
+        status: Status = "ok" if label is not None else "invalid_answer"
+        elapsed = time.monotonic() - started
+        if label is None:
+            log.warning("VLM gave no valid label after a corrective retry: %r",
+                        self._redact(raw[:EXCERPT_CHARS]))
+        else:
+            log.info("VLM answered %r in %.2f s (%d attempt(s))", label, elapsed,
+                     len(trace.outcomes))
+        return VLMAnswer(
+            status=status, label=label, raw=self._redact(raw), prompt=prompt,
+            candidates=tuple(labels), model=self.config.model,
+            request={**head, "messages": stored}, response=self._redact_json(response),
+            image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
+            latency_s=tuple(trace.latency_s), outcomes=tuple(trace.outcomes),
+            elapsed_s=elapsed,
+        )
+
+    # -- one round: POST with transport retries, then the answer text --
+
+    async def _complete(self, body: dict[str, Any], trace: _Trace) -> tuple[dict, str]:
+        # ~5 ms for a 1 MB image: off the loop.
+        payload = await asyncio.to_thread(_encode_json, body)
+        data = await self._post(payload, trace)
+        return data, self._content(data)
+
+    async def _post(self, payload: bytes, trace: _Trace) -> dict[str, Any]:
+        cfg = self.config
+        timeout = aiohttp.ClientTimeout(total=cfg.total_timeout_s,
+                                        connect=cfg.connect_timeout_s,
+                                        sock_connect=cfg.connect_timeout_s)
+        headers = {"Content-Type": "application/json", "Accept": "application/json"}
+        if self._api_key:
+            headers["Authorization"] = f"Bearer {self._api_key}"
+        session = self._get_session()
+        retry = 0
+        while True:
+            started = time.monotonic()
+            wait_s: float | None = None
+            try:
+                async with session.post(self.url, data=payload, headers=headers,
+                                        timeout=timeout, allow_redirects=False) as resp:
+                    status = resp.status
+                    wait_s = parse_retry_after(resp.headers.get("Retry-After"))
+                    body = await self._read_body(resp)
+            except VLMResponseTooLargeError:
+                trace.add(started, "too_large")
+                raise
+            except TimeoutError:
+                trace.add(started, "timeout")
+                failure: VLMError = VLMTimeoutError(
+                    f"no complete answer from {self.url} within total_timeout_s="
+                    f"{cfg.total_timeout_s} (connect_timeout_s={cfg.connect_timeout_s})")
+            except (aiohttp.ClientConnectionError, aiohttp.ClientPayloadError) as exc:
+                trace.add(started, "connection")
+                failure = VLMConnectionError(
+                    f"connection to {self.url} failed: {type(exc).__name__}: "
+                    f"{self._redact(str(exc))[:EXCERPT_CHARS]}")
+            except aiohttp.ClientError as exc:
+                trace.add(started, "protocol")
+                raise VLMResponseError(
+                    f"unusable HTTP answer from {self.url}: {type(exc).__name__}: "
+                    f"{self._redact(str(exc))[:EXCERPT_CHARS]}") from None
+            else:
+                trace.add(started, str(status))
+                if 200 <= status < 300:
+                    return self._decode(body, status)
+                failure = self._http_error(status, body)
+            attempts = len(trace.outcomes)
+            if not isinstance(failure, VLMUnavailableError) or retry >= cfg.max_retries:
+                if isinstance(failure, VLMUnavailableError):
+                    log.warning("VLM unavailable after %d attempt(s): %s", attempts, failure)
+                raise failure
+            delay = backoff_delay(retry, cfg.backoff_base_s, cfg.backoff_cap_s, self._rng)
+            if wait_s is not None:
+                delay = max(delay, min(wait_s, cfg.retry_after_cap_s))
+            log.warning("VLM attempt %d failed (%s); retrying in %.2f s", attempts,
+                        trace.outcomes[-1], delay)
+            await self._sleep(delay)
+            retry += 1
+
+    def _get_session(self) -> aiohttp.ClientSession:
+        if self._session is None or self._session.closed:
+            self._session = aiohttp.ClientSession(
+                connector=aiohttp.TCPConnector(limit=4), trust_env=False)
+            self._own_session = True
+        return self._session
+
+    async def _read_body(self, resp: aiohttp.ClientResponse) -> bytes:
+        limit = self.config.max_response_bytes
+        declared = resp.content_length
+        if declared is not None and declared > limit:
+            raise VLMResponseTooLargeError(
+                f"VLM response of {declared} bytes refused: more than max_response_bytes="
+                f"{limit}")
+        chunks: list[bytes] = []
+        size = 0
+        async for chunk in resp.content.iter_chunked(64 * 1024):
+            size += len(chunk)
+            if size > limit:
+                raise VLMResponseTooLargeError(
+                    f"VLM response refused after {size} bytes: more than "
+                    f"max_response_bytes={limit}")
+            chunks.append(chunk)
+        return b"".join(chunks)
+
+    def _decode(self, body: bytes, status: int) -> dict[str, Any]:
+        try:
+            data = json.loads(body)
+        except (ValueError, RecursionError):
+            raise VLMResponseError(
+                f"VLM answered HTTP {status} with a body that is not JSON: "
+                f"{self._excerpt(body)!r}") from None
+        if not isinstance(data, dict):
+            raise VLMResponseError(f"VLM answered HTTP {status} with JSON that is not an "
+                                   f"object: {self._excerpt(body)!r}")
+        return data
+
+    def _content(self, data: dict[str, Any]) -> str:
+        choices = data.get("choices")
+        if not isinstance(choices, list) or not choices or not isinstance(choices[0], dict):
+            raise VLMResponseError(
+                f"VLM answer has no choices: {self._excerpt(json.dumps(data).encode())!r}")
+        message = choices[0].get("message")
+        if not isinstance(message, dict):
+            return ""
+        content = message.get("content")
+        if isinstance(content, list):  # some servers answer with content parts
+            content = "".join(p.get("text", "") for p in content
+                              if isinstance(p, dict) and isinstance(p.get("text"), str))
+        if not isinstance(content, str) or not content:
+            refusal = message.get("refusal")
+            content = refusal if isinstance(refusal, str) else ""
+        return content
+
+    def _http_error(self, status: int, body: bytes) -> VLMError:
+        excerpt = self._excerpt(body)
+        if status in RETRYABLE_STATUSES:
+            return VLMServerError(f"VLM at {self.url} answered HTTP {status}: {excerpt}",
+                                  status, excerpt)
+        hint = {
+            400: "the request was refused as malformed",
+            401: "check the API key (vlm.api_key_env / vlm.api_key_file)",
+            403: "the API key is not allowed to use this model or endpoint",
+            404: "check vlm.base_url and vlm.model",
+            413: "the request is too large: lower vlm.max_image_bytes / max_image_side_px",
+        }.get(status, "not retried")
+        if 300 <= status < 400:
+            hint = "redirect not followed: set vlm.base_url to the final address"
+        return VLMRejectedError(
+            f"VLM at {self.url} answered HTTP {status} ({hint}): {excerpt}", status, excerpt)
+
+    def _excerpt(self, body: bytes) -> str:
+        """A short, secret-free, single-line excerpt of a response body."""
+        text = body[:4096].decode("utf-8", "replace")
+        try:
+            err = json.loads(body).get("error")
+            if isinstance(err, dict) and isinstance(err.get("message"), str):
+                text = err["message"]
+            elif isinstance(err, str):
+                text = err
+        except (ValueError, RecursionError, AttributeError):
+            pass
+        text = " ".join(self._redact(text).split())
+        text = "".join(ch if ch.isprintable() else "?" for ch in text)
+        return text[:EXCERPT_CHARS] + ("..." if len(text) > EXCERPT_CHARS else "")
+
+    def _redact(self, text: str) -> str:
+        if self._api_key and self._api_key in text:
+            text = text.replace(self._api_key, "<redacted>")
+        return text
+
+    def _redact_json(self, data: dict[str, Any]) -> dict[str, Any]:
+        if not self._api_key:
+            return data
+        dumped = json.dumps(data, ensure_ascii=False)
+        if self._api_key not in dumped:
+            return data
+        return json.loads(self._redact(dumped))
+
+
+def _encode_json(body: dict[str, Any]) -> bytes:
+    return json.dumps(body, ensure_ascii=False).encode("utf-8")
+
+
+def _prepare(image: bytes, max_side_px: int, max_bytes: int) -> tuple[PreparedImage, str]:
+    prepared = prepare_image(image, max_side_px, max_bytes)
+    _ = prepared.sha256  # hashed here, off the loop
+    return prepared, prepared.data_url()
+
+
+def _is_loopback(host: str) -> bool:
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+# --- no VLM ------------------------------------------------------------------------------
+
+class NoVLM:
+    """:class:`VLMClient` when no VLM is configured: the prompt it would send, no label."""
+
+    def __init__(self, template: PromptTemplate | None = None, *,
+                 mode: PromptMode = "vision_tactile", prompt_dir: Path | None = None) -> None:
+        self.template = template or load_template(mode, prompt_dir)
+
+    def __repr__(self) -> str:
+        return f"NoVLM(mode={self.template.mode!r})"
+
+    async def ask(self, image: bytes | None, description: str,
+                  candidates: Sequence[str]) -> VLMAnswer:
+        labels = check_candidates(candidates)
+        prompt = self.template.render(description, labels)
+        return VLMAnswer(
+            status="not_configured", label=None, raw="", prompt=prompt,
+            candidates=tuple(labels), model="", request=None, response=None, image=None,
+            attempts=0, latency_s=(), outcomes=(), elapsed_s=0.0,
+        )
+
+    async def close(self) -> None:
+        return None
+
+
+def make_vlm(config: VLMConfig, **kwargs: Any) -> VLMClient:
+    """``OpenAIVLM`` when ``config.base_url`` is set, else ``NoVLM`` (same prompt mode)."""
+    if config.configured:
+        return OpenAIVLM(config, **kwargs)
+    return NoVLM(kwargs.get("template"), mode=config.mode, prompt_dir=config.prompt_dir)
+
+
+__all__ = [
+    "NoVLM", "OpenAIVLM", "VLMAnswer", "VLMClient", "VLMConfig",
+    "VLMConnectionError", "VLMHTTPError", "VLMRejectedError", "VLMResponseError",
+    "VLMResponseTooLargeError", "VLMServerError", "VLMTimeoutError", "VLMUnavailableError",
+    "backoff_delay", "make_vlm", "match_label", "normalise_label", "parse_label",
+    "parse_retry_after", "response_format",
+]
