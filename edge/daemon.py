@@ -6,6 +6,7 @@ import asyncio
 import logging
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from edge.api import Api
@@ -28,10 +29,26 @@ def load_model(cfg: Config):
     return _load(cfg.runtime.models_dir)
 
 
-def make_vlm(cfg: Config):
-    from edge.vlm import make_client
+def vlm_config(cfg: Config):
+    """The ``[vlm]`` section with ``$VTZERO_VLM_URL`` / ``$VTZERO_VLM_MODEL`` applied, and
+    the prompt templates of the configured models directory."""
+    vlm = cfg.vlm
+    url = os.environ.get("VTZERO_VLM_URL", "").strip()
+    model = os.environ.get("VTZERO_VLM_MODEL", "").strip()
+    if url:
+        vlm = replace(vlm, base_url=url.rstrip("/"))
+    if model:
+        vlm = replace(vlm, model=model)
+    if vlm.prompt_dir is None:
+        vlm = replace(vlm, prompt_dir=Path(cfg.runtime.models_dir) / "prompts")
+    vlm.validate("vlm (with $VTZERO_VLM_URL/$VTZERO_VLM_MODEL)")
+    return vlm
 
-    return make_client(cfg.vlm, Path(cfg.runtime.models_dir) / "prompts")
+
+def make_vlm(cfg: Config):
+    from edge.vlm import make_vlm as _make
+
+    return _make(vlm_config(cfg))
 
 
 async def serve(cfg: Config, config_path: str | None = None,

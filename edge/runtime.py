@@ -25,11 +25,18 @@ import numpy as np
 from edge import __version__, preprocess, recording
 from edge.buffer import FrameRing, Sampler
 from edge.config import Config
-from edge.errors import BusyError, EdgeError, NotFoundError, SensorError, StaleSensorError
+from edge.errors import (
+    BusyError,
+    EdgeError,
+    NotFoundError,
+    SensorError,
+    StaleSensorError,
+)
 from edge.metrics import Metrics
 from edge.press import PressController, PressOutcome, outcome_recording
 from edge.store import EpisodeStore, new_id
 from edge.systemd import Notifier, watchdog_period_s
+from edge.vlm import VLMUnavailableError
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +130,10 @@ class Runtime:
                 log.error("tactile sensor unusable: %s", exc)
                 self.press.sensor_stale(exc)
                 self.notifier.status(f"sensor error: {exc}")
+            except Exception as exc:
+                # A bug on the sensor path must not take the daemon (and the arm) down.
+                log.exception("sensor task error")
+                self.press.sensor_stale(exc)
             await asyncio.sleep(SENSOR_RETRY_S)
 
     async def _watchdog(self) -> None:
@@ -162,7 +173,12 @@ class Runtime:
             for episode in pending:
                 due = episode.get("next_retry_at", 0.0)
                 if due <= now:
-                    await self._ask_vlm(episode["id"], retry=True)
+                    try:
+                        await self._ask_vlm(episode["id"], retry=True)
+                    except Exception:
+                        # One broken episode must not stop the daemon or the other retries.
+                        log.exception("retrying episode %s failed", episode["id"])
+                        next_due = min(next_due, now + cfg.vlm_retry_max_s)
                 else:
                     next_due = min(next_due, due)
             self._retry_wakeup.clear()
@@ -292,6 +308,15 @@ class Runtime:
         try:
             answer = await self.vlm.ask(image, episode["description"], episode["candidates"])
         except EdgeError as exc:
+            if not isinstance(exc, VLMUnavailableError):
+                # Refused (4xx), a broken answer or a bad image: asking again will not help.
+                self.metrics.vlm_errors += 1
+                log.error("episode %s: VLM error: %s", episode_id, exc)
+                await asyncio.to_thread(self.store.update, episode_id, status="vlm_error",
+                                        attempts=attempts, last_error=str(exc))
+                self.publish({"type": "result", "episode": episode_id, "status": "vlm_error",
+                              "error": str(exc)})
+                return
             delay = min(self.cfg.runtime.vlm_retry_base_s * 2 ** (attempts - 1),
                         self.cfg.runtime.vlm_retry_max_s)
             self.metrics.vlm_errors += 1

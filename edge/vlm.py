@@ -37,6 +37,7 @@ from urllib.parse import urlsplit
 
 import aiohttp
 
+from edge.config import VLMConfig
 from edge.errors import ConfigError, VLMError
 from edge.images import ImageError, PreparedImage, prepare_image
 from edge.prompt import (
@@ -102,79 +103,6 @@ class VLMResponseTooLargeError(VLMResponseError):
 
 
 # --- configuration -----------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class VLMConfig:
-    """The ``[vlm]`` section. An empty ``base_url`` means no VLM is configured (``NoVLM``)."""
-
-    # OpenAI-compatible endpoint up to and including /v1, e.g. "http://localhost:11434/v1"
-    # (Ollama), "http://localhost:8000/v1" (vLLM), "https://api.openai.com/v1".
-    base_url: str = ""
-    model: str = ""
-    mode: PromptMode = "vision_tactile"
-    # Directory of <mode>.txt templates; None = the shipped models/prompts.
-    prompt_dir: Path | None = None
-    # The API key: from this file if set, else from this environment variable; none is fine
-    # for a local server.
-    api_key_env: str = "VTZERO_VLM_API_KEY"
-    api_key_file: Path | None = None
-    seed: int = 0
-    # Per attempt: to get a connection, and for the whole request and response.
-    connect_timeout_s: float = 5.0
-    total_timeout_s: float = 60.0
-    # Transport retries after the first attempt (the corrective retry is separate).
-    max_retries: int = 3
-    backoff_base_s: float = 0.5
-    backoff_cap_s: float = 8.0
-    # A server's Retry-After is honoured up to this long.
-    retry_after_cap_s: float = 30.0
-    max_image_side_px: int = 1024
-    max_image_bytes: int = 1_000_000
-    max_response_bytes: int = 1_000_000
-
-    @property
-    def configured(self) -> bool:
-        return bool(self.base_url)
-
-    def validate(self, path: str) -> None:
-        if self.base_url:
-            parts = urlsplit(self.base_url)
-            _require(parts.scheme in ("http", "https") and bool(parts.hostname), path,
-                     "base_url", self.base_url, "must be an http:// or https:// URL")
-            _require(parts.username is None and parts.password is None, path, "base_url",
-                     "<redacted>", "must not hold credentials; use api_key_env/api_key_file")
-            _require(not parts.query and not parts.fragment, path, "base_url",
-                     self.base_url, "must not have a query or fragment")
-            _require(bool(self.model.strip()), path, "model", self.model,
-                     "must name the model when base_url is set")
-        _require(self.api_key_env == "" or re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*",
-                                                         self.api_key_env) is not None,
-                 path, "api_key_env", self.api_key_env, "must be an environment variable name")
-        _require(0 <= self.seed < 2**31, path, "seed", self.seed, "must be in [0, 2**31)")
-        _require(self.connect_timeout_s > 0, path, "connect_timeout_s",
-                 self.connect_timeout_s, "must be > 0")
-        _require(self.total_timeout_s >= self.connect_timeout_s, path, "total_timeout_s",
-                 self.total_timeout_s, "must be >= connect_timeout_s")
-        _require(0 <= self.max_retries <= 10, path, "max_retries", self.max_retries,
-                 "must be in 0..10")
-        _require(self.backoff_base_s > 0, path, "backoff_base_s", self.backoff_base_s,
-                 "must be > 0")
-        _require(self.backoff_cap_s >= self.backoff_base_s, path, "backoff_cap_s",
-                 self.backoff_cap_s, "must be >= backoff_base_s")
-        _require(self.retry_after_cap_s >= 0, path, "retry_after_cap_s",
-                 self.retry_after_cap_s, "must be >= 0")
-        _require(64 <= self.max_image_side_px <= 8192, path, "max_image_side_px",
-                 self.max_image_side_px, "must be in 64..8192")
-        _require(self.max_image_bytes >= 10_000, path, "max_image_bytes",
-                 self.max_image_bytes, "must be >= 10000")
-        _require(self.max_response_bytes >= 1024, path, "max_response_bytes",
-                 self.max_response_bytes, "must be >= 1024")
-
-
-def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:
-    if not ok:
-        raise ConfigError(f"{path}.{name} = {value!r}: {why}")
-
 
 # --- the answer --------------------------------------------------------------------------
 
