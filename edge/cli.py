@@ -90,6 +90,28 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_collect(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.collect import collect
+    from edge.config import load_config
+
+    files = asyncio.run(collect(load_config(args.config), args.label, args.presses, args.out,
+                                prompt=None if args.no_prompt else input))
+    print(f"wrote {len(files)} presses of {args.label} to {args.out}")
+    return 0
+
+
+def _cmd_pose_teach(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.collect import teach_pose
+    from edge.config import load_config
+
+    asyncio.run(teach_pose(load_config(args.config), args.config, args.name))
+    return 0
+
+
 def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
 
@@ -139,6 +161,22 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the daemon")
     run.add_argument("--config", required=True)
     run.set_defaults(func=_cmd_run)
+
+    col = sub.add_parser("collect", help="record reference presses of an object")
+    col.add_argument("--config", required=True)
+    col.add_argument("--label", required=True)
+    col.add_argument("--presses", type=int, default=10)
+    col.add_argument("--out", required=True)
+    col.add_argument("--no-prompt", action="store_true",
+                     help="do not wait for Enter between presses")
+    col.set_defaults(func=_cmd_collect)
+
+    pose = sub.add_parser("pose", help="arm poses")
+    posesub = pose.add_subparsers(dest="pose_command", required=True)
+    teach = posesub.add_parser("teach", help="store the arm's present pose by name")
+    teach.add_argument("name", help="e.g. above, lowered, rest")
+    teach.add_argument("--config", required=True)
+    teach.set_defaults(func=_cmd_pose_teach)
 
     eps = sub.add_parser("episodes", help="stored recognitions")
     eps.add_argument("--config", default="configs/robot.toml")

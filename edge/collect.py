@@ -1,0 +1,106 @@
+"""Collect mode and pose teaching: the robot side of adapting the system at low cost.
+
+``vt-edge collect``: press an object N times and write each press in the recordings format
+(the same files the simulator writes and training reads). Between presses the user moves the
+object slightly, so the references vary as they will at recognition time.
+
+``vt-edge pose teach NAME``: torque off on the arm joints, the user moves the arm by hand,
+Enter stores the present joint positions as the named pose in the config file (the rest of
+the file, comments included, is kept).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+from edge import recording, tomledit
+from edge.buffer import FrameRing
+from edge.config import Config
+from edge.errors import EdgeError
+from edge.press import PressController, outcome_recording
+
+log = logging.getLogger(__name__)
+
+
+async def _sensor(devices, ring: FrameRing, controller: PressController) -> None:
+    async for frame in devices.tactile.frames():
+        ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
+        await controller.on_frame(frame.raw, frame.recv_time)
+
+
+async def collect(cfg: Config, label: str, presses: int, out: str | Path,
+                  prompt: Callable[[str], object] | None = input, devices=None) -> list[Path]:
+    """Record ``presses`` presses of ``label`` into ``out/label/``; returns the files."""
+    from edge.devices import open_devices
+
+    if not label.replace("_", "").isalnum():
+        raise EdgeError(f"label {label!r}: use letters, digits and underscores")
+    out_dir = Path(out) / label
+    start = len(list(out_dir.glob(f"*{recording.SUFFIX}"))) if out_dir.exists() else 0
+    own = devices is None
+    devices = devices or await open_devices(cfg)
+    ring = FrameRing(cfg.sensor.channels, 8000)
+    controller = PressController(cfg, devices.gripper, devices.arm, ring)
+    task = asyncio.create_task(_sensor(devices, ring, controller), name="sensor")
+    written: list[Path] = []
+    try:
+        await asyncio.sleep(0.5)
+        i = 0
+        while i < presses:
+            if prompt is not None and i > 0:
+                await asyncio.to_thread(
+                    prompt, f"press {i + 1}/{presses}: move the {label} slightly, then Enter ")
+            outcome = await controller.run()
+            if not outcome.contact:
+                print(f"press {i + 1}: {outcome.result}: {outcome.message}; not kept")
+                if prompt is None:
+                    raise EdgeError(f"press failed: {outcome.message}")
+                continue
+            path = out_dir / f"{label}_{start + i:03d}{recording.SUFFIX}"
+            recording.save(outcome_recording(outcome, cfg, label), path)
+            written.append(path)
+            print(f"press {i + 1}/{presses}: stop latency "
+                  f"{(outcome.stop_latency_s or 0) * 1e3:.1f} ms -> {path}")
+            i += 1
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        if own:
+            await devices.bus.close()
+            await devices.tactile.close()
+    return written
+
+
+async def teach_pose(cfg: Config, config_path: str | Path, name: str,
+                     prompt: Callable[[str], object] = input, bus=None) -> tuple[int, ...]:
+    """Store the arm's present joint positions as pose ``name`` in ``config_path``."""
+    from edge.hw.dynamixel import DynamixelBus
+
+    if not name.replace("_", "").isalnum():
+        raise EdgeError(f"pose name {name!r}: use letters, digits and underscores")
+    own = bus is None
+    bus = bus or DynamixelBus(cfg.bus)
+    try:
+        if own:
+            await bus.connect()
+        # Torque off: the arm goes limp so it can be moved by hand (support it!).
+        await bus.set_torque(False)
+        await asyncio.to_thread(prompt, f"move the arm to the '{name}' pose by hand, then "
+                                        "press Enter ")
+        state = await bus.read_state()
+        joints = tuple(int(state.motors[i].position) for i in cfg.bus.joint_ids)
+    finally:
+        if own:
+            await bus.close()
+    # Poses not in the file yet are written with their current values, so the file stays a
+    # complete, loadable configuration.
+    poses = {k: list(v) for k, v in cfg.poses.items()}
+    poses[name] = list(joints)
+    tomledit.update(config_path, config_path, {"poses": poses})
+    print(f"pose {name} = {list(joints)} saved in {config_path}")
+    return joints
