@@ -137,7 +137,8 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
 
     from edge import systemd
 
-    exe = shutil.which("vt-edge") or f"{sys.executable} -m edge"
+    beside = Path(sys.executable).with_name("vt-edge")
+    exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
     unit = systemd.unit_text(exe, str(Path(args.config).resolve()), args.user)
     if not args.install:
         print(unit, end="")

@@ -1,0 +1,66 @@
+import re
+import shutil
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from edge.systemd import Notifier, unit_text
+
+needs_systemd = pytest.mark.skipif(shutil.which("systemd-analyze") is None,
+                                   reason="systemd-analyze is not installed")
+
+
+def _unit(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "edge", "install-service", "--config",
+                          str(tmp_path / "robot.toml")], capture_output=True, text=True,
+                         check=True)
+    path = tmp_path / "vtzero-edge.service"
+    path.write_text(out.stdout)
+    return path
+
+
+@needs_systemd
+def test_unit_verifies(tmp_path):
+    path = _unit(tmp_path)
+    text = path.read_text()
+    assert "Type=notify" in text and "WatchdogSec=" in text and "Restart=on-failure" in text
+    assert "StateDirectory=vtzero" in text and "dialout" in text
+    out = subprocess.run(["systemd-analyze", "verify", str(path)], capture_output=True,
+                         text=True)
+    assert out.returncode == 0, out.stderr
+
+
+@needs_systemd
+def test_unit_hardening_exposure_is_ok(tmp_path):
+    path = _unit(tmp_path)
+    out = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(path)],
+                         capture_output=True, text=True)
+    match = re.search(r"Overall exposure level for \S+: ([\d.]+) (\w+)", out.stdout)
+    assert match, out.stdout[-500:] + out.stderr
+    print(f"systemd-analyze security: {match.group(1)} {match.group(2)}")
+    assert float(match.group(1)) <= 2.0  # systemd calls < 2.0 "OK"
+
+
+def test_unit_text_fills_every_placeholder():
+    text = unit_text("/usr/bin/vt-edge", "/etc/vtzero/robot.toml", "robot")
+    assert not re.search(r"@[A-Z_]+@", text)
+    assert "ExecStart=/usr/bin/vt-edge run --config /etc/vtzero/robot.toml" in text
+
+
+def test_sd_notify_datagrams(tmp_path):
+    path = tmp_path / "notify.sock"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(path))
+    server.settimeout(2)
+    notifier = Notifier(str(path))
+    assert notifier.enabled
+    notifier.ready("up")
+    notifier.watchdog()
+    notifier.stopping()
+    got = [server.recv(1024).decode() for _ in range(3)]
+    assert got == ["READY=1\nSTATUS=up", "WATCHDOG=1", "STOPPING=1"]
+    notifier.close()
+    server.close()
+    assert not Notifier("").enabled and not Notifier("").ready()
