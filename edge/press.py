@@ -114,7 +114,8 @@ class PressController:
             armed.stopping = True
             try:
                 await self.gripper.stop_now()
-                t_sent = time.monotonic()
+                # The stop's packet time at the port if the driver knows it, else now.
+                t_sent = getattr(self.gripper, "last_stop_t", 0.0) or time.monotonic()
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time

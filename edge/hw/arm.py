@@ -168,6 +168,11 @@ class DynamixelGripper:
         return await self._bus.stop_past_present(self._id,
                                                  self.closing_sign * self._stop_past_raw)
 
+    @property
+    def last_stop_t(self) -> float:
+        """When the last stop packet went out to the port (monotonic)."""
+        return self._bus.last_stop_t
+
     async def state(self) -> GripperState:
         bus_state = await self._bus.read_state()
         motor = bus_state.motors[self._id]

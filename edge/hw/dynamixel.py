@@ -99,6 +99,13 @@ class BlockingPortHandler(sdk.PortHandler):
     def __init__(self, port_name: str) -> None:
         super().__init__(port_name)
         self.latency_timer_ms = SDK_LATENCY_TIMER_MS
+        # Monotonic time the last packet left for the port (the stop latency ends here).
+        self.last_write_t = 0.0
+
+    def writePort(self, packet) -> int:
+        written = super().writePort(packet)
+        self.last_write_t = time.monotonic()
+        return written
 
     def setPacketTimeout(self, packet_length: int) -> None:
         self.packet_start_time = self.getCurrentTime()
@@ -218,6 +225,8 @@ class DynamixelBus:
         self._feed_task: asyncio.Task[None] | None = None
         self._last_traffic = 0.0
         self.last_state: BusState | None = None
+        # When the last stop's Goal Position packet was written (monotonic).
+        self.last_stop_t = 0.0
 
     # ---------------------------------------------------------------- properties
 
@@ -338,6 +347,7 @@ class DynamixelBus:
         def op() -> int:
             goal = self._read(motor_id, PRESENT_POSITION) + offset_raw
             self._write(motor_id, GOAL_POSITION, goal)
+            self.last_stop_t = getattr(self._port, "last_write_t", 0.0) or time.monotonic()
             return goal
 
         return await self._call("stop past present", op, urgent=True)
