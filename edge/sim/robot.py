@@ -80,7 +80,9 @@ class SimRobot:
 
     async def _get_object(self, request: web.Request) -> web.Response:
         return web.json_response({"object": self.world.object_name,
-                                  "peak_force_n": self.world.peak_force_n})
+                                  "peak_force_n": self.world.peak_force_n,
+                                  "force_n": self.world.force_n,
+                                  "gap_m": self.world.gap_m})
 
     async def _place(self, request: web.Request) -> web.Response:
         try:

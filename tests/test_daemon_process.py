@@ -1,0 +1,68 @@
+"""The daemon as a process, as systemd runs it: SIGTERM in the middle of a press."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from edge import tomledit
+from edge.config import load_config
+from edge.demo import _http, _wait_for
+from edge.store import EpisodeStore
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.skipif(not (ROOT / "models" / "manifest.json").exists(),
+                                reason="no shipped model in models/")
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
+    env = dict(os.environ, VTZERO_STATE_DIR=str(tmp_path / "state"), PYTHONUNBUFFERED="1")
+    env.pop("VTZERO_VLM_URL", None)
+    run_cfg = tmp_path / "run.toml"
+    sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config",
+                            str(ROOT / "configs" / "sim.toml"), "--object", "gelatin_soft",
+                            "--write-config", str(run_cfg)], env=env, cwd=ROOT)
+    daemon = None
+    try:
+        _wait_for(run_cfg.exists, 30, "sim", sim)
+        port = free_port()
+        tomledit.update(run_cfg, run_cfg, {"api": {"port": port}})
+        api = f"http://127.0.0.1:{port}"
+        control = load_config(run_cfg).camera.url.rsplit("/", 1)[0]
+        daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
+                                   str(run_cfg)], env=env, cwd=ROOT, stderr=subprocess.PIPE,
+                                  text=True)
+        _wait_for(lambda: _http("GET", f"{api}/healthz").get("ok"), 60, "daemon", daemon)
+        ep = _http("POST", f"{api}/v1/recognize", {"candidates": ["a", "b"]})
+        deadline = time.monotonic() + 30
+        while _http("GET", f"{api}/healthz")["state"] not in ("closing", "holding"):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        daemon.send_signal(signal.SIGTERM)
+        _, err = daemon.communicate(timeout=30)
+        print(err[-2000:])
+        assert daemon.returncode == 0, err[-2000:]
+        world = _http("GET", f"{control}/object")
+        assert world["force_n"] == 0.0 and world["gap_m"] > 0.025, world  # gripper open
+        store = EpisodeStore(tmp_path / "state" / "episodes")
+        assert store.recover() == 0  # nothing half-written
+        stored = store.get(ep["id"])
+        assert stored["status"] == "failed" and "abort" in stored["error"]
+        print(json.dumps(stored["press"]["states"]))
+    finally:
+        if daemon is not None and daemon.poll() is None:
+            daemon.kill()
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(20)
