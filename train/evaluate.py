@@ -11,7 +11,8 @@ VQ-VAE on z_q, beta-VAE on z (its posterior mean). Metrics:
   code) are broken by a seeded random order, never by class order.
 - ``top3_consistency``: on the unseen classes (FoodReplica, Cube), the share of pairs of
   presses of the same class whose top-3 reference classes are the same set (order ignored);
-  ``top1_consistency`` the same for the nearest class.
+  ``top1_consistency`` the same for the nearest class; ``top3_overlap`` the mean share of
+  classes two such top-3 sets have in common (1/3 steps).
 - pair AUCs: for each real/replica pair (FoodReplica) and raw/boiled pair (Cube), the ROC AUC
   of a 1-D score separating the two classes: ``score(x) = |x - c_a| - |x - c_b|`` with
   ``c_a``, ``c_b`` the two classes' centroids in embedding space computed *without* x (leave
@@ -139,20 +140,25 @@ def consistency(retrieved: Sequence[list[str]], labels: Sequence[str]) -> dict[s
     """Share of same-class press pairs with the same top-3 set and the same top-1."""
     per_class: dict[str, dict[str, float]] = {}
     same3 = same1 = total = 0
+    overlap = 0.0
     for cls in dict.fromkeys(labels):
         idx = [i for i, lab in enumerate(labels) if lab == cls]
         s3 = s1 = n = 0
+        ov = 0.0
         for a in range(len(idx)):
             for b in range(a + 1, len(idx)):
                 ra, rb = retrieved[idx[a]], retrieved[idx[b]]
                 s3 += set(ra) == set(rb)
                 s1 += ra[0] == rb[0]
+                ov += len(set(ra) & set(rb)) / max(len(ra), 1)
                 n += 1
         if n:
-            per_class[cls] = {"top3": s3 / n, "top1": s1 / n}
-        same3, same1, total = same3 + s3, same1 + s1, total + n
-    return {"top3_consistency": same3 / total if total else float("nan"),
-            "top1_consistency": same1 / total if total else float("nan"),
+            per_class[cls] = {"top3": s3 / n, "top1": s1 / n, "overlap": ov / n}
+        same3, same1, total, overlap = same3 + s3, same1 + s1, total + n, overlap + ov
+    nan = float("nan")
+    return {"top3_consistency": same3 / total if total else nan,
+            "top1_consistency": same1 / total if total else nan,
+            "top3_overlap": overlap / total if total else nan,
             "per_class": per_class}
 
 
@@ -225,6 +231,7 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
             **split_acc,
             "top3_consistency": cons["top3_consistency"],
             "top1_consistency": cons["top1_consistency"],
+            "top3_overlap": cons["top3_overlap"],
             "mean_auc_real_vs_replica": float(np.mean(replica)) if replica else None,
             "mean_auc_raw_vs_boiled": float(np.mean(cooked)) if cooked else None,
             "pair_auc": {name: m["auc"] for name, m in pair_metrics.items()},
@@ -286,7 +293,8 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
         lines.append(
             f"| {r['variant']} | {r['space']} | {_fmt(r['loo_1nn'])} | {_fmt(r['loo_5nn'])} | "
             f"{_fmt(r['loo_top3'])} | {_fmt(r.get('loo_1nn_val_classes'))} | "
-            f"{_fmt(r['top3_consistency'])} | {_fmt(r['top1_consistency'])} | "
+            f"{_fmt(r['top3_consistency'])} | {_fmt(r['top3_overlap'])} | "
+            f"{_fmt(r['top1_consistency'])} | "
             f"{_fmt(r['mean_auc_real_vs_replica'])} | {_fmt(r['mean_auc_raw_vs_boiled'])} |")
     lines += ["", "## Pair separation (ROC AUC, leave-one-out distance-to-centroids score)", "",
               "| pair | " + " | ".join(f"{r['variant']}/{r['space']}" for r in rows)
@@ -303,8 +311,10 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
     lines += ["",
               "LOO: leave one reference press out, nearest other press (5-NN: majority). "
               "Consistency: share of same-class unseen press pairs whose top-3 classes are "
-              "the same set. AUC: 0.5 is chance. Separation: centroid distance over the "
-              "pooled within-class spread.", ""]
+              "the same set (overlap: mean share of classes the two top-3 sets have in "
+              "common). AUC: 0.5 is chance; below 0.5 means the leave-one-out centroids "
+              "cannot tell the pair apart. Separation: centroid distance over the pooled "
+              "within-class spread.", ""]
     return "\n".join(lines)
 
 
@@ -406,7 +416,8 @@ def summary_metrics(report: dict[str, Any]) -> dict[str, Any]:
         "loo_top3": primary["loo_top3"],
         "top3_consistency": primary["top3_consistency"],
         "comparison": {name: {key: r[key] for key in (
-            "loo_1nn", "loo_5nn", "loo_top3", "top3_consistency", "top1_consistency",
+            "loo_1nn", "loo_5nn", "loo_top3", "top3_consistency", "top3_overlap",
+            "top1_consistency",
             "mean_auc_real_vs_replica", "mean_auc_raw_vs_boiled")} | {
                 "kiri_mochi_auc": r["pair_auc"].get("kiri_mochi")}
             for name, r in rows.items()},

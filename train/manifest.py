@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import platform
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,15 @@ def write_manifest(directory: str | Path, sections: Mapping[str, Any] | None = N
     manifest.setdefault("versions", versions())
     for key, value in (sections or {}).items():
         manifest[key] = value
-    atomic_write_text(directory / MANIFEST, json.dumps(manifest, indent=2, sort_keys=True)
-                      + "\n")
+    atomic_write_text(directory / MANIFEST, dumps(manifest))
     return manifest
+
+
+_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
+
+
+def dumps(data: Any) -> str:
+    """Indented, key-sorted JSON with lists of numbers kept on one line."""
+    text = json.dumps(data, indent=2, sort_keys=True)
+    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(
+        v.strip() for v in m.group(1).split(",")) + "]", text) + "\n"

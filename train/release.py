@@ -97,6 +97,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                        cfg.workers)
     cube_dir = _recorded(rec_dir / "cube", "cube", cfg.unseen_presses, cfg.seed, cfg.workers)
     t_rec = time.perf_counter() - started
+    reused = t_rec < 1.0  # nothing was recorded: the work directory held the same sets
 
     data = training_data(ref_dir)
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
@@ -150,7 +151,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "dead_codes_at_best": vq.summary()["dead_codes_at_best"],
         "codes_used_by_references": len(np.unique(db.code)),
     }
-    timings |= {"record_s": t_rec, "train_vq_s": vq.seconds,
+    timings |= {"record_s": t_rec, "recordings_reused": reused, "train_vq_s": vq.seconds,
                 "train_beta_s": beta.seconds if beta else None,
                 "release_s": time.perf_counter() - started}
     sections = {
