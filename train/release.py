@@ -59,18 +59,19 @@ class ReleaseConfig:
 
 
 def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: int | None
-              ) -> Path:
+              ) -> bool:
+    """Record ``dataset`` into ``directory`` unless it already holds it; True if reused."""
     index = directory / DATASET_INDEX
     if index.exists():
         meta = json.loads(index.read_text())
         if (meta.get("dataset"), meta.get("presses_per_class"), meta.get("seed")) == (
                 dataset, presses, seed):
             log.info("reusing %s recordings in %s", dataset, directory)
-            return directory
+            return True
         shutil.rmtree(directory)
     log.info("recording %s: %d presses per class (seed %d)", dataset, presses, seed)
     record_dataset(dataset, presses, directory, seed=seed, workers=workers)
-    return directory
+    return False
 
 
 def encode_timing(onnx_bytes: bytes, x: np.ndarray, repeats: int = 200) -> dict[str, float]:
@@ -92,12 +93,13 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     started = time.perf_counter()
     work = Path(cfg.work)
     rec_dir = Path(cfg.recordings) if cfg.recordings is not None else work / "recordings"
-    ref_dir = _recorded(rec_dir / "reference", "reference", cfg.presses, cfg.seed, cfg.workers)
-    fr_dir = _recorded(rec_dir / "foodreplica", "foodreplica", cfg.unseen_presses, cfg.seed,
-                       cfg.workers)
-    cube_dir = _recorded(rec_dir / "cube", "cube", cfg.unseen_presses, cfg.seed, cfg.workers)
+    ref_dir, fr_dir, cube_dir = (rec_dir / "reference", rec_dir / "foodreplica",
+                                 rec_dir / "cube")
+    reused = all([
+        _recorded(ref_dir, "reference", cfg.presses, cfg.seed, cfg.workers),
+        _recorded(fr_dir, "foodreplica", cfg.unseen_presses, cfg.seed, cfg.workers),
+        _recorded(cube_dir, "cube", cfg.unseen_presses, cfg.seed, cfg.workers)])
     t_rec = time.perf_counter() - started
-    reused = t_rec < 1.0  # nothing was recorded: the work directory held the same sets
 
     data = training_data(ref_dir)
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
