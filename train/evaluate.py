@@ -250,7 +250,9 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
                   "topk": [[lab, round(d, 6)] for lab, d in r],
                   "description": row.db.describe(lab for lab, _ in r)}
                  for path, label, r in zip(unseen.paths, unseen.labels, retrieved, strict=True)]
-    atomic_write_text(out / "retrieval.json", json.dumps(retrieval, indent=1) + "\n")
+    # One press per line: readable, diffable, small.
+    atomic_write_text(out / "retrieval.json", "[\n" + ",\n".join(
+        json.dumps(r) for r in retrieval) + "\n]\n")
     report["confusion"] = {"classes": knn["classes"], "matrix": knn["confusion"].tolist()}
     atomic_write_text(out / "eval.json", json.dumps(report, indent=2, sort_keys=True) + "\n")
     atomic_write_text(out / "eval.md", markdown(report, pairs))
@@ -285,9 +287,9 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
         f"top-k with k = {report['k']}.",
         "",
         "| variant | space | LOO 1-NN | LOO 5-NN | LOO top-3 | 1-NN val classes | "
-        "top-3 consistency | top-1 consistency | AUC real/replica (mean) | "
+        "top-3 consistency | top-3 overlap | top-1 consistency | AUC real/replica (mean) | "
         "AUC raw/boiled (mean) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         lines.append(

@@ -36,7 +36,11 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert {"torch", "onnxruntime", "vtzero"} <= set(manifest["versions"])
     report = json.loads((released / "eval" / "eval.json").read_text())
     assert len(report["rows"]) == 3
-    assert "| vq | z |" in (released / "eval" / "eval.md").read_text()
+    md = (released / "eval" / "eval.md").read_text()
+    assert "| vq | z |" in md
+    for block in md.split("\n\n"):  # every Markdown table has as many cells as its header
+        rows = [line for line in block.splitlines() if line.startswith("|")]
+        assert len({line.count("|") for line in rows}) <= 1, block
     retrieval = json.loads((released / "eval" / "retrieval.json").read_text())
     assert len(retrieval) == 26 * PRESSES and len(retrieval[0]["topk"]) == 3
     total = sum(p.stat().st_size for p in released.rglob("*") if p.is_file())
