@@ -100,12 +100,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     reference = load_presses(args.reference, splits.classes).select(splits.classes)
     unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))
     codebook = model.database.codebook
-
-    def vq_embed(x):
-        z, code = model.encoder(x)
-        return z, codebook[code]
-
-    embedders = {"vq": (vq_embed, codebook)}
+    embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook)}
     if args.beta:
         beta, norm, _ = load_checkpoint(args.beta)
         embedders["beta"] = ((lambda x: embed(beta, norm, x)), None)

@@ -25,6 +25,7 @@ from edge.model import (
     ReferenceDatabase,
     Space,
     load_model,
+    nearest_code,
 )
 from train.data import PressSet, Splits, load_presses
 from train.export import codebook_of
@@ -49,24 +50,38 @@ def encode_presses(encoder: OnnxEncoder, presses: PressSet,
     return z, code
 
 
-def build_database(encoder_onnx: bytes, presses: PressSet, splits: Splits,
-                   space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
-    """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_onnx``."""
-    encoder = OnnxEncoder(encoder_onnx)
-    codebook = codebook_of(encoder_onnx)
-    presses = presses.select(splits.classes)
-    z, code = encode_presses(encoder, presses)
-    split_of = {c: "train" for c in splits.train} | {c: "val" for c in splits.val}
+def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
+                    codebook: np.ndarray | None, code: np.ndarray | None = None,
+                    space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
+    """The database of ``presses`` (ordered as ``splits.classes``) with embeddings ``z``.
+
+    ``code`` (default: nearest in ``codebook``) gives z_q = codebook[code]; without a
+    codebook (the beta-VAE) a one-vector stand-in keeps the format.
+    """
     missing = [c for c in splits.classes if not splits.descriptions.get(c, "").strip()]
     if missing:
         raise ModelError(f"no description for {', '.join(missing)}: every reference class "
                          "needs one (dataset.json or the splits file)")
+    split_of = {c: "train" for c in splits.train} | {c: "val" for c in splits.val}
     classes = [ClassInfo(c, splits.descriptions[c], split_of[c]) for c in splits.classes]
     index = {c: i for i, c in enumerate(splits.classes)}
+    if codebook is None:
+        codebook = np.zeros((1, z.shape[1]), dtype=np.float32)
+    if code is None:
+        code = nearest_code(z, codebook)
     return ReferenceDatabase(
         classes, z, codebook[code], code,
         np.asarray([index[label] for label in presses.labels], dtype=np.int32),
         [Path(p).name for p in presses.paths], codebook, space, k)
+
+
+def build_database(encoder_onnx: bytes, presses: PressSet, splits: Splits,
+                   space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
+    """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_onnx``."""
+    encoder = OnnxEncoder(encoder_onnx)
+    presses = presses.select(splits.classes)
+    z, code = encode_presses(encoder, presses)
+    return from_embeddings(presses, splits, z, codebook_of(encoder_onnx), code, space, k)
 
 
 def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | None = None,

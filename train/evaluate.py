@@ -41,7 +41,8 @@ from scipy.stats import rankdata
 
 from edge import preprocess, recording
 from edge.atomic import atomic_write_text
-from edge.model import ClassInfo, ReferenceDatabase, Space
+from edge.model import OnnxEncoder, ReferenceDatabase, Space
+from train import database
 from train.data import PressSet, Splits
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,14 @@ class Row:
     z_unseen: np.ndarray  # unseen embeddings in this space (pair AUCs)
     queries: np.ndarray  # what the robot hands topk: the continuous z
     db: ReferenceDatabase
+
+
+def onnx_embedder(encoder: OnnxEncoder, codebook: np.ndarray) -> Embedder:
+    """The robot's encoder as an embedder: z and z_q = codebook[code] from the graph."""
+    def embed(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        z, code = encoder(x)
+        return z, codebook[code]
+    return embed
 
 
 def pairs_of(labels: Sequence[str]) -> list[tuple[str, str, str]]:
@@ -162,27 +171,6 @@ def consistency(retrieved: Sequence[list[str]], labels: Sequence[str]) -> dict[s
             "per_class": per_class}
 
 
-def _database(variant: str, space: Space, z: np.ndarray, z_q: np.ndarray | None,
-              reference: PressSet, splits: Splits, codebook: np.ndarray | None
-              ) -> ReferenceDatabase:
-    classes = list(dict.fromkeys(reference.labels))
-    idx = {c: i for i, c in enumerate(classes)}
-    split_of = {c: "train" for c in splits.train} | {c: "val" for c in splits.val}
-    infos = [ClassInfo(c, splits.descriptions.get(c) or c, split_of.get(c, "train"))
-             for c in classes]
-    if codebook is None:  # beta-VAE: no codes; a one-vector stand-in keeps the format
-        codebook = np.zeros((1, z.shape[1]), dtype=np.float32)
-        code = np.zeros(len(z), dtype=np.int64)
-        zq = z
-    else:
-        assert z_q is not None
-        code = ((z[:, None, :] - codebook[None]) ** 2).sum(-1).argmin(-1)
-        zq = z_q
-    return ReferenceDatabase(infos, z, zq, code,
-                             np.asarray([idx[c] for c in reference.labels], dtype=np.int32),
-                             [Path(p).name for p in reference.paths], codebook, space)
-
-
 def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
              reference: PressSet, splits: Splits, unseen: PressSet, out_dir: str | Path,
              primary: tuple[str, Space] = ("vq", "z"), k: int = 3, seed: int = 0
@@ -200,7 +188,7 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
         z_uns, zq_uns = embedder(x_uns)
         spaces: list[Space] = ["z"] if zq_ref is None else ["z", "z_q"]
         for space in spaces:
-            db = _database(variant, space, z_ref, zq_ref, reference, splits, codebook)
+            db = database.from_embeddings(reference, splits, z_ref, codebook, space=space)
             rows.append(Row(variant, space, z_ref if space == "z" else zq_ref,
                             z_uns if space == "z" else zq_uns, z_uns, db))
     pairs = pairs_of(unseen.labels)

@@ -27,7 +27,7 @@ import torch
 
 from edge.atomic import atomic_write_bytes
 from edge.errors import ModelError
-from edge.model import INPUT_NAME, OUTPUT_NAMES, OnnxEncoder
+from edge.model import INPUT_NAME, OUTPUT_NAMES, OnnxEncoder, nearest_code
 from train.data import Normaliser
 from train.model import ExportEncoder, TactileAutoencoder
 
@@ -117,8 +117,7 @@ def parity(model: TactileAutoencoder, norm: Normaliser, onnx_model: bytes | str 
         worst = max(worst, float(np.abs(z_ort - z_t.numpy()).max()))
         mismatches += int((code_ort != code_t.numpy()).sum())
         # The metadata codebook must reproduce the graph's own choice of code.
-        nearest = ((z_ort[:, None, :] - book[None]) ** 2).sum(-1).argmin(-1)
-        mismatches += int((nearest != code_ort).sum())
+        mismatches += int((nearest_code(z_ort, book) != code_ort).sum())
         cases += len(x)
     return Parity(worst, mismatches, cases)
 

@@ -123,15 +123,9 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     db = database.build_database(onnx_bytes, data.presses, data.splits)
     db.save(stage)
 
-    encoder = OnnxEncoder(onnx_bytes)
     codebook = codebook_of(onnx_bytes)
-
-    def vq_embed(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        z, code = encoder(x)
-        return z, codebook[code]
-
     embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
-        "vq": (vq_embed, codebook)}
+        "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
     if beta is not None:
         embedders["beta"] = ((lambda x: embed(beta.model, beta.norm, x)), None)
     report = evaluate.evaluate(embedders, data.presses, data.splits, unseen, stage / EVAL_DIR,
