@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -59,3 +60,9 @@ def released(work, tmp_path_factory) -> Path:
                           unseen_presses=PRESSES, max_epochs=3, workers=2),
             Progress(enabled=False))
     return out
+
+
+@pytest.fixture
+def model_copy(released, tmp_path) -> Path:
+    """A private copy of the tiny release, for tests that change or damage it."""
+    return Path(shutil.copytree(released, tmp_path / "model"))

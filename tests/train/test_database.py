@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.errors import ModelError
+from edge.errors import ModelError, RecordingError
 from edge.model import ClassInfo, ReferenceDatabase, load_model
 from train.database import add_class, build_into, synthetic, topk_timing
 
@@ -73,9 +73,8 @@ def test_topk_on_a_million_references_is_fast():
     assert t["topk_ms_median"] < 1000  # a smoke bound only; the figure is printed
 
 
-def test_db_add_extends_the_database_and_manifest(released, cube_dir, tmp_path):
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+def test_db_add_extends_the_database_and_manifest(model_copy, cube_dir):
+    model_dir = model_copy
     before = load_model(model_dir)
     db = add_class(model_dir, cube_dir / "boiled_kiri_mochi", "boiled_kiri_mochi",
                    "a soft, sticky rice cake that flows under the fingers")
@@ -96,10 +95,9 @@ def test_db_add_extends_the_database_and_manifest(released, cube_dir, tmp_path):
     assert all(after.topk(zi, 1)[0][0] == "boiled_kiri_mochi" for zi in zs)
 
 
-def test_db_add_refuses_mixed_recordings(released, cube_dir, tmp_path):
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
-    with pytest.raises(ModelError.__mro__[1], match="none is labelled"):
+def test_db_add_refuses_mixed_recordings(model_copy, cube_dir):
+    model_dir = model_copy
+    with pytest.raises(RecordingError, match="none is labelled"):
         add_class(model_dir, cube_dir, "mochi", "a rice cake")
 
 

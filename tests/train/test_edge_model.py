@@ -1,5 +1,4 @@
 import json
-import shutil
 import subprocess
 import sys
 
@@ -35,9 +34,8 @@ def test_encode_refuses_bad_input(released):
 
 
 @pytest.mark.parametrize("victim", ["encoder.onnx", "database.npz", "database.json"])
-def test_hash_mismatch_is_refused_naming_the_file(released, tmp_path, victim):
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+def test_hash_mismatch_is_refused_naming_the_file(model_copy, victim):
+    model_dir = model_copy
     path = model_dir / victim
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 0x01
@@ -46,9 +44,8 @@ def test_hash_mismatch_is_refused_naming_the_file(released, tmp_path, victim):
         load_model(model_dir)
 
 
-def test_missing_file_and_missing_manifest_are_refused(released, tmp_path):
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+def test_missing_file_and_missing_manifest_are_refused(model_copy):
+    model_dir = model_copy
     (model_dir / "database.npz").unlink()
     with pytest.raises(ModelError, match=r"database\.npz: missing"):
         load_model(model_dir)
@@ -57,11 +54,10 @@ def test_missing_file_and_missing_manifest_are_refused(released, tmp_path):
         load_model(model_dir)
 
 
-def test_prompts_are_hashed_and_checked(released, tmp_path):
+def test_prompts_are_hashed_and_checked(model_copy):
     from train.manifest import write_manifest
 
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+    model_dir = model_copy
     (model_dir / "prompts").mkdir()
     (model_dir / "prompts" / "vision_tactile.txt").write_text("${topk_refs}\n")
     write_manifest(model_dir)
@@ -73,9 +69,8 @@ def test_prompts_are_hashed_and_checked(released, tmp_path):
         load_model(model_dir)
 
 
-def test_manifest_names_cannot_leave_the_directory(released, tmp_path):
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+def test_manifest_names_cannot_leave_the_directory(model_copy):
+    model_dir = model_copy
     manifest = json.loads((model_dir / "manifest.json").read_text())
     manifest["files"]["../secret"] = {"sha256": "0" * 64}
     (model_dir / "manifest.json").write_text(json.dumps(manifest))

@@ -64,9 +64,7 @@ def test_cli_runs_as_a_module():
     assert out.returncode == 0 and "release" in out.stdout
 
 
-def test_cli_eval_and_db_add(released, work, tmp_path, capsys):
-    import shutil
-
+def test_cli_eval_and_db_add(released, model_copy, work, tmp_path, capsys):
     from train.cli import main
 
     rec = work / "recordings"
@@ -74,8 +72,7 @@ def test_cli_eval_and_db_add(released, work, tmp_path, capsys):
                  "--unseen", str(rec / "cube"), "--out", str(tmp_path / "ev")]) == 0
     assert (tmp_path / "ev" / "confusion.png").exists()
     assert "kiri mochi AUC" in capsys.readouterr().out
-    model_dir = tmp_path / "m"
-    shutil.copytree(released, model_dir)
+    model_dir = model_copy
     assert main(["db", "add", "--model", str(model_dir), "--recordings",
                  str(rec / "cube" / "raw_kiri_mochi"), "--label", "dried_mochi",
                  "--description", "a hard dried rice cake"]) == 0
