@@ -130,6 +130,13 @@ class OnnxEncoder:
 # Reference database
 
 
+def nearest_code(z: np.ndarray, codebook: np.ndarray) -> np.ndarray:
+    """Index of the L2-nearest codebook vector of each row of ``z`` (int64)."""
+    z = np.asarray(z, dtype=np.float32)
+    d2 = ((z[..., None, :] - codebook) ** 2).sum(-1)
+    return np.argmin(d2, axis=-1).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class ClassInfo:
     label: str
@@ -235,9 +242,7 @@ class ReferenceDatabase:
 
     def quantise(self, z: np.ndarray) -> np.ndarray:
         """The nearest codebook vector of each row of ``z``."""
-        z = np.asarray(z, dtype=np.float32)
-        d2 = ((z[..., None, :] - self.codebook) ** 2).sum(-1)
-        return self.codebook[np.argmin(d2, axis=-1)]
+        return self.codebook[nearest_code(z, self.codebook)]
 
     def topk(self, z: np.ndarray, k: int | None = None) -> list[tuple[str, float]]:
         """The first ``k`` distinct classes by L2 distance to ``z``, nearest first."""

@@ -193,7 +193,6 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
                             z_uns if space == "z" else zq_uns, z_uns, db))
     pairs = pairs_of(unseen.labels)
     uns_labels = np.asarray(unseen.labels)
-    table = []
     report: dict[str, Any] = {"k": k, "reference_presses": len(reference),
                               "reference_classes": len(reference.classes),
                               "unseen_presses": len(unseen), "unseen_classes": unseen.classes,
@@ -208,11 +207,10 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
         pair_metrics = {name: pair_auc(row.z_unseen[uns_labels == a],
                                        row.z_unseen[uns_labels == b])
                         for name, a, b in pairs}
-        replica = [m["auc"] for name, m in pair_metrics.items()
-                   if f"resin_replica_{name}" in unseen.labels]
-        cooked = [m["auc"] for name, m in pair_metrics.items()
-                  if f"boiled_{name}" in unseen.labels]
-        split_acc = _split_accuracy(knn, reference.labels, splits)
+        replica = [pair_metrics[name]["auc"] for name, _, b in pairs
+                   if b.startswith("resin_replica_")]
+        cooked = [pair_metrics[name]["auc"] for name, _, b in pairs if b.startswith("boiled_")]
+        split_acc = _split_accuracy(knn, splits)
         metrics = {
             "variant": row.variant, "space": row.space,
             "loo_1nn": knn["loo_1nn"], "loo_5nn": knn["loo_5nn"], "loo_top3": knn["loo_top3"],
@@ -227,7 +225,6 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
             "consistency_per_class": cons["per_class"],
         }
         report["rows"].append(metrics)
-        table.append(metrics)
         if (row.variant, row.space) == primary:
             primary_row = (row, knn, retrieved)
     if primary_row is None:
@@ -248,8 +245,7 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
     return report
 
 
-def _split_accuracy(knn: dict[str, Any], labels: Sequence[str], splits: Splits
-                    ) -> dict[str, float]:
+def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
     classes = knn["classes"]
     conf = knn["confusion"]
     out = {}
