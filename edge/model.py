@@ -1,0 +1,500 @@
+"""The tactile encoder and the tactile-to-text reference database, as the robot uses them.
+
+numpy + onnxruntime only (never torch). A model directory holds:
+
+- ``encoder.onnx``: input ``x`` (batch, 25, 96) float32 in *tactile units* (``(raw - tare) /
+  65536``, exactly what :func:`edge.preprocess.model_input` returns). The per-channel
+  normalisation computed on the training data is the first operation *inside* the graph, so
+  the robot never applies it by hand and can never apply the wrong one. Outputs ``z``
+  (batch, 4) float32, the continuous embedding, and ``code`` (batch,) int64, the index of the
+  nearest codebook vector.
+- ``database.npz`` (numpy arrays, loaded with ``allow_pickle=False``) and ``database.json``
+  (labels, their descriptions, the retrieval settings): the embeddings of every reference
+  press, grouped by class.
+- ``manifest.json``: the sha256 and size of every runtime file (the prompt templates
+  included), the training configuration, metrics and versions. :func:`load_model` checks
+  every listed file before using any of it and refuses a missing or altered one.
+
+Retrieval (DESIGN section 1.4): L2 distance from the query embedding to every reference
+embedding; the first ``k`` *distinct* classes, nearest first. Classes are stored in contiguous
+blocks, so the nearest reference of every class is one ``np.minimum.reduceat`` over the
+squared distances ``||r||^2 - 2 r.z`` (norms precomputed, float32); no retry loop is needed to
+find k distinct classes however many references one class has. The distances returned are
+recomputed exactly (float64) for the winners.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import math
+import zipfile
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import onnxruntime as ort
+
+from edge.atomic import atomic_write_bytes, atomic_write_text
+from edge.errors import ModelError
+from edge.preprocess import DEFAULT_WINDOW, WindowSpec
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+ENCODER_FILE = "encoder.onnx"
+DATABASE_ARRAYS = "database.npz"
+DATABASE_INDEX = "database.json"
+REQUIRED_FILES = (ENCODER_FILE, DATABASE_ARRAYS, DATABASE_INDEX)
+MANIFEST_SCHEMA = 1
+DATABASE_SCHEMA = 1
+DEFAULT_K = 3
+# ONNX input/output names: the contract between train/export.py and this module.
+INPUT_NAME = "x"
+OUTPUT_NAMES = ("z", "code")
+
+Space = Literal["z", "z_q"]
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def file_entry(path: str | Path) -> dict[str, Any]:
+    """The manifest entry of one file: its sha256 and size."""
+    data = Path(path).read_bytes()
+    return {"sha256": sha256_bytes(data), "bytes": len(data)}
+
+
+# --------------------------------------------------------------------------------------
+# Encoder
+
+
+class OnnxEncoder:
+    """The ONNX encoder in an onnxruntime session.
+
+    Single-threaded by default (a small robot computer runs the sensor path and the bus on
+    its other cores); ``InferenceSession.run`` is thread-safe, so this may be called from a
+    worker thread off the event loop.
+    """
+
+    def __init__(self, model: bytes | str | Path, *, threads: int = 1,
+                 name: str = ENCODER_FILE) -> None:
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        opts.log_severity_level = 3
+        source = model if isinstance(model, bytes) else str(model)
+        try:
+            self._session = ort.InferenceSession(source, opts,
+                                                 providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own untyped errors
+            raise ModelError(f"{name}: not a loadable ONNX encoder: {exc}") from None
+        inputs = self._session.get_inputs()
+        outputs = [o.name for o in self._session.get_outputs()]
+        if len(inputs) != 1 or inputs[0].name != INPUT_NAME or tuple(outputs[:2]) != OUTPUT_NAMES:
+            raise ModelError(
+                f"{name}: expected input {INPUT_NAME!r} and outputs {OUTPUT_NAMES}, got "
+                f"{[i.name for i in inputs]} -> {outputs}")
+        shape = inputs[0].shape
+        if len(shape) != 3 or not all(isinstance(d, int) for d in shape[1:]):
+            raise ModelError(f"{name}: input shape {shape} is not (batch, steps, channels)")
+        self.steps, self.channels = int(shape[1]), int(shape[2])
+        z_shape = self._session.get_outputs()[0].shape
+        self.dim = int(z_shape[1]) if len(z_shape) == 2 and isinstance(z_shape[1], int) else None
+        self.name = name
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``x`` (B, steps, channels) in tactile units -> z (B, D) float32, code (B,) int64."""
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        if x.ndim != 3 or x.shape[1:] != (self.steps, self.channels):
+            raise ModelError(
+                f"encoder input must be ({self.steps}, {self.channels}) or "
+                f"(batch, {self.steps}, {self.channels}), got {x.shape}")
+        if x.shape[0] == 0:
+            raise ModelError("encoder input has an empty batch")
+        if not np.all(np.isfinite(x)):
+            raise ModelError("encoder input contains NaN or infinity")
+        z, code = self._session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
+        return np.asarray(z, dtype=np.float32), np.asarray(code, dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------
+# Reference database
+
+
+def nearest_code(z: np.ndarray, codebook: np.ndarray) -> np.ndarray:
+    """Index of the L2-nearest codebook vector of each row of ``z`` (int64)."""
+    z = np.asarray(z, dtype=np.float32)
+    d2 = ((z[..., None, :] - codebook) ** 2).sum(-1)
+    return np.argmin(d2, axis=-1).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class ClassInfo:
+    label: str
+    description: str
+    split: str  # train / val (from training) or added (db add)
+
+
+class ReferenceDatabase:
+    """Reference embeddings grouped by class, their labels and descriptions.
+
+    Arrays (N references, D dims, K codes): ``z`` (N, D) and ``z_q`` (N, D) float32, ``code``
+    (N,) int64, ``label_index`` (N,) int32 into ``classes``, ``source`` (N,) the press file
+    names, ``codebook`` (K, D) float32. ``space`` says which embedding retrieval compares:
+    ``z`` (continuous, the default) or ``z_q`` (the query is quantised to its nearest code
+    first).
+    """
+
+    def __init__(self, classes: Sequence[ClassInfo], z: np.ndarray, z_q: np.ndarray,
+                 code: np.ndarray, label_index: np.ndarray, source: Sequence[str],
+                 codebook: np.ndarray, space: Space = "z", k: int = DEFAULT_K,
+                 name: str = DATABASE_ARRAYS) -> None:
+        classes = tuple(classes)
+        z = np.asarray(z, dtype=np.float32)
+        n = z.shape[0] if z.ndim == 2 else -1
+        problems = []
+        if z.ndim != 2 or n < 1:
+            problems.append(f"z must be (N, D) with N >= 1, got {z.shape}")
+        else:
+            if np.shape(z_q) != z.shape:
+                problems.append(f"z_q shape {np.shape(z_q)} differs from z {z.shape}")
+            for key, arr in (("code", code), ("label_index", label_index), ("source", source)):
+                if np.shape(arr) != (n,):
+                    problems.append(f"{key} has shape {np.shape(arr)}, expected ({n},)")
+            if np.ndim(codebook) != 2 or np.shape(codebook)[1] != z.shape[1]:
+                problems.append(f"codebook shape {np.shape(codebook)} does not match D")
+        if space not in ("z", "z_q"):
+            problems.append(f"space must be 'z' or 'z_q', got {space!r}")
+        if not isinstance(k, int) or k < 1:
+            problems.append(f"k must be a positive integer, got {k!r}")
+        labels = [c.label for c in classes]
+        if len(set(labels)) != len(labels):
+            problems.append("duplicate class labels")
+        for c in classes:
+            if not c.label or not c.description.strip():
+                problems.append(f"class {c.label!r} needs a label and a non-empty description")
+        if problems:
+            raise ModelError(f"{name}: " + "; ".join(problems))
+        label_index = np.asarray(label_index, dtype=np.int32)
+        if label_index.min() < 0 or label_index.max() >= len(classes):
+            raise ModelError(f"{name}: label_index outside 0..{len(classes) - 1}")
+        counts = np.bincount(label_index, minlength=len(classes))
+        if np.any(counts == 0):
+            empty = [labels[i] for i in np.flatnonzero(counts == 0)]
+            raise ModelError(f"{name}: classes without references: {', '.join(empty)}")
+        z_q = np.asarray(z_q, dtype=np.float32)
+        codebook = np.asarray(codebook, dtype=np.float32)
+        code = np.asarray(code, dtype=np.int64)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(z_q))
+                and np.all(np.isfinite(codebook))):
+            raise ModelError(f"{name}: embeddings contain NaN or infinity")
+        if code.min() < 0 or code.max() >= codebook.shape[0]:
+            raise ModelError(f"{name}: code outside 0..{codebook.shape[0] - 1}")
+        # Group references by class (stable), so each class is one contiguous block.
+        order = np.argsort(label_index, kind="stable")
+        self.classes = classes
+        self.z = np.ascontiguousarray(z[order])
+        self.z_q = np.ascontiguousarray(z_q[order])
+        self.code = code[order]
+        self.label_index = label_index[order]
+        self.source = np.asarray(source, dtype=str)[order]
+        self.codebook = codebook
+        self.space: Space = space
+        self.k = k
+        self._descriptions = {c.label: c.description for c in classes}
+        self._labels = labels
+        refs = self.z if space == "z" else self.z_q
+        self._refs = np.ascontiguousarray(refs, dtype=np.float32)
+        self._norms = np.einsum("ij,ij->i", self._refs, self._refs).astype(np.float32)
+        self._starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.intp)
+        self._ends = np.cumsum(counts).astype(np.intp)
+
+    # ----- queries
+
+    def __len__(self) -> int:
+        return int(self.z.shape[0])
+
+    @property
+    def dim(self) -> int:
+        return int(self.z.shape[1])
+
+    @property
+    def labels(self) -> list[str]:
+        return list(self._labels)
+
+    def description(self, label: str) -> str:
+        try:
+            return self._descriptions[label]
+        except KeyError:
+            raise ModelError(f"label {label!r} is not in the reference database") from None
+
+    def describe(self, labels: Iterable[str]) -> str:
+        return ", ".join(self.description(label) for label in labels)
+
+    def quantise(self, z: np.ndarray) -> np.ndarray:
+        """The nearest codebook vector of each row of ``z``."""
+        return self.codebook[nearest_code(z, self.codebook)]
+
+    def topk(self, z: np.ndarray, k: int | None = None) -> list[tuple[str, float]]:
+        """The first ``k`` distinct classes by L2 distance to ``z``, nearest first."""
+        k = self.k if k is None else k
+        if not isinstance(k, int | np.integer) or k < 1:
+            raise ModelError(f"k must be a positive integer, got {k!r}")
+        q = np.asarray(z, dtype=np.float32).reshape(-1)
+        if q.shape[0] != self.dim or not np.all(np.isfinite(q)):
+            raise ModelError(f"query embedding must be {self.dim} finite values, got {q.shape}")
+        if self.space == "z_q":
+            q = self.quantise(q)
+        # Squared distance up to the constant ||q||^2: enough to rank.
+        d2 = self._norms - 2.0 * (self._refs @ q)
+        per_class = np.minimum.reduceat(d2, self._starts)
+        k = min(int(k), per_class.shape[0])
+        if k < per_class.shape[0]:
+            cand = np.argpartition(per_class, k - 1)[:k]
+        else:
+            cand = np.arange(per_class.shape[0])
+        q64 = q.astype(np.float64)
+        exact = []
+        for c in cand:
+            start = self._starts[c]
+            best = start + int(np.argmin(d2[start:self._ends[c]]))
+            diff = self._refs[best].astype(np.float64) - q64
+            exact.append(math.sqrt(float(diff @ diff)))
+        # Nearest first; equal distances (z_q space) in class order, deterministically.
+        ranked = sorted(zip(exact, cand.tolist(), strict=True))
+        return [(self._labels[c], d) for d, c in ranked]
+
+    # ----- building and storage
+
+    def with_class(self, info: ClassInfo, z: np.ndarray, code: np.ndarray,
+                   source: Sequence[str]) -> ReferenceDatabase:
+        """A new database with ``z`` (and their codes) added under ``info.label``.
+
+        An existing label keeps its references, gains these, and takes the new description.
+        """
+        z = np.asarray(z, dtype=np.float32)
+        code = np.asarray(code, dtype=np.int64)
+        classes = list(self.classes)
+        if info.label in self._labels:
+            idx = self._labels.index(info.label)
+            classes[idx] = ClassInfo(info.label, info.description, classes[idx].split)
+        else:
+            idx = len(classes)
+            classes.append(info)
+        return ReferenceDatabase(
+            classes,
+            np.concatenate([self.z, z]),
+            np.concatenate([self.z_q, self.codebook[code]]),
+            np.concatenate([self.code, code]),
+            np.concatenate([self.label_index, np.full(len(z), idx, dtype=np.int32)]),
+            [*self.source.tolist(), *source],
+            self.codebook, self.space, self.k)
+
+    def index_json(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        counts = np.bincount(self.label_index, minlength=len(self.classes))
+        return {
+            "schema_version": DATABASE_SCHEMA,
+            "space": self.space,
+            "k": self.k,
+            "embedding_dim": self.dim,
+            "codebook_size": int(self.codebook.shape[0]),
+            "references": len(self),
+            "classes": [{"label": c.label, "description": c.description, "split": c.split,
+                         "presses": int(n)} for c, n in zip(self.classes, counts, strict=True)],
+            **(extra or {}),
+        }
+
+    def save(self, directory: str | Path, extra: Mapping[str, Any] | None = None) -> None:
+        """Write ``database.npz`` and ``database.json`` atomically (each file)."""
+        directory = Path(directory)
+        buf = io.BytesIO()
+        np.savez_compressed(
+            buf, z=self.z, z_q=self.z_q, code=self.code, label_index=self.label_index,
+            classes=np.array(self._labels, dtype=str), source=self.source,
+            codebook=self.codebook)
+        atomic_write_bytes(directory / DATABASE_ARRAYS, buf.getvalue())
+        atomic_write_text(directory / DATABASE_INDEX,
+                          json.dumps(self.index_json(extra), indent=2) + "\n")
+
+    @classmethod
+    def from_bytes(cls, arrays: bytes, index: bytes,
+                   names: tuple[str, str] = (DATABASE_ARRAYS, DATABASE_INDEX)
+                   ) -> ReferenceDatabase:
+        npz_name, json_name = names
+        try:
+            meta = json.loads(index.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelError(f"{json_name}: not valid JSON: {exc}") from None
+        if not isinstance(meta, dict) or meta.get("schema_version") != DATABASE_SCHEMA:
+            raise ModelError(f"{json_name}: not a version {DATABASE_SCHEMA} database index")
+        try:
+            entries = meta["classes"]
+            classes = [ClassInfo(str(c["label"]), str(c["description"]), str(c["split"]))
+                       for c in entries]
+            space, k = meta["space"], meta["k"]
+        except (KeyError, TypeError) as exc:
+            raise ModelError(f"{json_name}: malformed database index ({exc!r})") from None
+        keys = ("z", "z_q", "code", "label_index", "classes", "source", "codebook")
+        try:
+            with np.load(io.BytesIO(arrays), allow_pickle=False) as npz:
+                missing = [key for key in keys if key not in npz.files]
+                if missing:
+                    raise ModelError(f"{npz_name}: missing arrays {', '.join(missing)}")
+                a = {key: npz[key] for key in keys}
+        except ModelError:
+            raise
+        except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
+            raise ModelError(f"{npz_name}: truncated or corrupt ({exc})") from None
+        if a["classes"].tolist() != [c.label for c in classes]:
+            raise ModelError(f"{npz_name} and {json_name} list different classes")
+        return cls(classes, a["z"], a["z_q"], a["code"], a["label_index"],
+                   a["source"].tolist(), a["codebook"], space, k, name=npz_name)
+
+    @classmethod
+    def load(cls, directory: str | Path) -> ReferenceDatabase:
+        """Read a database without manifest checks (building tools); the robot uses
+        :func:`load_model`."""
+        directory = Path(directory)
+        return cls.from_bytes(_read(directory / DATABASE_ARRAYS),
+                              _read(directory / DATABASE_INDEX))
+
+
+# --------------------------------------------------------------------------------------
+# The model directory
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """A verified model directory: the encoder plus the reference database."""
+
+    directory: Path
+    manifest: dict[str, Any]
+    encoder: OnnxEncoder
+    database: ReferenceDatabase
+    window: WindowSpec
+
+    def encode(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | int]:
+        """``x`` in tactile units, (25, 96) or (B, 25, 96) -> (z, code).
+
+        One sequence gives z (D,) float32 and an ``int`` code; a batch gives z (B, D) and
+        code (B,) int64. Blocking (about a millisecond): call it off the event loop.
+        """
+        x = np.asarray(x, dtype=np.float32)
+        if x.ndim == 2:
+            z, code = self.encoder(x[None])
+            return z[0], int(code[0])
+        return self.encoder(x)
+
+    def topk(self, z: np.ndarray, k: int = DEFAULT_K) -> list[tuple[str, float]]:
+        """The first ``k`` distinct reference classes nearest to ``z``: (label, distance)."""
+        return self.database.topk(z, k)
+
+    def describe(self, labels: Iterable[str]) -> str:
+        """The labels' descriptions joined with ", " (the ``${topk_refs}`` sentence)."""
+        return self.database.describe(labels)
+
+    @property
+    def labels(self) -> list[str]:
+        return self.database.labels
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise ModelError(f"{path}: missing") from None
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def _safe_name(directory: Path, name: str) -> Path:
+    rel = Path(name)
+    if rel.is_absolute() or ".." in rel.parts or not rel.parts:
+        raise ModelError(f"{directory / MANIFEST}: file name {name!r} leaves the directory")
+    return directory / rel
+
+
+def read_manifest(directory: str | Path) -> dict[str, Any]:
+    directory = Path(directory)
+    path = directory / MANIFEST
+    if not path.exists():
+        raise ModelError(f"{path}: missing; a model directory needs a manifest "
+                         "(regenerate it with `vt-train release`)")
+    try:
+        manifest = json.loads(_read(path).decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("schema_version") != MANIFEST_SCHEMA:
+        raise ModelError(f"{path}: not a version {MANIFEST_SCHEMA} manifest")
+    files = manifest.get("files")
+    if not isinstance(files, dict) or not all(
+            isinstance(v, dict) and isinstance(v.get("sha256"), str) for v in files.values()):
+        raise ModelError(f"{path}: 'files' must map names to {{'sha256': ...}}")
+    missing = [name for name in REQUIRED_FILES if name not in files]
+    if missing:
+        raise ModelError(f"{path}: does not list {', '.join(missing)}")
+    return manifest
+
+
+def verified_files(directory: str | Path, manifest: dict[str, Any]) -> dict[str, bytes]:
+    """Every file the manifest lists, read once and checked against its sha256."""
+    directory = Path(directory)
+    out: dict[str, bytes] = {}
+    for name, entry in sorted(manifest["files"].items()):
+        path = _safe_name(directory, name)
+        data = _read(path)
+        actual = sha256_bytes(data)
+        if actual != entry["sha256"]:
+            raise ModelError(
+                f"{path}: sha256 {actual[:16]}... does not match the manifest "
+                f"({entry['sha256'][:16]}...); the file was changed or damaged after release. "
+                "Restore it, or regenerate the directory with `vt-train release` (after a "
+                "deliberate edit: `vt-train rehash --model DIR`)")
+        out[name] = data
+    return out
+
+
+def _window(manifest: dict[str, Any]) -> WindowSpec:
+    spec = manifest.get("encoder", {}).get("window")
+    if spec is None:
+        return DEFAULT_WINDOW
+    try:
+        return WindowSpec(**spec)
+    except TypeError as exc:
+        raise ModelError(f"{MANIFEST}: encoder.window is malformed: {exc}") from None
+
+
+def load_model(models_dir: str | Path, *, threads: int = 1) -> Model:
+    """Verify ``models_dir/manifest.json`` and load the encoder and database.
+
+    Every file the manifest lists (encoder, database, prompt templates) must exist and match
+    its sha256; otherwise :class:`ModelError` names the file. Reads each file once, so what
+    is checked is what is loaded.
+    """
+    directory = Path(models_dir)
+    manifest = read_manifest(directory)
+    data = verified_files(directory, manifest)
+    encoder = OnnxEncoder(data[ENCODER_FILE], threads=threads,
+                          name=str(directory / ENCODER_FILE))
+    database = ReferenceDatabase.from_bytes(
+        data[DATABASE_ARRAYS], data[DATABASE_INDEX],
+        (str(directory / DATABASE_ARRAYS), str(directory / DATABASE_INDEX)))
+    window = _window(manifest)
+    if encoder.steps != window.n_steps:
+        raise ModelError(f"{directory / ENCODER_FILE}: takes {encoder.steps} steps but the "
+                         f"manifest window gives {window.n_steps}")
+    if encoder.dim is not None and encoder.dim != database.dim:
+        raise ModelError(f"{directory / DATABASE_ARRAYS}: embeddings have {database.dim} "
+                         f"dims, the encoder gives {encoder.dim}")
+    log.info("model %s: %d reference presses of %d classes, retrieval in %s space",
+             directory, len(database), len(database.classes), database.space)
+    return Model(directory, manifest, encoder, database, window)

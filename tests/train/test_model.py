@@ -1,0 +1,70 @@
+import numpy as np
+import torch
+
+from train.model import ModelConfig, TactileAutoencoder
+from train.trainer import Progress, TrainConfig, load_checkpoint, save_checkpoint, train
+
+
+def test_vq_loss_decreases_on_a_tiny_set(trained):
+    losses = [row["train"]["loss"] for row in trained.history]
+    assert losses[-1] < 0.9 * losses[0], losses
+    assert trained.best_val < trained.history[0]["val"]["loss"]
+    assert trained.best_epoch >= 1
+    row = trained.history[-1]
+    assert {"recon", "codebook", "commit", "loss"} <= set(row["train"])
+    assert 0 <= row["dead_codes"] <= 32 and row["perplexity"] >= 1.0
+
+
+def test_beta_vae_variant_trains(data):
+    cfg = TrainConfig(model=ModelConfig(variant="beta"), max_epochs=6, patience=100)
+    result = train(data, cfg, None, Progress(enabled=False))
+    losses = [row["train"]["loss"] for row in result.history]
+    assert np.all(np.isfinite(losses)) and losses[-1] < losses[0]
+    assert "kl" in result.history[-1]["train"]
+    assert result.model.quantiser is None
+
+
+def test_training_is_deterministic_for_a_seed(data, tmp_path):
+    cfg = TrainConfig(max_epochs=2, patience=100)
+    a = train(data, cfg, tmp_path / "a", Progress(enabled=False))
+    b = train(data, cfg, tmp_path / "b", Progress(enabled=False))
+    for key, value in a.model.state_dict().items():
+        assert torch.equal(value, b.model.state_dict()[key]), key
+    assert a.history[-1]["train"] == b.history[-1]["train"]
+    # The JSON-lines log has one line per epoch and the checkpoint reloads.
+    assert len((tmp_path / "a" / "train.jsonl").read_text().splitlines()) == 2
+    model, norm, meta = load_checkpoint(tmp_path / "a" / "checkpoint.pt")
+    np.testing.assert_array_equal(norm.std, data.norm.std)
+    assert meta["epoch"] == a.best_epoch
+    for key, value in model.state_dict().items():
+        assert torch.equal(value, a.model.state_dict()[key]), key
+
+
+def test_straight_through_and_shapes():
+    model = TactileAutoencoder(ModelConfig())
+    x = torch.randn(3, 25, 96)
+    out = model(x, x)
+    assert out.x_hat.shape == (3, 25, 96) and out.z.shape == (3, 4)
+    assert out.code.shape == (3,)
+    assert torch.allclose(out.z_q, model.quantiser.codebook[out.code])
+    out.losses["loss"].backward()
+    # The reconstruction reaches the encoder through the straight-through estimator.
+    assert model.encoder.head.weight.grad is not None
+    assert float(model.encoder.head.weight.grad.abs().sum()) > 0
+
+
+def test_dead_codes_are_revived():
+    model = TactileAutoencoder(ModelConfig())
+    usage = torch.zeros(32, dtype=torch.long)
+    usage[0] = 5
+    pool = torch.randn(10, 4) * 3
+    moved = model.revive(usage, pool, torch.Generator().manual_seed(0))
+    assert moved == 31
+    d = torch.cdist(model.quantiser.codebook.detach()[1:], pool).min(1).values
+    assert float(d.max()) < 0.5
+
+
+def test_checkpoint_is_written_atomically(data, tmp_path, trained):
+    path = tmp_path / "c.pt"
+    save_checkpoint(path, trained.model, data.norm, trained.config, trained.classes, 1, 0.5)
+    assert path.exists() and not list(tmp_path.glob(".*tmp"))

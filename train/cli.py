@@ -1,0 +1,259 @@
+"""``vt-train``: offline training, export, reference database, evaluation and release.
+
+The shipped ``models/`` comes from one command::
+
+    vt-train release            # = python -m train release --out models --seed 0
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+from edge import __version__
+from edge.errors import EdgeError
+from edge.logs import setup_logging
+
+log = logging.getLogger(__name__)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from edge.sim.record import record_dataset
+
+    index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
+                           workers=args.workers)
+    print(f"wrote {len(index['classes']) * args.presses} presses of "
+          f"{len(index['classes'])} classes ({args.dataset}) to {args.out}")
+    return 0
+
+
+def _splits(args: argparse.Namespace):
+    from train.data import Splits
+
+    return Splits.from_file(args.splits) if args.splits else None
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from train.data import training_data
+    from train.model import ModelConfig
+    from train.trainer import CHECKPOINT, TRAIN_LOG, Progress, TrainConfig, train
+
+    data = training_data(args.recordings, _splits(args))
+    config = TrainConfig(
+        model=ModelConfig(variant=args.variant, revive_dead=not args.no_revive),
+        seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
+        threads=args.threads)
+    result = train(data, config, args.out, Progress(enabled=not args.quiet))
+    print(json.dumps(result.summary() | {"seconds": round(result.seconds, 1)}))
+    print(f"best checkpoint: {Path(args.out) / CHECKPOINT}; log: {Path(args.out) / TRAIN_LOG}")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from edge.model import ENCODER_FILE
+    from train.data import load_presses
+    from train.export import check_parity, export_onnx, parity
+    from train.trainer import load_checkpoint
+
+    model, norm, _ = load_checkpoint(args.checkpoint)
+    out = Path(args.out)
+    path = out / ENCODER_FILE if out.is_dir() or not out.suffix else out
+    data = export_onnx(model, norm, path)
+    real = load_presses(args.recordings).inputs(0) if args.recordings else np.zeros((0,))
+    result = parity(model, norm, data, real if len(real) else None)
+    check_parity(result)
+    print(f"wrote {path} ({len(data)} bytes); parity onnxruntime vs torch: max |dz| "
+          f"{result.max_abs_z:.3g} over {result.cases} inputs, "
+          f"{result.code_mismatches} code mismatches")
+    return 0
+
+
+def _cmd_db_build(args: argparse.Namespace) -> int:
+    from train.database import build_into
+
+    db = build_into(args.model, args.recordings, _splits(args), args.space, args.k)
+    print(f"database: {len(db)} references of {len(db.classes)} classes in {args.model}")
+    return 0
+
+
+def _cmd_db_add(args: argparse.Namespace) -> int:
+    from train.database import add_class
+
+    db = add_class(args.model, args.recordings, args.label, args.description)
+    print(f"added {args.label!r}; database: {len(db)} references of {len(db.classes)} classes")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from edge.model import load_model
+    from train import evaluate
+    from train.data import PressSet, Splits, load_presses
+    from train.trainer import embed, load_checkpoint
+
+    model = load_model(args.model)
+    splits = _splits(args) or Splits.of_dataset(args.reference)
+    reference = load_presses(args.reference, splits.classes).select(splits.classes)
+    unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))
+    codebook = model.database.codebook
+    embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook)}
+    if args.beta:
+        beta, norm, _ = load_checkpoint(args.beta)
+        embedders["beta"] = ((lambda x: embed(beta, norm, x)), None)
+    report = evaluate.evaluate(embedders, reference, splits, unseen, args.out, k=args.k,
+                               seed=args.seed)
+    print((Path(args.out) / "eval.md").read_text())
+    m = evaluate.summary_metrics(report)
+    print(f"kiri mochi AUC (raw vs boiled): {m['kiri_mochi_auc']}")
+    return 0
+
+
+def _cmd_release(args: argparse.Namespace) -> int:
+    from train.release import ReleaseConfig, release
+    from train.trainer import Progress
+
+    cfg = ReleaseConfig(out=Path(args.out), work=Path(args.work),
+                        recordings=Path(args.recordings) if args.recordings else None,
+                        seed=args.seed,
+                        presses=args.presses, unseen_presses=args.unseen_presses,
+                        max_epochs=args.max_epochs, patience=args.patience,
+                        beta=not args.no_beta, workers=args.workers)
+    manifest = release(cfg, Progress(enabled=not args.quiet))
+    m = manifest["metrics"]
+    print(f"released {cfg.out}: kiri mochi AUC {m['kiri_mochi_auc']}, LOO 1-NN "
+          f"{m['loo_1nn']:.3f}, VQ best epoch {m['vq_best_epoch']} of {m['vq_epochs']}; "
+          f"report {cfg.out / 'eval' / 'eval.md'}")
+    return 0
+
+
+def _cmd_rehash(args: argparse.Namespace) -> int:
+    from train.manifest import write_manifest
+
+    manifest = write_manifest(args.model)
+    print(f"re-hashed {len(manifest['files'])} files in {Path(args.model) / 'manifest.json'}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from edge.model import load_model
+    from train.database import synthetic, topk_timing
+    from train.release import encode_timing
+
+    model = load_model(args.model)
+    x = np.random.default_rng(0).normal(0, 1e-3, (64, 25, 96)).astype(np.float32)
+    data = (Path(args.model) / "encoder.onnx").read_bytes()
+    print("encode (onnxruntime, 1 thread, one sequence):",
+          {k: round(v, 3) for k, v in encode_timing(data, x).items()})
+    print(f"top-k on the shipped database ({len(model.database)} refs):",
+          topk_timing(model.database))
+    db = synthetic(args.refs, args.classes)
+    print(f"top-k on a synthetic database ({args.refs} refs, {args.classes} classes):",
+          topk_timing(db))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vt-train", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"vtzero {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("record", help="record a simulated dataset (the edge recorder)")
+    p.add_argument("--dataset", required=True, choices=["reference", "foodreplica", "cube"])
+    p.add_argument("--presses", type=int, default=10, help="presses per class")
+    p.add_argument("--out", required=True)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=None)
+    p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser("train", help="train the VQ-VAE (or the beta-VAE)")
+    p.add_argument("--recordings", required=True, help="reference recordings directory")
+    p.add_argument("--splits", help="class splits (default: the recordings' dataset.json)")
+    p.add_argument("--out", required=True, help="directory for checkpoint.pt and train.jsonl")
+    p.add_argument("--variant", choices=["vq", "beta"], default="vq")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-epochs", type=int, default=300)
+    p.add_argument("--patience", type=int, default=25)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--no-revive", action="store_true", help="leave dead codes dead")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("export", help="export a VQ checkpoint's encoder to ONNX")
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--out", required=True, help="model directory or .onnx path")
+    p.add_argument("--recordings", help="recordings for the parity check on real inputs")
+    p.set_defaults(func=_cmd_export)
+
+    db = sub.add_parser("db", help="the reference database")
+    dbsub = db.add_subparsers(dest="db_command", required=True)
+    p = dbsub.add_parser("build", help="encode the reference presses with MODEL/encoder.onnx")
+    p.add_argument("--model", required=True, help="model directory (has encoder.onnx)")
+    p.add_argument("--recordings", required=True)
+    p.add_argument("--splits")
+    p.add_argument("--space", choices=["z", "z_q"], default="z")
+    p.add_argument("--k", type=int, default=3)
+    p.set_defaults(func=_cmd_db_build)
+    p = dbsub.add_parser("add", help="add a class's presses without retraining")
+    p.add_argument("--model", required=True)
+    p.add_argument("--recordings", required=True)
+    p.add_argument("--label", required=True)
+    p.add_argument("--description", required=True)
+    p.set_defaults(func=_cmd_db_add)
+
+    p = sub.add_parser("eval", help="retrieval quality on unseen classes, pictures, tables")
+    p.add_argument("--model", required=True)
+    p.add_argument("--reference", required=True, help="reference recordings")
+    p.add_argument("--unseen", required=True, nargs="+", help="unseen-class recordings")
+    p.add_argument("--out", required=True)
+    p.add_argument("--beta", help="beta-VAE checkpoint for the comparison")
+    p.add_argument("--splits")
+    p.add_argument("--k", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("release", help="regenerate models/ from the simulated reference set")
+    p.add_argument("--out", default="models")
+    p.add_argument("--work", default="runs/release", help="recordings and training runs")
+    p.add_argument("--recordings", help="where the simulated recordings live or go "
+                   "(default WORK/recordings; reused when seed and presses match)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--presses", type=int, default=10)
+    p.add_argument("--unseen-presses", type=int, default=10)
+    p.add_argument("--max-epochs", type=int, default=300)
+    p.add_argument("--patience", type=int, default=25)
+    p.add_argument("--no-beta", action="store_true", help="skip the beta-VAE comparison")
+    p.add_argument("--workers", type=int, default=None, help="recorder processes")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_release)
+
+    p = sub.add_parser("rehash", help="re-hash a model directory after a deliberate edit")
+    p.add_argument("--model", required=True)
+    p.set_defaults(func=_cmd_rehash)
+
+    p = sub.add_parser("bench", help="encode and top-k timings")
+    p.add_argument("--model", default="models")
+    p.add_argument("--refs", type=int, default=1_000_000)
+    p.add_argument("--classes", type=int, default=1000)
+    p.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(logging.DEBUG if args.verbose else logging.INFO)
+    try:
+        return int(args.func(args) or 0)
+    except (EdgeError, ValueError) as exc:
+        log.error("%s", exc)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+

@@ -1,0 +1,234 @@
+"""Press recordings -> training samples, exactly as DESIGN section 1 says.
+
+Every press is cropped and subsampled by :mod:`edge.preprocess` (never re-implemented here):
+``recording_pairs`` gives the 5 subsampling offsets of the input ``X`` and of the smoothed
+target ``X_bar``. Training and validation use all 5 offsets per press (1350 + 250 samples on
+the paper's reference set); anything that mimics recognition time (the database, the
+evaluation) uses offset 0 only, the one input the robot computes.
+
+Class splits come from a file: by default the ``split`` field of the recorder's
+``dataset.json`` (27 train + 5 validation classes); a JSON file ``{"train": [...], "val":
+[...]}`` overrides it. Ordering is deterministic: classes in the order of the split, presses
+by file path, offsets ascending.
+
+Normalisation: per-channel mean and standard deviation of the training inputs (all samples,
+all time steps). Channels a pad barely loads carry little more than sensor noise (~2 counts,
+3e-5 units); dividing them by their own tiny spread would blow that noise up to the size of
+real signals and make the reconstruction loss mostly about noise, so each channel's std is
+floored at ``STD_FLOOR_FRACTION`` of the RMS of all channels' stds. The statistics go into
+the checkpoint and into the ONNX graph.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge import preprocess, recording
+from edge.errors import RecordingError
+from edge.sim.record import DATASET_INDEX
+
+STD_FLOOR_FRACTION = 1.0
+
+
+@dataclass(frozen=True)
+class Splits:
+    """Which classes train the model and which validate it (early stopping)."""
+
+    train: tuple[str, ...]
+    val: tuple[str, ...]
+    descriptions: dict[str, str]
+
+    def __post_init__(self) -> None:
+        both = set(self.train) & set(self.val)
+        if both:
+            raise ValueError(f"classes in both train and val: {', '.join(sorted(both))}")
+        if not self.train:
+            raise ValueError("no training classes")
+
+    @property
+    def classes(self) -> tuple[str, ...]:
+        return self.train + self.val
+
+    @classmethod
+    def from_file(cls, path: str | Path, descriptions: dict[str, str] | None = None
+                  ) -> Splits:
+        """A ``dataset.json`` (its ``split`` fields) or ``{"train": [...], "val": [...]}``."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise RecordingError(f"{path}: cannot read the class splits: {exc}") from None
+        if isinstance(data, dict) and "classes" in data:
+            train = tuple(c["label"] for c in data["classes"] if c.get("split") == "train")
+            val = tuple(c["label"] for c in data["classes"] if c.get("split") == "val")
+            desc = {c["label"]: c.get("description", "") for c in data["classes"]}
+        elif isinstance(data, dict) and "train" in data:
+            train, val = tuple(data["train"]), tuple(data.get("val", ()))
+            desc = dict(data.get("descriptions", {}))
+        else:
+            raise RecordingError(f"{path}: expected a dataset.json or {{'train': [...], "
+                                 "'val': [...]}}")
+        if descriptions:
+            desc.update(descriptions)
+        try:
+            return cls(train, val, desc)
+        except ValueError as exc:
+            raise RecordingError(f"{path}: {exc}") from None
+
+    @classmethod
+    def of_dataset(cls, directory: str | Path) -> Splits:
+        return cls.from_file(Path(directory) / DATASET_INDEX)
+
+
+@dataclass(frozen=True, eq=False)
+class PressSet:
+    """Preprocessed presses: every offset of the input and of the target."""
+
+    x: np.ndarray  # (P, offsets, steps, channels) float32, tactile units
+    x_bar: np.ndarray  # (P, offsets, steps, channels) float32, smoothed target
+    labels: tuple[str, ...]  # (P,)
+    paths: tuple[str, ...]  # (P,)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    @property
+    def classes(self) -> list[str]:
+        """Labels in order of first appearance."""
+        return list(dict.fromkeys(self.labels))
+
+    def select(self, labels: Iterable[str]) -> PressSet:
+        """The presses of ``labels``, classes in that order, presses by path within one."""
+        labels = list(labels)
+        idx = [i for label in labels for i in self._indices(label)]
+        missing = [label for label in labels if not self._indices(label)]
+        if missing:
+            raise RecordingError(f"no recordings of {', '.join(missing)}")
+        return PressSet(self.x[idx], self.x_bar[idx], tuple(self.labels[i] for i in idx),
+                        tuple(self.paths[i] for i in idx))
+
+    def _indices(self, label: str) -> list[int]:
+        return [i for i, lab in enumerate(self.labels) if lab == label]
+
+    @classmethod
+    def concat(cls, *sets: PressSet) -> PressSet:
+        return cls(np.concatenate([s.x for s in sets]), np.concatenate([s.x_bar for s in sets]),
+                   tuple(lab for s in sets for lab in s.labels),
+                   tuple(p for s in sets for p in s.paths))
+
+    def inputs(self, offset: int = 0) -> np.ndarray:
+        """Recognition-time inputs (P, steps, channels): one offset per press."""
+        return np.ascontiguousarray(self.x[:, offset])
+
+
+def load_presses(directory: str | Path, labels: Iterable[str] | None = None,
+                 spec: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW) -> PressSet:
+    """Every recording under ``directory`` (optionally only ``labels``), sorted by path."""
+    wanted = None if labels is None else set(labels)
+    xs, ts, labs, paths = [], [], [], []
+    for path in recording.find(directory):
+        rec = recording.load(path)
+        if wanted is not None and rec.label not in wanted:
+            continue
+        x, t = preprocess.recording_pairs(rec, spec)
+        xs.append(x)
+        ts.append(t)
+        labs.append(rec.label)
+        paths.append(str(path))
+    if not xs:
+        raise RecordingError(f"{directory}: no press recordings"
+                             + ("" if wanted is None else f" of {', '.join(sorted(wanted))}"))
+    return PressSet(np.stack(xs), np.stack(ts), tuple(labs), tuple(paths))
+
+
+@dataclass(frozen=True, eq=False)
+class Normaliser:
+    """Per-channel ``(x - mean) / std`` with the statistics of the training inputs."""
+
+    mean: np.ndarray  # (C,) float32
+    std: np.ndarray  # (C,) float32
+
+    @classmethod
+    def fit(cls, x: np.ndarray, floor_fraction: float = STD_FLOOR_FRACTION) -> Normaliser:
+        flat = np.asarray(x, dtype=np.float64).reshape(-1, x.shape[-1])
+        mean = flat.mean(axis=0)
+        std = flat.std(axis=0)
+        floor = floor_fraction * float(np.sqrt(np.mean(std**2)))
+        if not floor > 0:
+            raise ValueError("training inputs have no spread: cannot normalise")
+        return cls(mean.astype(np.float32), np.maximum(std, floor).astype(np.float32))
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return ((np.asarray(x, dtype=np.float32) - self.mean) / self.std).astype(np.float32)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mean": self.mean.tolist(), "std": self.std.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Normaliser:
+        return cls(np.asarray(d["mean"], dtype=np.float32), np.asarray(d["std"], dtype=np.float32))
+
+
+@dataclass(frozen=True, eq=False)
+class Samples:
+    """Flat training samples (normalised), with where each came from."""
+
+    x: np.ndarray  # (N, steps, channels) float32
+    x_bar: np.ndarray  # (N, steps, channels) float32
+    label_index: np.ndarray  # (N,) int64 into ``classes``
+    press_index: np.ndarray  # (N,) int64 into the PressSet
+    offset: np.ndarray  # (N,) int64
+    classes: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+
+def samples(presses: PressSet, norm: Normaliser, offsets: Sequence[int] | None = None
+            ) -> Samples:
+    """All (press, offset) samples, press-major; ``offsets`` None means every offset."""
+    n_off = presses.x.shape[1]
+    offsets = list(range(n_off)) if offsets is None else list(offsets)
+    classes = tuple(presses.classes)
+    lookup = {c: i for i, c in enumerate(classes)}
+    p = len(presses)
+    press = np.repeat(np.arange(p), len(offsets))
+    off = np.tile(np.asarray(offsets, dtype=np.int64), p)
+    return Samples(
+        x=norm(presses.x[press, off]),
+        x_bar=norm(presses.x_bar[press, off]),
+        label_index=np.asarray([lookup[presses.labels[i]] for i in press], dtype=np.int64),
+        press_index=press.astype(np.int64),
+        offset=off,
+        classes=classes,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class TrainingData:
+    train: Samples
+    val: Samples
+    norm: Normaliser
+    splits: Splits
+    presses: PressSet  # train classes then val classes
+
+
+def training_data(directory: str | Path, splits: Splits | None = None,
+                  floor_fraction: float = STD_FLOOR_FRACTION) -> TrainingData:
+    """The training and validation samples of a recorded reference set."""
+    splits = splits or Splits.of_dataset(directory)
+    presses = load_presses(directory, splits.classes)
+    train_p = presses.select(splits.train)
+    norm = Normaliser.fit(train_p.x, floor_fraction)
+    train = samples(train_p, norm)
+    if splits.val:
+        val = samples(presses.select(splits.val), norm)
+    else:  # no validation classes: early stopping watches the training loss
+        val = train
+    return TrainingData(train, val, norm, splits, presses.select(splits.classes))

@@ -1,0 +1,163 @@
+"""Build the tactile-to-text reference database, and add classes to it without retraining.
+
+Every reference press (training and validation classes) is encoded with the *exported* ONNX
+encoder, exactly as the robot will encode a press: :func:`edge.preprocess.recording_pairs`
+offset 0 in tactile units, through onnxruntime. One press gives one reference (offset 0 only:
+the other four offsets are the same press seen a few milliseconds apart, and the robot only
+ever computes offset 0). Stored per reference: z, z_q (= codebook[code]), code, label,
+source file; per label: its description (from the recorder's ``dataset.json`` or given).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from edge.errors import ModelError, RecordingError
+from edge.model import (
+    DEFAULT_K,
+    ENCODER_FILE,
+    ClassInfo,
+    OnnxEncoder,
+    ReferenceDatabase,
+    Space,
+    load_model,
+    nearest_code,
+)
+from train.data import PressSet, Splits, load_presses
+from train.export import codebook_of
+from train.manifest import write_manifest
+
+log = logging.getLogger(__name__)
+
+DB_OFFSETS = (0,)
+
+
+def summary(db: ReferenceDatabase) -> dict:
+    return {"references": len(db), "classes": len(db.classes), "space": db.space, "k": db.k,
+            "offsets": list(DB_OFFSETS),
+            "added": [c.label for c in db.classes if c.split == "added"]}
+
+
+def encode_presses(encoder: OnnxEncoder, presses: PressSet,
+                   offsets: Sequence[int] = DB_OFFSETS) -> tuple[np.ndarray, np.ndarray]:
+    """z (P * len(offsets), D) and codes, press-major."""
+    x = np.concatenate([presses.x[:, [o]] for o in offsets], axis=1)
+    z, code = encoder(x.reshape(-1, *x.shape[2:]))
+    return z, code
+
+
+def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
+                    codebook: np.ndarray | None, code: np.ndarray | None = None,
+                    space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
+    """The database of ``presses`` (ordered as ``splits.classes``) with embeddings ``z``.
+
+    ``code`` (default: nearest in ``codebook``) gives z_q = codebook[code]; without a
+    codebook (the beta-VAE) a one-vector stand-in keeps the format.
+    """
+    missing = [c for c in splits.classes if not splits.descriptions.get(c, "").strip()]
+    if missing:
+        raise ModelError(f"no description for {', '.join(missing)}: every reference class "
+                         "needs one (dataset.json or the splits file)")
+    split_of = {c: "train" for c in splits.train} | {c: "val" for c in splits.val}
+    classes = [ClassInfo(c, splits.descriptions[c], split_of[c]) for c in splits.classes]
+    index = {c: i for i, c in enumerate(splits.classes)}
+    if codebook is None:
+        codebook = np.zeros((1, z.shape[1]), dtype=np.float32)
+    if code is None:
+        code = nearest_code(z, codebook)
+    return ReferenceDatabase(
+        classes, z, codebook[code], code,
+        np.asarray([index[label] for label in presses.labels], dtype=np.int32),
+        [Path(p).name for p in presses.paths], codebook, space, k)
+
+
+def build_database(encoder_onnx: bytes, presses: PressSet, splits: Splits,
+                   space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
+    """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_onnx``."""
+    encoder = OnnxEncoder(encoder_onnx)
+    presses = presses.select(splits.classes)
+    z, code = encode_presses(encoder, presses)
+    return from_embeddings(presses, splits, z, codebook_of(encoder_onnx), code, space, k)
+
+
+def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | None = None,
+               space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
+    """``vt-train db build``: encode ``recordings`` with ``model_dir/encoder.onnx``, write
+    the database files and re-hash the manifest."""
+    model_dir = Path(model_dir)
+    try:
+        onnx_bytes = (model_dir / ENCODER_FILE).read_bytes()
+    except OSError as exc:
+        raise ModelError(f"{model_dir / ENCODER_FILE}: {exc.strerror or exc}") from None
+    splits = splits or Splits.of_dataset(recordings)
+    presses = load_presses(recordings, splits.classes)
+    db = build_database(onnx_bytes, presses, splits, space, k)
+    db.save(model_dir)
+    write_manifest(model_dir, {"database": summary(db)})
+    log.info("database: %d references of %d classes in %s", len(db), len(db.classes),
+             model_dir)
+    return db
+
+
+def add_class(model_dir: str | Path, recordings: str | Path, label: str,
+              description: str) -> ReferenceDatabase:
+    """``vt-train db add``: encode the presses of a new (or existing) class with the shipped
+    encoder and add them under ``label``; no retraining. Database files and manifest are
+    rewritten atomically, the manifest last."""
+    if not label.strip() or not description.strip():
+        raise ModelError("db add needs a non-empty --label and --description")
+    model = load_model(model_dir)  # verifies hashes: never extend a damaged directory
+    presses = load_presses(recordings)
+    found = sorted(set(presses.labels))
+    if label in found:
+        presses = presses.select([label])
+    elif len(found) == 1:
+        log.info("recordings are labelled %r; adding them as %r", found[0], label)
+    else:
+        raise RecordingError(f"{recordings}: recordings of {', '.join(found)}; none is labelled "
+                             f"{label!r} (point --recordings at one class's presses)")
+    z, code = encode_presses(model.encoder, presses)
+    old = model.database
+    db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code,
+                        [Path(p).name for p in presses.paths])
+    db.save(model_dir)
+    write_manifest(model_dir, {"database": summary(db)})
+    log.info("added %d presses of %s (%s); database now %d references of %d classes",
+             len(presses), label, "existing class" if label in old.labels else "new class",
+             len(db), len(db.classes))
+    return db
+
+
+def synthetic(n_refs: int, n_classes: int, dim: int = 4, seed: int = 0) -> ReferenceDatabase:
+    """A random database of ``n_refs`` references (for timing retrieval)."""
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n_refs, dim)).astype(np.float32)
+    label_index = np.sort(rng.integers(0, n_classes, n_refs)).astype(np.int32)
+    label_index[:n_classes] = np.arange(n_classes)  # every class has a reference
+    label_index.sort()
+    classes = [ClassInfo(f"class_{i:05d}", f"description {i}", "train")
+               for i in range(n_classes)]
+    codebook = rng.standard_normal((32, dim)).astype(np.float32)
+    return ReferenceDatabase(classes, z, z, np.zeros(n_refs, dtype=np.int64), label_index,
+                             np.full(n_refs, "synthetic"), codebook)
+
+
+def topk_timing(db: ReferenceDatabase, queries: int = 50, k: int = DEFAULT_K,
+                seed: int = 1) -> dict[str, float]:
+    """Median and 90th percentile wall time of one ``topk`` call, milliseconds."""
+    import time
+
+    rng = np.random.default_rng(seed)
+    qs = rng.standard_normal((queries, db.dim)).astype(np.float32)
+    db.topk(qs[0], k)
+    times = []
+    for q in qs:
+        t0 = time.perf_counter()
+        db.topk(q, k)
+        times.append(time.perf_counter() - t0)
+    return {"topk_ms_median": 1e3 * float(np.median(times)),
+            "topk_ms_p90": 1e3 * float(np.percentile(times, 90)), "references": len(db)}

@@ -1,0 +1,410 @@
+"""Tactile retrieval quality: what the encoder and database give the VLM.
+
+Everything is measured on recognition-time inputs (offset 0 of each press) and, for every
+model variant and embedding space compared, with the same retrieval code the robot runs
+(:class:`edge.model.ReferenceDatabase`). Rows of the comparison: VQ-VAE with retrieval on z,
+VQ-VAE on z_q, beta-VAE on z (its posterior mean). Metrics:
+
+- ``loo_1nn`` / ``loo_5nn``: on the reference presses, leave one press out, classify by its
+  nearest other press (majority of 5). ``loo_top3``: the true class is among the first 3
+  distinct classes of the other presses. Equal distances (z_q puts many presses on the same
+  code) are broken by a seeded random order, never by class order.
+- ``top3_consistency``: on the unseen classes (FoodReplica, Cube), the share of pairs of
+  presses of the same class whose top-3 reference classes are the same set (order ignored);
+  ``top1_consistency`` the same for the nearest class; ``top3_overlap`` the mean share of
+  classes two such top-3 sets have in common (1/3 steps).
+- pair AUCs: for each real/replica pair (FoodReplica) and raw/boiled pair (Cube), the ROC AUC
+  of a 1-D score separating the two classes: ``score(x) = |x - c_a| - |x - c_b|`` with
+  ``c_a``, ``c_b`` the two classes' centroids in embedding space computed *without* x (leave
+  one out, so the score never saw the press it scores). 0.5 is chance; 1.0 perfect. With 10
+  presses per class, one AUC step is 0.01, and a pair the embedding cannot tell apart can
+  score below 0.5 (leaving one out pulls its own centroid away).
+
+Files: ``eval.json`` (all metrics), ``eval.md`` (the tables), ``retrieval.json`` (top-k per
+unseen press with its description sentence), ``confusion.png`` (leave-one-out 1-NN on the
+reference classes), ``embedding_pca.png`` (2-D PCA of the embedding space: reference classes
+and the unseen pairs), ``traces.png`` (example presses: the tactile norm with the crop window
+and t_stop marked).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.stats import rankdata
+
+from edge import preprocess, recording
+from edge.atomic import atomic_write_text
+from edge.model import OnnxEncoder, ReferenceDatabase, Space
+from train import database
+from train.data import PressSet, Splits
+
+log = logging.getLogger(__name__)
+
+# x_units (N, steps, channels) -> z (N, D), z_q (N, D) or None
+Embedder = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+FILES = ("eval.json", "eval.md", "retrieval.json", "confusion.png", "embedding_pca.png",
+         "traces.png")
+TRACE_CLASSES = ("stainless_cube", "sponge_cube", "raw_kiri_mochi", "boiled_kiri_mochi")
+DPI = 80
+
+
+@dataclass(frozen=True)
+class Row:
+    variant: str
+    space: Space
+    z_ref: np.ndarray  # reference embeddings in this space
+    z_unseen: np.ndarray  # unseen embeddings in this space (pair AUCs)
+    queries: np.ndarray  # what the robot hands topk: the continuous z
+    db: ReferenceDatabase
+
+
+def onnx_embedder(encoder: OnnxEncoder, codebook: np.ndarray) -> Embedder:
+    """The robot's encoder as an embedder: z and z_q = codebook[code] from the graph."""
+    def embed(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        z, code = encoder(x)
+        return z, codebook[code]
+    return embed
+
+
+def pairs_of(labels: Sequence[str]) -> list[tuple[str, str, str]]:
+    """(name, a, b): real vs resin replica, raw vs boiled, for classes present in labels."""
+    have = set(labels)
+    out = []
+    for label in sorted(have):
+        if f"resin_replica_{label}" in have:
+            out.append((label, label, f"resin_replica_{label}"))
+        if label.startswith("raw_") and f"boiled_{label[4:]}" in have:
+            out.append((label[4:], label, f"boiled_{label[4:]}"))
+    return out
+
+
+def auc(negative: np.ndarray, positive: np.ndarray) -> float:
+    """ROC AUC (Mann-Whitney, ties count half) of scores: positive above negative."""
+    scores = np.concatenate([negative, positive])
+    ranks = rankdata(scores)
+    n_neg, n_pos = len(negative), len(positive)
+    return float((ranks[n_neg:].sum() - n_pos * (n_pos + 1) / 2) / (n_neg * n_pos))
+
+
+def pair_auc(za: np.ndarray, zb: np.ndarray) -> dict[str, float]:
+    """Leave-one-out distance-to-centroids score for one pair; b is the positive class."""
+    def loo_centroids(z: np.ndarray) -> np.ndarray:
+        n = len(z)
+        return (z.sum(0, keepdims=True) - z) / max(n - 1, 1)
+
+    ca, cb = za.mean(0), zb.mean(0)
+    ca_loo, cb_loo = loo_centroids(za), loo_centroids(zb)
+    score_a = np.linalg.norm(za - ca_loo, axis=1) - np.linalg.norm(za - cb, axis=1)
+    score_b = np.linalg.norm(zb - ca, axis=1) - np.linalg.norm(zb - cb_loo, axis=1)
+    within = np.sqrt(0.5 * (za.var(0).sum() + zb.var(0).sum()))
+    return {"auc": auc(score_a, score_b),
+            "centroid_distance": float(np.linalg.norm(ca - cb)),
+            "separation": float(np.linalg.norm(ca - cb) / within) if within > 0 else float("inf"),
+            "n": [len(za), len(zb)]}
+
+
+def _distances(z: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.maximum(((z[:, None, :] - z[None, :, :]) ** 2).sum(-1), 0.0))
+    np.fill_diagonal(d, np.inf)
+    return d
+
+
+def loo_knn(z: np.ndarray, labels: Sequence[str], seed: int = 0) -> dict[str, Any]:
+    """Leave-one-press-out k-NN on the reference presses."""
+    labels_arr = np.asarray(labels)
+    classes = list(dict.fromkeys(labels))
+    d = _distances(z)
+    tiebreak = np.random.default_rng(seed).permutation(len(z))
+    order = np.lexsort((np.broadcast_to(tiebreak, d.shape), d), axis=1)
+    pred1 = labels_arr[order[:, 0]]
+    pred5 = []
+    top3 = []
+    for i in range(len(z)):
+        near = labels_arr[order[i, :5]]
+        votes = {c: 0 for c in dict.fromkeys(near)}
+        for c in near:
+            votes[c] += 1
+        pred5.append(max(votes, key=lambda c: votes[c]))  # ties: the nearest class wins
+        distinct = list(dict.fromkeys(labels_arr[order[i, :-1]]))[:3]
+        top3.append(labels_arr[i] in distinct)
+    idx = {c: j for j, c in enumerate(classes)}
+    confusion = np.zeros((len(classes), len(classes)), dtype=np.int64)
+    for true, pred in zip(labels_arr, pred1, strict=True):
+        confusion[idx[true], idx[pred]] += 1
+    return {"loo_1nn": float(np.mean(pred1 == labels_arr)),
+            "loo_5nn": float(np.mean(np.asarray(pred5) == labels_arr)),
+            "loo_top3": float(np.mean(top3)),
+            "confusion": confusion, "classes": classes}
+
+
+def consistency(retrieved: Sequence[list[str]], labels: Sequence[str]) -> dict[str, Any]:
+    """Share of same-class press pairs with the same top-3 set and the same top-1."""
+    per_class: dict[str, dict[str, float]] = {}
+    same3 = same1 = total = 0
+    overlap = 0.0
+    for cls in dict.fromkeys(labels):
+        idx = [i for i, lab in enumerate(labels) if lab == cls]
+        s3 = s1 = n = 0
+        ov = 0.0
+        for a in range(len(idx)):
+            for b in range(a + 1, len(idx)):
+                ra, rb = retrieved[idx[a]], retrieved[idx[b]]
+                s3 += set(ra) == set(rb)
+                s1 += ra[0] == rb[0]
+                ov += len(set(ra) & set(rb)) / max(len(ra), 1)
+                n += 1
+        if n:
+            per_class[cls] = {"top3": s3 / n, "top1": s1 / n, "overlap": ov / n}
+        same3, same1, total, overlap = same3 + s3, same1 + s1, total + n, overlap + ov
+    nan = float("nan")
+    return {"top3_consistency": same3 / total if total else nan,
+            "top1_consistency": same1 / total if total else nan,
+            "top3_overlap": overlap / total if total else nan,
+            "per_class": per_class}
+
+
+def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
+             reference: PressSet, splits: Splits, unseen: PressSet, out_dir: str | Path,
+             primary: tuple[str, Space] = ("vq", "z"), k: int = 3, seed: int = 0
+             ) -> dict[str, Any]:
+    """Evaluate every (variant, space); write the files of the primary row and the tables.
+
+    ``embedders`` maps a variant name to (embedder, codebook or None).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    x_ref, x_uns = reference.inputs(0), unseen.inputs(0)
+    rows: list[Row] = []
+    for variant, (embedder, codebook) in embedders.items():
+        z_ref, zq_ref = embedder(x_ref)
+        z_uns, zq_uns = embedder(x_uns)
+        spaces: list[Space] = ["z"] if zq_ref is None else ["z", "z_q"]
+        for space in spaces:
+            db = database.from_embeddings(reference, splits, z_ref, codebook, space=space)
+            rows.append(Row(variant, space, z_ref if space == "z" else zq_ref,
+                            z_uns if space == "z" else zq_uns, z_uns, db))
+    pairs = pairs_of(unseen.labels)
+    uns_labels = np.asarray(unseen.labels)
+    report: dict[str, Any] = {"k": k, "reference_presses": len(reference),
+                              "reference_classes": len(reference.classes),
+                              "unseen_presses": len(unseen), "unseen_classes": unseen.classes,
+                              "offsets": [0], "rows": []}
+    primary_row = None
+    for row in rows:
+        knn = loo_knn(row.z_ref, reference.labels, seed)
+        # Queries go through the database exactly as on the robot: z in (a z_q database
+        # quantises it itself).
+        retrieved = [row.db.topk(q, k) for q in row.queries]
+        cons = consistency([[lab for lab, _ in r] for r in retrieved], unseen.labels)
+        pair_metrics = {name: pair_auc(row.z_unseen[uns_labels == a],
+                                       row.z_unseen[uns_labels == b])
+                        for name, a, b in pairs}
+        replica = [pair_metrics[name]["auc"] for name, _, b in pairs
+                   if b.startswith("resin_replica_")]
+        cooked = [pair_metrics[name]["auc"] for name, _, b in pairs if b.startswith("boiled_")]
+        split_acc = _split_accuracy(knn, splits)
+        metrics = {
+            "variant": row.variant, "space": row.space,
+            "loo_1nn": knn["loo_1nn"], "loo_5nn": knn["loo_5nn"], "loo_top3": knn["loo_top3"],
+            **split_acc,
+            "top3_consistency": cons["top3_consistency"],
+            "top1_consistency": cons["top1_consistency"],
+            "top3_overlap": cons["top3_overlap"],
+            "mean_auc_real_vs_replica": float(np.mean(replica)) if replica else None,
+            "mean_auc_raw_vs_boiled": float(np.mean(cooked)) if cooked else None,
+            "pair_auc": {name: m["auc"] for name, m in pair_metrics.items()},
+            "pairs": pair_metrics,
+            "consistency_per_class": cons["per_class"],
+        }
+        report["rows"].append(metrics)
+        if (row.variant, row.space) == primary:
+            primary_row = (row, knn, retrieved)
+    if primary_row is None:
+        raise ValueError(f"primary row {primary} was not evaluated")
+    row, knn, retrieved = primary_row
+    report["primary"] = {"variant": primary[0], "space": primary[1]}
+    retrieval = [{"press": Path(path).name, "label": label,
+                  "topk": [[lab, round(d, 6)] for lab, d in r],
+                  "description": row.db.describe(lab for lab, _ in r)}
+                 for path, label, r in zip(unseen.paths, unseen.labels, retrieved, strict=True)]
+    # One press per line: readable, diffable, small.
+    atomic_write_text(out / "retrieval.json", "[\n" + ",\n".join(
+        json.dumps(r) for r in retrieval) + "\n]\n")
+    report["confusion"] = {"classes": knn["classes"], "matrix": knn["confusion"].tolist()}
+    atomic_write_text(out / "eval.json", json.dumps(report, indent=2, sort_keys=True) + "\n")
+    atomic_write_text(out / "eval.md", markdown(report, pairs))
+    _pictures(out, row, knn, reference, unseen)
+    return report
+
+
+def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
+    classes = knn["classes"]
+    conf = knn["confusion"]
+    out = {}
+    for name, members in (("train", splits.train), ("val", splits.val)):
+        idx = [classes.index(c) for c in members if c in classes]
+        if idx:
+            out[f"loo_1nn_{name}_classes"] = float(conf[idx, idx].sum() / conf[idx].sum())
+    return out
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> str:
+    rows = report["rows"]
+    lines = [
+        "# Tactile retrieval evaluation",
+        "",
+        f"Reference: {report['reference_presses']} presses of {report['reference_classes']} "
+        f"classes; unseen: {report['unseen_presses']} presses of "
+        f"{len(report['unseen_classes'])} classes; offset 0 (recognition-time input); "
+        f"top-k with k = {report['k']}.",
+        "",
+        "| variant | space | LOO 1-NN | LOO 5-NN | LOO top-3 | 1-NN val classes | "
+        "top-3 consistency | top-3 overlap | top-1 consistency | AUC real/replica (mean) | "
+        "AUC raw/boiled (mean) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['variant']} | {r['space']} | {_fmt(r['loo_1nn'])} | {_fmt(r['loo_5nn'])} | "
+            f"{_fmt(r['loo_top3'])} | {_fmt(r.get('loo_1nn_val_classes'))} | "
+            f"{_fmt(r['top3_consistency'])} | {_fmt(r['top3_overlap'])} | "
+            f"{_fmt(r['top1_consistency'])} | "
+            f"{_fmt(r['mean_auc_real_vs_replica'])} | {_fmt(r['mean_auc_raw_vs_boiled'])} |")
+    lines += ["", "## Pair separation (ROC AUC, leave-one-out distance-to-centroids score)", "",
+              "| pair | " + " | ".join(f"{r['variant']}/{r['space']}" for r in rows)
+              + " | separation (primary) |",
+              "| --- |" + " --- |" * (len(rows) + 1)]
+    primary = next(r for r in rows if (r["variant"], r["space"])
+                   == (report.get("primary", {}).get("variant", "vq"),
+                       report.get("primary", {}).get("space", "z")))
+    for name, a, b in pairs:
+        sep = primary["pairs"][name]["separation"]
+        lines.append(f"| {a} vs {b} | "
+                     + " | ".join(_fmt(r["pair_auc"][name]) for r in rows)
+                     + f" | {sep:.2f} |")
+    lines += ["",
+              "LOO: leave one reference press out, nearest other press (5-NN: majority). "
+              "Consistency: share of same-class unseen press pairs whose top-3 classes are "
+              "the same set (overlap: mean share of classes the two top-3 sets have in "
+              "common). AUC: 0.5 is chance; below 0.5 means the leave-one-out centroids "
+              "cannot tell the pair apart. Separation: centroid distance over the pooled "
+              "within-class spread.", ""]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------
+# Pictures
+
+
+def _pictures(out: Path, row: Row, knn: dict[str, Any], reference: PressSet,
+              unseen: PressSet) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    meta = {"Software": None}
+    # Confusion matrix
+    conf = knn["confusion"]
+    classes = knn["classes"]
+    fig, ax = plt.subplots(figsize=(9, 8))
+    ax.imshow(conf, cmap="Blues")
+    ax.set_xticks(range(len(classes)), classes, rotation=90, fontsize=6)
+    ax.set_yticks(range(len(classes)), classes, fontsize=6)
+    ax.set_xlabel("nearest other press")
+    ax.set_ylabel("true class")
+    ax.set_title(f"Reference presses, leave-one-out 1-NN ({row.variant}, {row.space}): "
+                 f"accuracy {knn['loo_1nn']:.2f}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "confusion.png", dpi=DPI, metadata=meta)
+    plt.close(fig)
+
+    # PCA of the embedding space (fit on the reference embeddings)
+    mean = row.z_ref.mean(0)
+    _, _, vt = np.linalg.svd(row.z_ref - mean, full_matrices=False)
+    proj = vt[:2].T
+    pr, pu = (row.z_ref - mean) @ proj, (row.z_unseen - mean) @ proj
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6))
+    cmap = plt.get_cmap("tab20")
+    ref_labels = np.asarray(reference.labels)
+    for i, c in enumerate(reference.classes):
+        pts = pr[ref_labels == c]
+        axes[0].scatter(pts[:, 0], pts[:, 1], s=10, color=cmap(i % 20),
+                        marker="o" if i < 20 else "^")
+        axes[0].annotate(c, pts.mean(0), fontsize=6)
+    axes[0].set_title("reference classes", fontsize=9)
+    axes[1].scatter(pr[:, 0], pr[:, 1], s=6, color="0.85")
+    uns_labels = np.asarray(unseen.labels)
+    for i, (name, a, b) in enumerate(pairs_of(unseen.labels)):
+        color = cmap(i % 20)
+        for label, marker in ((a, "o"), (b, "x")):
+            pts = pu[uns_labels == label]
+            axes[1].scatter(pts[:, 0], pts[:, 1], s=14, color=color, marker=marker)
+        axes[1].annotate(name, pu[uns_labels == a].mean(0), fontsize=6)
+    axes[1].set_title("unseen pairs (o real / raw, x replica / boiled); grey: reference",
+                      fontsize=9)
+    for ax in axes:
+        ax.set_xlabel("PC 1")
+        ax.set_ylabel("PC 2")
+    fig.tight_layout()
+    fig.savefig(out / "embedding_pca.png", dpi=DPI, metadata=meta)
+    plt.close(fig)
+
+    # Example presses: tactile norm, crop window, t_stop
+    paths = {**dict(zip(reference.labels, reference.paths, strict=True)),
+             **dict(zip(unseen.labels, unseen.paths, strict=True))}
+    chosen = [c for c in TRACE_CLASSES if c in paths] or list(paths)[:4]
+    spec = preprocess.DEFAULT_WINDOW
+    fig, axes = plt.subplots(len(chosen), 1, figsize=(8, 1.9 * len(chosen)), squeeze=False)
+    for ax, label in zip(axes[:, 0], chosen, strict=True):
+        rec = recording.load(paths[label])
+        units = preprocess.recording_units(rec)
+        t = rec.recv_time - rec.t_stop
+        ax.plot(t, preprocess.norm(units), lw=0.8, color="C0", label="|x| (125 Hz frames)")
+        window = preprocess.crop(rec.recv_time, units, rec.t_stop, spec)
+        grid = spec.grid(rec.t_stop) - rec.t_stop
+        ax.plot(grid[0::spec.subsample], preprocess.norm(window[0::spec.subsample]), ".",
+                ms=4, color="C3", label="X (offset 0, 25 Hz)")
+        ax.axvspan(-spec.before_s, spec.after_s, color="C2", alpha=0.12, label="crop window")
+        ax.axvline(0.0, color="k", lw=0.8, ls="--", label="t_stop")
+        ax.axhline(rec.threshold, color="0.5", lw=0.6, ls=":", label="x_th")
+        ax.set_title(label, fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[-1, 0].set_xlabel("time from t_stop (s)")
+    axes[0, 0].legend(fontsize=6, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(out / "traces.png", dpi=DPI, metadata=meta)
+    plt.close(fig)
+
+
+def summary_metrics(report: dict[str, Any]) -> dict[str, Any]:
+    """The headline numbers for the manifest."""
+    rows = {f"{r['variant']}/{r['space']}": r for r in report["rows"]}
+    p = report["primary"]
+    primary = rows[f"{p['variant']}/{p['space']}"]
+    return {
+        "primary": f"{p['variant']}/{p['space']}",
+        "kiri_mochi_auc": primary["pair_auc"].get("kiri_mochi"),
+        "pair_auc": primary["pair_auc"],
+        "loo_1nn": primary["loo_1nn"],
+        "loo_top3": primary["loo_top3"],
+        "top3_consistency": primary["top3_consistency"],
+        "comparison": {name: {key: r[key] for key in (
+            "loo_1nn", "loo_5nn", "loo_top3", "top3_consistency", "top3_overlap",
+            "top1_consistency",
+            "mean_auc_real_vs_replica", "mean_auc_raw_vs_boiled")} | {
+                "kiri_mochi_auc": r["pair_auc"].get("kiri_mochi")}
+            for name, r in rows.items()},
+    }

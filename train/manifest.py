@@ -1,0 +1,85 @@
+"""``models/manifest.json``: sha256 of every runtime file, plus training config, metrics and
+versions. Written last (atomically) by every command that changes a model directory, so
+:func:`edge.model.load_model` either sees a consistent directory or refuses it by name.
+
+``files`` (verified by the robot at load): ``encoder.onnx``, ``database.npz``,
+``database.json`` and every ``prompts/*.txt`` present (another component writes those; they
+are hashed as found). ``reports`` (evaluation JSON/Markdown/PNG) are hashed for the record but
+not required at load.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge import __version__
+from edge.atomic import atomic_write_text
+from edge.errors import ModelError
+from edge.model import MANIFEST, MANIFEST_SCHEMA, REQUIRED_FILES, file_entry
+
+PROMPTS_DIR = "prompts"
+
+
+def runtime_files(directory: Path) -> list[str]:
+    names = list(REQUIRED_FILES)
+    prompts = directory / PROMPTS_DIR
+    if prompts.is_dir():
+        names += sorted(p.relative_to(directory).as_posix() for p in prompts.glob("*.txt"))
+    return names
+
+
+def versions() -> dict[str, str]:
+    import onnx
+    import onnxruntime
+    import torch
+
+    return {"vtzero": __version__, "torch": torch.__version__,
+            "onnxruntime": onnxruntime.__version__, "onnx": onnx.__version__,
+            "numpy": np.__version__, "python": platform.python_version()}
+
+
+def read_raw(directory: Path) -> dict[str, Any]:
+    path = directory / MANIFEST
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ModelError(f"{path}: unreadable manifest: {exc}") from None
+    return data if isinstance(data, dict) else {}
+
+
+def write_manifest(directory: str | Path, sections: Mapping[str, Any] | None = None,
+                   reports: list[str] | None = None) -> dict[str, Any]:
+    """Re-hash the runtime files, merge ``sections`` into the existing manifest, write it."""
+    directory = Path(directory)
+    manifest = read_raw(directory)
+    missing = [name for name in REQUIRED_FILES if not (directory / name).exists()]
+    if missing:
+        raise ModelError(f"{directory}: cannot write a manifest without {', '.join(missing)}")
+    manifest["schema_version"] = MANIFEST_SCHEMA
+    manifest["files"] = {name: file_entry(directory / name) for name in runtime_files(directory)}
+    if reports is not None:
+        manifest["reports"] = {name: file_entry(directory / name) for name in sorted(reports)}
+    manifest.setdefault("versions", versions())
+    for key, value in (sections or {}).items():
+        manifest[key] = value
+    atomic_write_text(directory / MANIFEST, dumps(manifest))
+    return manifest
+
+
+_NUMBER_LIST = re.compile(r"\[\s*(-?[0-9][^\[\]{}\"]*?)\s*\]")
+
+
+def dumps(data: Any) -> str:
+    """Indented, key-sorted JSON with lists of numbers kept on one line."""
+    text = json.dumps(data, indent=2, sort_keys=True)
+    return _NUMBER_LIST.sub(lambda m: "[" + ", ".join(
+        v.strip() for v in m.group(1).split(",")) + "]", text) + "\n"

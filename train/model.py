@@ -1,0 +1,190 @@
+"""The Seq2Seq GRU VQ-VAE of DESIGN section 1.3, and its beta-VAE variant.
+
+Encoder: 2-layer bidirectional GRU (hidden 32) over the normalised X (B, 25, 96); the last
+layer's final forward and backward states, concatenated (64), go through a Linear to
+z in R^4 (the beta-VAE's Linear gives a mean and a log-variance instead).
+
+Bottleneck: VQ with a codebook of K = 32 vectors of dim 4; nearest code by L2, straight-through
+gradient; loss ``MSE(sg[z], z_q) + 0.25 * MSE(z, sg[z_q])``. Codes no sample chose during an
+epoch are counted (``dead``) and, if ``revive_dead``, moved onto encoder outputs of random
+training samples at the end of the epoch (a seeded draw).
+
+Decoder: Linear(4 -> 32) + tanh gives the initial hidden state of both layers of a 2-layer GRU
+(hidden 32) whose inputs are zeros; a Linear(32 -> 96) per step reconstructs the normalised
+X_bar. Feeding zeros keeps the whole description of the press in the 4 numbers of the
+bottleneck, as the paper intends.
+
+Loss = MSE(X_hat, X_bar) + codebook + commitment (VQ) or + beta_kl * KL / (T * C) (beta-VAE:
+the KL summed over latent dims, scaled like a per-element likelihood).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+Variant = Literal["vq", "beta"]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    variant: Variant = "vq"
+    channels: int = 96
+    steps: int = 25
+    hidden: int = 32
+    layers: int = 2
+    latent: int = 4
+    codebook_size: int = 32
+    commitment: float = 0.25
+    beta_kl: float = 4.0
+    revive_dead: bool = True
+
+    def __post_init__(self) -> None:
+        if self.variant not in ("vq", "beta"):
+            raise ValueError(f"variant must be 'vq' or 'beta', got {self.variant!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def set_determinism(seed: int, threads: int = 1) -> None:
+    """Seed everything and make CPU training bit-reproducible for a thread count."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+
+
+class Encoder(nn.Module):
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.gru = nn.GRU(cfg.channels, cfg.hidden, num_layers=cfg.layers,
+                          bidirectional=True, batch_first=True)
+        out = cfg.latent * (2 if cfg.variant == "beta" else 1)
+        self.head = nn.Linear(2 * cfg.hidden, out)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        _, h = self.gru(x)  # h: (layers * 2, B, H); the last two are the top layer's
+        return self.head(torch.cat([h[-2], h[-1]], dim=-1))
+
+
+class VectorQuantiser(nn.Module):
+    def __init__(self, size: int, dim: int) -> None:
+        super().__init__()
+        self.codebook = nn.Parameter(torch.empty(size, dim).uniform_(-1.0 / size, 1.0 / size))
+
+    def nearest(self, z: torch.Tensor) -> torch.Tensor:
+        e = self.codebook
+        d2 = (z * z).sum(-1, keepdim=True) - 2.0 * z @ e.t() + (e * e).sum(-1)
+        return torch.argmin(d2, dim=-1)
+
+    def forward(self, z: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        code = self.nearest(z)
+        z_q = self.codebook[code]
+        losses = {"codebook": F.mse_loss(z_q, z.detach()),
+                  "commit": F.mse_loss(z, z_q.detach())}
+        return z + (z_q - z).detach(), code, losses
+
+
+class Decoder(nn.Module):
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.layers, self.steps = cfg.layers, cfg.steps
+        self.init = nn.Linear(cfg.latent, cfg.hidden)
+        self.gru = nn.GRU(1, cfg.hidden, num_layers=cfg.layers, batch_first=True)
+        self.out = nn.Linear(cfg.hidden, cfg.channels)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        h0 = torch.tanh(self.init(z)).unsqueeze(0).repeat(self.layers, 1, 1).contiguous()
+        inputs = z.new_zeros(z.shape[0], self.steps, 1)
+        y, _ = self.gru(inputs, h0)
+        return self.out(y)
+
+
+@dataclass
+class Output:
+    x_hat: torch.Tensor
+    z: torch.Tensor  # the continuous embedding (beta-VAE: the mean)
+    z_q: torch.Tensor | None
+    code: torch.Tensor | None
+    losses: dict[str, torch.Tensor]
+
+
+class TactileAutoencoder(nn.Module):
+    """Encoder -> bottleneck (VQ or beta-VAE) -> decoder; inputs are normalised."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg)
+        self.quantiser = VectorQuantiser(cfg.codebook_size, cfg.latent) \
+            if cfg.variant == "vq" else None
+        self.decoder = Decoder(cfg)
+
+    def embed(self, x: torch.Tensor) -> torch.Tensor:
+        """The embedding used for retrieval: z (VQ) or the posterior mean (beta-VAE)."""
+        h = self.encoder(x)
+        return h if self.cfg.variant == "vq" else h[:, :self.cfg.latent]
+
+    def forward(self, x: torch.Tensor, x_bar: torch.Tensor) -> Output:
+        h = self.encoder(x)
+        cfg = self.cfg
+        if self.quantiser is not None:
+            z = h
+            z_st, code, losses = self.quantiser(z)
+            x_hat = self.decoder(z_st)
+            losses["recon"] = F.mse_loss(x_hat, x_bar)
+            losses["loss"] = losses["recon"] + losses["codebook"] \
+                + cfg.commitment * losses["commit"]
+            return Output(x_hat, z, z_st.detach(), code, losses)
+        mu, logvar = h[:, :cfg.latent], h[:, cfg.latent:].clamp(-10.0, 10.0)
+        if self.training:
+            sample = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
+        else:
+            sample = mu
+        x_hat = self.decoder(sample)
+        kl = 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).sum(-1).mean()
+        recon = F.mse_loss(x_hat, x_bar)
+        scale = cfg.steps * cfg.channels
+        losses = {"recon": recon, "kl": kl, "loss": recon + cfg.beta_kl * kl / scale}
+        return Output(x_hat, mu, None, None, losses)
+
+    @torch.no_grad()
+    def revive(self, usage: torch.Tensor, z_pool: torch.Tensor,
+               generator: torch.Generator) -> int:
+        """Move unused codes onto random encoder outputs; returns how many moved."""
+        if self.quantiser is None:
+            return 0
+        dead = torch.nonzero(usage == 0).flatten()
+        if dead.numel() == 0 or z_pool.shape[0] == 0:
+            return 0
+        pick = torch.randint(0, z_pool.shape[0], (dead.numel(),), generator=generator)
+        jitter = 0.01 * z_pool.std(0) * torch.randn(dead.numel(), z_pool.shape[1],
+                                                    generator=generator)
+        self.quantiser.codebook[dead] = z_pool[pick] + jitter
+        return int(dead.numel())
+
+
+class ExportEncoder(nn.Module):
+    """What ships: tactile units -> normalise -> encoder -> (z, nearest code index)."""
+
+    def __init__(self, model: TactileAutoencoder, mean: np.ndarray, std: np.ndarray) -> None:
+        super().__init__()
+        if model.quantiser is None:
+            raise ValueError("only the VQ variant exports (it has the codebook)")
+        self.encoder = model.encoder
+        self.quantiser = model.quantiser
+        self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32))
+        self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z = self.encoder((x - self.mean) / self.std)
+        return z, self.quantiser.nearest(z)

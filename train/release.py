@@ -1,0 +1,191 @@
+"""``vt-train release``: regenerate the shipped ``models/`` from the simulated reference set.
+
+One deterministic pipeline for a seed: record (reference, FoodReplica, Cube; reused when the
+work directory already holds the same recording) -> train the VQ-VAE and the beta-VAE ->
+export the VQ encoder to ONNX (parity-checked) -> build the database with the ONNX encoder ->
+evaluate -> copy into ``out`` -> write ``manifest.json`` last. ``out/prompts/`` belongs to
+the prompt templates: never written here, only hashed into the manifest as found.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge.atomic import atomic_write_bytes
+from edge.model import ENCODER_FILE, MANIFEST, OnnxEncoder
+from edge.preprocess import DEFAULT_WINDOW
+from edge.sim.record import DATASET_INDEX, record_dataset
+from train import database, evaluate
+from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
+from train.export import OPSET, PARITY_BOUND, check_parity, codebook_of, export_onnx, parity
+from train.manifest import versions, write_manifest
+from train.model import ModelConfig
+from train.trainer import Progress, TrainConfig, embed, train
+
+log = logging.getLogger(__name__)
+
+EVAL_DIR = "eval"
+
+
+@dataclass(frozen=True)
+class ReleaseConfig:
+    out: Path = Path("models")
+    work: Path = Path("runs/release")
+    recordings: Path | None = None  # default: work/recordings (reused when it matches)
+    seed: int = 0
+    presses: int = 10  # per reference class
+    unseen_presses: int = 10  # per FoodReplica / Cube class
+    max_epochs: int = 300
+    patience: int = 25
+    threads: int = 1
+    beta: bool = True  # also train the beta-VAE for the comparison table
+    workers: int | None = None  # recorder processes
+
+    def command(self) -> str:
+        parts = ["vt-train release", f"--out {self.out}", f"--seed {self.seed}",
+                 f"--presses {self.presses}", f"--unseen-presses {self.unseen_presses}",
+                 f"--max-epochs {self.max_epochs}", f"--patience {self.patience}"]
+        if not self.beta:
+            parts.append("--no-beta")
+        return " ".join(parts)
+
+
+def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: int | None
+              ) -> bool:
+    """Record ``dataset`` into ``directory`` unless it already holds it; True if reused."""
+    index = directory / DATASET_INDEX
+    if index.exists():
+        meta = json.loads(index.read_text())
+        if (meta.get("dataset"), meta.get("presses_per_class"), meta.get("seed")) == (
+                dataset, presses, seed):
+            log.info("reusing %s recordings in %s", dataset, directory)
+            return True
+        shutil.rmtree(directory)
+    log.info("recording %s: %d presses per class (seed %d)", dataset, presses, seed)
+    record_dataset(dataset, presses, directory, seed=seed, workers=workers)
+    return False
+
+
+def encode_timing(onnx_bytes: bytes, x: np.ndarray, repeats: int = 200) -> dict[str, float]:
+    """Median wall time of one single-sequence encode with the robot's session options."""
+    encoder = OnnxEncoder(onnx_bytes)
+    one = x[:1]
+    for _ in range(10):
+        encoder(one)
+    times = []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        encoder(x[i % len(x):i % len(x) + 1])
+        times.append(time.perf_counter() - t0)
+    return {"encode_ms_median": 1e3 * float(np.median(times)),
+            "encode_ms_p90": 1e3 * float(np.percentile(times, 90))}
+
+
+def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, Any]:
+    started = time.perf_counter()
+    work = Path(cfg.work)
+    rec_dir = Path(cfg.recordings) if cfg.recordings is not None else work / "recordings"
+    ref_dir, fr_dir, cube_dir = (rec_dir / "reference", rec_dir / "foodreplica",
+                                 rec_dir / "cube")
+    reused = all([
+        _recorded(ref_dir, "reference", cfg.presses, cfg.seed, cfg.workers),
+        _recorded(fr_dir, "foodreplica", cfg.unseen_presses, cfg.seed, cfg.workers),
+        _recorded(cube_dir, "cube", cfg.unseen_presses, cfg.seed, cfg.workers)])
+    t_rec = time.perf_counter() - started
+
+    data = training_data(ref_dir)
+    base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
+                       threads=cfg.threads)
+    vq = train(data, base, work / "vq", progress)
+    beta = train(data, replace(base, model=ModelConfig(variant="beta")), work / "beta",
+                 progress) if cfg.beta else None
+
+    stage = work / "stage"
+    if stage.exists():
+        shutil.rmtree(stage)
+    stage.mkdir(parents=True)
+    onnx_bytes = export_onnx(vq.model, data.norm, stage / ENCODER_FILE)
+    unseen = PressSet.concat(load_presses(fr_dir), load_presses(cube_dir))
+    real = np.concatenate([data.presses.inputs(0), unseen.inputs(0)])
+    par = parity(vq.model, data.norm, onnx_bytes, real, seed=cfg.seed)
+    check_parity(par)
+    log.info("ONNX parity: max |dz| %.3g over %d inputs, %d code mismatches",
+             par.max_abs_z, par.cases, par.code_mismatches)
+
+    db = database.build_database(onnx_bytes, data.presses, data.splits)
+    db.save(stage)
+
+    codebook = codebook_of(onnx_bytes)
+    embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
+        "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
+    if beta is not None:
+        embedders["beta"] = ((lambda x: embed(beta.model, beta.norm, x)), None)
+    report = evaluate.evaluate(embedders, data.presses, data.splits, unseen, stage / EVAL_DIR,
+                               seed=cfg.seed)
+    timings = encode_timing(onnx_bytes, real)
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = [ENCODER_FILE, "database.npz", "database.json"] + \
+        [f"{EVAL_DIR}/{name}" for name in evaluate.FILES]
+    for name in names:
+        atomic_write_bytes(out / name, (stage / name).read_bytes())
+    ref_index = json.loads((ref_dir / DATASET_INDEX).read_text())
+    metrics = evaluate.summary_metrics(report) | {
+        "vq_epochs": vq.epochs, "vq_best_epoch": vq.best_epoch,
+        "vq_best_val_loss": vq.best_val,
+        "beta_best_epoch": beta.best_epoch if beta else None,
+        "beta_best_val_loss": beta.best_val if beta else None,
+        "dead_codes_at_best": vq.summary()["dead_codes_at_best"],
+        "codes_used_by_references": len(np.unique(db.code)),
+    }
+    timings |= {"record_s": t_rec, "recordings_reused": reused, "train_vq_s": vq.seconds,
+                "train_beta_s": beta.seconds if beta else None,
+                "release_s": time.perf_counter() - started}
+    sections = {
+        "created_by": cfg.command(),
+        "encoder": {
+            "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", 25, 96],
+            "input_units": "tactile units (raw - tare) / 65536, edge.preprocess.model_input",
+            "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
+            "mean": data.norm.mean.tolist(), "std": data.norm.std.tolist(),
+            "outputs": {"z": ["batch", 4], "code": ["batch"]},
+            "embedding_dim": vq.config.model.latent,
+            "codebook_size": vq.config.model.codebook_size,
+            "window": {k: getattr(DEFAULT_WINDOW, k) for k in
+                       ("rate_hz", "before_s", "after_s", "subsample", "sigma_samples")},
+            "opset": OPSET, "exporter": "torch.onnx.export(dynamo=False)",
+            "parity": par.to_dict() | {"bound": PARITY_BOUND},
+        },
+        "training": {
+            "dataset": {"simulated": True, "seed": ref_index["seed"],
+                        "presses_per_class": ref_index["presses_per_class"],
+                        "train_classes": list(data.splits.train),
+                        "val_classes": list(data.splits.val),
+                        "train_samples": len(data.train), "val_samples": len(data.val),
+                        "press_params": ref_index["press_params"]},
+            "vq": {"config": vq.config.to_dict(), "result": vq.summary()},
+            "beta": {"config": beta.config.to_dict(), "result": beta.summary()} if beta else None,
+            "normalisation_floor": f"per-channel std floored at {STD_FLOOR_FRACTION} x the "
+                                   "RMS of the channel stds",
+        },
+        "evaluation": {"unseen": {"foodreplica_presses_per_class": cfg.unseen_presses,
+                                  "cube_presses_per_class": cfg.unseen_presses},
+                       "report": f"{EVAL_DIR}/eval.md"},
+        "database": database.summary(db),
+        "metrics": metrics,
+        "timings": timings,
+        "versions": versions(),
+    }
+    manifest = write_manifest(out, sections,
+                              reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
+    log.info("release written to %s (%s) in %.0f s", out, MANIFEST, timings["release_s"])
+    return manifest
