@@ -90,8 +90,9 @@ class BusConfig:
     gripper_id: int = 15
     # Goal Current cap of the gripper in raw units (~2.69 mA each): limits the squeeze.
     gripper_goal_current: int = 200
-    # Bus Watchdog period while torque is on; the register counts in 20 ms units.
-    watchdog_ms: int = 100
+    # Bus Watchdog period while torque is on (20 ms units): a host silent this long stops the
+    # motors. Long enough to ride out a Python pause, short enough to stop a dead host.
+    watchdog_ms: int = 300
 
     def validate(self, path: str) -> None:
         ids = (*self.joint_ids, self.gripper_id)

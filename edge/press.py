@@ -15,7 +15,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -88,8 +88,12 @@ class _Armed:
 
 class PressController:
     def __init__(self, cfg: Config, gripper: Gripper, arm: Arm, ring: FrameRing,
-                 on_state: Callable[[str], None] | None = None) -> None:
+                 on_state: Callable[[str], None] | None = None,
+                 recover: Callable[[], Awaitable[object]] | None = None) -> None:
         self.cfg = cfg
+        # Clears a tripped Bus Watchdog (a stalled loop stops the motors; that is the point,
+        # but the next press must not inherit motors that refuse every goal).
+        self.recover = recover
         self.gripper = gripper
         self.arm = arm
         self.ring = ring
@@ -132,6 +136,10 @@ class PressController:
     def sensor_fresh(self) -> None:
         self._stale.clear()
 
+    @property
+    def sensor_is_stale(self) -> bool:
+        return self._stale.is_set()
+
     def request_abort(self) -> bool:
         if self.state in ("idle", "returning"):
             return False
@@ -153,6 +161,8 @@ class PressController:
         trace_task: asyncio.Task | None = None
         try:
             self._check_fresh()
+            if self.recover is not None:
+                await self.recover()
             self._enter(outcome, "above")
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
@@ -268,6 +278,9 @@ class PressController:
                 return
             except DeviceError as exc:
                 log.error("opening the gripper failed (attempt %d): %s", attempt + 1, exc)
+                if self.recover is not None:
+                    with contextlib.suppress(DeviceError):
+                        await self.recover()
         if outcome.result == "ok":
             outcome.result = "error"
         outcome.message = (outcome.message + "; " if outcome.message else "") + (

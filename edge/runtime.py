@@ -74,8 +74,9 @@ class Runtime:
         self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * rate * 1.5))
         self.sampler = Sampler(self.ring, rate)
         self.metrics = Metrics()
+        recover = devices.bus.recover_watchdog if devices.bus is not None else None
         self.press = PressController(cfg, devices.gripper, devices.arm, self.ring,
-                                     on_state=self._on_press_state)
+                                     on_state=self._on_press_state, recover=recover)
         self._press_lock = asyncio.Lock()
         self._current: str | None = None
         self._subscribers: set[asyncio.Queue] = set()
@@ -117,11 +118,11 @@ class Runtime:
                     self.ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
                     self.metrics.frames += 1
                     await self.press.on_frame(frame.raw, frame.recv_time)
-                    if self.press._stale.is_set():
+                    if self.press.sensor_is_stale:
                         self.press.sensor_fresh()
                         log.info("tactile stream fresh again")
             except StaleSensorError as exc:
-                if not self.press._stale.is_set():
+                if not self.press.sensor_is_stale:
                     log.warning("%s", exc)
                 self.metrics.stale_events += 1
                 self.press.sensor_stale(exc)
@@ -348,7 +349,9 @@ class Runtime:
 
     def health(self) -> dict[str, Any]:
         age = time.monotonic() - self.ring.latest_time()
-        return {"ok": self.ready.is_set() and age < 1.0, "ready": self.ready.is_set(),
+        fresh = age < 1.0 and not self.press.sensor_is_stale
+        return {"ok": self.ready.is_set() and fresh, "ready": self.ready.is_set(),
+                "sensor_fresh": fresh,
                 "state": self.press.state, "episode": self._current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 "version": __version__}

@@ -17,7 +17,7 @@ from edge.sim.robot import SimRobot
 
 def fast_config() -> Config:
     cfg = Config()
-    return replace(cfg, press=replace(cfg.press, open_width_m=0.006),
+    return replace(cfg, press=replace(cfg.press, open_width_m=0.008),
                    runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0))
 
 

@@ -34,7 +34,7 @@ def base_config(vlm_url: str = "") -> Config:
     cfg = Config()
     return replace(
         cfg,
-        press=replace(cfg.press, open_width_m=0.006),
+        press=replace(cfg.press, open_width_m=0.008),
         runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0,
                         models_dir=str(ROOT / "models"), vlm_retry_base_s=0.2,
                         vlm_retry_max_s=1.0),
@@ -52,11 +52,11 @@ class Daemon:
         self.state = state
 
     async def __aenter__(self):
+        model = await asyncio.to_thread(load_model, self.cfg)
         self.devices = await open_devices(self.cfg)
         self.store = EpisodeStore(self.state / "episodes")
         self.vlm = make_vlm(self.cfg)
-        self.runtime = Runtime(self.cfg, self.devices, load_model(self.cfg), self.vlm,
-                               self.store)
+        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store)
         self.api = Api(self.runtime, self.cfg.api)
         self.task = asyncio.create_task(self.runtime.run(self.api))
         await asyncio.wait_for(self.runtime.ready.wait(), 10)
@@ -162,7 +162,7 @@ async def test_sensor_dies_mid_press_gripper_opens_daemon_keeps_serving(tmp_path
             await robot.xela.stop()  # the sensor server dies mid-press
             failed = await d.wait_status(ep["id"], {"failed"})
             assert "stale" in failed["error"]
-            assert robot.dxl.true_position(15) > gripper_raw(0.006) - 20  # gripper opened
+            assert robot.dxl.true_position(15) > gripper_raw(0.008) - 20  # gripper opened
             status, health = await d.get("/healthz")
             assert status == 503 and health["state"] == "idle"  # serving, says why
             status, refused = await d.post("/v1/recognize", {"candidates": CUBE,

@@ -55,6 +55,8 @@ LATENCY_TIMER_UDEV_RULE = (
 )
 # What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
 SDK_LATENCY_TIMER_MS = 16.0
+# Single-register reads are tried this often before a timeout or bad reply is an error.
+READ_ATTEMPTS = 2
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
 THREAD_JOIN_TIMEOUT_S = 2.0
@@ -490,7 +492,14 @@ class DynamixelBus:
     def _read(self, motor_id: int, reg: Register) -> int:
         read = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx,
                 4: self._ph.read4ByteTxRx}[reg.size]
-        raw, result, error = read(self._port, motor_id, reg.address)
+        for _ in range(READ_ATTEMPTS - 1):
+            # A lost or garbled reply is retried once: reads have no side effect.
+            raw, result, error = read(self._port, motor_id, reg.address)
+            if result not in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT):
+                break
+            self._port.clearPort()
+        else:
+            raw, result, error = read(self._port, motor_id, reg.address)
         self._check(motor_id, f"read {reg.name}", result, error)
         return reg.from_unsigned(raw)
 

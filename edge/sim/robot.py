@@ -25,13 +25,15 @@ class SimRobot:
     def __init__(self, object_name: str = "stainless_cube", seed: int = 0, *,
                  xela_port: int = 0, control_port: int = 0, rate_hz: float = 125.0,
                  dialect: str = "1.8", reply_latency_s: float = 0.0,
-                 initial_width_m: float = 0.010, cfg: Config | None = None) -> None:
+                 initial_width_m: float | None = None, cfg: Config | None = None) -> None:
         get(object_name)
         bus = (cfg or Config()).bus
         self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id)
         poses = (cfg or Config()).poses
         positions = {mid: float(v) for mid, v in zip(bus.joint_ids, poses["rest"], strict=True)}
-        positions[bus.gripper_id] = raw_from_width(initial_width_m)
+        # The gripper starts open, where the runtime opens it before a press.
+        width = (cfg or Config()).press.open_width_m if initial_width_m is None else initial_width_m
+        positions[bus.gripper_id] = raw_from_width(width)
         self.dxl = DxlEmulator((*bus.joint_ids, bus.gripper_id), load=self.world.load,
                                reply_latency_s=reply_latency_s, initial_positions=positions)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
