@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from edge.atomic import atomic_write_bytes
-from edge.model import ENCODER_FILE, MANIFEST, OnnxEncoder
+from edge.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
 from edge.preprocess import DEFAULT_WINDOW
 from edge.sim.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
@@ -134,8 +134,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    names = [ENCODER_FILE, "database.npz", "database.json"] + \
-        [f"{EVAL_DIR}/{name}" for name in evaluate.FILES]
+    names = [*REQUIRED_FILES, *(f"{EVAL_DIR}/{name}" for name in evaluate.FILES)]
     for name in names:
         atomic_write_bytes(out / name, (stage / name).read_bytes())
     ref_index = json.loads((ref_dir / DATASET_INDEX).read_text())
