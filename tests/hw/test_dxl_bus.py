@@ -36,7 +36,8 @@ def emu():
 
 @pytest_asyncio.fixture
 async def bus(emu):
-    async with DynamixelBus(BusConfig(port=emu.port)) as connected:
+    # A short watchdog keeps the trip tests quick.
+    async with DynamixelBus(BusConfig(port=emu.port, watchdog_ms=100)) as connected:
         yield connected
 
 
@@ -157,6 +158,8 @@ async def test_sdk_errors_become_motor_errors_with_the_sdk_message(emu, bus):
     assert caught.value.motor_id == 11
     assert "[RxPacketError] The data value is out of range!" in str(caught.value)
     emu.corrupt_crc(12, 1)
+    assert await bus.read(12, "Present Position") == 2048  # one bad reply: read again
+    emu.corrupt_crc(12, 2)
     with pytest.raises(MotorError) as caught:
         await bus.read(12, "Present Position")
     assert caught.value.motor_id == 12
