@@ -112,6 +112,12 @@ def _cmd_pose_teach(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from edge.bench import run_bench
+
+    return run_bench(args)
+
+
 def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
 
@@ -179,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     teach.add_argument("--config", required=True)
     teach.set_defaults(func=_cmd_pose_teach)
 
+    bench = sub.add_parser("bench", help="measure the runtime on the emulated robot")
+    bench.add_argument("--out", default="bench", help="directory for results.json/.md")
+    bench.add_argument("--quick", action="store_true",
+                       help="short runs (a smoke test; figures are not representative)")
+    bench.set_defaults(func=_cmd_bench)
+
     eps = sub.add_parser("episodes", help="stored recognitions")
     eps.add_argument("--config", default="configs/robot.toml")
     epsub = eps.add_subparsers(dest="episodes_command", required=True)
@@ -233,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    setup_logging(logging.DEBUG if args.verbose else logging.INFO)
+    setup_logging(logging.DEBUG if args.verbose else None)
     try:
         return int(args.func(args) or 0)
     except EdgeError as exc:

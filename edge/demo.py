@@ -80,8 +80,9 @@ def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
         print(f"   press failed: {ep.get('error')}")
         return
     lat = press.get("stop_latency_ms")
-    print(f"   press: contact {press.get('contact')}, t_stop {press.get('t_stop'):.3f} s, "
-          f"stop latency {lat:.2f} ms, peak norm {press.get('peak_level', 0):.4f}"
+    closing = dict(press.get("states", [])).get("closing", press["t_stop"])
+    print(f"   press: x_th crossed after {press['t_cross'] - closing:.2f} s of closing, stop sent "
+          f"{lat:.2f} ms after that frame (t_stop), peak norm {press.get('peak_level', 0):.4f}"
           + (f", peak force {peak_n:.2f} N" if peak_n is not None else ""))
     topk = ", ".join(f"{t['label']} ({t['distance']:.3f})" for t in ep.get("topk", []))
     print(f"   touch: top-3 {topk}")
@@ -94,6 +95,7 @@ def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
 
 def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE + FOOD) -> int:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.setdefault("VTZERO_LOG_LEVEL", "WARNING")
     with tempfile.TemporaryDirectory(prefix="vtzero-demo-") as tmp:
         run_cfg = Path(tmp) / "sim-run.toml"
         env["VTZERO_STATE_DIR"] = str(Path(tmp) / "state")
