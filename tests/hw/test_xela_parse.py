@@ -21,9 +21,11 @@ from edge.hw.xela import (
 )
 from edge.sim.xela_server import GARBAGE_FRAMES, encode_frame, welcome_frame
 
-FIXTURE = Path(__file__).resolve().parents[2] / "shared/fixtures/xela/v1.8_uSPa46_two_sensors.json"
-if not FIXTURE.exists():
-    FIXTURE = Path("/work/shared/fixtures/xela/v1.8_uSPa46_two_sensors.json")
+# The real frames live in shared/, beside the checkout (../shared) or inside it.
+_ROOT = Path(__file__).resolve().parents[2]
+_NAME = "shared/fixtures/xela/v1.8_uSPa46_two_sensors.json"
+FIXTURE = next((p for p in (_ROOT.parent / _NAME, _ROOT / _NAME) if p.exists()),
+               _ROOT.parent / _NAME)
 
 
 @pytest.fixture(scope="module")
