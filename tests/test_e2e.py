@@ -47,10 +47,12 @@ class Daemon:
     def __init__(self, robot: SimRobot, cfg: Config, state: Path) -> None:
         self.cfg = robot.runtime_config(cfg)
         self.state = state
+        self.button = None
 
     async def __aenter__(self):
         model = await asyncio.to_thread(load_model, self.cfg)
         self.devices = await open_devices(self.cfg)
+        self.devices.button = self.button
         self.store = EpisodeStore(self.state / "episodes")
         self.vlm = make_vlm(self.cfg)
         self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store)

@@ -1,0 +1,96 @@
+"""Triggers besides the API (button, SIGUSR1), server-sent events, and SIGHUP reload."""
+
+import asyncio
+import json
+import os
+import signal
+from dataclasses import replace
+
+import pytest
+
+from edge.daemon import load_model
+from edge.hw.button import FakeButton
+from edge.sim.catalogue import names
+from edge.sim.robot import SimRobot
+from tests.test_e2e import Daemon, base_config
+
+CUBE = names("cube")
+
+
+def with_defaults(cfg):
+    return replace(cfg, api=replace(cfg.api, default_candidates=tuple(CUBE)))
+
+
+async def next_episode(d, before):
+    for _ in range(200):
+        ids = set(d.store.ids()) - before
+        if ids:
+            return ids.pop()
+        await asyncio.sleep(0.05)
+    raise AssertionError("no episode was stored")
+
+
+@pytest.mark.asyncio
+async def test_button_and_sigusr1_trigger_with_the_default_candidates(tmp_path):
+    cfg = with_defaults(base_config())
+    async with SimRobot("raw_kiri_mochi", seed=21, cfg=cfg) as robot:
+        d = Daemon(robot, cfg, tmp_path)
+        button = FakeButton()
+        d.button = button
+        async with d:
+            button.press()
+            first = await next_episode(d, set())
+            ep = await d.wait_status(first, {"not_configured"})
+            assert ep["source"] == "button" and ep["candidates"] == CUBE
+            os.kill(os.getpid(), signal.SIGUSR1)
+            second = await next_episode(d, {first})
+            ep = await d.wait_status(second, {"not_configured"})
+            assert ep["source"] == "SIGUSR1"
+
+
+@pytest.mark.asyncio
+async def test_events_stream_the_press_states_and_the_result(tmp_path):
+    async with SimRobot("wood_cube", seed=22, cfg=base_config()) as robot:
+        async with Daemon(robot, base_config(), tmp_path) as d:
+            events = []
+
+            async def listen():
+                async with d.http.get(d.url + "/v1/events") as resp:
+                    assert resp.headers["Content-Type"].startswith("text/event-stream")
+                    async for line in resp.content:
+                        if line.startswith(b"data: "):
+                            events.append(json.loads(line[6:]))
+                            if events[-1].get("type") == "result":
+                                return
+
+            listener = asyncio.create_task(listen())
+            await asyncio.sleep(0.2)
+            _, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            await asyncio.wait_for(listener, 10)
+    states = [e["state"] for e in events if e["type"] == "state"]
+    assert states[:4] == ["above", "lowered", "tare", "closing"] and "holding" in states
+    assert any(e["type"] == "tactile" and e["description"] for e in events)
+    assert events[-1]["status"] == "not_configured" and events[-1]["episode"] == ep["id"]
+
+
+@pytest.mark.asyncio
+async def test_sighup_reloads_between_presses_never_during_one(tmp_path):
+    async with SimRobot("gelatin_soft", seed=23, cfg=base_config()) as robot:
+        async with Daemon(robot, base_config(), tmp_path) as d:
+            old = d.runtime.model
+            new = await asyncio.to_thread(load_model, d.cfg)
+            new_press = replace(d.cfg.press, x_th=0.0045)
+            d.runtime._reload = lambda: (replace(d.cfg, press=new_press), new, d.vlm)
+            _, ep = await d.post("/v1/recognize", {"candidates": CUBE})
+            while d.runtime.press.state != "closing":  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+            os.kill(os.getpid(), signal.SIGHUP)
+            await asyncio.sleep(0.1)
+            assert d.runtime.model is old  # not swapped under the running press
+            done = await d.wait_status(ep["id"], {"not_configured"})
+            assert done["x_th"] == 0.004 and done["press"]["contact"]
+            for _ in range(100):
+                if d.runtime.model is new:
+                    break
+                await asyncio.sleep(0.05)
+            assert d.runtime.model is new and d.runtime.cfg.press.x_th == 0.0045
