@@ -230,7 +230,7 @@ class Api:
             episode = await self.runtime.recognize(parsed.candidates, parsed.image,
                                                    parsed.wait, parsed.timeout_s, "api")
         except BusyError as exc:
-            return _error(409, str(exc), episode=getattr(exc, "episode_id", None))
+            return _error(409, str(exc), episode=exc.episode_id)
         status = 200 if parsed.wait else 202
         return web.json_response(episode, status=status)
 

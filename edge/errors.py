@@ -59,6 +59,10 @@ class VLMError(EdgeError):
 class BusyError(EdgeError, RuntimeError):
     """A press is already running; one press at a time."""
 
+    def __init__(self, message: str, episode_id: str | None = None) -> None:
+        super().__init__(message)
+        self.episode_id = episode_id
+
 
 class StoreError(EdgeError, OSError):
     """The episode store cannot write or read (disk full, permissions, corrupt entry)."""

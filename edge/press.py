@@ -83,7 +83,6 @@ class _Armed:
         self.t_cross: float | None = None
         self.level_at_cross = 0.0
         self.peak = 0.0
-        self.stopping = False
 
 
 class PressController:
@@ -115,7 +114,6 @@ class PressController:
         if armed.t_cross is None and level > armed.x_th:
             armed.t_cross = recv_time
             armed.level_at_cross = level
-            armed.stopping = True
             try:
                 await self.gripper.stop_now()
                 # The stop's packet time at the port if the driver knows it, else now.

@@ -192,15 +192,16 @@ class Runtime:
         if self._stopping.is_set():
             raise BusyError("the daemon is shutting down; not starting a press")
         if self._press_lock.locked():
-            err = BusyError(f"a press is running (episode {self._current}); one at a time")
-            err.episode_id = self._current  # type: ignore[attr-defined]
-            raise err
+            raise BusyError(f"a press is running (episode {self._current}); one at a time",
+                            self._current)
         episode_id = new_id()
         self._current = episode_id
         await self._press_lock.acquire()  # free: checked above, no await in between
         done = asyncio.get_running_loop().create_future()
-        task = asyncio.create_task(self._recognize(episode_id, candidates, image, source, done),
-                                   name=f"recognize {episode_id}")
+        # Inside the root TaskGroup when running (its failures are caught in _recognize).
+        spawn = self._tg.create_task if self._tg is not None else asyncio.create_task
+        task = spawn(self._recognize(episode_id, candidates, image, source, done),
+                     name=f"recognize {episode_id}")
         self._work.add(task)
         task.add_done_callback(self._work.discard)
         if not wait:

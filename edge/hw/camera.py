@@ -2,7 +2,8 @@
 
 ``Camera`` is the contract; implementations: a still-capture command (any program that
 writes a JPEG, e.g. ``libcamera-still`` or ``fswebcam``), a V4L2/USB camera through OpenCV
-(optional extra ``camera``), and :class:`edge.sim.camera.SimCamera` for the simulated robot.
+(optional extra ``camera``), and an HTTP snapshot URL (IP cameras; the simulated robot
+serves one).
 """
 
 from __future__ import annotations

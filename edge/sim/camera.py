@@ -46,15 +46,3 @@ def render(name: str) -> bytes:
     buf = io.BytesIO()
     img.save(buf, format="JPEG", quality=90)
     return buf.getvalue()
-
-
-class SimCamera:
-    """Returns the picture of whatever object the simulated world holds."""
-
-    def __init__(self, world) -> None:
-        self.world = world
-
-    async def capture(self) -> bytes:
-        import asyncio
-
-        return await asyncio.to_thread(render, self.world.object_name)
