@@ -34,3 +34,20 @@ def test_sim_press_prints_a_press_summary():
 def test_bad_arguments_exit_nonzero():
     out = run("sim", "record", "--dataset", "bricks", "--out", "x")
     assert out.returncode == 2 and "invalid choice" in out.stderr
+
+
+def test_episodes_list_show_export(tmp_path):
+    from edge.store import EpisodeStore
+
+    store = EpisodeStore(tmp_path / "episodes")
+    eid = store.create({"status": "done", "label": "macaron", "description": "soft"}, {})
+    env = {**__import__("os").environ, "VTZERO_STATE_DIR": str(tmp_path)}
+    out = run("episodes", "--config", "configs/sim.toml", "list", env=env)
+    assert out.returncode == 0 and eid in out.stdout and "macaron" in out.stdout
+    out = run("episodes", "--config", "configs/sim.toml", "show", eid, env=env)
+    assert '"label": "macaron"' in out.stdout
+    out = run("episodes", "--config", "configs/sim.toml", "export", eid, "--out",
+              str(tmp_path), env=env)
+    assert out.returncode == 0 and (tmp_path / f"{eid}.tar.gz").exists()
+    out = run("episodes", "--config", "configs/sim.toml", "show", "nope", env=env)
+    assert out.returncode == 2 and "no episode" in out.stderr

@@ -48,6 +48,7 @@ class Daemon:
         self.cfg = robot.runtime_config(cfg)
         self.state = state
         self.button = None
+        self.notifier = None
 
     async def __aenter__(self):
         model = await asyncio.to_thread(load_model, self.cfg)
@@ -55,7 +56,8 @@ class Daemon:
         self.devices.button = self.button
         self.store = EpisodeStore(self.state / "episodes")
         self.vlm = make_vlm(self.cfg)
-        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store)
+        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store,
+                               self.notifier)
         self.api = Api(self.runtime, self.cfg.api)
         self.task = asyncio.create_task(self.runtime.run(self.api))
         await asyncio.wait_for(self.runtime.ready.wait(), 10)

@@ -94,3 +94,42 @@ async def test_sighup_reloads_between_presses_never_during_one(tmp_path):
                     break
                 await asyncio.sleep(0.05)
             assert d.runtime.model is new and d.runtime.cfg.press.x_th == 0.0045
+
+
+@pytest.mark.asyncio
+async def test_systemd_ready_watchdog_only_while_frames_arrive_and_stopping(tmp_path,
+                                                                        monkeypatch):
+    import socket
+
+    from edge.systemd import Notifier
+
+    path = tmp_path / "notify.sock"
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(path))
+    server.setblocking(False)
+    monkeypatch.setenv("WATCHDOG_USEC", "200000")  # a ping every 0.1 s
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+
+    def drain():
+        out = []
+        while True:
+            try:
+                out.append(server.recv(4096).decode())
+            except BlockingIOError:
+                return out
+
+    async with SimRobot("wood_cube", seed=24, cfg=base_config()) as robot:
+        d = Daemon(robot, base_config(), tmp_path)
+        d.notifier = Notifier(str(path))
+        async with d:
+            await asyncio.sleep(0.5)
+            alive = drain()
+            assert any(m.startswith("READY=1") for m in alive)
+            assert alive.count("WATCHDOG=1") >= 3
+            await robot.xela.stop()  # the sensor path stops making progress
+            await asyncio.sleep(1.5)
+            drain()
+            await asyncio.sleep(0.5)
+            assert "WATCHDOG=1" not in drain()  # systemd will restart us
+        assert "STOPPING=1" in drain()
+    server.close()
