@@ -67,3 +67,11 @@ async def test_polled_button_debounces_and_reports_presses():
     await button.close()
     # The bounce right after the first press is ignored: two clean presses.
     assert len(presses) == 2
+
+
+@pytest.mark.asyncio
+async def test_fake_camera_counts_captures():
+    from edge.hw.camera import FakeCamera
+
+    camera = FakeCamera(b"\xff\xd8\xff")
+    assert await camera.capture() == b"\xff\xd8\xff" and camera.captures == 1
