@@ -43,9 +43,12 @@ class StaleSensorError(SensorError, TimeoutError):
 class MotorError(DeviceError):
     """A Dynamixel motor reported an error or did not answer."""
 
-    def __init__(self, message: str, motor_id: int | None = None) -> None:
+    def __init__(self, message: str, motor_id: int | None = None,
+                 transient: bool = False) -> None:
         super().__init__(message)
         self.motor_id = motor_id
+        # A lost or garbled reply (worth one more try), not a refusal by the motor.
+        self.transient = transient
 
 
 class ModelError(EdgeError, ValueError):

@@ -55,8 +55,9 @@ LATENCY_TIMER_UDEV_RULE = (
 )
 # What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
 SDK_LATENCY_TIMER_MS = 16.0
-# Single-register reads are tried this often before a timeout or bad reply is an error.
+# Reads are tried this often before a timeout or bad reply is an error.
 READ_ATTEMPTS = 2
+_TRANSIENT = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
 THREAD_JOIN_TIMEOUT_S = 2.0
@@ -472,7 +473,7 @@ class DynamixelBus:
     def _check(self, motor_id: int, what: str, result: int, error: int) -> None:
         if result != sdk.COMM_SUCCESS:
             raise MotorError(f"motor {motor_id}: {what}: {self._ph.getTxRxResult(result)}",
-                             motor_id)
+                             motor_id, transient=result in _TRANSIENT)
         if error:
             message = self._ph.getRxPacketError(error)
             if error & sdk.ERRBIT_ALERT:
@@ -495,7 +496,7 @@ class DynamixelBus:
         for _ in range(READ_ATTEMPTS - 1):
             # A lost or garbled reply is retried once: reads have no side effect.
             raw, result, error = read(self._port, motor_id, reg.address)
-            if result not in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT):
+            if result not in _TRANSIENT:
                 break
             self._port.clearPort()
         else:
@@ -520,6 +521,17 @@ class DynamixelBus:
                              f"{self._ph.getTxRxResult(result)}", first)
 
     def _read_state_sync(self) -> BusState:
+        # A lost or garbled reply is retried once: a sync read has no side effect.
+        for _ in range(READ_ATTEMPTS - 1):
+            try:
+                return self._read_state_once()
+            except MotorError as exc:
+                if not exc.transient:
+                    raise
+                self._port.clearPort()
+        return self._read_state_once()
+
+    def _read_state_once(self) -> BusState:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
         # its motor and the error byte (e.g. a hardware alert) is checked, which
         # GroupSyncRead.rxPacket drops.
