@@ -24,6 +24,8 @@ GRIPPER_M_PER_RAW = 1.7626621790e-5
 GRIPPER_OFFSET_M = 0.036099321
 # The OpenMANIPULATOR-X gripper joint range (ROBOTIS description).
 GRIPPER_OPEN_WIDTH_M = 0.019
+# Joint ("width") speed when opening.
+GRIPPER_OPEN_SPEED_MPS = 0.02
 GRIPPER_CLOSED_WIDTH_M = -0.010
 
 DEFAULT_MOVE_TIMEOUT_S = 5.0
@@ -110,7 +112,7 @@ class DynamixelGripper:
         *,
         open_width_m: float = GRIPPER_OPEN_WIDTH_M,
         closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
-        open_speed_mps: float = 0.02,
+        open_speed_mps: float = GRIPPER_OPEN_SPEED_MPS,
         stop_past_raw: int = 8,
         tolerance_raw: int = 15,
         timeout_s: float = DEFAULT_GRIPPER_TIMEOUT_S,

@@ -18,10 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge import preprocess
+from edge.config import PressConfig
+from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.recording import Recording
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.skin import Skin
+from edge.sim.world import WIDTH_PER_RAW_M
 
 SENSOR_MODEL = "XR1944"
 # Sensor server clock: wall-clock-like seconds, unrelated to the host's monotonic clock.
@@ -33,16 +36,19 @@ class PressParams:
     x_th: float = 0.004
     dt_stopping_s: float = 0.2
     close_speed_mps: float = 0.01
-    open_speed_mps: float = 0.02
+    # Finger-gap speeds; the gripper driver commands the joint ("width"), which moves each
+    # finger, so the gap opens at twice its 0.02 m/s.
+    open_speed_mps: float = 2 * GRIPPER_OPEN_SPEED_MPS
     reaction_latency_s: float = 0.002
     sensor_rate_hz: float = 125.0
     # Idle before closing; the tare averages its last tare_s.
     idle_s: float = 0.5
     tare_s: float = 0.3
     clearance_m: tuple[float, float] = (0.003, 0.008)
-    # The stop goal lies two encoder units (~1.76e-5 m each) past the present gap: a gentle
-    # squeeze (writing exactly the present position would release the object).
-    squeeze_m: float = 3.5e-5
+    # The stop goal lies press.stop_squeeze_raw encoder counts past the present position, as
+    # the driver writes it: a gentle squeeze (the present position itself would release the
+    # object). Each count moves both fingers, so the gap closes by twice its width.
+    squeeze_m: float = 2 * PressConfig().stop_squeeze_raw * WIDTH_PER_RAW_M
     # Position loop of the gripper motor: how fast it settles on a new goal.
     position_tau_s: float = 0.005
     # Current-limited gripper: Goal Current 200 (~0.54 A) gives ~10 N per finger.
