@@ -732,7 +732,7 @@ def confusion_png(report: Mapping[str, Any], dataset: str, path: Path) -> None:
         ax.set_title(f"{cond['title']}\n{_pct(r)}, {r['invalid_answer']} invalid",
                      fontsize=8)
     fig.suptitle(f"{DATASET_TITLES.get(dataset, dataset)}: VLM {report['model']}", fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.97))  # room for the title
     fig.savefig(path, dpi=DPI, metadata={"Software": None})
     plt.close(fig)
 
