@@ -112,6 +112,47 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_vlm(args: argparse.Namespace) -> int:
+    import asyncio
+    import dataclasses
+
+    from edge.config import VLMConfig, load_config
+    from train import eval_vlm
+
+    vlm = load_config(args.config).vlm if args.config else VLMConfig()
+    overrides: dict = {k: v for k, v in (("base_url", args.url), ("model", args.model))
+                       if v is not None}
+    if args.prompt_dir:
+        overrides["prompt_dir"] = Path(args.prompt_dir)
+    vlm = dataclasses.replace(vlm, **overrides)
+    conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
+        if args.conditions else eval_vlm.DEFAULT_CONDITIONS
+    beta = Path(args.beta) if args.beta else None
+    reference = Path(args.reference) if args.reference else None
+    if not args.conditions and "beta_top3" in conditions and not (
+            beta and beta.exists() and reference and reference.exists()):
+        log.warning("no beta-VAE checkpoint (%s) or reference recordings (%s): skipping the "
+                    "beta_top3 condition (`vt-train release` makes both)", beta, reference)
+        conditions = tuple(c for c in conditions if c != "beta_top3")
+    out = Path(args.out) if args.out else Path("runs/eval-vlm") / eval_vlm.slug(vlm.model)
+    cfg = eval_vlm.EvalVLMConfig(
+        vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
+        model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
+        beta=beta, images=Path(args.images) if args.images else None, limit=args.limit,
+        concurrency=args.concurrency)
+    if not args.verbose:  # one INFO line per answer from the client is too much here
+        logging.getLogger("edge.vlm").setLevel(logging.WARNING)
+    if args.dry_run:
+        plan = eval_vlm.prepare(cfg, endpoint=False)
+        cache = eval_vlm.AnswerCache(out / eval_vlm.ANSWERS_FILE)
+        print(eval_vlm.describe_plan(plan, cache.load()))
+        return 0
+    asyncio.run(eval_vlm.run(cfg, progress=not args.quiet))
+    print((out / eval_vlm.REPORT_MD).read_text())
+    print(f"answers: {out / eval_vlm.ANSWERS_FILE}; report: {out / eval_vlm.REPORT_JSON}")
+    return 0
+
+
 def _cmd_release(args: argparse.Namespace) -> int:
     from train.release import ReleaseConfig, release
     from train.trainer import Progress
@@ -218,6 +259,40 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser(
+        "eval-vlm", help="the paper's Table I against an OpenAI-compatible VLM endpoint",
+        description="Ask a VLM about every unseen test press under each condition (vision "
+        "only; vision + tactile top-3 / top-1 with the VQ-VAE; top-3 with the beta-VAE), "
+        "with the robot's own prompts and client; answers are cached, so an interrupted run "
+        "continues. The API key comes from $VTZERO_VLM_API_KEY (or the [vlm] section of "
+        "--config).")
+    p.add_argument("--url", help="endpoint up to /v1, e.g. https://api.openai.com/v1, "
+                   "http://localhost:8000/v1 (vLLM), http://localhost:11434/v1 (Ollama)")
+    p.add_argument("--model", help="the VLM model name the endpoint knows")
+    p.add_argument("--config", help="a vt-edge TOML config whose [vlm] section gives the "
+                   "defaults (key file, timeouts, seed); --url/--model override it")
+    p.add_argument("--prompt-dir", help="prompt templates (default: models/prompts)")
+    p.add_argument("--model-dir", default="models", help="the tactile model directory")
+    p.add_argument("--unseen", nargs="+", default=[
+        "runs/release/recordings/foodreplica", "runs/release/recordings/cube"],
+        help="unseen test sets, one recordings directory each (default: the release's)")
+    p.add_argument("--reference", default="runs/release/recordings/reference",
+                   help="reference recordings (the beta-VAE's database)")
+    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt",
+                   help="beta-VAE checkpoint")
+    p.add_argument("--conditions", help="comma-separated, from: vision_only, vq_top3, "
+                   "vq_top1, beta_top3, tactile_only (default: the first four)")
+    p.add_argument("--images", help="photos for real data: <press name>.jpg or <label>.jpg "
+                   "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the simulated camera)")
+    p.add_argument("--limit", type=int, help="at most N presses per set (round-robin over "
+                   "classes), for a quick run")
+    p.add_argument("--concurrency", type=int, default=4, help="requests in flight")
+    p.add_argument("--out", help="output and answer cache (default runs/eval-vlm/<model>)")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print the questions and one prompt per condition; ask nothing")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=_cmd_eval_vlm)
 
     p = sub.add_parser("release", help="regenerate models/ from the simulated reference set")
     p.add_argument("--out", default="models")

@@ -12,7 +12,7 @@ import io
 
 from PIL import Image, ImageDraw
 
-from edge.sim.catalogue import get
+from edge.sim.catalogue import DATASETS, ObjectClass, get
 
 IMAGE_SIZE_PX = (320, 240)
 
@@ -26,10 +26,18 @@ def visual_key(name: str) -> str:
     return name
 
 
+def _looks(key: str) -> ObjectClass:
+    """The object drawn for a visual key: the first in the catalogue with that key, so both
+    members of a pair get one size and shape (boiled kiri mochi is 2 mm wider than raw, a
+    difference the picture must not give away)."""
+    return next(o for objects in DATASETS.values() for o in objects
+                if visual_key(o.name) == key)
+
+
 def render(name: str) -> bytes:
     """A deterministic JPEG of the object on a table."""
     key = visual_key(name)
-    obj = get(name)
+    obj = _looks(key)
     digest = hashlib.sha256(key.encode()).digest()
     colour = tuple(60 + b % 160 for b in digest[:3])
     img = Image.new("RGB", IMAGE_SIZE_PX, (214, 206, 190))

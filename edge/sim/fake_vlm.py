@@ -9,7 +9,8 @@ records every request it received (``fake.requests``) for assertions.
 What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
 (a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
 trickle, a dropped connection, latency); when the queue is empty it answers the label that
-``choose`` picks (default: the first candidate).
+``choose`` picks (default: the first candidate; :func:`choose_by_touch` looks at the
+picture and reads the touch sentence, for the ``vt-train eval-vlm`` tests and demo).
 
     async with FakeVLM(model="fake") as fake:
         fake.script(Reply.error(503), Reply(label="wood_cube"))
@@ -26,6 +27,7 @@ import base64
 import binascii
 import collections
 import contextlib
+import functools
 import io
 import json
 import logging
@@ -128,6 +130,64 @@ def choose_by_description(req: FakeRequest) -> str:
         return len(set(re.findall(r"[a-z]+", label.lower())) & words)
 
     return max(req.candidates, key=score)
+
+
+# Softer than this (Young's modulus) a reference class feels soft under the pad's skin.
+SOFT_BELOW_PA = 1e6
+# For descriptions that name no catalogue class: words that say how an object gives.
+SOFT_WORDS = frozenset({"soft", "softly", "squashy", "squashes", "spongy", "mushy", "wobbly",
+                        "airy", "doughy", "gives", "yields", "flows", "chewy", "moist"})
+HARD_WORDS = frozenset({"hard", "rigid", "unyielding", "crisp", "metal", "steel", "glass"})
+# Label prefixes of the stiffer member of a look-alike pair.
+HARD_PREFIXES = ("resin_replica_", "raw_")
+
+
+@functools.lru_cache(maxsize=512)
+def _picture(label: str) -> bytes | None:
+    from edge.sim.camera import render
+
+    try:
+        return render(label)
+    except KeyError:
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def _reference_feel() -> tuple[tuple[str, bool], ...]:
+    from edge.sim.catalogue import REFERENCE
+
+    return tuple((o.description, o.youngs_pa < SOFT_BELOW_PA) for o in REFERENCE)
+
+
+def feels_soft(description: str) -> bool:
+    """Whether a tactile sentence says soft: the majority of the reference classes it names
+    (by their catalogue stiffness), else soft words outnumbering hard ones."""
+    named = sorted((description.find(text), soft) for text, soft in _reference_feel()
+                   if text in description)
+    if named:
+        return 2 * sum(soft for _, soft in named) > len(named)
+    words = re.findall(r"[a-z]+", description.lower())
+    return sum(w in SOFT_WORDS for w in words) > sum(w in HARD_WORDS for w in words)
+
+
+def choose_by_touch(req: FakeRequest) -> str:
+    """A VLM that sees the simulated camera's picture and reads the touch sentence.
+
+    It keeps the candidates whose picture is the one sent (a food and its replica look
+    alike; no match: all candidates); with no tactile sentence it answers the first of them;
+    with one it answers the softer member of the pair (no ``resin_replica_``/``raw_``
+    prefix) when :func:`feels_soft`, else the harder member.
+    """
+    image = req.images[0] if req.images else None
+    alike = [c for c in req.candidates if image is not None and _picture(c) == image]
+    alike = alike or list(req.candidates)
+    if not req.description.strip():
+        return alike[0]
+    soft = feels_soft(req.description)
+    for label in alike:
+        if label.startswith(HARD_PREFIXES) != soft:
+            return label
+    return alike[0]
 
 
 def validate_chat_request(body: Any) -> tuple[str | None, dict[str, Any]]:
@@ -403,6 +463,8 @@ async def _serve(args: argparse.Namespace) -> None:
     choose: Chooser = first_candidate
     if args.choose == "description":
         choose = choose_by_description
+    elif args.choose == "touch":
+        choose = choose_by_touch
     elif args.choose.startswith("label:"):
         fixed = args.choose.removeprefix("label:")
 
@@ -429,7 +491,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8011)
     parser.add_argument("--model", default="fake-vlm", help="model name to accept ('' = any)")
     parser.add_argument("--choose", default="first",
-                        help="first | description | label:<name> (default first)")
+                        help="first | description | touch | label:<name> (default first)")
     parser.add_argument("--latency-s", type=float, default=0.0)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
