@@ -84,6 +84,8 @@ class _Armed:
         self.level_at_cross = 0.0
         self.peak = 0.0
         self.stopping = False
+        # The stop at the threshold could not be sent: the press aborts and opens.
+        self.stop_error: BaseException | None = None
 
 
 class PressController:
@@ -116,6 +118,7 @@ class PressController:
             armed.t_cross = recv_time
             armed.level_at_cross = level
             armed.stopping = True
+            stopped = False
             try:
                 await self.gripper.stop_now()
                 # The stop's packet time at the port if the driver knows it, else now.
@@ -123,8 +126,14 @@ class PressController:
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time
+                stopped = True
+            except DeviceError as exc:
+                # Not the sensor's fault: keep it out of the sensor task, abort the press.
+                log.error("the stop at the threshold failed: %s", exc)
+                armed.stop_error = exc
             finally:
-                armed.crossed.set()
+                # Only a stop that went out counts as crossed; anything else aborts and opens.
+                (armed.crossed if stopped else armed.abort).set()
         elif level > armed.abort_level:
             armed.abort.set()
 
@@ -178,9 +187,8 @@ class PressController:
             # Both fingers move: each closes at half the gap speed.
             await self.gripper.close(press.close_speed_mps / 2, goal_ma)
             await self._wait_closing(armed, outcome)
-            if outcome.result == "ok":
+            if outcome.result == "ok" and outcome.t_stop is not None:
                 self._enter(outcome, "holding")
-                assert outcome.t_stop is not None
                 hold_left = outcome.t_stop + press.dt_stopping_s - time.monotonic()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
@@ -191,6 +199,11 @@ class PressController:
         except EdgeError as exc:
             outcome.result, outcome.message = "error", str(exc)
             log.error("press failed: %s", exc)
+        except Exception as exc:
+            # A bug must still end in an open gripper and a press that says what went wrong.
+            log.exception("press failed on an unexpected error")
+            outcome.result = "error"
+            outcome.message = f"internal error: {type(exc).__name__}: {exc}"
         finally:
             self._armed = None
             await self._open_safely(outcome)
@@ -246,7 +259,7 @@ class PressController:
             crossed.cancel()
             aborted.cancel()
         outcome.peak_level = armed.peak
-        if armed.crossed.is_set():
+        if armed.crossed.is_set() and armed.stop_error is None:
             outcome.t_cross = armed.t_cross
             outcome.level_at_cross = armed.level_at_cross
             outcome.result = "ok"
@@ -260,7 +273,11 @@ class PressController:
 
     def _abort_reason(self, outcome: PressOutcome, armed: _Armed) -> None:
         outcome.peak_level = max(outcome.peak_level, armed.peak)
-        if self._stale.is_set():
+        if armed.stop_error is not None:
+            outcome.result = "error"
+            outcome.message = (f"the stop at the threshold failed ({armed.stop_error}): "
+                               "opening the gripper")
+        elif self._stale.is_set():
             outcome.result = "stale"
             outcome.message = "tactile stream went stale during the press: gripper opened"
         elif self._user_abort.is_set():

@@ -239,9 +239,10 @@ class Runtime:
                 await self._ask_vlm(episode_id, retry=False)
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
+            error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
             with contextlib.suppress(Exception):
                 await asyncio.to_thread(self.store.create, {
-                    "id": episode_id, "status": "failed", "error": str(exc),
+                    "id": episode_id, "status": "failed", "error": error,
                     "candidates": candidates, "source": source}, {})
         finally:
             if self._current == episode_id:
