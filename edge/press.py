@@ -2,6 +2,8 @@
 
 idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -> idle
 
+The gripper is opened before the arm moves to ``above`` (it may have been left closed).
+
 The threshold is checked on every arriving frame by the sensor task (:meth:`on_frame`),
 which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
 closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
@@ -173,6 +175,9 @@ class PressController:
             if self.recover is not None:
                 await self.recover()
             self._enter(outcome, "above")
+            # Open before anything moves: a gripper left closed (a crash, a motor that
+            # dropped out) would lift the object and tare on a squeeze.
+            await self.gripper.open()
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
