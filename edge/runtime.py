@@ -351,8 +351,9 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < 1.0 and not self.press.sensor_is_stale
-        return {"ok": self.ready.is_set() and fresh, "ready": self.ready.is_set(),
-                "sensor_fresh": fresh,
+        bus_error = getattr(self.devices.bus, "fault", None)
+        return {"ok": self.ready.is_set() and fresh and bus_error is None,
+                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
                 "state": self.press.state, "episode": self._current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 "version": __version__}

@@ -229,6 +229,9 @@ class DynamixelBus:
         self.last_state: BusState | None = None
         # When the last stop's Goal Position packet was written (monotonic).
         self.last_stop_t = 0.0
+        # Why the bus is not fit to press, for /healthz: the last failed watchdog feed
+        # (cleared by the next good one).
+        self._feed_fault: str | None = None
 
     # ---------------------------------------------------------------- properties
 
@@ -248,6 +251,11 @@ class DynamixelBus:
     @property
     def torque_on(self) -> bool:
         return self._torque_on
+
+    @property
+    def fault(self) -> str | None:
+        """What is wrong with the bus now (a motor that does not answer...), or None."""
+        return self._feed_fault
 
     @property
     def thread_id(self) -> int | None:
@@ -404,10 +412,12 @@ class DynamixelBus:
                 if not failing:
                     _log.warning("Bus Watchdog feed failed: %s", exc)
                 failing = True
+                self._feed_fault = str(exc)
             else:
                 if failing:
                     _log.info("Bus Watchdog feed works again")
                 failing = False
+                self._feed_fault = None
 
     async def _stop_feed(self) -> None:
         task, self._feed_task = self._feed_task, None
