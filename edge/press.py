@@ -170,6 +170,7 @@ class PressController:
         self._outcome = outcome
         self._user_abort.clear()
         trace_task: asyncio.Task | None = None
+        moved = False  # whether this press has moved the arm
         try:
             self._check_fresh()
             if self.recover is not None:
@@ -178,6 +179,7 @@ class PressController:
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.
             await self.gripper.open()
+            moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
@@ -211,18 +213,23 @@ class PressController:
             outcome.message = f"internal error: {type(exc).__name__}: {exc}"
         finally:
             self._armed = None
-            await self._open_safely(outcome)
+            opened = await self._open_safely(outcome)
             if trace_task is not None:
                 trace_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await trace_task
-        try:
-            self._enter(outcome, "returning")
-            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-        except EdgeError as exc:
-            log.error("arm did not return above the object: %s", exc)
-            if outcome.result == "ok":
-                outcome.result, outcome.message = "error", f"return failed: {exc}"
+        if moved and not opened:
+            # Lifting a gripper that may still hold the object would drag or lift it.
+            log.error("the gripper may still be closed: the arm stays where it stands")
+            outcome.message += "; arm left where it stands: free the object by hand"
+        elif moved:
+            try:
+                self._enter(outcome, "returning")
+                await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+            except EdgeError as exc:
+                log.error("arm did not return above the object: %s", exc)
+                if outcome.result == "ok":
+                    outcome.result, outcome.message = "error", f"return failed: {exc}"
         if outcome.t_stop is not None:
             # The window reaches 0.6 s past the stop; normally the opening took that long.
             spec = preprocess.DEFAULT_WINDOW
@@ -292,13 +299,16 @@ class PressController:
             outcome.message = (f"force far past the threshold (norm {armed.peak:.4f} > "
                                f"{armed.abort_level:.4f}): gripper opened")
 
-    async def _open_safely(self, outcome: PressOutcome) -> None:
+    async def _open_safely(self, outcome: PressOutcome) -> bool:
+        """Open the gripper, three tries; False (and said in the outcome) if it failed."""
         self._enter(outcome, "opening")
+        last: DeviceError | None = None
         for attempt in range(3):
             try:
                 await self.gripper.open()
-                return
+                return True
             except DeviceError as exc:
+                last = exc
                 log.error("opening the gripper failed (attempt %d): %s", attempt + 1, exc)
                 if self.recover is not None:
                     with contextlib.suppress(DeviceError):
@@ -306,7 +316,8 @@ class PressController:
         if outcome.result == "ok":
             outcome.result = "error"
         outcome.message = (outcome.message + "; " if outcome.message else "") + (
-            "GRIPPER MAY STILL BE CLOSED: opening failed three times")
+            f"GRIPPER MAY STILL BE CLOSED: opening failed three times (last: {last})")
+        return False
 
     async def _trace(self, outcome: PressOutcome) -> None:
         while True:
