@@ -171,6 +171,7 @@ class PressController:
         self._user_abort.clear()
         trace_task: asyncio.Task | None = None
         moved = False  # whether this press has moved the arm
+        touched = False  # whether this press has commanded the gripper
         try:
             self._check_fresh()
             if self.recover is not None:
@@ -178,6 +179,7 @@ class PressController:
             self._enter(outcome, "above")
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.
+            touched = True
             await self.gripper.open()
             moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
@@ -213,7 +215,8 @@ class PressController:
             outcome.message = f"internal error: {type(exc).__name__}: {exc}"
         finally:
             self._armed = None
-            opened = await self._open_safely(outcome)
+            # Refused before touching anything (stale sensor, a motor down): nothing to undo.
+            opened = await self._open_safely(outcome) if touched else False
             if trace_task is not None:
                 trace_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

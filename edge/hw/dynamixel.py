@@ -232,6 +232,8 @@ class DynamixelBus:
         # Why the bus is not fit to press, for /healthz: the last failed watchdog feed
         # (cleared by the next good one).
         self._feed_fault: str | None = None
+        # A motor found with torque off before a press (it shut itself down): until restart.
+        self._torque_fault: str | None = None
 
     # ---------------------------------------------------------------- properties
 
@@ -255,7 +257,7 @@ class DynamixelBus:
     @property
     def fault(self) -> str | None:
         """What is wrong with the bus now (a motor that does not answer...), or None."""
-        return self._feed_fault
+        return self._torque_fault or self._feed_fault
 
     @property
     def thread_id(self) -> int | None:
@@ -377,7 +379,9 @@ class DynamixelBus:
             await self._call("torque off", self._torque_off_sync)
 
     async def recover_watchdog(self) -> list[int]:
-        """Clear Bus Watchdog trips: write 0, hold the present position, re-arm.
+        """Before a press: check every motor still has torque on (a motor that shut itself
+        down raises :class:`MotorError` naming it, and :attr:`fault` keeps saying so), then
+        clear Bus Watchdog trips: write 0, hold the present position, re-arm.
 
         Returns the IDs that had tripped.
         """
@@ -684,6 +688,8 @@ class DynamixelBus:
             raise first
 
     def _recover_watchdog_sync(self) -> list[int]:
+        if self._torque_on:
+            self._check_torque_sync()
         tripped = [i for i in self._ids if self._read(i, BUS_WATCHDOG) == -1]
         units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
         for motor_id in tripped:
@@ -695,6 +701,22 @@ class DynamixelBus:
             _log.warning("Bus Watchdog had tripped on motors %s; cleared, holding position",
                          tripped)
         return tripped
+
+
+    def _check_torque_sync(self) -> None:
+        # A motor that shut itself down (overload, overheating...) has torque off: any goal
+        # is ignored, so a press would close nothing and open nothing. Refuse it by name.
+        # While the alert is on, the read itself raises with the Hardware Error Status.
+        for motor_id in self._ids:
+            if self._read(motor_id, TORQUE_ENABLE):
+                continue
+            status = self._read(motor_id, HARDWARE_ERROR_STATUS)
+            why = (f"Hardware Error Status 0x{status:02x}: {describe_hardware_error(status)}"
+                   if status else "no hardware error left")
+            self._torque_fault = (
+                f"motor {motor_id}: torque is off ({why}): the motor shut itself down; "
+                "remove the cause, power-cycle or reboot it, then restart the daemon")
+            raise MotorError(self._torque_fault, motor_id)
 
 
 def _field(reg: Register, data: list[int]) -> int:
