@@ -8,7 +8,9 @@ event loop. Helpers below check what the robot did and what the store kept.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -30,18 +32,23 @@ CUBE = names("cube")
 OPEN_WIDTH_M = 0.008
 
 
-def base_config(vlm_url: str = "") -> Config:
+def base_config(vlm_url: str = "", *, move_time_s: float = 0.2, tare_s: float = 0.3) -> Config:
     cfg = Config()
     return replace(
         cfg,
-        press=replace(cfg.press, open_width_m=OPEN_WIDTH_M),
-        runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0,
+        press=replace(cfg.press, open_width_m=OPEN_WIDTH_M, tare_s=tare_s),
+        runtime=replace(cfg.runtime, move_time_s=move_time_s, close_timeout_s=5.0,
                         models_dir=str(ROOT / "models"), vlm_retry_base_s=0.2,
                         vlm_retry_max_s=1.0),
         api=replace(cfg.api, port=0),
         vlm=replace(cfg.vlm, base_url=vlm_url, model="fake-vlm" if vlm_url else "",
                     max_retries=0, total_timeout_s=5.0, connect_timeout_s=1.0),
     )
+
+
+def fast_config(vlm_url: str = "") -> Config:
+    """Shorter moves and tare: the fault tests press many times."""
+    return base_config(vlm_url, move_time_s=0.1, tare_s=0.15)
 
 
 class Daemon:
@@ -147,3 +154,30 @@ def store_consistent(root: Path) -> list[dict[str, Any]]:
                 assert (entry / name).is_file(), f"{entry.name} lacks {name}"
         episodes.append(ep)
     return episodes
+
+
+FOOD = names("foodreplica")
+# A wide, rigid object: contact comes soon after closing starts, so presses are short.
+QUICK_OBJECT = "resin_replica_melon_pan"
+
+
+@contextlib.asynccontextmanager
+async def sim_daemon(state: Path, object_name: str = QUICK_OBJECT, *, seed: int = 7,
+                     cfg: Config | None = None, headers: dict[str, str] | None = None
+                     ) -> AsyncIterator[tuple[SimRobot, Daemon]]:
+    """An emulated robot with the daemon running against it."""
+    async with SimRobot(object_name, seed=seed, cfg=base_config()) as robot, \
+            Daemon(robot, cfg or fast_config(), state, headers=headers) as daemon:
+        yield robot, daemon
+
+
+async def wait_health(d: Daemon, ok: bool, timeout_s: float = 5.0) -> dict[str, Any]:
+    """Poll /healthz until its ``ok`` is ``ok`` (HTTP 200 or 503 to match)."""
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while True:
+        status, health = await d.get("/healthz")
+        assert status == (200 if health["ok"] else 503), (status, health)
+        if health["ok"] is ok:
+            return health
+        assert asyncio.get_running_loop().time() < deadline, health
+        await asyncio.sleep(0.05)
