@@ -84,6 +84,8 @@ class Runtime:
         self._tg: asyncio.TaskGroup | None = None
         self._work: set[asyncio.Task] = set()
         self._retry_wakeup = asyncio.Event()
+        # Episodes whose VLM question is in flight: never asked twice at once.
+        self._asking: set[str] = set()
         self.ready = asyncio.Event()
         self.started_at = time.monotonic()
 
@@ -299,6 +301,17 @@ class Runtime:
             topk, description
 
     async def _ask_vlm(self, episode_id: str, retry: bool) -> None:
+        # A new pending episode is due for the retry task at once, while its first question
+        # may still be in flight: two answers for one episode, the last write winning.
+        if episode_id in self._asking:
+            return
+        self._asking.add(episode_id)
+        try:
+            await self._ask_vlm_once(episode_id)
+        finally:
+            self._asking.discard(episode_id)
+
+    async def _ask_vlm_once(self, episode_id: str) -> None:
         episode = await asyncio.to_thread(self.store.get, episode_id)
         image = None
         for name in ("image.jpg", "image.png"):
