@@ -170,6 +170,8 @@ class Runtime:
     async def _vlm_retry(self) -> None:
         cfg = self.cfg.runtime
         while True:
+            # Cleared before the scan: a failure during it (a new due time) wakes the next.
+            self._retry_wakeup.clear()
             pending = await asyncio.to_thread(self.store.pending)
             now = time.time()
             next_due = now + cfg.vlm_retry_max_s
@@ -184,9 +186,9 @@ class Runtime:
                         next_due = min(next_due, now + cfg.vlm_retry_max_s)
                 else:
                     next_due = min(next_due, due)
-            self._retry_wakeup.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._retry_wakeup.wait(), max(0.05, next_due - now))
+                await asyncio.wait_for(self._retry_wakeup.wait(),
+                                       max(0.05, next_due - time.time()))
 
     # --- recognition ------------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
@@ -339,6 +341,7 @@ class Runtime:
                         delay)
             await asyncio.to_thread(self.store.update, episode_id, attempts=attempts,
                                     last_error=str(exc), next_retry_at=time.time() + delay)
+            self._retry_wakeup.set()  # the retry task plans from the new due time
             self.publish({"type": "episode", "episode": episode_id, "status": "pending",
                           "error": str(exc)})
             return
