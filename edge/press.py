@@ -37,6 +37,8 @@ RECORD_MARGIN_S = 0.2
 GRIPPER_TRACE_PERIOD_S = 0.02
 # A stream this long without a fresh frame means the press must not start.
 FRESH_FRAME_S = 0.1
+# After the press, how long the recording waits for a late stream to cover its window.
+STREAM_CATCH_UP_S = 1.0
 
 
 @dataclass
@@ -236,9 +238,14 @@ class PressController:
         if outcome.t_stop is not None:
             # The window reaches 0.6 s past the stop; normally the opening took that long.
             spec = preprocess.DEFAULT_WINDOW
-            wait = outcome.t_stop + spec.after_s + RECORD_MARGIN_S - time.monotonic()
+            end = outcome.t_stop + spec.after_s + RECORD_MARGIN_S
+            wait = end - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
+            # A stream that paused after the stop (a server hiccup, a busy host) catches up.
+            give_up = time.monotonic() + STREAM_CATCH_UP_S
+            while self.ring.latest_time() < end and time.monotonic() < give_up:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
             outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
                                               outcome.t_stop + spec.after_s + RECORD_MARGIN_S)
         self._enter(outcome, "idle")

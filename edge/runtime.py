@@ -272,7 +272,19 @@ class Runtime:
             await asyncio.to_thread(self.store.create, episode, files)
             return episode
         t = time.monotonic()
-        analysed = await asyncio.to_thread(self._encode, outcome)
+        try:
+            analysed = await asyncio.to_thread(self._encode, outcome)
+        except EdgeError as exc:
+            # E.g. the stream died before the window after the stop was complete: the press
+            # is still kept, raw, with why it could not be recognised.
+            log.error("episode %s: press not usable for recognition: %s", episode_id, exc)
+            episode.update(status="failed",
+                           error=f"the press worked but its tactile window is unusable: {exc}")
+            with contextlib.suppress(EdgeError):
+                files["press.press.npz"] = recording.to_bytes(
+                    outcome_recording(outcome, self.cfg))
+            await asyncio.to_thread(self.store.create, episode, files)
+            return episode
         timings["encode_s"] = time.monotonic() - t
         rec, window, x, z, code, topk, description = analysed
         files["press.press.npz"] = recording.to_bytes(rec)
