@@ -87,3 +87,33 @@ async def test_sensor_reconnecting_mid_press_is_survived_or_refused_safely(tmp_p
             assert np.all(np.diff(rec.recv_time) > 0) and np.all(np.diff(rec.seq) > 0)
         store_consistent(d.store.root)
         await wait_health(d, True)
+
+
+@pytest.mark.parametrize("comes_back", [True, False], ids=["hiccup", "dies"])
+async def test_stream_lost_right_after_the_stop_keeps_the_press(tmp_path, comes_back):
+    """The stop worked; then the stream pauses (0.4 s) or dies while the window is still
+    being recorded. A pause is waited out; a dead stream leaves a failed episode that
+    still keeps the raw press."""
+    async with sim_daemon(tmp_path) as (robot, d):
+        _, ep = await d.post("/v1/recognize", {"candidates": FOOD})
+        await d.wait_press_state({"opening", "returning"})
+        robot.xela.fault = Fault.SILENT
+        if comes_back:
+            await asyncio.sleep(0.4)
+            robot.xela.fault = Fault.NONE
+        ep = await d.wait_status(ep["id"], {"failed", "not_configured"})
+        await d.wait_idle()
+        print(f"stream {'paused' if comes_back else 'died'} after the stop: {ep['status']}: "
+              f"{ep.get('error')}")
+        assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
+        assert ep["press"]["contact"]  # the press itself worked
+        kept = store_consistent(d.store.root)[0]
+        rec = recording.load(d.store.root / ep["id"] / "press.press.npz")
+        assert rec.t_stop == ep["press"]["t_stop"]
+        if comes_back:
+            assert ep["status"] == "not_configured" and kept["code"] is not None
+        else:
+            assert ep["status"] == "failed" and "tactile window" in ep["error"]
+            await wait_health(d, False)
+        robot.xela.fault = Fault.NONE
+        await wait_health(d, True)
