@@ -31,6 +31,7 @@ from edge.errors import (
     NotFoundError,
     SensorError,
     StaleSensorError,
+    StoreError,
 )
 from edge.metrics import Metrics
 from edge.press import PressController, PressOutcome, outcome_recording
@@ -86,6 +87,8 @@ class Runtime:
         self._retry_wakeup = asyncio.Event()
         # Episodes whose VLM question is in flight: never asked twice at once.
         self._asking: set[str] = set()
+        # Episodes that could not be written at all (disk full): why, for whoever asks.
+        self._unstored: dict[str, str] = {}
         self.ready = asyncio.Event()
         self.started_at = time.monotonic()
 
@@ -195,6 +198,9 @@ class Runtime:
                         timeout_s: float | None, source: str) -> dict[str, Any]:
         if self._stopping.is_set():
             raise BusyError("the daemon is shutting down; not starting a press")
+        full = self.store.space_error()
+        if full:
+            raise StoreError(f"not pressing: the episode could not be kept: {full}")
         if self._press_lock.locked():
             err = BusyError(f"a press is running (episode {self._current}); one at a time")
             err.episode_id = self._current  # type: ignore[attr-defined]
@@ -244,10 +250,19 @@ class Runtime:
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
             error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
-            with contextlib.suppress(Exception):
+            try:
                 await asyncio.to_thread(self.store.create, {
                     "id": episode_id, "status": "failed", "error": error,
                     "candidates": candidates, "source": source}, {})
+            except StoreError as store_exc:
+                # Not even the failure could be kept: answer for it from memory.
+                self._unstored[episode_id] = (
+                    error if isinstance(exc, StoreError)
+                    else f"{error}; and it could not be stored: {store_exc}")
+                while len(self._unstored) > 100:
+                    self._unstored.pop(next(iter(self._unstored)))
+            except Exception:
+                log.exception("episode %s: the failure could not be stored", episode_id)
         finally:
             if self._current == episode_id:
                 self._current = None
@@ -371,7 +386,12 @@ class Runtime:
                  f" -> {answer.label}" if answer.label else "")
 
     async def episode(self, episode_id: str) -> dict[str, Any]:
-        return await asyncio.to_thread(self.store.get, episode_id)
+        try:
+            return await asyncio.to_thread(self.store.get, episode_id)
+        except NotFoundError:
+            if episode_id in self._unstored:
+                raise StoreError(self._unstored[episode_id]) from None
+            raise
 
     async def abort(self) -> bool:
         return self.press.request_abort()
@@ -380,8 +400,10 @@ class Runtime:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < 1.0 and not self.press.sensor_is_stale
         bus_error = getattr(self.devices.bus, "fault", None)
-        return {"ok": self.ready.is_set() and fresh and bus_error is None,
+        store_error = self.store.space_error()
+        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error,
                 "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
+                "store_error": store_error,
                 "state": self.press.state, "episode": self._current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 "version": __version__}
