@@ -26,6 +26,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 
 from edge.config import ApiConfig
 from edge.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.images import ImageError, check_image
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +105,16 @@ def validate_image(data: bytes, max_bytes: int) -> bytes:
         raise BadRequest(f"image has {len(data)} bytes (at most {max_bytes})")
     if not data.startswith(_IMAGE_MAGIC):
         raise BadRequest("image must be a JPEG or PNG file")
+    return data
+
+
+async def decodable_image(data: bytes) -> bytes:
+    """The image, if it decodes: a broken one must be refused before the arm moves, not
+    found out by the VLM call after the press."""
+    try:
+        await asyncio.to_thread(check_image, data)
+    except ImageError as exc:
+        raise BadRequest(f"image must be a JPEG or PNG file that decodes: {exc}") from None
     return data
 
 
@@ -230,6 +241,8 @@ class Api:
                                     or not 0 < timeout <= 600):
             raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
         candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
+        if image is not None:
+            image = await decodable_image(image)
         return _Parsed(candidates, image, wait, timeout)
 
     async def _read_multipart(self, request: web.Request) -> tuple[dict[str, Any],
