@@ -536,24 +536,32 @@ class DynamixelBus:
     def _read_state_sync(self) -> BusState:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
         # its motor and the error byte (e.g. a hardware alert) is checked, which
-        # GroupSyncRead.rxPacket drops.
-        result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH, list(self._ids),
-                                     len(self._ids), False)
-        if result != sdk.COMM_SUCCESS:
-            raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
-                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
-        motors = {}
-        for motor_id in self._ids:
-            data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
-            self._check(motor_id, "sync read of present state", result, error)
-            motors[motor_id] = MotorState(
-                position=_field(PRESENT_POSITION, data),
-                velocity=_field(PRESENT_VELOCITY, data),
-                current=_field(PRESENT_CURRENT, data),
-            )
-        state = BusState(time.monotonic(), motors)
-        self.last_state = state
-        return state
+        # GroupSyncRead.rxPacket drops. Like single reads, a lost or garbled reply is read
+        # again once (a read has no side effect).
+        for attempt in range(READ_ATTEMPTS):
+            result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH,
+                                         list(self._ids), len(self._ids), False)
+            if result != sdk.COMM_SUCCESS:
+                raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
+                                 f"{self._ph.getTxRxResult(result)}", self._ids[0])
+            motors = {}
+            for motor_id in self._ids:
+                data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
+                if (result in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
+                        and attempt < READ_ATTEMPTS - 1):
+                    break
+                self._check(motor_id, "sync read of present state", result, error)
+                motors[motor_id] = MotorState(
+                    position=_field(PRESENT_POSITION, data),
+                    velocity=_field(PRESENT_VELOCITY, data),
+                    current=_field(PRESENT_CURRENT, data),
+                )
+            else:
+                state = BusState(time.monotonic(), motors)
+                self.last_state = state
+                return state
+            self._port.clearPort()
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
