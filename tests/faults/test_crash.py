@@ -104,6 +104,11 @@ async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
         # The store loads, the leftovers are gone, the restart says how many it discarded.
         async with d.http.get(d.url + "/metrics") as resp:
             metrics = await resp.text()
+        if where == "update":
+            # The update never landed: the episode is as it was before (pending), whole,
+            # and the restarted daemon asks again (let it finish writing before looking).
+            ep = await d.wait_status(accepted, {"not_configured"})
+            assert ep["attempts"] == 1
         for ep in store_consistent(root):
             assert ep["press"]["contact"]
             recording.load(root / ep["id"] / "press.press.npz")
@@ -116,11 +121,6 @@ async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
             # The episode killed while being written: all of it or none of it.
             status, missing = await d.get(f"/v1/episodes/{accepted}")
             assert status == 404 and "no episode" in missing["error"]
-        else:
-            # The update never landed: the episode is as it was before (pending), whole,
-            # and the restarted daemon asks again.
-            ep = await d.wait_status(accepted, {"not_configured"})
-            assert ep["attempts"] == 1
         assert gripper_open(robot)
 
 

@@ -75,10 +75,11 @@ async def test_disk_full_while_writing_is_a_clear_error_and_the_daemon_serves_on
         assert (d.store.root / old["id"] / "episode.json").read_bytes() == old_json
         recording.load(d.store.root / old["id"] / "press.press.npz")
 
-        # Space again: healthy, and the next press is kept.
+        # Space again: healthy, and a press is accepted (not refused for space).
         monkeypatch.undo()
         await wait_health(d, True)
-        status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
-        assert status == 200 and ep["status"] == "not_configured"
+        status, ep = await d.post("/v1/recognize", {"candidates": FOOD})
+        assert status == 202
+        ep = await d.wait_status(ep["id"], {"not_configured"})
         assert [e["id"] for e in store_consistent(d.store.root)] == [old["id"], ep["id"]]
         assert json.loads(old_json)["status"] == "not_configured"

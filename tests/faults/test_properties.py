@@ -335,7 +335,7 @@ def named_paths(raw: dict, prefix: str = "") -> set[str]:
     return out
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(raw=config_dicts())
 @example(raw={"press": {"x_th": 10**400}})
 @example(raw={"vlm": {"base_url": "http://[::1", "model": "m"}})
