@@ -21,10 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from aiohttp import web
+from aiohttp import BodyPartReader, web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from edge.config import ApiConfig
 from edge.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.images import ImageError, check_image
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +34,8 @@ MAX_LABEL_CHARS = 80
 SSE_KEEPALIVE_S = 15.0
 _RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
+_ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, GET /v1/events, POST /v1/abort, "
+           "GET /healthz, GET /metrics")
 
 
 class Runtime(Protocol):
@@ -104,6 +108,16 @@ def validate_image(data: bytes, max_bytes: int) -> bytes:
     return data
 
 
+async def decodable_image(data: bytes) -> bytes:
+    """The image, if it decodes: a broken one must be refused before the arm moves, not
+    found out by the VLM call after the press."""
+    try:
+        await asyncio.to_thread(check_image, data)
+    except ImageError as exc:
+        raise BadRequest(f"image must be a JPEG or PNG file that decodes: {exc}") from None
+    return data
+
+
 @dataclass
 class _Parsed:
     candidates: list[str]
@@ -141,11 +155,21 @@ class Api:
         except web.HTTPRequestEntityTooLarge:
             return _error(413, f"request body too large (at most {self.cfg.max_body_bytes} "
                                "bytes)")
-        except web.HTTPException:
-            raise
+        except web.HTTPException as exc:
+            if exc.status < 400:
+                raise
+            # aiohttp's own refusals (no such route, wrong method) are JSON like ours.
+            message = f"{exc.reason}: {request.method} {request.path}"
+            if exc.status == 404:
+                message += f"; the routes are {_ROUTES}"
+            headers = {k: v for k, v in exc.headers.items() if k in ("Allow",)}
+            return web.json_response({"error": message}, status=exc.status, headers=headers)
         except EdgeError as exc:
             log.warning("%s %s failed: %s", request.method, request.path, exc)
             return _error(503, str(exc))
+        except Exception as exc:
+            log.exception("%s %s: unexpected error", request.method, request.path)
+            return _error(500, f"internal error ({type(exc).__name__}); see the daemon's log")
 
     @web.middleware
     async def _auth(self, request: web.Request, handler):
@@ -177,26 +201,21 @@ class Api:
     async def _parse_recognize(self, request: web.Request) -> _Parsed:
         image: bytes | None = None
         if request.content_type == "multipart/form-data":
-            fields: dict[str, Any] = {}
-            reader = await request.multipart()
-            async for part in reader:
-                name = part.name or ""
-                if name not in _RECOGNIZE_FIELDS:
-                    raise BadRequest(f"unknown field {name!r}; known: "
-                                     + ", ".join(sorted(_RECOGNIZE_FIELDS)))
-                if name == "image":
-                    image = validate_image(await part.read(), self.cfg.max_body_bytes)
-                else:
-                    text = await part.text()
-                    try:
-                        fields[name] = json.loads(text)
-                    except ValueError:
-                        fields[name] = text
+            try:
+                fields, image = await self._read_multipart(request)
+            except (ValueError, LookupError, AssertionError, HttpProcessingError) as exc:
+                # aiohttp's reader on a broken stream (no or a wrong boundary, a cut body,
+                # a bad part header), an unknown charset, text that is not in its charset.
+                if isinstance(exc, BadRequest):
+                    raise
+                raise BadRequest(f"malformed multipart/form-data body: "
+                                 f"{type(exc).__name__}: {str(exc)[:200]}") from None
         elif request.content_type == "application/json":
             try:
                 fields = await request.json()
-            except ValueError:
-                raise BadRequest("body is not valid JSON") from None
+            except (ValueError, RecursionError, LookupError):  # LookupError: bad charset
+                raise BadRequest("body is not valid JSON (or nested too deep, or not in "
+                                 "its charset)") from None
             if not isinstance(fields, dict):
                 raise BadRequest("body must be a JSON object")
             unknown = sorted(set(fields) - _RECOGNIZE_FIELDS)
@@ -222,7 +241,43 @@ class Api:
                                     or not 0 < timeout <= 600):
             raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
         candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
+        if image is not None:
+            image = await decodable_image(image)
         return _Parsed(candidates, image, wait, timeout)
+
+    async def _read_multipart(self, request: web.Request) -> tuple[dict[str, Any],
+                                                                   bytes | None]:
+        # aiohttp's client_max_size covers read()/post(), not a streamed multipart body:
+        # count the bytes here, so no body is held in memory past max_body_bytes.
+        fields: dict[str, Any] = {}
+        image: bytes | None = None
+        left = self.cfg.max_body_bytes
+        reader = await request.multipart()
+        async for part in reader:
+            if not isinstance(part, BodyPartReader):
+                raise BadRequest("nested multipart bodies are not accepted")
+            name = part.name or ""
+            if name not in _RECOGNIZE_FIELDS:
+                raise BadRequest(f"unknown field {name!r}; known: "
+                                 + ", ".join(sorted(_RECOGNIZE_FIELDS)))
+            chunks = []
+            while chunk := await part.read_chunk():
+                left -= len(chunk)
+                if left < 0:
+                    raise web.HTTPRequestEntityTooLarge(max_size=self.cfg.max_body_bytes,
+                                                        actual_size=self.cfg.max_body_bytes
+                                                        - left)
+                chunks.append(chunk)
+            data = b"".join(chunks)  # not decoded: no Content-Encoding bomb either
+            if name == "image":
+                image = validate_image(data, self.cfg.max_body_bytes)
+            else:
+                text = data.decode(part.get_charset(default="utf-8"))
+                try:
+                    fields[name] = json.loads(text)
+                except (ValueError, RecursionError):
+                    fields[name] = text
+        return fields, image
 
     async def recognize(self, request: web.Request) -> web.Response:
         parsed = await self._parse_recognize(request)

@@ -313,7 +313,12 @@ class VLMConfig:
 
     def validate(self, path: str) -> None:
         if self.base_url:
-            parts = urlsplit(self.base_url)
+            try:
+                parts = urlsplit(self.base_url)
+                parts.port  # noqa: B018 - raises for a port that is not a port
+            except ValueError as exc:
+                raise ConfigError(f"{path}.base_url = {_show(self.base_url)}: not a valid URL "
+                                  f"({exc})") from None
             _require(parts.scheme in ("http", "https") and bool(parts.hostname), path,
                      "base_url", self.base_url, "must be an http:// or https:// URL")
             _require(parts.username is None and parts.password is None, path, "base_url",
@@ -376,7 +381,17 @@ class Config:
 
 def _require(ok: bool, path: str, name: str, value: Any, why: str) -> None:
     if not ok:
-        raise ConfigError(f"{path}.{name} = {value!r}: {why}")
+        raise ConfigError(f"{path}.{name} = {_show(value)}: {why}")
+
+
+def _show(value: Any) -> str:
+    """``repr`` for an error message: short, and never failing (Python refuses to print
+    integers of more than 4300 digits)."""
+    try:
+        text = repr(value)
+    except ValueError:
+        return f"<an integer of {value.bit_length()} bits>"
+    return text if len(text) <= 200 else text[:200] + "..."
 
 
 def load_config(path: str | Path) -> Config:
@@ -388,7 +403,7 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(f"config file {path} does not exist") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"config file {path} cannot be read: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
+    except ValueError as exc:  # TOMLDecodeError, or an integer Python will not parse
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
     return config_from_dict(raw, source=str(path))
 
@@ -404,7 +419,7 @@ def from_dict(cls: type, raw: Any, path: str) -> Any:
     """Build dataclass ``cls`` from a TOML table, checking keys and types recursively."""
     where = path or "top level"
     if not isinstance(raw, dict):
-        raise ConfigError(f"{where} must be a table, got {type(raw).__name__} {raw!r}")
+        raise ConfigError(f"{where} must be a table, got {type(raw).__name__} {_show(raw)}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(raw) - set(fields))
@@ -444,41 +459,46 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         raise ConfigError("; ".join(errors))
     if origin is Literal:
         if value not in args:
-            raise ConfigError(f"{path} = {value!r}: must be one of {', '.join(map(repr, args))}")
+            raise ConfigError(f"{path} = {_show(value)}: must be one of "
+                              f"{', '.join(map(repr, args))}")
         return value
     if origin is tuple:
         if not isinstance(value, list | tuple):
-            raise ConfigError(f"{path} = {value!r}: must be an array")
+            raise ConfigError(f"{path} = {_show(value)}: must be an array")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], v, f"{path}[{i}]") for i, v in enumerate(value))
         if len(args) != len(value):
-            raise ConfigError(f"{path} = {value!r}: must have {len(args)} elements")
+            raise ConfigError(f"{path} = {_show(value)}: must have {len(args)} elements")
         pairs = enumerate(zip(args, value, strict=True))
         return tuple(_convert(a, v, f"{path}[{i}]") for i, (a, v) in pairs)
     if origin is dict:
         if not isinstance(value, dict):
-            raise ConfigError(f"{path} = {value!r}: must be a table")
+            raise ConfigError(f"{path} = {_show(value)}: must be a table")
         return {str(k): _convert(args[1], v, f"{path}.{k}") for k, v in value.items()}
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{path} = {value!r}: must be true or false")
+            raise ConfigError(f"{path} = {_show(value)}: must be true or false")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{path} = {value!r}: must be an integer")
+            raise ConfigError(f"{path} = {_show(value)}: must be an integer")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{path} = {value!r}: must be a number")
-        if not math.isfinite(value):
-            raise ConfigError(f"{path} = {value!r}: must be finite")
-        return float(value)
+            raise ConfigError(f"{path} = {_show(value)}: must be a number")
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond any float
+            number = math.inf
+        if not math.isfinite(number):
+            raise ConfigError(f"{path} = {_show(value)}: must be finite")
+        return number
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{path} = {value!r}: must be a string")
+            raise ConfigError(f"{path} = {_show(value)}: must be a string")
         return value
     if tp is Path:
         if not isinstance(value, str) or not value:
-            raise ConfigError(f"{path} = {value!r}: must be a non-empty path string")
+            raise ConfigError(f"{path} = {_show(value)}: must be a non-empty path string")
         return Path(value)
     raise ConfigError(f"{path}: unsupported type {tp!r} in the config schema")

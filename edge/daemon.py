@@ -9,7 +9,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from edge.api import Api
+from edge.api import Api, load_token
 from edge.config import Config, load_config
 from edge.runtime import Devices, Runtime
 from edge.store import EpisodeStore
@@ -55,6 +55,9 @@ async def serve(cfg: Config, config_path: str | None = None,
                 devices: Devices | None = None) -> None:
     """Run the daemon until SIGTERM; ``devices`` overrides the configured ones (tests)."""
     started = time.monotonic()
+    # A configuration the API refuses (exposed without a token) is refused before any
+    # device is touched: no torque on an arm the daemon will not run.
+    load_token(cfg.api)
     notifier = Notifier()
     notifier.status("starting: loading model")
     model = await asyncio.to_thread(load_model, cfg)

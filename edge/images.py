@@ -106,6 +106,15 @@ def prepare_image(
                          reencoded=True)
 
 
+def check_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[str, int, int]:
+    """(format, width, height) of a decodable JPEG/PNG, else :class:`ImageError`.
+
+    Decodes the pixels (a large JPEG at a reduced scale): CPU work, call it off the loop.
+    """
+    img, (width, height) = _open(bytes(data), max_pixels, 1024)
+    return img.format or "?", width, height
+
+
 def _open(data: bytes, max_pixels: int, max_side_px: int) -> tuple[Image.Image, tuple]:
     try:
         img = Image.open(io.BytesIO(data), formats=list(FORMATS))

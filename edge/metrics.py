@@ -65,6 +65,10 @@ class Metrics:
             "# HELP vtzero_vlm_errors_total VLM calls that failed and were left pending.",
             "# TYPE vtzero_vlm_errors_total counter",
             f"vtzero_vlm_errors_total {self.vlm_errors}",
+            "# HELP vtzero_store_discarded_partial_total Episodes found half-written at start "
+            "(a crash while writing) and discarded.",
+            "# TYPE vtzero_store_discarded_partial_total counter",
+            f"vtzero_store_discarded_partial_total {self.discarded_partial}",
             "# HELP vtzero_tactile_frames_total Tactile frames received.",
             "# TYPE vtzero_tactile_frames_total counter",
             f"vtzero_tactile_frames_total {self.frames}",

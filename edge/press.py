@@ -2,6 +2,8 @@
 
 idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -> idle
 
+The gripper is opened before the arm moves to ``above`` (it may have been left closed).
+
 The threshold is checked on every arriving frame by the sensor task (:meth:`on_frame`),
 which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
 closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
@@ -35,6 +37,8 @@ RECORD_MARGIN_S = 0.2
 GRIPPER_TRACE_PERIOD_S = 0.02
 # A stream this long without a fresh frame means the press must not start.
 FRESH_FRAME_S = 0.1
+# After the press, how long the recording waits for a late stream to cover its window.
+STREAM_CATCH_UP_S = 1.0
 
 
 @dataclass
@@ -83,6 +87,8 @@ class _Armed:
         self.t_cross: float | None = None
         self.level_at_cross = 0.0
         self.peak = 0.0
+        # The stop at the threshold could not be sent: the press aborts and opens.
+        self.stop_error: BaseException | None = None
 
 
 class PressController:
@@ -114,6 +120,7 @@ class PressController:
         if armed.t_cross is None and level > armed.x_th:
             armed.t_cross = recv_time
             armed.level_at_cross = level
+            stopped = False
             try:
                 await self.gripper.stop_now()
                 # The stop's packet time at the port if the driver knows it, else now.
@@ -121,8 +128,14 @@ class PressController:
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time
+                stopped = True
+            except DeviceError as exc:
+                # Not the sensor's fault: keep it out of the sensor task, abort the press.
+                log.error("the stop at the threshold failed: %s", exc)
+                armed.stop_error = exc
             finally:
-                armed.crossed.set()
+                # Only a stop that went out counts as crossed; anything else aborts and opens.
+                (armed.crossed if stopped else armed.abort).set()
         elif level > armed.abort_level:
             armed.abort.set()
 
@@ -157,11 +170,18 @@ class PressController:
         self._outcome = outcome
         self._user_abort.clear()
         trace_task: asyncio.Task | None = None
+        moved = False  # whether this press has moved the arm
+        touched = False  # whether this press has commanded the gripper
         try:
             self._check_fresh()
             if self.recover is not None:
                 await self.recover()
             self._enter(outcome, "above")
+            # Open before anything moves: a gripper left closed (a crash, a motor that
+            # dropped out) would lift the object and tare on a squeeze.
+            touched = True
+            await self.gripper.open()
+            moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
@@ -176,9 +196,8 @@ class PressController:
             # Both fingers move: each closes at half the gap speed.
             await self.gripper.close(press.close_speed_mps / 2, goal_ma)
             await self._wait_closing(armed, outcome)
-            if outcome.result == "ok":
+            if outcome.result == "ok" and outcome.t_stop is not None:
                 self._enter(outcome, "holding")
-                assert outcome.t_stop is not None
                 hold_left = outcome.t_stop + press.dt_stopping_s - time.monotonic()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
@@ -189,26 +208,42 @@ class PressController:
         except EdgeError as exc:
             outcome.result, outcome.message = "error", str(exc)
             log.error("press failed: %s", exc)
+        except Exception as exc:
+            # A bug must still end in an open gripper and a press that says what went wrong.
+            log.exception("press failed on an unexpected error")
+            outcome.result = "error"
+            outcome.message = f"internal error: {type(exc).__name__}: {exc}"
         finally:
             self._armed = None
-            await self._open_safely(outcome)
+            # Refused before touching anything (stale sensor, a motor down): nothing to undo.
+            opened = await self._open_safely(outcome) if touched else False
             if trace_task is not None:
                 trace_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await trace_task
-        try:
-            self._enter(outcome, "returning")
-            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-        except EdgeError as exc:
-            log.error("arm did not return above the object: %s", exc)
-            if outcome.result == "ok":
-                outcome.result, outcome.message = "error", f"return failed: {exc}"
+        if moved and not opened:
+            # Lifting a gripper that may still hold the object would drag or lift it.
+            log.error("the gripper may still be closed: the arm stays where it stands")
+            outcome.message += "; arm left where it stands: free the object by hand"
+        elif moved:
+            try:
+                self._enter(outcome, "returning")
+                await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+            except EdgeError as exc:
+                log.error("arm did not return above the object: %s", exc)
+                if outcome.result == "ok":
+                    outcome.result, outcome.message = "error", f"return failed: {exc}"
         if outcome.t_stop is not None:
             # The window reaches 0.6 s past the stop; normally the opening took that long.
             spec = preprocess.DEFAULT_WINDOW
-            wait = outcome.t_stop + spec.after_s + RECORD_MARGIN_S - time.monotonic()
+            end = outcome.t_stop + spec.after_s + RECORD_MARGIN_S
+            wait = end - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
+            # A stream that paused after the stop (a server hiccup, a busy host) catches up.
+            give_up = time.monotonic() + STREAM_CATCH_UP_S
+            while self.ring.latest_time() < end and time.monotonic() < give_up:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
             outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
                                               outcome.t_stop + spec.after_s + RECORD_MARGIN_S)
         self._enter(outcome, "idle")
@@ -244,7 +279,7 @@ class PressController:
             crossed.cancel()
             aborted.cancel()
         outcome.peak_level = armed.peak
-        if armed.crossed.is_set():
+        if armed.crossed.is_set() and armed.stop_error is None:
             outcome.t_cross = armed.t_cross
             outcome.level_at_cross = armed.level_at_cross
             outcome.result = "ok"
@@ -258,7 +293,11 @@ class PressController:
 
     def _abort_reason(self, outcome: PressOutcome, armed: _Armed) -> None:
         outcome.peak_level = max(outcome.peak_level, armed.peak)
-        if self._stale.is_set():
+        if armed.stop_error is not None:
+            outcome.result = "error"
+            outcome.message = (f"the stop at the threshold failed ({armed.stop_error}): "
+                               "opening the gripper")
+        elif self._stale.is_set():
             outcome.result = "stale"
             outcome.message = "tactile stream went stale during the press: gripper opened"
         elif self._user_abort.is_set():
@@ -268,13 +307,16 @@ class PressController:
             outcome.message = (f"force far past the threshold (norm {armed.peak:.4f} > "
                                f"{armed.abort_level:.4f}): gripper opened")
 
-    async def _open_safely(self, outcome: PressOutcome) -> None:
+    async def _open_safely(self, outcome: PressOutcome) -> bool:
+        """Open the gripper, three tries; False (and said in the outcome) if it failed."""
         self._enter(outcome, "opening")
+        last: DeviceError | None = None
         for attempt in range(3):
             try:
                 await self.gripper.open()
-                return
+                return True
             except DeviceError as exc:
+                last = exc
                 log.error("opening the gripper failed (attempt %d): %s", attempt + 1, exc)
                 if self.recover is not None:
                     with contextlib.suppress(DeviceError):
@@ -282,7 +324,8 @@ class PressController:
         if outcome.result == "ok":
             outcome.result = "error"
         outcome.message = (outcome.message + "; " if outcome.message else "") + (
-            "GRIPPER MAY STILL BE CLOSED: opening failed three times")
+            f"GRIPPER MAY STILL BE CLOSED: opening failed three times (last: {last})")
+        return False
 
     async def _trace(self, outcome: PressOutcome) -> None:
         while True:

@@ -15,8 +15,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +30,9 @@ SUFFIX = ".press.npz"
 # A recording of a press lasts seconds; anything this large is not one.
 MAX_FRAMES = 1_000_000
 MAX_META_BYTES = 1_000_000
+# No member of a recording is larger (1e6 frames x 96 channels x uint16 is 192 MB); a header
+# that says otherwise is corrupt or hostile, and is refused before anything is allocated.
+MAX_ARRAY_BYTES = 512 * 1024 * 1024
 
 _ARRAYS: dict[str, tuple[np.dtype, int]] = {
     # name: (dtype, ndim)
@@ -111,19 +112,41 @@ def load(path: str | Path) -> Recording:
     return from_bytes(data, str(path))
 
 
+def _check_size(npz: np.lib.npyio.NpzFile, key: str, name: str) -> None:
+    """Refuse a member whose header claims more than MAX_ARRAY_BYTES, before reading it."""
+    with npz.zip.open(f"{key}.npy") as fh:
+        version = np.lib.format.read_magic(fh)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, _, dtype = read_header(fh)
+    size = math.prod(shape) * dtype.itemsize
+    if size > MAX_ARRAY_BYTES:
+        raise RecordingError(f"{name}: array {key} claims {size} bytes (shape {shape}); "
+                             "no recording is that large: the file is corrupt")
+
+
 def from_bytes(data: bytes, name: str = "<recording>") -> Recording:
     try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        loaded = np.load(io.BytesIO(data), allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise RecordingError(f"{name}: not a press recording (a bare .npy array, not an "
+                                 ".npz archive)")
+        with loaded as npz:
             members = set(npz.files)
             missing = sorted(({"meta"} | set(_ARRAYS)) - members)
             if missing:
                 raise RecordingError(
                     f"{name}: not a press recording, missing {', '.join(missing)}")
+            for key in ("meta", *_ARRAYS):
+                _check_size(npz, key, name)
             meta_arr = npz["meta"]
             arrays = {key: npz[key] for key in _ARRAYS}
     except RecordingError:
         raise
-    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, KeyError) as exc:
+    except Exception as exc:
+        # Parsing bytes only: whatever zipfile, zlib or numpy raise on them (BadZipFile,
+        # zlib.error, EOFError, ValueError, KeyError, NotImplementedError for an unknown
+        # zip version, SyntaxError/TokenError from a garbled array header...) means the same.
         raise RecordingError(
             f"{name}: truncated or corrupt recording ({type(exc).__name__}: {exc}); "
             "re-record or restore it from a backup") from None
@@ -131,7 +154,7 @@ def from_bytes(data: bytes, name: str = "<recording>") -> Recording:
         raise RecordingError(f"{name}: metadata block is not a JSON string")
     try:
         meta = json.loads(str(meta_arr))
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, RecursionError) as exc:
         raise RecordingError(f"{name}: metadata is not valid JSON: {exc}") from None
     if not isinstance(meta, dict):
         raise RecordingError(f"{name}: metadata must be a JSON object")

@@ -31,6 +31,7 @@ from edge.errors import (
     NotFoundError,
     SensorError,
     StaleSensorError,
+    StoreError,
 )
 from edge.metrics import Metrics
 from edge.press import PressController, PressOutcome, outcome_recording
@@ -84,6 +85,10 @@ class Runtime:
         self._tg: asyncio.TaskGroup | None = None
         self._work: set[asyncio.Task] = set()
         self._retry_wakeup = asyncio.Event()
+        # Episodes whose VLM question is in flight: never asked twice at once.
+        self._asking: set[str] = set()
+        # Episodes that could not be written at all (disk full): why, for whoever asks.
+        self._unstored: dict[str, str] = {}
         self.ready = asyncio.Event()
         self.started_at = time.monotonic()
 
@@ -168,6 +173,8 @@ class Runtime:
     async def _vlm_retry(self) -> None:
         cfg = self.cfg.runtime
         while True:
+            # Cleared before the scan: a failure during it (a new due time) wakes the next.
+            self._retry_wakeup.clear()
             pending = await asyncio.to_thread(self.store.pending)
             now = time.time()
             next_due = now + cfg.vlm_retry_max_s
@@ -182,15 +189,18 @@ class Runtime:
                         next_due = min(next_due, now + cfg.vlm_retry_max_s)
                 else:
                     next_due = min(next_due, due)
-            self._retry_wakeup.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._retry_wakeup.wait(), max(0.05, next_due - now))
+                await asyncio.wait_for(self._retry_wakeup.wait(),
+                                       max(0.05, next_due - time.time()))
 
     # --- recognition ------------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
                         timeout_s: float | None, source: str) -> dict[str, Any]:
         if self._stopping.is_set():
             raise BusyError("the daemon is shutting down; not starting a press")
+        full = self.store.space_error()
+        if full:
+            raise StoreError(f"not pressing: the episode could not be kept: {full}")
         if self._press_lock.locked():
             raise BusyError(f"a press is running (episode {self._current}); one at a time",
                             self._current)
@@ -240,10 +250,20 @@ class Runtime:
                 await self._ask_vlm(episode_id, retry=False)
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
-            with contextlib.suppress(Exception):
+            error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
+            try:
                 await asyncio.to_thread(self.store.create, {
-                    "id": episode_id, "status": "failed", "error": str(exc),
+                    "id": episode_id, "status": "failed", "error": error,
                     "candidates": candidates, "source": source}, {})
+            except StoreError as store_exc:
+                # Not even the failure could be kept: answer for it from memory.
+                self._unstored[episode_id] = (
+                    error if isinstance(exc, StoreError)
+                    else f"{error}; and it could not be stored: {store_exc}")
+                while len(self._unstored) > 100:
+                    self._unstored.pop(next(iter(self._unstored)))
+            except Exception:
+                log.exception("episode %s: the failure could not be stored", episode_id)
         finally:
             if self._current == episode_id:
                 self._current = None
@@ -268,7 +288,19 @@ class Runtime:
             await asyncio.to_thread(self.store.create, episode, files)
             return episode
         t = time.monotonic()
-        analysed = await asyncio.to_thread(self._encode, outcome)
+        try:
+            analysed = await asyncio.to_thread(self._encode, outcome)
+        except EdgeError as exc:
+            # E.g. the stream died before the window after the stop was complete: the press
+            # is still kept, raw, with why it could not be recognised.
+            log.error("episode %s: press not usable for recognition: %s", episode_id, exc)
+            episode.update(status="failed",
+                           error=f"the press worked but its tactile window is unusable: {exc}")
+            with contextlib.suppress(EdgeError):
+                files["press.press.npz"] = recording.to_bytes(
+                    outcome_recording(outcome, self.cfg))
+            await asyncio.to_thread(self.store.create, episode, files)
+            return episode
         timings["encode_s"] = time.monotonic() - t
         rec, window, x, z, code, topk, description = analysed
         files["press.press.npz"] = recording.to_bytes(rec)
@@ -299,6 +331,17 @@ class Runtime:
             topk, description
 
     async def _ask_vlm(self, episode_id: str, retry: bool) -> None:
+        # A new pending episode is due for the retry task at once, while its first question
+        # may still be in flight: two answers for one episode, the last write winning.
+        if episode_id in self._asking:
+            return
+        self._asking.add(episode_id)
+        try:
+            await self._ask_vlm_once(episode_id)
+        finally:
+            self._asking.discard(episode_id)
+
+    async def _ask_vlm_once(self, episode_id: str) -> None:
         episode = await asyncio.to_thread(self.store.get, episode_id)
         image = None
         for name in ("image.jpg", "image.png"):
@@ -326,6 +369,7 @@ class Runtime:
                         delay)
             await asyncio.to_thread(self.store.update, episode_id, attempts=attempts,
                                     last_error=str(exc), next_retry_at=time.time() + delay)
+            self._retry_wakeup.set()  # the retry task plans from the new due time
             self.publish({"type": "episode", "episode": episode_id, "status": "pending",
                           "error": str(exc)})
             return
@@ -343,7 +387,12 @@ class Runtime:
                  f" -> {answer.label}" if answer.label else "")
 
     async def episode(self, episode_id: str) -> dict[str, Any]:
-        return await asyncio.to_thread(self.store.get, episode_id)
+        try:
+            return await asyncio.to_thread(self.store.get, episode_id)
+        except NotFoundError:
+            if episode_id in self._unstored:
+                raise StoreError(self._unstored[episode_id]) from None
+            raise
 
     async def abort(self) -> bool:
         return self.press.request_abort()
@@ -351,8 +400,11 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < 1.0 and not self.press.sensor_is_stale
-        return {"ok": self.ready.is_set() and fresh, "ready": self.ready.is_set(),
-                "sensor_fresh": fresh,
+        bus_error = getattr(self.devices.bus, "fault", None)
+        store_error = self.store.space_error()
+        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error,
+                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
+                "store_error": store_error,
                 "state": self.press.state, "episode": self._current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 "version": __version__}

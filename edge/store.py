@@ -35,6 +35,9 @@ log = logging.getLogger(__name__)
 EPISODE_FILE = "episode.json"
 _ID_RE = re.compile(r"^\d{8}T\d{6}\d{3}Z-[0-9a-f]{6}$")
 _TMP_PREFIX = ".tmp-"
+# Below this much free space (or 100 free inodes) the store counts as full: an episode
+# takes a few hundred kB; keep room for the rest of the system too.
+MIN_FREE_BYTES = 20 * 1024 * 1024
 # Statuses: pending (VLM not done yet, retried), done, invalid_answer, not_configured,
 # failed (the press itself failed: no contact, stale sensor, abort).
 FINAL_STATUSES = frozenset({"done", "invalid_answer", "not_configured", "failed"})
@@ -69,6 +72,22 @@ class EpisodeStore:
             log.warning("discarded %d incomplete episode(s) left by an interrupted write",
                         removed)
         return removed
+
+    def space_error(self) -> str | None:
+        """Why a new episode cannot be kept (the filesystem is full), or None.
+
+        One ``statvfs`` call: cheap enough for every /healthz and every press.
+        """
+        try:
+            st = os.statvfs(self.root)
+        except OSError as exc:
+            return f"episode store {self.root}: cannot check free space: {exc}"
+        free = st.f_bavail * st.f_frsize
+        if free < MIN_FREE_BYTES or (st.f_files and st.f_favail < 100):
+            return (f"episode store {self.root}: disk full ({free / 2**20:.1f} MiB, "
+                    f"{st.f_favail} inodes free; at least {MIN_FREE_BYTES / 2**20:.0f} MiB "
+                    "needed): free space on its filesystem; older episodes are intact")
+        return None
 
     def _dir(self, episode_id: str) -> Path:
         if not valid_id(episode_id):

@@ -4,89 +4,16 @@ OpenAI-compatible VLM on loopback."""
 import asyncio
 import contextlib
 import json
-from dataclasses import replace
-from pathlib import Path
 
-import aiohttp
 import numpy as np
 import pytest
 
 from edge import recording
-from edge.api import Api
-from edge.config import Config
-from edge.daemon import load_model, make_vlm
-from edge.devices import open_devices
 from edge.hw.arm import gripper_raw
-from edge.runtime import Runtime
 from edge.sim.catalogue import names
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.store import EpisodeStore
-
-ROOT = Path(__file__).resolve().parents[1]
-CUBE = names("cube")
-
-
-def base_config(vlm_url: str = "") -> Config:
-    cfg = Config()
-    return replace(
-        cfg,
-        press=replace(cfg.press, open_width_m=0.008),
-        runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0,
-                        models_dir=str(ROOT / "models"), vlm_retry_base_s=0.2,
-                        vlm_retry_max_s=1.0),
-        api=replace(cfg.api, port=0),
-        vlm=replace(cfg.vlm, base_url=vlm_url, model="fake-vlm" if vlm_url else "",
-                    max_retries=0, total_timeout_s=5.0, connect_timeout_s=1.0),
-    )
-
-
-class Daemon:
-    """The runtime with its API on a free loopback port, running in a task."""
-
-    def __init__(self, robot: SimRobot, cfg: Config, state: Path) -> None:
-        self.cfg = robot.runtime_config(cfg)
-        self.state = state
-        self.button = None
-        self.notifier = None
-
-    async def __aenter__(self):
-        model = await asyncio.to_thread(load_model, self.cfg)
-        self.devices = await open_devices(self.cfg)
-        self.devices.button = self.button
-        self.store = EpisodeStore(self.state / "episodes")
-        self.vlm = make_vlm(self.cfg)
-        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store,
-                               self.notifier)
-        self.api = Api(self.runtime, self.cfg.api)
-        self.task = asyncio.create_task(self.runtime.run(self.api))
-        await asyncio.wait_for(self.runtime.ready.wait(), 10)
-        self.url = f"http://127.0.0.1:{self.api.port}"
-        self.http = aiohttp.ClientSession()
-        return self
-
-    async def __aexit__(self, *exc):
-        await self.http.close()
-        self.runtime.stop()
-        await asyncio.wait_for(self.task, 30)
-        await self.vlm.close()
-
-    async def post(self, path, body):
-        async with self.http.post(self.url + path, json=body) as resp:
-            return resp.status, await resp.json()
-
-    async def get(self, path):
-        async with self.http.get(self.url + path) as resp:
-            return resp.status, await resp.json()
-
-    async def wait_status(self, episode_id, statuses, timeout_s=20.0):
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while True:
-            status, ep = await self.get(f"/v1/episodes/{episode_id}")
-            if status == 200 and ep.get("status") in statuses:
-                return ep
-            assert asyncio.get_running_loop().time() < deadline, (status, ep)
-            await asyncio.sleep(0.1)
+from tests.harness import CUBE, Daemon, base_config
 
 
 @pytest.mark.asyncio

@@ -12,7 +12,7 @@ from edge.daemon import load_model
 from edge.hw.button import FakeButton
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
-from tests.test_e2e import Daemon, base_config
+from tests.harness import Daemon, base_config
 
 CUBE = names("cube")
 

@@ -230,6 +230,11 @@ class DynamixelBus:
         self.last_state: BusState | None = None
         # When the last stop's Goal Position packet was written (monotonic).
         self.last_stop_t = 0.0
+        # Why the bus is not fit to press, for /healthz: the last failed watchdog feed
+        # (cleared by the next good one).
+        self._feed_fault: str | None = None
+        # A motor found with torque off before a press (it shut itself down): until restart.
+        self._torque_fault: str | None = None
 
     # ---------------------------------------------------------------- properties
 
@@ -249,6 +254,11 @@ class DynamixelBus:
     @property
     def torque_on(self) -> bool:
         return self._torque_on
+
+    @property
+    def fault(self) -> str | None:
+        """What is wrong with the bus now (a motor that does not answer...), or None."""
+        return self._torque_fault or self._feed_fault
 
     @property
     def thread_id(self) -> int | None:
@@ -370,7 +380,9 @@ class DynamixelBus:
             await self._call("torque off", self._torque_off_sync)
 
     async def recover_watchdog(self) -> list[int]:
-        """Clear Bus Watchdog trips: write 0, hold the present position, re-arm.
+        """Before a press: check every motor still has torque on (a motor that shut itself
+        down raises :class:`MotorError` naming it, and :attr:`fault` keeps saying so), then
+        clear Bus Watchdog trips: write 0, hold the present position, re-arm.
 
         Returns the IDs that had tripped.
         """
@@ -405,10 +417,12 @@ class DynamixelBus:
                 if not failing:
                     _log.warning("Bus Watchdog feed failed: %s", exc)
                 failing = True
+                self._feed_fault = str(exc)
             else:
                 if failing:
                     _log.info("Bus Watchdog feed works again")
                 failing = False
+                self._feed_fault = None
 
     async def _stop_feed(self) -> None:
         task, self._feed_task = self._feed_task, None
@@ -534,24 +548,32 @@ class DynamixelBus:
     def _read_state_once(self) -> BusState:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
         # its motor and the error byte (e.g. a hardware alert) is checked, which
-        # GroupSyncRead.rxPacket drops.
-        result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH, list(self._ids),
-                                     len(self._ids), False)
-        if result != sdk.COMM_SUCCESS:
-            raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
-                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
-        motors = {}
-        for motor_id in self._ids:
-            data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
-            self._check(motor_id, "sync read of present state", result, error)
-            motors[motor_id] = MotorState(
-                position=_field(PRESENT_POSITION, data),
-                velocity=_field(PRESENT_VELOCITY, data),
-                current=_field(PRESENT_CURRENT, data),
-            )
-        state = BusState(time.monotonic(), motors)
-        self.last_state = state
-        return state
+        # GroupSyncRead.rxPacket drops. Like single reads, a lost or garbled reply is read
+        # again once (a read has no side effect).
+        for attempt in range(READ_ATTEMPTS):
+            result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH,
+                                         list(self._ids), len(self._ids), False)
+            if result != sdk.COMM_SUCCESS:
+                raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
+                                 f"{self._ph.getTxRxResult(result)}", self._ids[0])
+            motors = {}
+            for motor_id in self._ids:
+                data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
+                if (result in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
+                        and attempt < READ_ATTEMPTS - 1):
+                    break
+                self._check(motor_id, "sync read of present state", result, error)
+                motors[motor_id] = MotorState(
+                    position=_field(PRESENT_POSITION, data),
+                    velocity=_field(PRESENT_VELOCITY, data),
+                    current=_field(PRESENT_CURRENT, data),
+                )
+            else:
+                state = BusState(time.monotonic(), motors)
+                self.last_state = state
+                return state
+            self._port.clearPort()
+        raise AssertionError("unreachable: the last attempt returns or raises")
 
     def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
@@ -686,6 +708,8 @@ class DynamixelBus:
             raise first
 
     def _recover_watchdog_sync(self) -> list[int]:
+        if self._torque_on:
+            self._check_torque_sync()
         tripped = [i for i in self._ids if self._read(i, BUS_WATCHDOG) == -1]
         units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
         for motor_id in tripped:
@@ -697,6 +721,22 @@ class DynamixelBus:
             _log.warning("Bus Watchdog had tripped on motors %s; cleared, holding position",
                          tripped)
         return tripped
+
+
+    def _check_torque_sync(self) -> None:
+        # A motor that shut itself down (overload, overheating...) has torque off: any goal
+        # is ignored, so a press would close nothing and open nothing. Refuse it by name.
+        # While the alert is on, the read itself raises with the Hardware Error Status.
+        for motor_id in self._ids:
+            if self._read(motor_id, TORQUE_ENABLE):
+                continue
+            status = self._read(motor_id, HARDWARE_ERROR_STATUS)
+            why = (f"Hardware Error Status 0x{status:02x}: {describe_hardware_error(status)}"
+                   if status else "no hardware error left")
+            self._torque_fault = (
+                f"motor {motor_id}: torque is off ({why}): the motor shut itself down; "
+                "remove the cause, power-cycle or reboot it, then restart the daemon")
+            raise MotorError(self._torque_fault, motor_id)
 
 
 def _field(reg: Register, data: list[int]) -> int:

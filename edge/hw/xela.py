@@ -73,9 +73,10 @@ def parse_layout_free(msg: str | bytes | Mapping[str, Any]) -> ParsedFrame | Non
     seq = obj.get("message")
     if seq == "Welcome":
         return None
-    if type(seq) is not int:
+    # The runtime keeps sequence numbers as int64 (ring buffer, recordings).
+    if type(seq) is not int or not -(2**63) <= seq < 2**63:
         raise SensorError(
-            f"XELA frame: 'message' (sequence number) must be an int, got {seq!r:.40}"
+            f"XELA frame: 'message' (sequence number) must be a 64-bit int, got {seq!r:.40}"
         )
     # Sensor objects sit under their number; every other key is bookkeeping.
     numbers = sorted(
@@ -115,9 +116,14 @@ def _frame_time(obj: Mapping[str, Any], seq: int, first_sensor: str) -> float:
         t = obj[first_sensor].get("time")
         if t is None:
             return math.nan
-    if type(t) not in (int, float) or not math.isfinite(t):
+    try:
+        # float() of an integer beyond any float overflows: not a time either.
+        value = float(t) if type(t) in (int, float) else math.nan
+    except OverflowError:
+        value = math.inf
+    if not math.isfinite(value):
         raise SensorError(f"XELA frame {seq}: 'time' must be a finite number, got {t!r:.40}")
-    return float(t)
+    return value
 
 
 def parse_frame(

@@ -1,0 +1,219 @@
+"""``kill -9`` of the daemon while it writes an episode, then a restart: the store loads,
+nothing is half-written, every committed episode is intact, the daemon serves again.
+
+Two ways in: a daemon process that kills itself at the worst instant (inside
+``EpisodeStore.create`` after every file is written, before the rename; or inside the
+atomic replacement of ``episode.json``), and the real ``vt-edge run`` killed from outside
+the moment its temp directory appears.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import aiohttp
+import pytest
+
+from edge import recording, tomledit
+from edge.sim.robot import SimRobot
+from tests.harness import (
+    FOOD,
+    QUICK_OBJECT,
+    ROOT,
+    Daemon,
+    at_pose,
+    base_config,
+    fast_config,
+    gripper_open,
+    store_consistent,
+    wait_health,
+)
+
+pytestmark = pytest.mark.asyncio
+
+SELF_KILLING_DAEMON = """
+import asyncio, os, signal, sys
+from pathlib import Path
+
+import edge.atomic
+from edge.sim.robot import SimRobot
+from edge.store import EpisodeStore
+from tests.harness import FOOD, QUICK_OBJECT, Daemon, base_config, fast_config
+
+state, where = Path(sys.argv[1]), sys.argv[2]
+
+
+def die(*args, **kwargs):
+    print("killed while writing", flush=True)
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+async def main():
+    async with SimRobot(QUICK_OBJECT, seed=3, cfg=base_config()) as robot, \\
+            Daemon(robot, fast_config(), state) as d:
+        if where == "update":
+            # The first episode is created whole; replacing its episode.json kills us.
+            edge.atomic.os = type("os", (), {**vars(os), "replace": die})
+        else:
+            status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
+            print("committed", ep["id"], ep["status"], flush=True)
+            real_create = EpisodeStore.create
+
+            def create(self, episode, files):
+                os.rename = die  # every file written and fsynced, the rename never happens
+                return real_create(self, episode, files)
+
+            EpisodeStore.create = create
+        status, ep = await d.post("/v1/recognize", {"candidates": FOOD})
+        print("accepted", ep["id"], flush=True)
+        await asyncio.sleep(60)
+
+
+asyncio.run(main())
+"""
+
+
+@pytest.mark.parametrize("where", ["create", "update"])
+async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", SELF_KILLING_DAEMON, str(tmp_path), where, cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "VTZERO_LOG_LEVEL": "WARNING"},
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    out, err = await asyncio.wait_for(proc.communicate(), 90)
+    lines = out.decode().splitlines()
+    print(lines)
+    assert proc.returncode == -signal.SIGKILL, err.decode()[-2000:]
+    assert lines[-1] == "killed while writing"
+    root = tmp_path / "episodes"
+    committed = [line.split()[1] for line in lines if line.startswith("committed")]
+    (accepted,) = [line.split()[1] for line in lines if line.startswith("accepted")]
+    # What the kill left: a temp directory (create) or a temp episode.json (update).
+    left = sorted(str(p.relative_to(root)) for p in root.rglob(".*"))
+    print("left by the kill:", left)
+    assert left and all(".tmp" in name for name in left)
+
+    async with SimRobot(QUICK_OBJECT, seed=4, cfg=base_config()) as robot, \
+            Daemon(robot, fast_config(), tmp_path) as d:
+        # The store loads, the leftovers are gone, the restart says how many it discarded.
+        async with d.http.get(d.url + "/metrics") as resp:
+            metrics = await resp.text()
+        if where == "update":
+            # The update never landed: the episode is as it was before (pending), whole,
+            # and the restarted daemon asks again (let it finish writing before looking).
+            ep = await d.wait_status(accepted, {"not_configured"})
+            assert ep["attempts"] == 1
+        for ep in store_consistent(root):
+            assert ep["press"]["contact"]
+            recording.load(root / ep["id"] / "press.press.npz")
+        await wait_health(d, True)
+        if where == "create":
+            assert f"vtzero_store_discarded_partial_total {len(left)}" in metrics
+            (intact,) = [e["id"] for e in store_consistent(root)]
+            assert intact == committed[0]
+            assert (await d.get(f"/v1/episodes/{intact}"))[1]["status"] == "not_configured"
+            # The episode killed while being written: all of it or none of it.
+            status, missing = await d.get(f"/v1/episodes/{accepted}")
+            assert status == 404 and "no episode" in missing["error"]
+        assert gripper_open(robot)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def kill_when_writing(pid: int, root: Path, timeout_s: float) -> dict:
+    """In a thread: SIGKILL ``pid`` the moment a temp episode directory appears."""
+    seen: dict = {}
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            names = os.listdir(root)
+        except FileNotFoundError:
+            continue
+        tmp = [n for n in names if n.startswith(".tmp-")]
+        if tmp:
+            os.kill(pid, signal.SIGKILL)
+            seen["temp_dir"] = tmp[0]
+            seen["files_then"] = sorted(os.listdir(root / tmp[0])) if (root / tmp[0]).exists() \
+                else "renamed meanwhile"
+            return seen
+        time.sleep(0.0002)
+    return seen
+
+
+async def test_real_daemon_killed_9_while_writing_then_restarted(tmp_path):
+    state = tmp_path / "state"
+    env = {**os.environ, "VTZERO_STATE_DIR": str(state), "VTZERO_LOG_LEVEL": "WARNING",
+           "PYTHONUNBUFFERED": "1"}
+    env.pop("VTZERO_VLM_URL", None)
+    async with SimRobot(QUICK_OBJECT, seed=5, cfg=base_config()) as robot:
+        run_cfg, port = tmp_path / "run.toml", free_port()
+        tomledit.update(ROOT / "configs" / "sim.toml", run_cfg, {
+            "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port},
+            "api": {"port": port}, "runtime": {"move_time_s": 0.1},
+            "press": {"tare_s": 0.15}})
+        api = f"http://127.0.0.1:{port}"
+        cfg = robot.runtime_config(base_config())
+
+        async def start() -> asyncio.subprocess.Process:
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "edge", "run", "--config", str(run_cfg), cwd=ROOT,
+                env=env, stderr=subprocess.DEVNULL)
+            deadline = time.monotonic() + 60
+            async with aiohttp.ClientSession() as http:
+                while True:
+                    assert proc.returncode is None and time.monotonic() < deadline
+                    try:
+                        async with http.get(api + "/healthz") as resp:
+                            if resp.status == 200:
+                                return proc
+                    except aiohttp.ClientError:
+                        pass
+                    await asyncio.sleep(0.1)
+
+        proc = await start()
+        try:
+            async with aiohttp.ClientSession() as http:
+                async with http.post(api + "/v1/recognize", json={"candidates": FOOD}) as r:
+                    accepted = (await r.json())["id"]
+                seen = await asyncio.to_thread(kill_when_writing, proc.pid,
+                                               state / "episodes", 30)
+                await proc.wait()
+                t_kill = time.monotonic()
+                print(f"killed while writing {seen}")
+                assert proc.returncode == -signal.SIGKILL and seen
+                # The robot: no host any more; each motor's Bus Watchdog stops it (0.3 s).
+                await asyncio.sleep(0.5)
+                assert all(robot.dxl.get_register(i, "Bus Watchdog") == -1
+                           for i in (11, 12, 13, 14, 15)), time.monotonic() - t_kill
+                assert gripper_open(robot) and at_pose(robot, cfg, "above")
+
+                proc = await start()
+                store_consistent(state / "episodes")
+                async with http.get(f"{api}/v1/episodes/{accepted}") as resp:
+                    status, body = resp.status, await resp.json()
+                print("after restart:", status, body.get("status") or body)
+                if status == 200:  # renamed into place before the kill landed: whole
+                    assert body["status"] in ("pending", "not_configured")
+                    assert body["press"]["contact"]
+                    recording.load(state / "episodes" / accepted / "press.press.npz")
+                else:  # none of it
+                    assert status == 404 and "no episode" in body["error"]
+                async with http.get(api + "/metrics") as resp:
+                    text = await resp.text()
+                assert f"vtzero_store_discarded_partial_total {int(status == 404)}" in text
+        finally:
+            if proc.returncode is None:
+                proc.send_signal(signal.SIGTERM)
+                await asyncio.wait_for(proc.wait(), 30)
+        assert proc.returncode == 0
+        assert gripper_open(robot)

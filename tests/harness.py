@@ -1,0 +1,189 @@
+"""The in-process daemon harness shared by the end-to-end and fault tests.
+
+``Daemon`` runs the real runtime (real drivers, real HTTP API, real store) against a
+:class:`~edge.sim.robot.SimRobot` on loopback and a pseudo-terminal, in a task of the test's
+event loop. Helpers below check what the robot did and what the store kept.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+
+from edge.api import Api
+from edge.config import Config
+from edge.daemon import load_model, make_vlm
+from edge.devices import open_devices
+from edge.hw.arm import gripper_raw
+from edge.runtime import Runtime
+from edge.sim.catalogue import names
+from edge.sim.robot import SimRobot
+from edge.store import EPISODE_FILE, EpisodeStore
+
+ROOT = Path(__file__).resolve().parents[1]
+CUBE = names("cube")
+OPEN_WIDTH_M = 0.008
+
+
+def base_config(vlm_url: str = "", *, move_time_s: float = 0.2, tare_s: float = 0.3) -> Config:
+    cfg = Config()
+    return replace(
+        cfg,
+        press=replace(cfg.press, open_width_m=OPEN_WIDTH_M, tare_s=tare_s),
+        runtime=replace(cfg.runtime, move_time_s=move_time_s, close_timeout_s=5.0,
+                        models_dir=str(ROOT / "models"), vlm_retry_base_s=0.2,
+                        vlm_retry_max_s=1.0),
+        api=replace(cfg.api, port=0),
+        vlm=replace(cfg.vlm, base_url=vlm_url, model="fake-vlm" if vlm_url else "",
+                    max_retries=0, total_timeout_s=5.0, connect_timeout_s=1.0),
+    )
+
+
+def fast_config(vlm_url: str = "") -> Config:
+    """Shorter moves and tare: the fault tests press many times."""
+    return base_config(vlm_url, move_time_s=0.1, tare_s=0.15)
+
+
+class Daemon:
+    """The runtime with its API on a free loopback port, running in a task."""
+
+    def __init__(self, robot: SimRobot, cfg: Config, state: Path,
+                 headers: dict[str, str] | None = None) -> None:
+        self.cfg = robot.runtime_config(cfg)
+        self.state = state
+        self.headers = headers or {}
+        # Optional devices and systemd notifier a test sets before entering.
+        self.button = None
+        self.notifier = None
+
+    async def __aenter__(self):
+        model = await asyncio.to_thread(load_model, self.cfg)
+        self.devices = await open_devices(self.cfg)
+        self.devices.button = self.button
+        self.store = EpisodeStore(self.state / "episodes")
+        self.vlm = make_vlm(self.cfg)
+        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store,
+                               self.notifier)
+        self.api = Api(self.runtime, self.cfg.api)
+        self.task = asyncio.create_task(self.runtime.run(self.api))
+        await asyncio.wait_for(self.runtime.ready.wait(), 10)
+        self.url = f"http://127.0.0.1:{self.api.port}"
+        self.http = aiohttp.ClientSession(headers=self.headers)
+        return self
+
+    async def __aexit__(self, *exc):
+        await self.http.close()
+        self.runtime.stop()
+        await asyncio.wait_for(self.task, 30)
+        await self.vlm.close()
+
+    async def post(self, path, body, headers=None):
+        async with self.http.post(self.url + path, json=body, headers=headers) as resp:
+            return resp.status, await resp.json()
+
+    async def get(self, path, headers=None):
+        async with self.http.get(self.url + path, headers=headers) as resp:
+            return resp.status, await resp.json()
+
+    async def wait_status(self, episode_id, statuses, timeout_s=20.0):
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while True:
+            status, ep = await self.get(f"/v1/episodes/{episode_id}")
+            if status == 200 and ep.get("status") in statuses:
+                return ep
+            assert asyncio.get_running_loop().time() < deadline, (status, ep)
+            await asyncio.sleep(0.1)
+
+    async def wait_press_state(self, states, timeout_s=20.0) -> str:
+        """Poll the press controller until it is in one of ``states``."""
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while self.runtime.press.state not in states:
+            assert asyncio.get_running_loop().time() < deadline, self.runtime.press.state
+            await asyncio.sleep(0.005)
+        return self.runtime.press.state
+
+    async def wait_idle(self, timeout_s=30.0) -> None:
+        """Until no press runs and no recognition task is left."""
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while self.runtime._work or self.runtime.press.state != "idle":
+            assert asyncio.get_running_loop().time() < deadline, self.runtime.press.state
+            await asyncio.sleep(0.02)
+
+
+# --- what the robot did --------------------------------------------------------------------
+
+def gripper_open(robot: SimRobot, width_m: float = OPEN_WIDTH_M, tol_raw: float = 20) -> bool:
+    """The gripper stands at the opening width (or wider) and squeezes nothing."""
+    return (robot.dxl.true_position(robot.world.gripper_id) > gripper_raw(width_m) - tol_raw
+            and robot.world.force_n == 0.0)
+
+
+def joints(robot: SimRobot, cfg: Config) -> tuple[float, ...]:
+    return tuple(robot.dxl.true_position(i) for i in cfg.bus.joint_ids)
+
+
+def at_pose(robot: SimRobot, cfg: Config, pose: str, tol_raw: float = 20) -> bool:
+    return all(abs(p - goal) <= tol_raw
+               for p, goal in zip(joints(robot, cfg), cfg.poses[pose], strict=True))
+
+
+# --- what the store kept -------------------------------------------------------------------
+
+def store_consistent(root: Path) -> list[dict[str, Any]]:
+    """Every entry of the store directory is a whole episode; returns them, oldest first.
+
+    No temp directories, no temp files, every episode directory has a readable
+    ``episode.json`` whose id is its name, and every data file it names is there.
+    """
+    root = Path(root)
+    leftovers = [p.name for p in root.iterdir() if p.name.startswith(".")]
+    assert not leftovers, f"temp entries left in the store: {leftovers}"
+    episodes = []
+    for entry in sorted(root.iterdir()):
+        assert entry.is_dir(), entry
+        hidden = [p.name for p in entry.iterdir() if p.name.startswith(".")]
+        assert not hidden, f"{entry.name}: temp files left: {hidden}"
+        ep = json.loads((entry / EPISODE_FILE).read_text())
+        assert ep["id"] == entry.name
+        assert ep["status"] in {"pending", "done", "invalid_answer", "not_configured",
+                                "failed", "vlm_error"}, ep["status"]
+        if ep["status"] != "failed":
+            for name in ("press.press.npz", "model_io.npz"):
+                assert (entry / name).is_file(), f"{entry.name} lacks {name}"
+        episodes.append(ep)
+    return episodes
+
+
+FOOD = names("foodreplica")
+# A wide object: contact comes soon after closing starts, so presses are short. Soft: a
+# rigid one (the resin replica) can overshoot to the abort level when the host is loaded.
+QUICK_OBJECT = "melon_pan"
+
+
+@contextlib.asynccontextmanager
+async def sim_daemon(state: Path, object_name: str = QUICK_OBJECT, *, seed: int = 7,
+                     cfg: Config | None = None, headers: dict[str, str] | None = None
+                     ) -> AsyncIterator[tuple[SimRobot, Daemon]]:
+    """An emulated robot with the daemon running against it."""
+    async with SimRobot(object_name, seed=seed, cfg=base_config()) as robot, \
+            Daemon(robot, cfg or fast_config(), state, headers=headers) as daemon:
+        yield robot, daemon
+
+
+async def wait_health(d: Daemon, ok: bool, timeout_s: float = 5.0) -> dict[str, Any]:
+    """Poll /healthz until its ``ok`` is ``ok`` (HTTP 200 or 503 to match)."""
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while True:
+        status, health = await d.get("/healthz")
+        assert status == (200 if health["ok"] else 503), (status, health)
+        if health["ok"] is ok:
+            return health
+        assert asyncio.get_running_loop().time() < deadline, health
+        await asyncio.sleep(0.05)
