@@ -269,11 +269,9 @@ class Runtime:
         t = time.monotonic()
         analysed = await asyncio.to_thread(self._encode, outcome)
         timings["encode_s"] = time.monotonic() - t
-        rec, window, x, z, code, topk, description = analysed
-        files["press.press.npz"] = recording.to_bytes(rec)
-        buf = io.BytesIO()
-        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-        files["model_io.npz"] = buf.getvalue()
+        z, code, topk, description, press_npz, model_io_npz = analysed
+        files["press.press.npz"] = press_npz
+        files["model_io.npz"] = model_io_npz
         episode.update(
             status="pending", code=int(code),
             z=[float(v) for v in z],
@@ -286,16 +284,20 @@ class Runtime:
         return episode
 
     def _encode(self, outcome: PressOutcome):
-        """CPU work off the loop: recording, crop, encoder, top-k, description."""
+        """CPU work off the loop: recording, crop, encoder, top-k, description, and the
+        episode's arrays serialised (compressing them takes milliseconds)."""
         rec = outcome_recording(outcome, self.cfg)
         units = preprocess.recording_units(rec)
         window = preprocess.crop(rec.recv_time, units, rec.t_stop)
         x = preprocess.subsample(window, 0)
         z, code = self.model.encode(x)
+        z = np.asarray(z).reshape(-1)
+        code = int(np.asarray(code).reshape(-1)[0])
         topk = self.model.topk(z, TOPK)
         description = self.model.describe([label for label, _ in topk])
-        return rec, window, x, np.asarray(z).reshape(-1), int(np.asarray(code).reshape(-1)[0]), \
-            topk, description
+        buf = io.BytesIO()
+        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+        return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
 
     async def _ask_vlm(self, episode_id: str, retry: bool) -> None:
         episode = await asyncio.to_thread(self.store.get, episode_id)
