@@ -471,6 +471,42 @@ def stop_read_time(writes: Sequence[tuple[float, bytes]], t_stop: float,
     return None
 
 
+class SamplerWindow:
+    """Records the runtime sampler from now until :meth:`close`: each wake-up's lateness
+    (the sampler's own bench switch) and the time between samples (a stall shows whole,
+    where the lateness is taken modulo the period after missed ticks)."""
+
+    def __init__(self, sampler: Any) -> None:
+        self.sampler = sampler
+        self.before = asdict(sampler.stats)
+        self.t0 = time.monotonic()
+        self.intervals: list[float] = []
+        sampler.lateness_s = []
+        sample, last = sampler.sample, [time.monotonic()]
+
+        def timed_sample(now: float) -> None:
+            self.intervals.append(now - last[0])
+            last[0] = now
+            sample(now)
+
+        sampler.sample = timed_sample
+
+    def close(self) -> dict[str, Any]:
+        sampler = self.sampler
+        lateness = list(sampler.lateness_s or [])
+        sampler.lateness_s = None
+        del sampler.sample
+        after = asdict(sampler.stats)
+        gaps = self.intervals[1:]
+        return {
+            "window_s": time.monotonic() - self.t0, "lateness_s": lateness,
+            **{k: after[k] - self.before[k] for k in ("ticks", "missed_ticks", "gaps",
+                                                      "extra_frames")},
+            "max_interval_ms": 1e3 * max(gaps, default=0.0),
+            "intervals_over_16ms": sum(v > 0.016 for v in gaps),
+        }
+
+
 class RuntimeBench:
     """The runtime in this process against the helper processes."""
 
@@ -484,6 +520,7 @@ class RuntimeBench:
         self.records: list[PressRecord] = []
         self.notes: list[str] = []
         self.load_stats: dict[str, Any] = {}
+        self.quiet_stats: dict[str, Any] = {}
 
     def config(self):
         from edge.config import load_config
@@ -605,10 +642,14 @@ class RuntimeBench:
 
     async def _quiet_phase(self) -> None:
         _progress(f"runtime: {self.s.quiet_presses} presses with no extra load (overhead)")
-        for i in range(self.s.quiet_presses):
-            rec = await self._press_ok("quiet", "per_frame", OBJECTS[i % len(OBJECTS)])
-            _progress(f"  quiet press {i + 1}: {rec.result}, stop latency "
-                      f"{_fmt(rec.stop_latency_ms)} ms, press {_fmt(rec.press_s)} s")
+        window = SamplerWindow(self.runtime.sampler)
+        try:
+            for i in range(self.s.quiet_presses):
+                rec = await self._press_ok("quiet", "per_frame", OBJECTS[i % len(OBJECTS)])
+                _progress(f"  quiet press {i + 1}: {rec.result}, stop latency "
+                          f"{_fmt(rec.stop_latency_ms)} ms, press {_fmt(rec.press_s)} s")
+        finally:
+            self.quiet_stats = window.close()
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
         from edge.daemon import vlm_config
@@ -655,19 +696,7 @@ class RuntimeBench:
 
         poller = await asyncio.to_thread(Helper, "poll", "--url", self.api_url,
                                          "--hz", str(s.poll_hz)) if s.poll_hz > 0 else None
-        sampler = runtime.sampler
-        sampler.lateness_s = []  # recorded from here on (the bench's switch; off in production)
-        before = asdict(sampler.stats)
-        intervals: list[float] = []
-        sample = sampler.sample
-        last = [time.monotonic()]
-
-        def timed_sample(now: float) -> None:
-            intervals.append(now - last[0])
-            last[0] = now
-            sample(now)
-
-        sampler.sample = timed_sample  # the time between two samples: a stall shows whole
+        window = SamplerWindow(runtime.sampler)
         pids = dict(self.pids, **({"poller": poller.proc.pid} if poller else {}))
         cpu0 = cpu_snapshot(pids)
         t0 = time.monotonic()
@@ -694,10 +723,7 @@ class RuntimeBench:
             cpu = cpu_times_since(cpu0)
             stop.set()
             duration = time.monotonic() - t0
-            lateness = list(sampler.lateness_s)
-            sampler.lateness_s = None
-            del sampler.sample
-            after = asdict(sampler.stats)
+            sampled = window.close()
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -707,15 +733,7 @@ class RuntimeBench:
         with contextlib.suppress(ValueError, IndexError):
             polled = json.loads(poll_out.strip().splitlines()[-1])
         self.load_stats = {
-            "duration_s": duration, "lateness_s": lateness,
-            "ticks": after["ticks"] - before["ticks"],
-            "missed_ticks": after["missed_ticks"] - before["missed_ticks"],
-            "gaps": after["gaps"] - before["gaps"],
-            "extra_frames": after["extra_frames"] - before["extra_frames"],
-            "max_late_ms": 1e3 * after["max_late_s"],
-            "max_interval_ms": 1e3 * max(intervals[1:], default=0.0),
-            "intervals_over_16ms": sum(v > 0.016 for v in intervals[1:]),
-            "cpu_s": cpu,
+            "duration_s": duration, **sampled, "cpu_s": cpu,
             **counters, "poll": polled, "image_bytes": len(image),
         }
         _progress(f"runtime: load off after {duration:.0f} s: {counters['vlm_asks']} VLM asks "
@@ -754,7 +772,14 @@ class RuntimeBench:
             late_ms, "ms", target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)),
             missed_ticks=load.get("missed_ticks"), ticks=load.get("ticks"),
             gaps=load.get("gaps"), duration_s=load.get("duration_s"),
+            max_gap_ms=load.get("max_interval_ms"),
             what="lateness of each 125 Hz sampler wake-up vs its ideal deadline, under load")
+        calm = self.quiet_stats
+        figs["sampler_period_error_ms_no_load"] = figure(
+            [1e3 * v for v in calm.get("lateness_s", [])], "ms", None,
+            missed_ticks=calm.get("missed_ticks"), ticks=calm.get("ticks"),
+            duration_s=calm.get("window_s"), max_gap_ms=calm.get("max_interval_ms"),
+            what="as sampler_period_error_ms, during the presses with no extra load")
         loaded = [r for r in self.records if r.phase == "load"]
         lat = {}
         for name in CONTROLLERS:
@@ -806,6 +831,8 @@ def _fmt(value: float | None, digits: int = 2) -> str:
 
 def runtime_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str], list[dict],
                                                    dict[str, Any]]:
+    from edge.daemon import new_event_loop
+
     _progress("starting the emulated robot and the fake VLM (own processes)")
     robot = Helper("robot", "--config", str(SIM_CONFIG), "--object", OBJECTS[0],
                    "--nice", str(ROBOT_NICE))
@@ -820,7 +847,9 @@ def runtime_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str], li
         for lg in quiet_loggers:
             lg.setLevel(logging.WARNING)
         try:
-            asyncio.run(bench.run())
+            # The daemon's own event loop (edge.daemon.new_event_loop), as `vt-edge run` has.
+            with asyncio.Runner(loop_factory=new_event_loop) as runner:
+                runner.run(bench.run())
         finally:
             for lg, level in zip(quiet_loggers, levels, strict=True):
                 lg.setLevel(level)
@@ -1207,7 +1236,8 @@ def train_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
 
 # Every figure a full run writes (the train and torch figures need torch), in table order.
 FIGURES = (
-    "sampler_period_error_ms", "stop_latency_ms", "stop_latency_ms_tick125",
+    "sampler_period_error_ms", "sampler_period_error_ms_no_load",
+    "stop_latency_ms", "stop_latency_ms_tick125",
     "stop_latency_ms_loop100", "stop_latency_ratio_loop100", "stop_latency_ratio_tick125",
     "stop_latency_ms_no_load",
     *(f"force_overshoot_n_{o}_{c}" for o in OBJECTS for c in CONTROLLERS),
