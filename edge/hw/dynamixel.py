@@ -718,8 +718,25 @@ class DynamixelBus:
         if first is not None:
             raise first
 
+    def _sync_read_register(self, reg: Register) -> dict[int, int]:
+        """One register of every motor in one SYNC READ (one round trip, not one each)."""
+        result = self._ph.syncReadTx(self._port, reg.address, reg.size, list(self._ids),
+                                     len(self._ids), False)
+        if result != sdk.COMM_SUCCESS:
+            raise MotorError(f"motors {list(self._ids)}: sync read of {reg.name}: "
+                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
+        values = {}
+        for motor_id in self._ids:
+            with self._expect(reg.size):
+                data, result, error = self._ph.readRx(self._port, motor_id, reg.size)
+            self._check(motor_id, f"sync read of {reg.name}", result, error)
+            values[motor_id] = reg.decode(bytes(data))
+        return values
+
     def _recover_watchdog_sync(self) -> list[int]:
-        tripped = [i for i in self._ids if self._read(i, BUS_WATCHDOG) == -1]
+        # Before every press: one sync read (the common case: nothing tripped).
+        watchdogs = self._sync_read_register(BUS_WATCHDOG)
+        tripped = [i for i in self._ids if watchdogs[i] == -1]
         units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
         for motor_id in tripped:
             self._write(motor_id, BUS_WATCHDOG, 0)
