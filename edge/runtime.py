@@ -244,10 +244,22 @@ class Runtime:
                     image = await camera_task
                 except EdgeError as exc:
                     log.warning("camera failed: %s", exc)
-            episode = await self._analyse(episode_id, candidates, image, source, outcome,
-                                          timings)
-            if episode["status"] == "pending":
-                await self._ask_vlm(episode_id, retry=False)
+            episode, files = await self._analyse(episode_id, candidates, image, source,
+                                                 outcome, timings)
+            if episode["status"] != "pending":
+                await asyncio.to_thread(self.store.create, episode, files)
+            else:
+                # The durable write and the VLM request overlap (the write takes ~10 ms of
+                # fsyncs); the answer is stored only once the episode is. A crash before the
+                # write completes loses the press, as it would have a moment earlier.
+                stored = asyncio.get_running_loop().run_in_executor(
+                    None, self.store.create, episode, files)  # submitted now, not next turn
+                stored.add_done_callback(self._tactile_event(episode))
+                try:
+                    await self._ask_vlm(episode_id, retry=False, fresh=(episode, image),
+                                        stored=stored)
+                finally:
+                    await stored
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
             error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
@@ -272,8 +284,10 @@ class Runtime:
             self.publish({"type": "episode", "episode": episode_id, "status": "finished"})
 
     async def _analyse(self, episode_id: str, candidates: list[str], image: bytes | None,
-                       source: str, outcome: PressOutcome,
-                       timings: dict[str, float]) -> dict[str, Any]:
+                       source: str, outcome: PressOutcome, timings: dict[str, float]
+                       ) -> tuple[dict[str, Any], dict[str, bytes]]:
+        """The episode (``failed``, or ``pending`` for the VLM) and its files, not yet
+        stored."""
         episode: dict[str, Any] = {
             "id": episode_id, "source": source, "candidates": candidates,
             "press": outcome.summary(), "software_version": __version__,
@@ -285,8 +299,7 @@ class Runtime:
             files["image" + (".png" if image.startswith(b"\x89PNG") else ".jpg")] = image
         if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
             episode.update(status="failed", error=outcome.message or outcome.result)
-            await asyncio.to_thread(self.store.create, episode, files)
-            return episode
+            return episode, files
         t = time.monotonic()
         try:
             analysed = await asyncio.to_thread(self._encode, outcome)
@@ -299,60 +312,78 @@ class Runtime:
             with contextlib.suppress(EdgeError):
                 files["press.press.npz"] = recording.to_bytes(
                     outcome_recording(outcome, self.cfg))
-            await asyncio.to_thread(self.store.create, episode, files)
-            return episode
+            return episode, files
         timings["encode_s"] = time.monotonic() - t
-        rec, window, x, z, code, topk, description = analysed
-        files["press.press.npz"] = recording.to_bytes(rec)
-        buf = io.BytesIO()
-        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-        files["model_io.npz"] = buf.getvalue()
+        z, code, topk, description, press_npz, model_io_npz = analysed
+        files["press.press.npz"] = press_npz
+        files["model_io.npz"] = model_io_npz
         episode.update(
             status="pending", code=int(code),
             z=[float(v) for v in z],
             topk=[{"label": label, "distance": float(d)} for label, d in topk],
             description=description, attempts=0, next_retry_at=0.0,
         )
-        await asyncio.to_thread(self.store.create, episode, files)
-        self.publish({"type": "tactile", "episode": episode_id, "description": description,
-                      "topk": episode["topk"]})
-        return episode
+        return episode, files
+
+    def _tactile_event(self, episode: dict[str, Any]):
+        """Publishes the tactile result once the episode is stored (a done-callback)."""
+        def done(stored: asyncio.Future) -> None:
+            if not stored.cancelled() and stored.exception() is None:
+                self.publish({"type": "tactile", "episode": episode["id"],
+                              "description": episode["description"],
+                              "topk": episode["topk"]})
+        return done
 
     def _encode(self, outcome: PressOutcome):
-        """CPU work off the loop: recording, crop, encoder, top-k, description."""
+        """CPU work off the loop: recording, crop, encoder, top-k, description, and the
+        episode's arrays serialised (compressing them takes milliseconds)."""
         rec = outcome_recording(outcome, self.cfg)
         units = preprocess.recording_units(rec)
         window = preprocess.crop(rec.recv_time, units, rec.t_stop)
         x = preprocess.subsample(window, 0)
         z, code = self.model.encode(x)
+        z = np.asarray(z).reshape(-1)
+        code = int(np.asarray(code).reshape(-1)[0])
         topk = self.model.topk(z, TOPK)
         description = self.model.describe([label for label, _ in topk])
-        return rec, window, x, np.asarray(z).reshape(-1), int(np.asarray(code).reshape(-1)[0]), \
-            topk, description
+        buf = io.BytesIO()
+        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+        return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
 
-    async def _ask_vlm(self, episode_id: str, retry: bool) -> None:
+    async def _ask_vlm(self, episode_id: str, retry: bool,
+                       fresh: tuple[dict[str, Any], bytes | None] | None = None,
+                       stored: asyncio.Future | None = None) -> None:
         # A new pending episode is due for the retry task at once, while its first question
         # may still be in flight: two answers for one episode, the last write winning.
         if episode_id in self._asking:
             return
         self._asking.add(episode_id)
         try:
-            await self._ask_vlm_once(episode_id)
+            await self._ask_vlm_once(episode_id, fresh, stored)
         finally:
             self._asking.discard(episode_id)
 
-    async def _ask_vlm_once(self, episode_id: str) -> None:
-        episode = await asyncio.to_thread(self.store.get, episode_id)
-        image = None
-        for name in ("image.jpg", "image.png"):
-            with contextlib.suppress(NotFoundError):
-                path = self.store.file(episode_id, name)
-                image = await asyncio.to_thread(path.read_bytes)
+    async def _ask_vlm_once(self, episode_id: str,
+                            fresh: tuple[dict[str, Any], bytes | None] | None,
+                            stored: asyncio.Future | None) -> None:
+        """Ask about a stored episode, or about ``fresh`` (the episode and its image, in
+        memory) whose write ``stored`` is still under way: awaited before any update."""
+        if fresh is not None:
+            episode, image = fresh
+        else:
+            episode = await asyncio.to_thread(self.store.get, episode_id)
+            image = None
+            for name in ("image.jpg", "image.png"):
+                with contextlib.suppress(NotFoundError):
+                    path = self.store.file(episode_id, name)
+                    image = await asyncio.to_thread(path.read_bytes)
         t = time.monotonic()
         attempts = episode.get("attempts", 0) + 1
         try:
             answer = await self.vlm.ask(image, episode["description"], episode["candidates"])
         except EdgeError as exc:
+            if stored is not None:
+                await stored
             if not isinstance(exc, VLMUnavailableError):
                 # Refused (4xx), a broken answer or a bad image: asking again will not help.
                 self.metrics.vlm_errors += 1
@@ -374,6 +405,8 @@ class Runtime:
                           "error": str(exc)})
             return
         latency = time.monotonic() - t
+        if stored is not None:
+            await stored
         self.metrics.observe_vlm(latency)
         answer_dict = answer.to_dict() if hasattr(answer, "to_dict") else asdict(answer)
         status = {"ok": "done"}.get(answer.status, answer.status)

@@ -27,7 +27,7 @@ import os
 import select
 import threading
 import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,6 +58,8 @@ SDK_LATENCY_TIMER_MS = 16.0
 # Reads are tried this often before a timeout or bad reply is an error.
 READ_ATTEMPTS = 2
 _TRANSIENT = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
+# Before a retry: how long late replies to the failed attempt are waited for and dropped.
+LATE_REPLY_DRAIN_S = 0.05
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
 THREAD_JOIN_TIMEOUT_S = 2.0
@@ -83,6 +85,8 @@ MOVING = _T["Moving"]
 PRESENT_CURRENT = _T["Present Current"]
 PRESENT_VELOCITY = _T["Present Velocity"]
 PRESENT_POSITION = _T["Present Position"]
+# Status packet offsets (dynamixel_sdk.protocol2_packet_handler).
+_PKT_ID, _PKT_LENGTH_L, _PKT_LENGTH_H = 4, 5, 6
 # One sync read covers Present Current (126), Present Velocity (128), Present Position (132).
 _STATE_START = PRESENT_CURRENT.address
 _STATE_LENGTH = PRESENT_POSITION.end - _STATE_START
@@ -122,6 +126,36 @@ class BlockingPortHandler(sdk.PortHandler):
         if remaining_s > 0:
             select.select([self.ser.fileno()], [], [], remaining_s + _READ_DEADLINE_SLACK_S)
         return self.ser.read(length)
+
+
+class CheckedPacketHandler(sdk.Protocol2PacketHandler):
+    """The SDK's Protocol 2.0 packet handler, refusing status packets of the wrong size.
+
+    The SDK takes the first status packet from the right ID as the answer. A motor that
+    answers an instruction after the SDK gave up on it (a timeout) leaves that late packet
+    on the wire while the next instruction waits for its own: a 10-byte sync-read status
+    would be read as the 4-byte Present Position a stop is computed from. With
+    ``expect_params`` set (by the bus thread, around each call), a status packet with a
+    different number of parameters is skipped as stale and reading goes on until the
+    packet deadline.
+    """
+
+    expect_params: int | None = None
+    stale_skipped = 0
+
+    def rxPacket(self, port, fast_option):
+        while True:
+            packet, result = super().rxPacket(port, fast_option)
+            if result != sdk.COMM_SUCCESS or self.expect_params is None:
+                return packet, result
+            # Status LENGTH = instruction + error + parameters + CRC (2).
+            params = sdk.DXL_MAKEWORD(packet[_PKT_LENGTH_L], packet[_PKT_LENGTH_H]) - 4
+            if params == self.expect_params:
+                return packet, result
+            self.stale_skipped += 1
+            _log.warning("skipped a late status packet from motor %d (%d parameters, "
+                         "expected %d): the answer to an instruction that timed out",
+                         packet[_PKT_ID], params, self.expect_params)
 
 
 @dataclass(frozen=True)
@@ -215,7 +249,7 @@ class DynamixelBus:
         self._ids = (*config.joint_ids, config.gripper_id)
         self._port_handler_factory = port_handler_factory
         self._latency_timer_dir = latency_timer_dir
-        self._ph = sdk.PacketHandler(2.0)
+        self._ph = CheckedPacketHandler()
         self._port: sdk.PortHandler | None = None
         self._cond = threading.Condition()
         self._urgent: collections.deque[_Op] = collections.deque()
@@ -497,9 +531,25 @@ class DynamixelBus:
                 message += f" Hardware Error Status: {self._hardware_error_detail(motor_id)}"
             raise MotorError(f"motor {motor_id}: {what}: {message}", motor_id)
 
+    @contextlib.contextmanager
+    def _expect(self, params: int) -> Iterator[None]:
+        """Status packets carry ``params`` parameters until the block ends (bus thread)."""
+        self._ph.expect_params = params
+        try:
+            yield
+        finally:
+            self._ph.expect_params = None
+
+    def _drain_late_replies(self) -> None:
+        # Replies that come after the SDK gave up must not be read as the retry's answer (a
+        # same-size status would pass for it): let them arrive, then drop them.
+        time.sleep(LATE_REPLY_DRAIN_S)
+        self._port.clearPort()
+
     def _hardware_error_detail(self, motor_id: int) -> str:
-        status, result, _ = self._ph.read1ByteTxRx(self._port, motor_id,
-                                                   HARDWARE_ERROR_STATUS.address)
+        with self._expect(HARDWARE_ERROR_STATUS.size):
+            status, result, _ = self._ph.read1ByteTxRx(self._port, motor_id,
+                                                       HARDWARE_ERROR_STATUS.address)
         if result != sdk.COMM_SUCCESS:
             return "unreadable"
         return f"0x{status:02x} ({describe_hardware_error(status)})"
@@ -507,21 +557,23 @@ class DynamixelBus:
     def _read(self, motor_id: int, reg: Register) -> int:
         read = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx,
                 4: self._ph.read4ByteTxRx}[reg.size]
-        for _ in range(READ_ATTEMPTS - 1):
-            # A lost or garbled reply is retried once: reads have no side effect.
-            raw, result, error = read(self._port, motor_id, reg.address)
-            if result not in _TRANSIENT:
-                break
-            self._port.clearPort()
-        else:
-            raw, result, error = read(self._port, motor_id, reg.address)
+        with self._expect(reg.size):
+            for _ in range(READ_ATTEMPTS - 1):
+                # A lost or garbled reply is retried once: reads have no side effect.
+                raw, result, error = read(self._port, motor_id, reg.address)
+                if result not in _TRANSIENT:
+                    break
+                self._drain_late_replies()
+            else:
+                raw, result, error = read(self._port, motor_id, reg.address)
         self._check(motor_id, f"read {reg.name}", result, error)
         return reg.from_unsigned(raw)
 
     def _write(self, motor_id: int, reg: Register, value: int) -> None:
         write = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx,
                  4: self._ph.write4ByteTxRx}[reg.size]
-        result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+        with self._expect(0):
+            result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
         self._check(motor_id, f"write {reg.name} = {value}", result, error)
 
     def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
@@ -542,38 +594,31 @@ class DynamixelBus:
             except MotorError as exc:
                 if not exc.transient:
                     raise
-                self._port.clearPort()
+                self._drain_late_replies()
         return self._read_state_once()
 
     def _read_state_once(self) -> BusState:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
         # its motor and the error byte (e.g. a hardware alert) is checked, which
-        # GroupSyncRead.rxPacket drops. Like single reads, a lost or garbled reply is read
-        # again once (a read has no side effect).
-        for attempt in range(READ_ATTEMPTS):
-            result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH,
-                                         list(self._ids), len(self._ids), False)
-            if result != sdk.COMM_SUCCESS:
-                raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
-                                 f"{self._ph.getTxRxResult(result)}", self._ids[0])
-            motors = {}
-            for motor_id in self._ids:
+        # GroupSyncRead.rxPacket drops.
+        result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH, list(self._ids),
+                                     len(self._ids), False)
+        if result != sdk.COMM_SUCCESS:
+            raise MotorError(f"motors {list(self._ids)}: sync read of present state: "
+                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
+        motors = {}
+        for motor_id in self._ids:
+            with self._expect(_STATE_LENGTH):
                 data, result, error = self._ph.readRx(self._port, motor_id, _STATE_LENGTH)
-                if (result in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
-                        and attempt < READ_ATTEMPTS - 1):
-                    break
-                self._check(motor_id, "sync read of present state", result, error)
-                motors[motor_id] = MotorState(
-                    position=_field(PRESENT_POSITION, data),
-                    velocity=_field(PRESENT_VELOCITY, data),
-                    current=_field(PRESENT_CURRENT, data),
-                )
-            else:
-                state = BusState(time.monotonic(), motors)
-                self.last_state = state
-                return state
-            self._port.clearPort()
-        raise AssertionError("unreachable: the last attempt returns or raises")
+            self._check(motor_id, "sync read of present state", result, error)
+            motors[motor_id] = MotorState(
+                position=_field(PRESENT_POSITION, data),
+                velocity=_field(PRESENT_VELOCITY, data),
+                current=_field(PRESENT_CURRENT, data),
+            )
+        state = BusState(time.monotonic(), motors)
+        self.last_state = state
+        return state
 
     def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
@@ -707,10 +752,27 @@ class DynamixelBus:
         if first is not None:
             raise first
 
+    def _sync_read_register(self, reg: Register) -> dict[int, int]:
+        """One register of every motor in one SYNC READ (one round trip, not one each)."""
+        result = self._ph.syncReadTx(self._port, reg.address, reg.size, list(self._ids),
+                                     len(self._ids), False)
+        if result != sdk.COMM_SUCCESS:
+            raise MotorError(f"motors {list(self._ids)}: sync read of {reg.name}: "
+                             f"{self._ph.getTxRxResult(result)}", self._ids[0])
+        values = {}
+        for motor_id in self._ids:
+            with self._expect(reg.size):
+                data, result, error = self._ph.readRx(self._port, motor_id, reg.size)
+            self._check(motor_id, f"sync read of {reg.name}", result, error)
+            values[motor_id] = reg.decode(bytes(data))
+        return values
+
     def _recover_watchdog_sync(self) -> list[int]:
         if self._torque_on:
             self._check_torque_sync()
-        tripped = [i for i in self._ids if self._read(i, BUS_WATCHDOG) == -1]
+        # Before every press: one sync read (the common case: nothing tripped).
+        watchdogs = self._sync_read_register(BUS_WATCHDOG)
+        tripped = [i for i in self._ids if watchdogs[i] == -1]
         units = round(self._config.watchdog_ms / 1000.0 / BUS_WATCHDOG_UNIT_S)
         for motor_id in tripped:
             self._write(motor_id, BUS_WATCHDOG, 0)

@@ -53,6 +53,8 @@ class SimWorld:
         self._t0 = time.monotonic()
         self._t = self._t0
         self._gap = 0.07
+        # The contact force behind the last rendered frame (what the pads felt), for benches.
+        self.frame_force_n = 0.0
         self.place(object_name)
 
     def place(self, object_name: str) -> None:
@@ -86,6 +88,7 @@ class SimWorld:
         """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
         with self._lock:
             self._advance(t)
+            self.frame_force_n = self._contact.force
             return self._skin.frame(t - self._t0, self._contact.force,
                                     self._contact.contact_radius())
 

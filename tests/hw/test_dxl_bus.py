@@ -294,6 +294,21 @@ async def test_stop_latency_while_the_bus_is_busy(emu, bus):
 
 
 @pytest.mark.asyncio
+async def test_a_late_reply_is_never_taken_for_the_next_answer(emu, bus):
+    # The motors answer a sync read after the SDK gave up on it (a starved emulator, a
+    # noisy bus); the next instruction is already on the wire when the late status packets
+    # arrive. Motor 15's 10-byte sync-read status must not be taken for its answer to a
+    # 4-byte READ of Present Position: that reads as a wild position, and a stop computed
+    # from it is a wild goal.
+    emu.reply_latency_s = 0.05  # past the SDK's ~34 ms packet timeout
+    with pytest.raises(MotorError):
+        await bus.read_state()
+    emu.reply_latency_s = 0.0
+    position = await bus.read(15, "Present Position")
+    assert abs(position - emu.true_position(15)) <= 2
+
+
+@pytest.mark.asyncio
 async def test_cancelled_queued_read_is_skipped_but_a_stop_is_not(emu, bus):
     emu.reply_latency_s = 0.02
     mark = len(emu.received)

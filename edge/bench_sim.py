@@ -1,0 +1,235 @@
+"""Helper processes of ``vt-edge bench``: the things that are not the daemon run apart from it.
+
+On a robot the XELA server, the motors, the VLM and whoever scrapes ``/metrics`` are other
+processes (or machines), so the bench runs each of them in its own process, never on the
+daemon's event loop:
+
+- ``robot``: the emulated robot (:class:`~edge.sim.robot.SimRobot`), plus the contact force
+  behind every tactile frame it sends, by sequence number (``GET /force?seq=N``), so the
+  bench can read the force at the frame that crossed ``x_th``;
+- ``vlm``: a slow :class:`~edge.sim.fake_vlm.FakeVLM` that also records when each request
+  arrived on the monotonic clock (``GET /received``), for the trigger-to-VLM overhead;
+- ``poll``: polls the daemon's ``/healthz`` and ``/metrics``; prints a summary on SIGTERM.
+
+Each prints one JSON line on stdout once it serves (its addresses), then runs until SIGTERM.
+``time.monotonic`` is CLOCK_MONOTONIC, shared by every process on the host, so times taken
+here compare directly with the daemon's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import aiohttp
+import numpy as np
+from aiohttp import web
+
+log = logging.getLogger(__name__)
+
+FORCE_TRACE_FRAMES = 1 << 16  # ~9 min of frames at 125 Hz
+ROBOT_SWITCH_INTERVAL_S = 0.0002
+
+
+class ForceTrace:
+    """Wraps ``SimWorld.frame``: the i-th frame rendered is the emulator's sequence number i
+    (``XelaServerEmulator`` numbers frames from 1, one per rendered frame)."""
+
+    def __init__(self, world: Any, capacity: int = FORCE_TRACE_FRAMES) -> None:
+        self._world = world
+        self._frame = world.frame
+        self.capacity = capacity
+        self.t = np.zeros(capacity)
+        self.force_n = np.zeros(capacity)
+        self.count = 0
+
+    def frame(self, t: float) -> np.ndarray:
+        raw = self._frame(t)
+        self.count += 1
+        i = self.count % self.capacity
+        self.t[i] = t
+        self.force_n[i] = self._world.frame_force_n
+        return raw
+
+    def at(self, seq: int) -> dict[str, float] | None:
+        if not (0 < seq <= self.count and seq > self.count - self.capacity):
+            return None
+        i = seq % self.capacity
+        return {"seq": seq, "t": float(self.t[i]), "force_n": float(self.force_n[i])}
+
+
+async def _control_app(routes: list[web.RouteDef]) -> tuple[web.AppRunner, str]:
+    app = web.Application()
+    app.add_routes(routes)
+    runner = web.AppRunner(app, access_log=None, handle_signals=False)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    port = runner.addresses[0][1]
+    return runner, f"http://127.0.0.1:{port}"
+
+
+async def _until_signal(announce: dict[str, Any],
+                        on_stop: Callable[[], Awaitable[None]] | None = None) -> None:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    print(json.dumps(announce), flush=True)
+    await stop.wait()
+    if on_stop is not None:
+        await on_stop()
+
+
+async def _robot(args: argparse.Namespace) -> None:
+    from edge.config import Config, load_config
+    from edge.sim.robot import SimRobot
+
+    niced = None
+    if args.nice:
+        # The emulated motors and pads stand in for hardware, which never waits for a CPU:
+        # on a shared box, favour them (threads started from here on inherit it).
+        try:
+            niced = os.nice(args.nice)
+        except OSError as exc:
+            log.warning("cannot renice the emulated robot by %d: %s", args.nice, exc)
+    # Its Dynamixel thread must answer while the XELA loop steps the physics: a short GIL
+    # switch interval keeps the emulated bus's reply time close to hardware's.
+    sys.setswitchinterval(ROBOT_SWITCH_INTERVAL_S)
+    cfg = load_config(args.config) if args.config else Config()
+    robot = SimRobot(args.object, args.seed, rate_hz=cfg.sim.sensor_rate_hz, cfg=cfg)
+    trace = ForceTrace(robot.world)
+    robot.world.frame = trace.frame  # the XELA emulator renders through the trace
+
+    async def force(request: web.Request) -> web.Response:
+        try:
+            seq = int(request.query["seq"])
+        except (KeyError, ValueError):
+            return web.json_response({"error": "give ?seq=N"}, status=400)
+        found = trace.at(seq)
+        if found is None:
+            return web.json_response({"error": f"seq {seq} not in the trace"}, status=404)
+        return web.json_response(found)
+
+    async with robot:
+        runner, url = await _control_app([web.get("/force", force)])
+        try:
+            await _until_signal({"xela_url": robot.xela.url, "dxl_port": robot.dxl.port,
+                                 "control_url": robot.control_url, "bench_url": url,
+                                 "nice": niced})
+        finally:
+            await runner.cleanup()
+
+
+async def _vlm(args: argparse.Namespace) -> None:
+    from edge.sim.fake_vlm import FakeVLM
+
+    class TimedFakeVLM(FakeVLM):
+        """Records the monotonic time each chat request arrived (headers read)."""
+
+        def __init__(self, **kwargs: Any) -> None:
+            super().__init__(**kwargs)
+            self.arrivals: list[tuple[float, Any]] = []
+
+        async def _chat(self, request: web.Request) -> web.StreamResponse:
+            t = time.monotonic()
+            n = len(self.requests)
+            # FakeVLM appends the request record before its first await: index n is ours.
+            coro = super()._chat(request)
+            try:
+                return await coro
+            finally:
+                if len(self.requests) > n:
+                    self.arrivals.append((t, self.requests[n]))
+                # Keep memory flat under a long load: images are not needed afterwards.
+                for rec in self.requests[n:n + 1]:
+                    rec.images, rec.raw, rec.body = [], b"", None
+
+    fake = TimedFakeVLM(model="fake-vlm", latency_s=args.latency_s)
+
+    async def received(request: web.Request) -> web.Response:
+        return web.json_response([
+            {"t": t, "candidates": rec.candidates, "status": rec.status, "error": rec.error}
+            for t, rec in fake.arrivals])
+
+    async with fake:
+        runner, url = await _control_app([web.get("/received", received)])
+        try:
+            await _until_signal({"base_url": fake.base_url, "bench_url": url})
+        finally:
+            await runner.cleanup()
+
+
+async def _poll(args: argparse.Namespace) -> None:
+    paths = ("/healthz", "/metrics")
+    stats: dict[str, Any] = {"requests": 0, "errors": 0, "latency_ms": []}
+    period = 1.0 / args.hz
+
+    async def loop() -> None:
+        timeout = aiohttp.ClientTimeout(total=5.0)
+        async with aiohttp.ClientSession(timeout=timeout) as http:
+            i = 0
+            next_t = time.monotonic()
+            while True:
+                t0 = time.monotonic()
+                try:
+                    async with http.get(args.url + paths[i % 2]) as resp:
+                        await resp.read()
+                        # /healthz answers 503 while the sensor is stale: still an answer.
+                        if resp.status not in (200, 503):
+                            stats["errors"] += 1
+                except (aiohttp.ClientError, TimeoutError):
+                    stats["errors"] += 1
+                stats["requests"] += 1
+                stats["latency_ms"].append(1e3 * (time.monotonic() - t0))
+                i += 1
+                next_t += period
+                await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+
+    task = asyncio.create_task(loop())
+
+    async def on_stop() -> None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        lat = stats.pop("latency_ms")
+        stats["latency_ms_p50"] = float(np.median(lat)) if lat else None
+        stats["latency_ms_max"] = float(np.max(lat)) if lat else None
+        print(json.dumps(stats), flush=True)
+
+    await _until_signal({"polling": args.url}, on_stop)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m edge.bench_sim", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="role", required=True)
+    p = sub.add_parser("robot")
+    p.add_argument("--config", default=None)
+    p.add_argument("--object", default="stainless_cube")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--nice", type=int, default=0, help="renice by this (negative: favour)")
+    p = sub.add_parser("vlm")
+    p.add_argument("--latency-s", type=float, default=1.0)
+    p = sub.add_parser("poll")
+    p.add_argument("--url", required=True)
+    p.add_argument("--hz", type=float, default=10.0)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
+                        format="bench-" + args.role + " %(levelname)s %(name)s: %(message)s")
+    role = {"robot": _robot, "vlm": _vlm, "poll": _poll}[args.role]
+    asyncio.run(role(args))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
