@@ -347,6 +347,7 @@ class PressRecord:
     stop_latency_ms: float | None = None
     controller_latency_ms: float | None = None  # as the controller itself logged it
     to_bus_ms: float | None = None  # first frame over x_th -> the stop's READ packet written
+    from_send_ms: float | None = None  # the server sent that frame -> stop written
     force_at_cross_n: float | None = None
     peak_force_n: float | None = None
     overshoot_n: float | None = None
@@ -357,9 +358,10 @@ class PressRecord:
     message: str = ""
 
 
-def first_crossing(ring: Any, outcome: PressOutcome, x_th: float) -> tuple[float, int] | None:
-    """Receive time and sequence number of the first frame over ``x_th`` after closing began
-    (the same norm the controller computes), up to the stop."""
+def first_crossing(ring: Any, outcome: PressOutcome,
+                   x_th: float) -> tuple[float, int, float] | None:
+    """Receive time, sequence number and sensor time (the server's wall clock) of the first
+    frame over ``x_th`` after closing began (the controller's own norm), up to the stop."""
     states = dict(outcome.states)
     if outcome.tare is None or outcome.t_stop is None or "closing" not in states:
         return None
@@ -371,7 +373,7 @@ def first_crossing(ring: Any, outcome: PressOutcome, x_th: float) -> tuple[float
     if over.size == 0:
         return None
     i = int(over[0])
-    return float(win.recv_time[i]), int(win.seq[i])
+    return float(win.recv_time[i]), int(win.seq[i]), float(win.sensor_time[i])
 
 
 READ_INSTRUCTION = 0x02
@@ -614,9 +616,13 @@ class RuntimeBench:
         crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
         if outcome.t_stop is not None and crossing is not None:
             # Counted whatever came after the stop (a late stop can still abort the hold).
-            t_first, seq = crossing
+            t_first, seq, sent_wall = crossing
             rec.t_first_cross, rec.t_stop = t_first, outcome.t_stop
             rec.stop_latency_ms = 1e3 * (outcome.t_stop - t_first)
+            # The same stop seen from the XELA server: its frame time is its wall clock when
+            # it sent the frame; the time the frame waited in the socket for the loop counts.
+            wall_minus_mono = time.time() - time.monotonic()
+            rec.from_send_ms = 1e3 * (outcome.t_stop + wall_minus_mono - sent_wall)
             t_read = stop_read_time(self.port_writes, outcome.t_stop,
                                     runtime.cfg.bus.gripper_id)
             if t_read is not None and t_read >= t_first:
@@ -799,6 +805,7 @@ class RuntimeBench:
                 controller=CONTROLLER_TEXT[name], failed_presses=len(failed),
                 aborted_after_stop=len(aborted), missed_first_crossing=len(later),
                 to_bus_ms=stats([r.to_bus_ms for r in recs]),
+                from_server_send_ms=stats([r.from_send_ms for r in recs]),
                 what="first frame over x_th received -> stop packet written to the port, "
                      "under load")
             if failed:
@@ -818,6 +825,7 @@ class RuntimeBench:
         figs["stop_latency_ms_no_load"] = figure(
             [r.stop_latency_ms for r in quiet], "ms", None, controller=CONTROLLER_TEXT["per_frame"],
             to_bus_ms=stats([r.to_bus_ms for r in quiet]),
+            from_server_send_ms=stats([r.from_send_ms for r in quiet]),
             what="as stop_latency_ms, with no extra load (the overhead presses)")
         figs["stop_latency_ratio_loop100"] = ratio_figure(
             lat["loop100"], lat["per_frame"], target(("p50", ">=", 5.0)),
@@ -1330,7 +1338,10 @@ def markdown(results: dict[str, Any], notes: list[str]) -> str:
               "frame whose norm crosses x_th, found afterwards in the frame ring; the end is the "
               "stop's WRITE packet at the port. A ticked controller checks only the latest "
               "frame at each tick, so it can miss a crossing that falls back before the tick "
-              "(missed_first_crossing).",
+              "(missed_first_crossing). from_server_send_ms is the same stop timed from the "
+              "XELA server's frame time (wall clock, same host): it also counts the time the "
+              "frame waited in the socket before the loop read it, which the receive time "
+              "cannot see.",
               "- On the rigid stainless_cube much of the overshoot is there even with the "
               "fastest stop: the stop goal lies a few counts past the present position (the "
               "squeeze that keeps contact) and the motor pushes to it, up to Goal Current; the "
