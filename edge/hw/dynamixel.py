@@ -55,7 +55,8 @@ LATENCY_TIMER_UDEV_RULE = (
 )
 # What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
 SDK_LATENCY_TIMER_MS = 16.0
-# Single-register reads are tried this often before a timeout or bad reply is an error.
+# Reads and single-register writes are tried this often before a timeout or a bad reply
+# is an error.
 READ_ATTEMPTS = 2
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
@@ -520,7 +521,15 @@ class DynamixelBus:
     def _write(self, motor_id: int, reg: Register, value: int) -> None:
         write = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx,
                  4: self._ph.write4ByteTxRx}[reg.size]
-        result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+        for _ in range(READ_ATTEMPTS - 1):
+            # A lost or garbled status packet is written again once: every register written
+            # here takes an absolute value, so a second delivery changes nothing.
+            result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+            if result not in (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT):
+                break
+            self._port.clearPort()
+        else:
+            result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
         self._check(motor_id, f"write {reg.name} = {value}", result, error)
 
     def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
