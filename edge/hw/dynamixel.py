@@ -589,7 +589,11 @@ class DynamixelBus:
         models: dict[int, int] = {}
         missing: list[tuple[int, str]] = []
         for motor_id in self._ids:
-            model, result, error = self._ph.ping(port, motor_id)
+            for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
+                model, result, error = self._ph.ping(port, motor_id)
+                if result == sdk.COMM_SUCCESS:
+                    break
+                port.clearPort()
             if result != sdk.COMM_SUCCESS:
                 missing.append((motor_id, self._ph.getTxRxResult(result)))
                 continue
