@@ -131,6 +131,16 @@ async def test_motor_missing_at_daemon_start_is_refused_by_name(tmp_path):
         assert not (tmp_path / "episodes").exists() or not any((tmp_path / "episodes").iterdir())
 
 
+async def test_one_lost_ping_reply_at_start_is_not_a_missing_motor(tmp_path):
+    """(Seen on a loaded host: daemons refused to start, 'motor 11, 12 did not answer a
+    ping'.) One garbled reply per motor: the daemon still starts."""
+    async with SimRobot(QUICK_OBJECT, seed=1, cfg=base_config()) as robot:
+        for motor in (11, 12, 13, 14, 15):
+            robot.dxl.corrupt_crc(motor, 1)
+        async with Daemon(robot, base_config(), tmp_path) as d:
+            assert set(d.devices.bus.motors) == {11, 12, 13, 14, 15}
+
+
 async def test_motor_missing_at_daemon_start_process_exits_with_the_reason(tmp_path):
     """As systemd sees it: ``vt-edge run`` exits 2 and says which motor, on stderr."""
     from edge import tomledit
