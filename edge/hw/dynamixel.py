@@ -55,7 +55,8 @@ LATENCY_TIMER_UDEV_RULE = (
 )
 # What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
 SDK_LATENCY_TIMER_MS = 16.0
-# Reads are tried this often before a timeout or bad reply is an error.
+# Reads and single-register writes are tried this often before a timeout or a bad reply
+# is an error.
 READ_ATTEMPTS = 2
 _TRANSIENT = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
 # Before a retry: how long late replies to the failed attempt are waited for and dropped.
@@ -573,7 +574,16 @@ class DynamixelBus:
         write = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx,
                  4: self._ph.write4ByteTxRx}[reg.size]
         with self._expect(0):
-            result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+            for _ in range(READ_ATTEMPTS - 1):
+                # A lost or garbled status packet is written again once: every register
+                # written here takes an absolute value, so a second delivery changes nothing.
+                result, error = write(self._port, motor_id, reg.address, reg.to_unsigned(value))
+                if result not in _TRANSIENT:
+                    break
+                self._drain_late_replies()
+            else:
+                result, error = write(self._port, motor_id, reg.address,
+                                      reg.to_unsigned(value))
         self._check(motor_id, f"write {reg.name} = {value}", result, error)
 
     def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
@@ -637,7 +647,11 @@ class DynamixelBus:
         models: dict[int, int] = {}
         missing: list[tuple[int, str]] = []
         for motor_id in self._ids:
-            model, result, error = self._ph.ping(port, motor_id)
+            for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
+                model, result, error = self._ph.ping(port, motor_id)
+                if result == sdk.COMM_SUCCESS:
+                    break
+                port.clearPort()
             if result != sdk.COMM_SUCCESS:
                 missing.append((motor_id, self._ph.getTxRxResult(result)))
                 continue

@@ -258,6 +258,18 @@ def test_api_hostile_multipart_bodies_get_a_clear_4xx(daemon, multipart):
     assert_refused_clearly(daemon, status, ctype, raw)
 
 
+def test_api_multipart_part_over_the_body_limit_is_refused_while_read(daemon):
+    limit = daemon.daemon.cfg.api.max_body_bytes
+    body = (b'--b\r\nContent-Disposition: form-data; name="image"\r\n'
+            b"Content-Type: image/jpeg\r\n\r\n\xff\xd8\xff" + bytes(limit + 1000)
+            + b'\r\n--b\r\nContent-Disposition: form-data; name="candidates"\r\n\r\n'
+            b'["canele"]\r\n--b--\r\n')
+    status, ctype, raw = daemon.request("POST", "/v1/recognize", body,
+                                        {"Content-Type": "multipart/form-data; boundary=b"})
+    answer = assert_refused_clearly(daemon, status, ctype, raw)
+    assert status == 413 and "too large" in answer["error"]
+
+
 path_text = st.text(max_size=40)
 
 
