@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from edge import preprocess
+from edge.demo import http_json
 from edge.press import PressController, PressOutcome
 
 log = logging.getLogger(__name__)
@@ -898,20 +899,6 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _http_json(method: str, url: str, body: dict | None = None, timeout: float = 60.0) -> dict:
-    import urllib.error
-    import urllib.request
-
-    data = json.dumps(body).encode() if body is not None else None
-    req = urllib.request.Request(url, data=data, method=method,
-                                 headers={"Content-Type": "application/json"})
-    try:
-        with urllib.request.urlopen(req, timeout=timeout) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        return {"http_status": exc.code}
-
-
 def _rss_mb(pid: int) -> tuple[float, float]:
     """VmRSS and VmHWM (peak) of ``pid`` in MiB."""
     fields = {}
@@ -975,15 +962,16 @@ def daemon_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
                         startup.append(t_ready - t0)
                         _progress(f"daemon process {i + 1}/{s.daemon_runs}: READY=1 after "
                                   f"{t_ready - t0:.2f} s; one recognition, then RSS")
-                        _http_json("POST", f"{control}/object", {"name": OBJECTS[i % 2]})
-                        ep = _http_json("POST", f"{api}/v1/recognize",
-                                        {"candidates": CUBE, "wait": True, "timeout_s": 50})
+                        http_json("POST", f"{control}/object", {"name": OBJECTS[i % 2]})
+                        ep = http_json("POST", f"{api}/v1/recognize",
+                                       {"candidates": CUBE, "wait": True, "timeout_s": 50},
+                                       timeout=60)
                         if ep.get("status") not in ("not_configured", "done"):
                             notes.append(f"daemon process recognition: {ep.get('status')} "
                                          f"{ep.get('error', '')}")
                         for _ in range(s.rss_samples):
                             time.sleep(0.5)
-                            _http_json("GET", f"{api}/healthz", timeout=5)
+                            http_json("GET", f"{api}/healthz", timeout=5)
                             now, peak = _rss_mb(proc.pid)
                             rss.append(now)
                             hwm.append(peak)

@@ -35,7 +35,7 @@ OpenAI-compatible endpoint and run again:
            make run"""
 
 
-def _http(method: str, url: str, body: dict | None = None, timeout: float = 10.0) -> dict:
+def http_json(method: str, url: str, body: dict | None = None, timeout: float = 10.0) -> dict:
     data = json.dumps(body).encode() if body is not None else None
     req = urllib.request.Request(url, data=data, method=method,
                                  headers={"Content-Type": "application/json"})
@@ -43,7 +43,10 @@ def _http(method: str, url: str, body: dict | None = None, timeout: float = 10.0
         with urllib.request.urlopen(req, timeout=timeout) as resp:
             return json.loads(resp.read())
     except urllib.error.HTTPError as exc:
-        return {"http_status": exc.code, **json.loads(exc.read() or b"{}")}
+        try:
+            return {"http_status": exc.code, **json.loads(exc.read() or b"{}")}
+        except ValueError:  # an error page that is not JSON
+            return {"http_status": exc.code}
 
 
 def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
@@ -113,16 +116,16 @@ def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE +
             api = f"http://{cfg.api.host}:{cfg.api.port}"
             daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
                                        str(run_cfg)], env=env)
-            _wait_for(lambda: _http("GET", f"{api}/healthz").get("ok"), START_TIMEOUT_S,
+            _wait_for(lambda: http_json("GET", f"{api}/healthz").get("ok"), START_TIMEOUT_S,
                       "daemon", daemon)
             shown_prompt = False
             for name in objects:
                 dataset = "cube" if name in names("cube") else "foodreplica"
-                _http("POST", f"{control}/object", {"name": name})
-                ep = _http("POST", f"{api}/v1/recognize",
+                http_json("POST", f"{control}/object", {"name": name})
+                ep = http_json("POST", f"{api}/v1/recognize",
                            {"candidates": names(dataset), "wait": True,
                             "timeout_s": RECOGNIZE_TIMEOUT_S}, timeout=RECOGNIZE_TIMEOUT_S + 5)
-                peak = _http("GET", f"{control}/object").get("peak_force_n")
+                peak = http_json("GET", f"{control}/object").get("peak_force_n")
                 if "http_status" in ep:
                     print(f"\n== {name}: HTTP {ep['http_status']}: {ep.get('error')}")
                     continue

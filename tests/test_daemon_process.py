@@ -11,7 +11,7 @@ from pathlib import Path
 
 from edge import tomledit
 from edge.config import load_config
-from edge.demo import _http, _wait_for
+from edge.demo import _wait_for, http_json
 from edge.store import EpisodeStore
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,17 +40,17 @@ def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
         daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
                                    str(run_cfg)], env=env, cwd=ROOT, stderr=subprocess.PIPE,
                                   text=True)
-        _wait_for(lambda: _http("GET", f"{api}/healthz").get("ok"), 60, "daemon", daemon)
-        ep = _http("POST", f"{api}/v1/recognize", {"candidates": ["a", "b"]})
+        _wait_for(lambda: http_json("GET", f"{api}/healthz").get("ok"), 60, "daemon", daemon)
+        ep = http_json("POST", f"{api}/v1/recognize", {"candidates": ["a", "b"]})
         deadline = time.monotonic() + 30
-        while _http("GET", f"{api}/healthz")["state"] not in ("closing", "holding"):
+        while http_json("GET", f"{api}/healthz")["state"] not in ("closing", "holding"):
             assert time.monotonic() < deadline
             time.sleep(0.01)
         daemon.send_signal(signal.SIGTERM)
         _, err = daemon.communicate(timeout=30)
         print(err[-2000:])
         assert daemon.returncode == 0, err[-2000:]
-        world = _http("GET", f"{control}/object")
+        world = http_json("GET", f"{control}/object")
         assert world["force_n"] == 0.0 and world["gap_m"] > 0.025, world  # gripper open
         store = EpisodeStore(tmp_path / "state" / "episodes")
         assert store.recover() == 0  # nothing half-written
