@@ -5,10 +5,10 @@ preallocated ring (no allocation on the per-frame path). The crop around ``t_sto
 from these timestamped frames on an ideal 8 ms grid (:mod:`edge.preprocess`), so a late
 wake-up of the sampler never shifts the data.
 
-The sampler runs on an absolute 125 Hz deadline grid and records, per tick, the latest frame
-(sample-and-hold) into its own ring: the live 125 Hz stream. It counts ticks without a new
-frame (gaps), frames that arrived between ticks beyond the first (several per tick), and
-its own lateness, which is what the benchmark reports as the period error.
+The sampler runs on an absolute 125 Hz deadline grid and watches the stream's health: it
+counts ticks without a new frame (gaps), frames that arrived between ticks beyond the first
+(several per tick), and its own lateness, which is what the benchmark reports as the period
+error. The data itself needs no second copy: the crop resamples the frame ring.
 """
 
 from __future__ import annotations
@@ -88,29 +88,26 @@ class SamplerStats:
 class Sampler:
     """Samples the latest frame at a fixed rate on an absolute deadline grid."""
 
-    def __init__(self, ring: FrameRing, rate_hz: float = 125.0, capacity: int = 8192,
+    def __init__(self, ring: FrameRing, rate_hz: float = 125.0,
                  record_lateness: bool = False) -> None:
         self.ring = ring
         self.period_s = 1.0 / rate_hz
         self.stats = SamplerStats()
-        self.tick_time = np.zeros(capacity)
-        self.tick_frame = np.full(capacity, -1, dtype=np.int64)  # frame count at the tick
-        self.capacity = capacity
+        self._frames_at_last_tick: int | None = None
         # Lateness of each wake-up, for benchmarks; off in production to stay allocation-free.
         self.lateness_s: list[float] | None = [] if record_lateness else None
 
     def sample(self, now: float) -> None:
+        """One tick at monotonic time ``now`` (the benchmark wraps this to time ticks)."""
         st = self.stats
-        i = st.ticks % self.capacity
         frames = self.ring.count
-        prev = self.tick_frame[(st.ticks - 1) % self.capacity] if st.ticks else max(frames - 1, 0)
-        new = frames - prev
+        prev = self._frames_at_last_tick
+        new = frames - (max(frames - 1, 0) if prev is None else prev)
         if new <= 0:
             st.gaps += 1
         elif new > 1:
             st.extra_frames += new - 1
-        self.tick_time[i] = now
-        self.tick_frame[i] = frames
+        self._frames_at_last_tick = frames
         st.ticks += 1
 
     async def run(self) -> None:
