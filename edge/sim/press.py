@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge import preprocess
-from edge.config import PressConfig
+from edge.config import PressConfig, SimConfig
 from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.recording import Recording
 from edge.sim.catalogue import ObjectClass, get
@@ -29,26 +29,30 @@ from edge.sim.world import WIDTH_PER_RAW_M
 SENSOR_MODEL = "XR1944"
 # Sensor server clock: wall-clock-like seconds, unrelated to the host's monotonic clock.
 _SENSOR_EPOCH = 1.77e9
+_PRESS = PressConfig()
+_SIM = SimConfig()
 
 
 @dataclass(frozen=True)
 class PressParams:
-    x_th: float = 0.004
-    dt_stopping_s: float = 0.2
-    close_speed_mps: float = 0.01
+    # The press itself takes the runtime's defaults ([press] and [sim] of the config), so
+    # training data and the robot's presses share one definition.
+    x_th: float = _PRESS.x_th
+    dt_stopping_s: float = _PRESS.dt_stopping_s
+    close_speed_mps: float = _PRESS.close_speed_mps
     # Finger-gap speeds; the gripper driver commands the joint ("width"), which moves each
     # finger, so the gap opens at twice its 0.02 m/s.
     open_speed_mps: float = 2 * GRIPPER_OPEN_SPEED_MPS
-    reaction_latency_s: float = 0.002
-    sensor_rate_hz: float = 125.0
+    reaction_latency_s: float = _SIM.reaction_latency_s
+    sensor_rate_hz: float = _SIM.sensor_rate_hz
     # Idle before closing; the tare averages its last tare_s.
     idle_s: float = 0.5
-    tare_s: float = 0.3
+    tare_s: float = _PRESS.tare_s
     clearance_m: tuple[float, float] = (0.003, 0.008)
     # The stop goal lies press.stop_squeeze_raw encoder counts past the present position, as
     # the driver writes it: a gentle squeeze (the present position itself would release the
     # object). Each count moves both fingers, so the gap closes by twice its width.
-    squeeze_m: float = 2 * PressConfig().stop_squeeze_raw * WIDTH_PER_RAW_M
+    squeeze_m: float = 2 * _PRESS.stop_squeeze_raw * WIDTH_PER_RAW_M
     # Position loop of the gripper motor: how fast it settles on a new goal.
     position_tau_s: float = 0.005
     # Current-limited gripper: Goal Current 200 (~0.54 A) gives ~10 N per finger.
@@ -59,7 +63,7 @@ class PressParams:
     transport_delay_s: float = 0.001
     frame_jitter_s: float = 0.0003
     gripper_trace_hz: float = 100.0
-    abort_factor: float = 25.0
+    abort_factor: float = _PRESS.abort_factor
 
 
 @dataclass(frozen=True)
