@@ -66,6 +66,18 @@ def labels_given(events: list[dict]) -> set:
     return {e.get("label") for e in events if e.get("type") == "result"} - {None}
 
 
+async def result_event(events: list[dict], episode_id: str, timeout_s: float = 5.0) -> dict:
+    """The episode's ``result`` event. It is published once the store update is durable, so
+    a poll of GET /v1/episodes can see the final status a moment before it arrives."""
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while True:
+        for event in events:
+            if event.get("type") == "result" and event.get("episode") == episode_id:
+                return event
+        assert asyncio.get_running_loop().time() < deadline, f"no result event in {events}"
+        await asyncio.sleep(0.01)
+
+
 # (name, scripted replies, [vlm] overrides, how the first answer ends, words in its error)
 TRANSIENT = [
     ("500 twice", [Reply.error(500, "upstream exploded"), Reply.error(503)], {}, "HTTP 50"),
@@ -97,6 +109,7 @@ async def test_transient_vlm_failure_waits_pending_then_completes(tmp_path, name
             assert done["status"] == "done" and done["label"] == OBJECT
             assert done["attempts"] == len(replies) + 1
             assert len(fake.chat_requests) == done["attempts"]  # never asked twice at once
+            assert (await result_event(events, done["id"]))["label"] == OBJECT
             assert labels_given(events) == {OBJECT}
             pending = [e for e in events if e.get("status") == "pending"]
             assert len(pending) == len(replies) and all(words in e["error"] for e in pending)
@@ -166,6 +179,7 @@ async def test_labels_outside_the_candidates_end_invalid_answer(tmp_path):
             assert ep["status"] == "invalid_answer" and ep["label"] is None
             assert ep["vlm"]["outcomes"] == ["200", "200"]  # one corrective retry
             assert "brick" in ep["vlm"]["raw"]
+            assert (await result_event(events, ep["id"]))["status"] == "invalid_answer"
             assert labels_given(events) == set()
             # A corrected answer is taken (the case/spacing mapping is unit-tested in
             # tests/vlm); it is the VLM's, not a guess.
