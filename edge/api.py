@@ -16,19 +16,20 @@ import hmac
 import json
 import logging
 import os
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from edge.config import ApiConfig
-from edge.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
 from edge.images import ImageError, check_image
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 MAX_LABEL_CHARS = 80
 SSE_KEEPALIVE_S = 15.0
@@ -53,6 +54,8 @@ class Runtime(Protocol):
     def health(self) -> dict[str, Any]: ...
 
     def metrics_text(self) -> str: ...
+
+    async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T: ...
 
 
 class BadRequest(EdgeError, ValueError):
@@ -108,12 +111,13 @@ def validate_image(data: bytes, max_bytes: int) -> bytes:
     return data
 
 
-async def decodable_image(data: bytes) -> bytes:
+async def decodable_image(runtime: Runtime, data: bytes) -> bytes:
     """The image, if it decodes: a broken one must be refused before the arm moves, not
-    found out by the VLM call after the press."""
+    found out by the VLM call after the press. Decoded in the compute process: an image
+    that crashes the decoder costs that process, not the daemon."""
     try:
-        await asyncio.to_thread(check_image, data)
-    except ImageError as exc:
+        await runtime.run_cpu(check_image, data)
+    except (ImageError, ComputeError) as exc:
         raise BadRequest(f"image must be a JPEG or PNG file that decodes: {exc}") from None
     return data
 
@@ -242,7 +246,7 @@ class Api:
             raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
         candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
         if image is not None:
-            image = await decodable_image(image)
+            image = await decodable_image(self.runtime, image)
         return _Parsed(candidates, image, wait, timeout)
 
     async def _read_multipart(self, request: web.Request) -> tuple[dict[str, Any],

@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from edge.api import Api, load_token
+from edge.compute import ComputeWorker
 from edge.config import Config, load_config
 from edge.runtime import Devices, Runtime
 from edge.store import EpisodeStore
@@ -69,10 +70,11 @@ def vlm_config(cfg: Config):
     return vlm
 
 
-def make_vlm(cfg: Config):
+def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
+    """The configured VLM client; with ``compute``, images are prepared in that process."""
     from edge.vlm import make_vlm as _make
 
-    return _make(vlm_config(cfg))
+    return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 
 
 async def serve(cfg: Config, config_path: str | None = None,
@@ -85,26 +87,28 @@ async def serve(cfg: Config, config_path: str | None = None,
     notifier = Notifier()
     notifier.status("starting: loading model")
     model = await asyncio.to_thread(load_model, cfg)
-    vlm = make_vlm(cfg)
-    store = EpisodeStore(state_dir(cfg) / "episodes")
-    if devices is None:
-        from edge.devices import open_devices
+    notifier.status("starting: compute worker")
+    async with ComputeWorker() as compute:
+        vlm = make_vlm(cfg, compute)
+        store = EpisodeStore(state_dir(cfg) / "episodes")
+        if devices is None:
+            from edge.devices import open_devices
 
-        notifier.status("starting: connecting devices")
-        devices = await open_devices(cfg)
+            notifier.status("starting: connecting devices")
+            devices = await open_devices(cfg)
 
-    def reload():
-        new = load_config(config_path) if config_path else cfg
-        return new, load_model(new), make_vlm(new)
+        def reload():
+            new = load_config(config_path) if config_path else cfg
+            return new, load_model(new), make_vlm(new, compute)
 
-    runtime = Runtime(cfg, devices, model, vlm, store, notifier, reload=reload)
-    runtime.started_at = started
-    api = Api(runtime, cfg.api)
-    try:
-        await runtime.run(api)
-    finally:
-        await vlm.close()
-        notifier.close()
+        runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
+        runtime.started_at = started
+        api = Api(runtime, cfg.api)
+        try:
+            await runtime.run(api)
+        finally:
+            await vlm.close()
+            notifier.close()
 
 
 def run(config_path: str) -> int:

@@ -59,6 +59,10 @@ class VLMError(EdgeError):
     """The vision-language model could not give a valid answer."""
 
 
+class ComputeError(EdgeError, RuntimeError):
+    """The compute worker process died (a crash, the OOM killer) while doing the work."""
+
+
 class BusyError(EdgeError, RuntimeError):
     """A press is already running; one press at a time."""
 

@@ -106,6 +106,16 @@ def prepare_image(
                          reencoded=True)
 
 
+def prepare_for_vlm(data: bytes, max_side_px: int, max_bytes: int
+                    ) -> tuple[PreparedImage, bytes]:
+    """:func:`prepare_image`, and the result's data URL as ASCII bytes: the CPU work of
+    sending an image, done in one call where the caller runs CPU work."""
+    prepared = prepare_image(data, max_side_px, max_bytes)
+    _ = prepared.sha256  # hashed here too
+    url = b"data:" + prepared.mime.encode("ascii") + b";base64," + base64.b64encode(prepared.data)
+    return prepared, url
+
+
 def check_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[str, int, int]:
     """(format, width, height) of a decodable JPEG/PNG, else :class:`ImageError`.
 

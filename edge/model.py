@@ -25,6 +25,7 @@ recomputed exactly (float64) for the winners.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -405,6 +406,11 @@ class Model:
     @property
     def labels(self) -> list[str]:
         return self.database.labels
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """The model's identity: the manifest holds the sha256 of every file it loaded."""
+        return sha256_bytes(json.dumps(self.manifest, sort_keys=True).encode("utf-8"))
 
 
 def _read(path: Path) -> bytes:

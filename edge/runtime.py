@@ -12,18 +12,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import io
 import logging
 import signal
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from edge import __version__, preprocess, recording
+from edge import __version__, recording
 from edge.buffer import FrameRing, Sampler
+from edge.compute import ComputeWorker, analyse_press
 from edge.config import Config
 from edge.errors import (
     BusyError,
@@ -40,11 +40,11 @@ from edge.systemd import Notifier, watchdog_period_s
 from edge.vlm import VLMUnavailableError
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 RING_SECONDS = 30.0
 SENSOR_RETRY_S = 0.2
 EVENT_QUEUE = 256
-TOPK = 3
 FIRST_FRAME_TIMEOUT_S = 5.0
 
 
@@ -62,11 +62,12 @@ class Devices:
 
 class Runtime:
     def __init__(self, cfg: Config, devices: Devices, model: Any, vlm: Any,
-                 store: EpisodeStore, notifier: Notifier | None = None,
-                 reload: Any = None) -> None:
+                 store: EpisodeStore, compute: ComputeWorker,
+                 notifier: Notifier | None = None, reload: Any = None) -> None:
         self.cfg = cfg
         self.devices = devices
         self.model = model
+        self.compute = compute
         self.vlm = vlm
         self.store = store
         self.notifier = notifier or Notifier("")
@@ -302,7 +303,10 @@ class Runtime:
             return episode, files
         t = time.monotonic()
         try:
-            analysed = await asyncio.to_thread(self._encode, outcome)
+            # The crop, the encoder and the serialisation run in the compute process.
+            rec = outcome_recording(outcome, self.cfg)
+            analysed = await self.compute.run(analyse_press, str(self.model.directory),
+                                              self.model.digest, rec)
         except EdgeError as exc:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
@@ -325,6 +329,10 @@ class Runtime:
         )
         return episode, files
 
+    async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
+        return await self.compute.run(fn, *args)
+
     def _tactile_event(self, episode: dict[str, Any]):
         """Publishes the tactile result once the episode is stored (a done-callback)."""
         def done(stored: asyncio.Future) -> None:
@@ -333,22 +341,6 @@ class Runtime:
                               "description": episode["description"],
                               "topk": episode["topk"]})
         return done
-
-    def _encode(self, outcome: PressOutcome):
-        """CPU work off the loop: recording, crop, encoder, top-k, description, and the
-        episode's arrays serialised (compressing them takes milliseconds)."""
-        rec = outcome_recording(outcome, self.cfg)
-        units = preprocess.recording_units(rec)
-        window = preprocess.crop(rec.recv_time, units, rec.t_stop)
-        x = preprocess.subsample(window, 0)
-        z, code = self.model.encode(x)
-        z = np.asarray(z).reshape(-1)
-        code = int(np.asarray(code).reshape(-1)[0])
-        topk = self.model.topk(z, TOPK)
-        description = self.model.describe([label for label, _ in topk])
-        buf = io.BytesIO()
-        np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-        return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
 
     async def _ask_vlm(self, episode_id: str, retry: bool,
                        fresh: tuple[dict[str, Any], bytes | None] | None = None,

@@ -18,6 +18,7 @@ from typing import Any
 import aiohttp
 
 from edge.api import Api
+from edge.compute import ComputeWorker
 from edge.config import Config
 from edge.daemon import load_model, make_vlm
 from edge.devices import open_devices
@@ -72,9 +73,11 @@ class Daemon:
         self.devices = await open_devices(self.cfg)
         self.devices.button = self.button
         self.store = EpisodeStore(self.state / "episodes")
-        self.vlm = make_vlm(self.cfg)
+        self.compute = ComputeWorker()
+        await self.compute.start()
+        self.vlm = make_vlm(self.cfg, self.compute)
         self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store,
-                               self.notifier)
+                               self.compute, self.notifier)
         self.api = Api(self.runtime, self.cfg.api)
         self.task = asyncio.create_task(self.runtime.run(self.api))
         await asyncio.wait_for(self.runtime.ready.wait(), 10)
@@ -87,6 +90,7 @@ class Daemon:
         self.runtime.stop()
         await asyncio.wait_for(self.task, 30)
         await self.vlm.close()
+        self.compute.close()
 
     async def post(self, path, body, headers=None):
         async with self.http.post(self.url + path, json=body, headers=headers) as resp:

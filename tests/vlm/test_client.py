@@ -3,11 +3,11 @@
 import asyncio
 import base64
 import email.utils
+import hashlib
 import io
 import json
 import logging
 import socket
-import threading
 import time
 
 import pytest
@@ -402,16 +402,34 @@ async def test_make_vlm_and_repr(fake):
 
 
 @pytest.mark.asyncio
-async def test_cpu_work_runs_off_the_event_loop(fake, monkeypatch):
-    threads = []
+async def test_image_work_goes_to_the_offload_and_arrives_whole(fake):
+    """The image is prepared where ``offload`` runs CPU work (the daemon: its compute
+    process), and its data URL is spliced into the JSON body byte for byte."""
+    calls = []
 
-    def spy(real):
-        def wrapper(*args, **kwargs):
-            threads.append((real.__name__, threading.current_thread() is threading.main_thread()))
-            return real(*args, **kwargs)
-        return wrapper
+    async def offload(fn, *args):
+        calls.append(fn.__name__)
+        return await asyncio.to_thread(fn, *args)
 
-    monkeypatch.setattr(vlm_module, "prepare_image", spy(vlm_module.prepare_image))
-    monkeypatch.setattr(vlm_module, "_encode_json", spy(vlm_module._encode_json))
-    await ask(fast_config(fake.base_url), image_bytes(2000, 1500, noise=True))
-    assert threads == [("prepare_image", False), ("_encode_json", False)]
+    big = image_bytes(2000, 1500, noise=True)
+    answer = await ask(fast_config(fake.base_url), big, offload=offload)
+    assert calls == ["prepare_for_vlm"] and answer.status == "ok"
+    [req] = fake.requests
+    assert req.error is None
+    sent = req.images[0]
+    assert sent != big and answer.image["sha256"] == hashlib.sha256(sent).hexdigest()
+    assert Image.open(io.BytesIO(sent)).size == (answer.image["width"], answer.image["height"])
+    # Stored: the request with the image named, never its bytes.
+    stored = json.dumps(answer.request)
+    assert "base64" not in stored and answer.image["sha256"] in stored
+
+
+def test_json_body_splices_the_data_url_where_its_placeholder_stands():
+    body = {"messages": [{"content": [{"text": "a \"quoted\" prompt"},
+                                      {"image_url": {"url": "<elided sha256:ab>"}}]}]}
+    payload = vlm_module._encode_json(body, ("<elided sha256:ab>", b"data:image/png;base64,QUJD"))
+    assert json.loads(payload)["messages"][0]["content"][1]["image_url"]["url"] == (
+        "data:image/png;base64,QUJD")
+    assert json.loads(payload)["messages"][0]["content"][0]["text"] == 'a "quoted" prompt'
+    with pytest.raises(AssertionError, match="placeholder"):
+        vlm_module._encode_json(body, ("<other>", b"data:"))

@@ -1,0 +1,181 @@
+"""The daemon's CPU work in one separate process: image decoding and re-encoding for the VLM,
+and the press analysis (crop, encoder, top-k, the episode's arrays).
+
+Why a process and not a thread: the event loop runs the 125 Hz sampler and sends the stop,
+and a worker thread competes with it for the GIL. Pillow's decoders and encoders hold the
+GIL for milliseconds at a time, and a Python loop around onnxruntime takes it back within
+the 5 ms switch interval; measured with the bench's load, both showed up as 3-5 ms stalls
+of the sampler (p99). In a process of its own they cost the loop only the pickling of
+arguments and results. It also keeps a decoder crash on a hostile upload out of the
+daemon: the worker dies, the request gets an error, the next call starts a new worker.
+
+One worker (a robot computer has few cores, and one press is analysed at a time), forked
+from a ``forkserver`` (never ``fork`` from the threaded daemon) that has imported this
+module, so starting one costs a fork, not the imports. The worker ignores SIGINT and
+SIGTERM: the daemon decides when it ends (a Ctrl-C in a terminal, or systemd signalling the
+whole control group, must not kill an analysis the daemon is about to store).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import logging
+import multiprocessing
+import os
+import select
+import signal
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
+
+import numpy as np
+
+# edge.images is imported for the forkserver to preload: the worker decodes images too.
+from edge import images, preprocess, recording  # noqa: F401
+from edge.errors import ComputeError, ModelError
+from edge.model import Model, load_model
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+TOPK = 3
+# How often a worker without pidfd support checks that the daemon still runs.
+WATCH_PERIOD_S = 1.0
+# Starting the worker (a fork of the preloaded server) and its first call.
+START_TIMEOUT_S = 30.0
+
+
+class ComputeWorker:
+    """One worker process; :meth:`run` awaits a module-level function run there."""
+
+    def __init__(self) -> None:
+        self._pool: ProcessPoolExecutor | None = None
+        self.restarts = 0
+
+    async def __aenter__(self) -> ComputeWorker:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+    async def start(self) -> None:
+        """Start the worker and wait until it answers (so the first press pays nothing)."""
+        self._pool = self._new_pool()
+        await asyncio.wait_for(self.run(_ready), START_TIMEOUT_S)
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        ctx = multiprocessing.get_context("forkserver")
+        # Imported once by the server; each worker is a fork of it (no effect once running).
+        ctx.set_forkserver_preload([__name__])
+        return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
+                                   initargs=(os.getpid(),))
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the worker; its :class:`EdgeError` arrives as raised there."""
+        if self._pool is None:
+            raise ComputeError("the compute worker is not running")
+        pool = self._pool
+        try:
+            return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
+        except BrokenProcessPool as exc:
+            if self._pool is pool:  # the first caller to notice replaces it
+                self.restarts += 1
+                log.error("compute worker died during %s (%s); starting a new one",
+                          getattr(fn, "__name__", fn), exc)
+                pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = self._new_pool()
+            raise ComputeError(
+                f"the compute worker died during {getattr(fn, '__name__', fn)} "
+                "(a crash or out of memory); a new one is started for the next call") from None
+
+    def close(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def pid(self) -> int | None:
+        """The worker's process ID once started (for CPU and memory accounting)."""
+        procs = getattr(self._pool, "_processes", None) or {}
+        return next(iter(procs), None)
+
+
+# --------------------------------------------------------------------------------------
+# In the worker process
+
+
+def _init_worker(daemon_pid: int) -> None:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    # The worker holds both ends of its task queue and keeps the forkserver alive, so
+    # neither notices the daemon die: after a ``kill -9`` they would run forever.
+    threading.Thread(target=_exit_with, args=(daemon_pid,), name="exit-with-daemon",
+                     daemon=True).start()
+
+
+def _exit_with(pid: int) -> None:
+    """Exit the moment process ``pid`` does (a pidfd turns readable), else poll for it."""
+    try:
+        fd = os.pidfd_open(pid)
+    except OSError:  # gone already, or a kernel before 5.3
+        while _alive(pid):
+            time.sleep(WATCH_PERIOD_S)
+    else:
+        select.select([fd], [], [])
+    os._exit(0)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _ready() -> bool:
+    return True
+
+
+_model: Model | None = None
+
+
+def model_for(directory: str, digest: str) -> Model:
+    """The daemon's model, loaded here once per model (a reload gives a new digest)."""
+    global _model
+    if _model is None or str(_model.directory) != directory or _model.digest != digest:
+        model = load_model(directory)
+        if model.digest != digest:
+            raise ModelError(
+                f"{directory}: the model files changed since the daemon loaded them; send "
+                "SIGHUP (systemctl reload vtzero-edge) to load the new ones")
+        _model = model
+    return _model
+
+
+def analyse_press(directory: str, digest: str, rec: recording.Recording
+                  ) -> tuple[np.ndarray, int, list[tuple[str, float]], str, bytes, bytes]:
+    """A press -> (z, code, top-k, description, recording bytes, model I/O bytes): the crop,
+    the encoder, the nearest references, and the episode's arrays serialised."""
+    model = model_for(directory, digest)
+    units = preprocess.recording_units(rec)
+    window = preprocess.crop(rec.recv_time, units, rec.t_stop)
+    x = preprocess.subsample(window, 0)
+    z, code = model.encode(x)
+    z = np.asarray(z).reshape(-1)
+    code = int(np.asarray(code).reshape(-1)[0])
+    topk = model.topk(z, TOPK)
+    description = model.describe([label for label, _ in topk])
+    buf = io.BytesIO()
+    np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+    return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
+
+
+__all__ = ["ComputeError", "ComputeWorker", "analyse_press"]

@@ -1,0 +1,104 @@
+"""The compute process: the same answers as in-process, a crash costs one call, a model
+changed on disk is refused, and the daemon, not a signal, ends the worker."""
+
+import asyncio
+import io
+import os
+import shutil
+import signal
+
+import numpy as np
+import pytest
+
+from edge import preprocess, recording
+from edge.compute import ComputeWorker, analyse_press
+from edge.errors import ComputeError, ModelError
+from edge.images import ImageError, check_image
+from edge.model import load_model
+from edge.sim.press import simulate_press
+from tests.harness import ROOT
+from tests.vlm.helpers import image_bytes
+
+pytestmark = pytest.mark.asyncio
+MODELS = ROOT / "models"
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(MODELS)
+
+
+async def test_analysis_in_the_worker_equals_the_model_in_process(model):
+    rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
+    async with ComputeWorker() as worker:
+        z, code, topk, description, press_npz, io_npz = await worker.run(
+            analyse_press, str(MODELS), model.digest, rec)
+        assert worker.pid() not in (None, os.getpid())
+    x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
+    z_here, code_here = model.encode(x)
+    np.testing.assert_allclose(z, z_here, atol=1e-6)
+    assert code == code_here and topk == model.topk(z_here, 3)
+    assert description == model.describe([label for label, _ in topk])
+    back = recording.from_bytes(press_npz)
+    np.testing.assert_array_equal(back.frames, rec.frames)
+    with np.load(io.BytesIO(io_npz)) as arrays:
+        np.testing.assert_allclose(arrays["x"], x)
+
+
+async def test_errors_raised_in_the_worker_arrive_as_raised(model):
+    async with ComputeWorker() as worker:
+        with pytest.raises(ImageError, match="not a JPEG or PNG"):
+            await worker.run(check_image, b"GIF89a not a picture")
+        assert await worker.run(check_image, image_bytes(64, 48)) == ("JPEG", 64, 48)
+        assert worker.restarts == 0
+
+
+async def test_a_crashed_worker_fails_one_call_and_is_replaced(model):
+    rec = simulate_press("stainless_cube", np.random.default_rng(1)).recording
+    async with ComputeWorker() as worker:
+        first = worker.pid()
+        with pytest.raises(ComputeError, match="died during _exit"):
+            await worker.run(os._exit, 3)  # as a decoder crash would end it
+        assert worker.restarts == 1
+        out = await worker.run(analyse_press, str(MODELS), model.digest, rec)
+        assert worker.pid() != first and out[3]  # a description from the new worker
+
+
+async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model):
+    copy = tmp_path / "models"
+    shutil.copytree(MODELS, copy)
+    loaded = load_model(copy)
+    rec = simulate_press("stainless_cube", np.random.default_rng(2)).recording
+    async with ComputeWorker() as worker:
+        manifest = copy / "manifest.json"
+        manifest.write_text(manifest.read_text().replace('"schema_version"',
+                                                         '"note": "edited", "schema_version"'))
+        with pytest.raises(ModelError, match="changed since the daemon loaded them; send SIGHUP"):
+            await worker.run(analyse_press, str(copy), loaded.digest, rec)
+        reloaded = load_model(copy)  # what SIGHUP does
+        assert (await worker.run(analyse_press, str(copy), reloaded.digest, rec))[3]
+
+
+async def test_the_worker_outlives_sigint_and_sigterm(model):
+    async with ComputeWorker() as worker:
+        pid = worker.pid()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            os.kill(pid, sig)
+        assert await worker.run(check_image, image_bytes(32, 32)) == ("JPEG", 32, 32)
+        assert worker.pid() == pid and worker.restarts == 0
+    # Closed by its owner: the process goes away.
+    for _ in range(200):
+        if _gone(pid):
+            break
+        await asyncio.sleep(0.01)
+    else:
+        raise AssertionError(f"compute worker {pid} still runs after close()")
+
+
+def _gone(pid: int) -> bool:
+    """Exited: no such process, or a zombie waiting for its parent to reap it."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()[0] == "Z"
+    except OSError:
+        return True
