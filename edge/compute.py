@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 TOPK = 3
+# The worker's niceness relative to the daemon (raising it needs no privilege).
+WORKER_NICE = 10
 # How often a worker without pidfd support checks that the daemon still runs.
 WATCH_PERIOD_S = 1.0
 # Starting the worker (a fork of the preloaded server) and its first call.
@@ -112,6 +114,12 @@ class ComputeWorker:
 def _init_worker(daemon_pid: int) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+    # Behind the daemon for a CPU: its loop reads the sensor and sends the stop.
+    try:
+        os.nice(WORKER_NICE)
+    except OSError as exc:
+        log.warning("compute worker: cannot lower its priority (nice %+d): %s",
+                    WORKER_NICE, exc)
     # The worker holds both ends of its task queue and keeps the forkserver alive, so
     # neither notices the daemon die: after a ``kill -9`` they would run forever.
     threading.Thread(target=_exit_with, args=(daemon_pid,), name="exit-with-daemon",
@@ -160,6 +168,12 @@ def model_for(directory: str, digest: str) -> Model:
     return _model
 
 
+def warm_up(directory: str, digest: str) -> None:
+    """Load the model here and run it once (onnxruntime allocates on its first run)."""
+    model = model_for(directory, digest)
+    model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
+
+
 def analyse_press(directory: str, digest: str, rec: recording.Recording
                   ) -> tuple[np.ndarray, int, list[tuple[str, float]], str, bytes, bytes]:
     """A press -> (z, code, top-k, description, recording bytes, model I/O bytes): the crop,
@@ -178,4 +192,4 @@ def analyse_press(directory: str, digest: str, rec: recording.Recording
     return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
 
 
-__all__ = ["ComputeError", "ComputeWorker", "analyse_press"]
+__all__ = ["ComputeError", "ComputeWorker", "analyse_press", "model_for", "warm_up"]

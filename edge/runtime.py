@@ -23,7 +23,7 @@ import numpy as np
 
 from edge import __version__, recording
 from edge.buffer import FrameRing, Sampler
-from edge.compute import ComputeWorker, analyse_press
+from edge.compute import ComputeWorker, analyse_press, warm_up
 from edge.config import Config
 from edge.errors import (
     BusyError,
@@ -460,6 +460,9 @@ class Runtime:
                 tg.create_task(self._vlm_retry(), name="vlm-retry")
                 if api is not None:
                     await api.start()
+                # The model loaded and run once in the compute process: the first press
+                # pays nothing for it.
+                await self.compute.run(warm_up, str(self.model.directory), self.model.digest)
                 await self._wait_first_frame()
                 self.ready.set()
                 self.notifier.ready(f"ready: {self.cfg.mode} mode")
@@ -503,6 +506,11 @@ class Runtime:
             log.error("reload refused, keeping the running configuration: %s", exc)
             return
         async with self._press_lock:  # never swap under a press in progress
+            try:
+                await self.compute.run(warm_up, str(model.directory), model.digest)
+            except EdgeError as exc:
+                log.error("reload refused, keeping the running model: %s", exc)
+                return
             self.cfg = replace(self.cfg, press=cfg.press, api=replace(
                 self.cfg.api, default_candidates=cfg.api.default_candidates))
             self.press.cfg = self.cfg

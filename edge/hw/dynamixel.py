@@ -803,8 +803,10 @@ class DynamixelBus:
         # A motor that shut itself down (overload, overheating...) has torque off: any goal
         # is ignored, so a press would close nothing and open nothing. Refuse it by name.
         # While the alert is on, the read itself raises with the Hardware Error Status.
+        # One SYNC READ for all motors: this runs before every press.
+        torque = self._sync_read_register(TORQUE_ENABLE)
         for motor_id in self._ids:
-            if self._read(motor_id, TORQUE_ENABLE):
+            if torque[motor_id]:
                 continue
             status = self._read(motor_id, HARDWARE_ERROR_STATUS)
             why = (f"Hardware Error Status 0x{status:02x}: {describe_hardware_error(status)}"
