@@ -9,10 +9,11 @@ press). Phases, each printed on stderr as it runs:
    runs in its own process (:mod:`edge.bench_sim`), as do a slow fake VLM and a poller of
    ``/healthz`` and ``/metrics``. A few presses first with no extra load (the software
    overhead, trigger to VLM request), then the load: the VLM client sends large camera
-   stills to the slow VLM, the encoder runs over and over in a worker thread, the API is
-   polled. Under it, presses alternate between three controllers: the production one
-   (threshold checked on every arriving frame), one that checks only on a 125 Hz tick, and
-   one on a 100 Hz control loop (the usual ROS 2 arrangement); both comparison controllers
+   stills to the slow VLM, the encoder runs over and over in the daemon's compute process
+   (where its own presses are encoded and its images prepared), the API is polled. Under
+   it, presses alternate between three controllers: the production one (threshold checked
+   on every arriving frame), one that checks only on a 125 Hz tick, and one on a 100 Hz
+   control loop (the usual ROS 2 arrangement); both comparison controllers
    live here, not in production code. The sampler's lateness is recorded throughout.
 2. **The daemon as a process.** ``vt-edge run`` against ``vt-edge sim serve``: time from
    process start to ``READY=1`` on a ``NOTIFY_SOCKET`` bound here, resident memory at steady
@@ -692,8 +693,8 @@ class RuntimeBench:
         image = await asyncio.to_thread(big_jpeg, s.image_px)
         _progress(f"runtime: load on: {s.load_vlm_clients} VLM clients sending a "
                   f"{s.image_px[0]}x{s.image_px[1]} JPEG ({len(image) / 1e6:.1f} MB) to a fake "
-                  f"VLM answering after {s.vlm_latency_s} s; encoder looping in a worker "
-                  f"thread; /healthz and /metrics polled at {s.poll_hz:g} Hz")
+                  f"VLM answering after {s.vlm_latency_s} s; encoder looping in the compute "
+                  f"process; /healthz and /metrics polled at {s.poll_hz:g} Hz")
         stop = asyncio.Event()
         counters = {"vlm_asks": 0, "vlm_errors": 0, "encodes": 0}
         # The load goes where the daemon's own work goes: images and the encoder to the

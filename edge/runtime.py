@@ -27,7 +27,9 @@ from edge.compute import ComputeWorker, analyse_press, warm_up
 from edge.config import Config
 from edge.errors import (
     BusyError,
+    ComputeError,
     EdgeError,
+    ModelError,
     NotFoundError,
     SensorError,
     StaleSensorError,
@@ -311,8 +313,9 @@ class Runtime:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
             log.error("episode %s: press not usable for recognition: %s", episode_id, exc)
-            episode.update(status="failed",
-                           error=f"the press worked but its tactile window is unusable: {exc}")
+            why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
+                   else "its tactile window is unusable")
+            episode.update(status="failed", error=f"the press worked but {why}: {exc}")
             with contextlib.suppress(EdgeError):
                 files["press.press.npz"] = recording.to_bytes(
                     outcome_recording(outcome, self.cfg))
