@@ -74,7 +74,7 @@ class ComputeWorker:
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("forkserver")
         # Imported once by the server; each worker is a fork of it (no effect once running).
-        ctx.set_forkserver_preload([__name__])
+        ctx.set_forkserver_preload([__name__, "onnxruntime"])
         return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
                                    initargs=(os.getpid(),))
 

@@ -12,8 +12,10 @@ from dataclasses import replace
 from pathlib import Path
 
 from edge.api import Api, load_token
-from edge.compute import ComputeWorker
+from edge.compute import ComputeWorker, warm_up
 from edge.config import Config, load_config
+from edge.model import ModelRef
+from edge.model import model_ref as _model_ref
 from edge.runtime import Devices, Runtime
 from edge.store import EpisodeStore
 from edge.systemd import Notifier
@@ -48,10 +50,9 @@ def state_dir(cfg: Config) -> Path:
     return Path(os.environ.get("VTZERO_STATE_DIR") or cfg.runtime.state_dir)
 
 
-def load_model(cfg: Config):
-    from edge.model import load_model as _load
-
-    return _load(cfg.runtime.models_dir)
+def model_ref(cfg: Config) -> ModelRef:
+    """The configured model by its manifest; the compute process loads and verifies it."""
+    return _model_ref(cfg.runtime.models_dir)
 
 
 def vlm_config(cfg: Config):
@@ -86,9 +87,11 @@ async def serve(cfg: Config, config_path: str | None = None,
     load_token(cfg.api)
     notifier = Notifier()
     notifier.status("starting: loading model")
-    model = await asyncio.to_thread(load_model, cfg)
-    notifier.status("starting: compute worker")
+    model = await asyncio.to_thread(model_ref, cfg)
     async with ComputeWorker() as compute:
+        # Every model file verified and the encoder run once, before any device is touched:
+        # no torque on an arm the daemon could not recognise with.
+        await compute.run(warm_up, str(model.directory), model.digest)
         vlm = make_vlm(cfg, compute)
         store = EpisodeStore(state_dir(cfg) / "episodes")
         if devices is None:
@@ -99,7 +102,7 @@ async def serve(cfg: Config, config_path: str | None = None,
 
         def reload():
             new = load_config(config_path) if config_path else cfg
-            return new, load_model(new), make_vlm(new, compute)
+            return new, model_ref(new), make_vlm(new, compute)
 
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
         runtime.started_at = started

@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import onnxruntime as ort
 
 from edge.atomic import atomic_write_bytes, atomic_write_text
 from edge.errors import ModelError
@@ -86,6 +85,8 @@ class OnnxEncoder:
 
     def __init__(self, model: bytes | str | Path, *, threads: int = 1,
                  name: str = ENCODER_FILE) -> None:
+        import onnxruntime as ort  # here: the daemon's loop process only needs a ModelRef
+
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
@@ -409,8 +410,28 @@ class Model:
 
     @functools.cached_property
     def digest(self) -> str:
-        """The model's identity: the manifest holds the sha256 of every file it loaded."""
-        return sha256_bytes(json.dumps(self.manifest, sort_keys=True).encode("utf-8"))
+        return manifest_digest(self.manifest)
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """Which model: its directory and digest. What the daemon's event-loop process holds;
+    the model itself is loaded where it runs (:mod:`edge.compute`)."""
+
+    directory: Path
+    digest: str
+
+
+def manifest_digest(manifest: Mapping[str, Any]) -> str:
+    """A model's identity: its manifest holds the sha256 of every file it loads."""
+    return sha256_bytes(json.dumps(manifest, sort_keys=True).encode("utf-8"))
+
+
+def model_ref(models_dir: str | Path) -> ModelRef:
+    """The model in ``models_dir`` by its manifest (checked; the files are verified when
+    the model is loaded)."""
+    directory = Path(models_dir)
+    return ModelRef(directory, manifest_digest(read_manifest(directory)))
 
 
 def _read(path: Path) -> bytes:

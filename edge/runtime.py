@@ -36,6 +36,7 @@ from edge.errors import (
     StoreError,
 )
 from edge.metrics import Metrics
+from edge.model import ModelRef
 from edge.press import PressController, PressOutcome, outcome_recording
 from edge.store import EpisodeStore, new_id
 from edge.systemd import Notifier, watchdog_period_s
@@ -63,7 +64,7 @@ class Devices:
 
 
 class Runtime:
-    def __init__(self, cfg: Config, devices: Devices, model: Any, vlm: Any,
+    def __init__(self, cfg: Config, devices: Devices, model: ModelRef, vlm: Any,
                  store: EpisodeStore, compute: ComputeWorker,
                  notifier: Notifier | None = None, reload: Any = None) -> None:
         self.cfg = cfg

@@ -20,7 +20,7 @@ import aiohttp
 from edge.api import Api
 from edge.compute import ComputeWorker
 from edge.config import Config
-from edge.daemon import load_model, make_vlm
+from edge.daemon import make_vlm, model_ref
 from edge.devices import open_devices
 from edge.hw.arm import gripper_raw
 from edge.runtime import Runtime
@@ -69,7 +69,7 @@ class Daemon:
         self.notifier = None
 
     async def __aenter__(self):
-        model = await asyncio.to_thread(load_model, self.cfg)
+        model = model_ref(self.cfg)
         self.devices = await open_devices(self.cfg)
         self.devices.button = self.button
         self.store = EpisodeStore(self.state / "episodes")

@@ -14,7 +14,7 @@ from edge import preprocess, recording
 from edge.compute import ComputeWorker, analyse_press
 from edge.errors import ComputeError, ModelError
 from edge.images import ImageError, check_image
-from edge.model import load_model
+from edge.model import load_model, model_ref
 from edge.sim.press import simulate_press
 from tests.harness import ROOT
 from tests.vlm.helpers import image_bytes
@@ -75,7 +75,7 @@ async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model
                                                          '"note": "edited", "schema_version"'))
         with pytest.raises(ModelError, match="changed since the daemon loaded them; send SIGHUP"):
             await worker.run(analyse_press, str(copy), loaded.digest, rec)
-        reloaded = load_model(copy)  # what SIGHUP does
+        reloaded = model_ref(copy)  # what SIGHUP does
         assert (await worker.run(analyse_press, str(copy), reloaded.digest, rec))[3]
 
 

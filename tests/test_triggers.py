@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 
-from edge.daemon import load_model
+from edge.daemon import model_ref
 from edge.hw.button import FakeButton
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
@@ -78,7 +78,7 @@ async def test_sighup_reloads_between_presses_never_during_one(tmp_path):
     async with SimRobot("gelatin_soft", seed=23, cfg=base_config()) as robot:
         async with Daemon(robot, base_config(), tmp_path) as d:
             old = d.runtime.model
-            new = await asyncio.to_thread(load_model, d.cfg)
+            new = model_ref(d.cfg)
             new_press = replace(d.cfg.press, x_th=0.0045)
             d.runtime._reload = lambda: (replace(d.cfg, press=new_press), new, d.vlm)
             _, ep = await d.post("/v1/recognize", {"candidates": CUBE})

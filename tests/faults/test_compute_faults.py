@@ -1,13 +1,28 @@
 """The compute process (crop, encoder, image preparation) dies: one episode fails with the
-press kept raw, the robot is safe, and the next press works on a new worker."""
+press kept raw, the robot is safe, and the next press works on a new worker. A model it
+cannot load stops the daemon before any motor is powered."""
 
+import asyncio
 import os
+import shutil
 import signal
+import subprocess
+import sys
 
 import pytest
 
-from edge import recording
-from tests.harness import FOOD, at_pose, gripper_open, sim_daemon, store_consistent
+from edge import recording, tomledit
+from edge.sim.robot import SimRobot
+from tests.harness import (
+    FOOD,
+    QUICK_OBJECT,
+    ROOT,
+    at_pose,
+    base_config,
+    gripper_open,
+    sim_daemon,
+    store_consistent,
+)
 
 pytestmark = pytest.mark.asyncio
 
@@ -38,3 +53,26 @@ async def test_compute_worker_killed_during_a_press(tmp_path):
         status, ep2 = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
         assert status == 200 and ep2["status"] == "not_configured" and ep2["description"]
         assert d.compute.pid() not in (None, first_worker) and d.compute.restarts == 1
+
+
+async def test_a_damaged_model_stops_the_daemon_before_any_motor_moves(tmp_path):
+    """As systemd sees it: ``vt-edge run`` exits 2 naming the file; torque never on."""
+    models = tmp_path / "models"
+    shutil.copytree(ROOT / "models", models)
+    with (models / "database.npz").open("r+b") as f:
+        f.seek(100)
+        f.write(b"\x00damaged\x00")
+    async with SimRobot(QUICK_OBJECT, seed=1, cfg=base_config()) as robot:
+        run_cfg = tmp_path / "run.toml"
+        tomledit.update(ROOT / "configs" / "sim.toml", run_cfg, {
+            "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port},
+            "api": {"port": 0}, "runtime": {"state_dir": str(tmp_path / "state"),
+                                            "models_dir": str(models)}})
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "edge", "run", "--config", str(run_cfg), cwd=ROOT,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        _, err = await asyncio.wait_for(proc.communicate(), 60)
+        print(f"exit {proc.returncode}:", err.decode()[-300:])
+        assert proc.returncode == 2
+        assert "database.npz: sha256" in err.decode() and "does not match" in err.decode()
+        assert all(robot.dxl.get_register(i, "Torque Enable") == 0 for i in (11, 12, 13, 14, 15))
