@@ -1501,17 +1501,17 @@ def explain(figures: dict[str, Any], host: dict[str, Any]) -> list[str]:
 # and the trials behind its commits showed (the figure's own numbers come with it).
 WHY: dict[str, str] = {
     "sampler_period_error_ms": (
-        "The event loop thread is kept off a CPU, not busy: 'The load' shows its run-queue "
-        "wait and preemptions while the encoder loop keeps one of the two cores busy and "
-        "other tenants use part of the other; a worker thread preempted while it holds the "
-        "GIL holds the loop up for a scheduling slice as well (in a trial with the loop "
-        "thread at SCHED_FIFO the run-queue wait vanished but 40-95 ms gaps remained). "
-        "Without the load the same sampler is at sampler_period_error_ms_no_load. To close "
-        "it: a core of its own for the daemon's loop and bus threads (CPUAffinity=, "
-        "isolcpus) at real-time priority (CPUSchedulingPolicy=fifo, worker threads reset to "
-        "SCHED_OTHER), image preparation in a subprocess so that its Python never holds the "
-        "daemon's GIL, and no back-to-back encoder. A late tick never shifts the recorded "
-        "data: the crop is placed from receive timestamps."),
+        "No thread of the daemon holds its GIL for milliseconds any more: image preparation "
+        "and the encoder run in the compute process, niced +10 (before that, p99 was 5.35 "
+        "ms with 343 missed ticks under this load). What is left is the CPU: the compute "
+        "worker keeps one of the two cores busy with the back-to-back encoder load, the "
+        "emulated robot, fake VLM and poller share the other, and the loop thread still "
+        "waits for a core ('The load': run-queue wait, preemptions); the missed ticks come "
+        "from a few single stalls (max_gap_ms). Without the load the sampler is at "
+        "sampler_period_error_ms_no_load. To close it: a core of its own for the loop and "
+        "bus threads (CPUAffinity=, isolcpus) at real-time priority "
+        "(CPUSchedulingPolicy=fifo). A late tick never shifts the recorded data: the crop is "
+        "placed from receive timestamps."),
     "stop_latency_ms": (
         "The median is near the unloaded figure (stop_latency_ms_no_load); the tail is the "
         "loop held up as for the sampler: in the slow presses the time goes before the "
@@ -1526,12 +1526,13 @@ WHY: dict[str, str] = {
         "the loop: see missed_first_crossing and aborted_after_stop of "
         "stop_latency_ms_loop100. Closing the per-frame tail (above) closes this."),
     "overhead_ms": (
-        "What remains: the API request and the camera capture task starting ahead of the "
-        "press (pre_press_ms), the crop, encoder and serialisation in a worker thread, image "
-        "preparation, JSON and the POST; the episode's durable write now overlaps the VLM "
-        "request. The tail is the shared host. To close it: the host as for the sampler; "
-        "starting the camera capture once the arm moves would take its set-up off the start "
-        "of the press."),
+        "What remains: the API request and the pre-press motor check (pre_press_ms), the "
+        "crop, encoder and serialisation in the compute process and the pickling both ways "
+        "(about 5 ms), image preparation there, JSON and the POST; the episode's durable "
+        "write overlaps the VLM request. The p99 of 8 presses is their slowest, on a host "
+        "shared with the emulated robot. To close it: the host as for the sampler; one "
+        "round trip to the compute process for the analysis and the image together, "
+        "started as soon as the window after the stop is complete."),
     "encode_ms": (
         "onnxruntime itself needs about 0.1 ms per sequence on a quiet core (0.094 ms p50 "
         "in a separate run of this code); see host_cores_busy and the other tenants' share "
