@@ -430,7 +430,7 @@ def manifest_digest(manifest: Mapping[str, Any]) -> str:
 def model_ref(models_dir: str | Path) -> ModelRef:
     """The model in ``models_dir`` by its manifest (checked; the files are verified when
     the model is loaded)."""
-    directory = Path(models_dir)
+    directory = Path(models_dir).resolve()  # absolute: errors and logs say where
     return ModelRef(directory, manifest_digest(read_manifest(directory)))
 
 

@@ -80,7 +80,11 @@ class Daemon:
                                self.compute, self.notifier)
         self.api = Api(self.runtime, self.cfg.api)
         self.task = asyncio.create_task(self.runtime.run(self.api))
-        await asyncio.wait_for(self.runtime.ready.wait(), 10)
+        try:
+            await asyncio.wait_for(self.runtime.ready.wait(), 10)
+        except BaseException:
+            self.compute.close()  # (the runtime's own failure shows when the task is awaited)
+            raise
         self.url = f"http://127.0.0.1:{self.api.port}"
         self.http = aiohttp.ClientSession(headers=self.headers)
         return self
