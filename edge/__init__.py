@@ -1,3 +1,10 @@
 """vtzero on-robot runtime: press, tactile encoding, VLM recognition. Never imports torch."""
 
+import os
+
 __version__ = "0.1.0"
+
+# onnxruntime (1.29+) collects telemetry on Linux by default: at the first session it writes a
+# device id and an event cache under ~/.cache/Microsoft and uploads from there. A robot must
+# not; set before onnxruntime is imported anywhere in vtzero (a value already set wins).
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
