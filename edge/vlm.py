@@ -386,6 +386,7 @@ class OpenAIVLM:
 
         head = {"model": self.config.model, "temperature": 0, "seed": self.config.seed,
                 "stream": False, "response_format": response_format(labels)}
+        # Both name the image; _encode_json puts the data URL in what goes on the wire.
         wire = [_user_message(prompt, stored_url)]
         stored = [_user_message(prompt, stored_url)]
         trace = _Trace()
@@ -583,9 +584,10 @@ class OpenAIVLM:
 def _encode_json(body: dict[str, Any], splice: tuple[str, bytes] | None = None) -> bytes:
     """The request body, with ``splice``'s data URL put where its placeholder stands.
 
-    Megabytes of base64 never pass through ``json.dumps`` (escaping them held the GIL for
-    milliseconds): base64 and the ``data:`` prefix need no JSON escaping, and joining the
-    bytes is one copy (~0.1 ms per MB), cheap enough for the event loop.
+    Megabytes of base64 never pass through ``json.dumps``: base64 and the ``data:`` prefix
+    need no JSON escaping, and joining bytes is one copy, cheap enough for the event loop
+    (for a 1.33 MB data URL here: json.dumps 4.7 ms holding the GIL, the splice 0.05 ms,
+    up to 1.2 ms when its memory is freshly mapped).
     """
     payload = json.dumps(body, ensure_ascii=False).encode("utf-8")
     if splice is None:
