@@ -231,6 +231,10 @@ class Runtime:
                          source: str, done: asyncio.Future) -> None:
         t0 = time.monotonic()
         timings: dict[str, float] = {}
+        # Noted while the press starts (its fsyncs off the loop): a crash before the episode
+        # is kept leaves it "interrupted" after the restart, not unknown.
+        noted = asyncio.get_running_loop().run_in_executor(
+            None, self.store.accept, episode_id, candidates, source)
         try:
             self.publish({"type": "episode", "episode": episode_id, "status": "running"})
             camera_task = None
@@ -250,6 +254,7 @@ class Runtime:
                     log.warning("camera failed: %s", exc)
             episode, files = await self._analyse(episode_id, candidates, image, source,
                                                  outcome, timings)
+            await self._noted(noted)
             if episode["status"] != "pending":
                 await asyncio.to_thread(self.store.create, episode, files)
             else:
@@ -268,6 +273,7 @@ class Runtime:
             log.exception("episode %s failed", episode_id)
             error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
             try:
+                await self._noted(noted)
                 await asyncio.to_thread(self.store.create, {
                     "id": episode_id, "status": "failed", "error": error,
                     "candidates": candidates, "source": source}, {})
@@ -286,6 +292,15 @@ class Runtime:
             if not done.done():
                 done.set_result(None)
             self.publish({"type": "episode", "episode": episode_id, "status": "finished"})
+
+    @staticmethod
+    async def _noted(noted: asyncio.Future) -> None:
+        """Wait for the acceptance note before the episode is written (else the note could
+        land after it, and outlive it until the next start)."""
+        try:
+            await noted
+        except StoreError as exc:
+            log.warning("%s: a crash before this episode is kept would lose it", exc)
 
     async def _analyse(self, episode_id: str, candidates: list[str], image: bytes | None,
                        source: str, outcome: PressOutcome, timings: dict[str, float]

@@ -35,6 +35,11 @@ log = logging.getLogger(__name__)
 EPISODE_FILE = "episode.json"
 _ID_RE = re.compile(r"^\d{8}T\d{6}\d{3}Z-[0-9a-f]{6}$")
 _TMP_PREFIX = ".tmp-"
+# One small file per accepted press until its episode is kept: what a restart finds here
+# was cut off by a crash, and is kept as an interrupted episode instead of forgotten.
+_ACCEPTED = ".accepted"
+INTERRUPTED = ("interrupted: the daemon stopped (a crash, kill or power loss) before this "
+               "press was kept; its data is lost. Press again")
 # Below this much free space (or 100 free inodes) the store counts as full: an episode
 # takes a few hundred kB; keep room for the rest of the system too.
 MIN_FREE_BYTES = 20 * 1024 * 1024
@@ -61,17 +66,44 @@ class EpisodeStore:
             raise StoreError(f"episode store {self.root} cannot be created: {exc}") from None
 
     def recover(self) -> int:
-        """Remove episodes that were never completed (a crash while writing); returns count."""
+        """After a crash: remove episodes that were never completed (returns how many), and
+        keep each press accepted but never kept as a ``failed`` "interrupted" episode."""
         removed = 0
         for tmp in self.root.glob(f"{_TMP_PREFIX}*"):
             shutil.rmtree(tmp, ignore_errors=True)
             removed += 1
-        for tmp in self.root.glob(f"*/.{EPISODE_FILE}.*.tmp"):
+        for tmp in [*self.root.glob(f"*/.{EPISODE_FILE}.*.tmp"),
+                    *self.root.glob(f"{_ACCEPTED}/.*.tmp")]:
             tmp.unlink(missing_ok=True)
         if removed:
             log.warning("discarded %d incomplete episode(s) left by an interrupted write",
                         removed)
+        for note in sorted((self.root / _ACCEPTED).glob("*.json")):
+            episode_id = note.stem
+            if valid_id(episode_id) and not (self.root / episode_id).is_dir():
+                try:
+                    accepted = json.loads(note.read_bytes())
+                except (OSError, ValueError):
+                    accepted = {}
+                if not isinstance(accepted, dict):
+                    accepted = {}
+                self.create({"id": episode_id, "status": "failed", "error": INTERRUPTED,
+                             "candidates": accepted.get("candidates"),
+                             "source": accepted.get("source"),
+                             "accepted": accepted.get("accepted")}, {})
+                log.warning("episode %s: %s", episode_id, INTERRUPTED)
+            note.unlink(missing_ok=True)
         return removed
+
+    def accept(self, episode_id: str, candidates: list[str], source: str) -> None:
+        """Note a press as accepted, before it runs (see ``_ACCEPTED``)."""
+        notes = self.root / _ACCEPTED
+        try:
+            notes.mkdir(exist_ok=True)
+            atomic_write_text(notes / f"{episode_id}.json", json.dumps(
+                {"candidates": candidates, "source": source, "accepted": time.time()}))
+        except OSError as exc:
+            raise _store_error(f"episode {episode_id} could not be noted", exc) from None
 
     def space_error(self) -> str | None:
         """Why a new episode cannot be kept (the filesystem is full), or None.
@@ -114,6 +146,9 @@ class EpisodeStore:
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise _store_error(f"episode {episode_id} could not be written", exc) from None
+        # Kept: the note is done with (one left by a crash here is removed by recover()).
+        with contextlib.suppress(OSError):
+            (self.root / _ACCEPTED / f"{episode_id}.json").unlink(missing_ok=True)
         return episode_id
 
     def update(self, episode_id: str, **fields: Any) -> dict[str, Any]:

@@ -82,3 +82,24 @@ def test_disk_full_is_a_clear_error_and_keeps_older_episodes(tmp_path, monkeypat
     assert [e["id"] for e in store.list()] == [old]
     assert not list(tmp_path.glob(".tmp-*"))
     assert json.loads((tmp_path / old / "episode.json").read_text())["status"] == "done"
+
+
+def test_a_press_accepted_but_never_kept_comes_back_interrupted(tmp_path):
+    store = EpisodeStore(tmp_path)
+    kept, lost, garbled = new_id(), new_id(), new_id()
+    for episode_id in (kept, lost, garbled):
+        store.accept(episode_id, ["a", "b"], "button")
+    store.create({"id": kept, "status": "done"}, {})
+    (tmp_path / ".accepted" / f"{garbled}.json").write_bytes(b"\x00{not json")
+    (tmp_path / ".accepted" / ".x.json.abc.tmp").write_text("half")  # a note cut off
+    assert not (tmp_path / ".accepted" / f"{kept}.json").exists()  # kept: note gone
+    assert store.recover() == 0  # (counts discarded half-written episodes only)
+    assert store.ids() == sorted([kept, lost, garbled])
+    assert store.get(kept)["status"] == "done"
+    back = store.get(lost)
+    assert back["status"] == "failed" and back["error"].startswith("interrupted")
+    assert back["candidates"] == ["a", "b"] and back["source"] == "button"
+    assert store.get(garbled)["status"] == "failed" and store.get(garbled)["candidates"] is None
+    assert list((tmp_path / ".accepted").iterdir()) == []
+    store.recover()  # a second start changes nothing
+    assert store.ids() == sorted([kept, lost, garbled])

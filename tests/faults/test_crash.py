@@ -1,5 +1,6 @@
 """``kill -9`` of the daemon while it writes an episode, then a restart: the store loads,
-nothing is half-written, every committed episode is intact, the daemon serves again.
+nothing is half-written, every committed episode is intact, the press that was cut off is
+kept as ``failed`` "interrupted" (never silently gone), the daemon serves again.
 
 Two ways in: a daemon process that kills itself at the worst instant (inside
 ``EpisodeStore.create`` after every file is written, before the rename; or inside the
@@ -60,7 +61,12 @@ async def main():
             Daemon(robot, fast_config(), state) as d:
         if where == "update":
             # The first episode is created whole; replacing its episode.json kills us.
-            edge.atomic.os = type("os", (), {**vars(os), "replace": die})
+            def replace(src, dst):
+                if str(dst).endswith("episode.json"):
+                    die()
+                os.replace(src, dst)
+
+            edge.atomic.os = type("os", (), {**vars(os), "replace": replace})
         else:
             status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
             print("committed", ep["id"], ep["status"], flush=True)
@@ -95,9 +101,11 @@ async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
     committed = [line.split()[1] for line in lines if line.startswith("committed")]
     (accepted,) = [line.split()[1] for line in lines if line.startswith("accepted")]
     # What the kill left: a temp directory (create) or a temp episode.json (update).
-    left = sorted(str(p.relative_to(root)) for p in root.rglob(".*"))
+    left = sorted(str(p.relative_to(root)) for p in root.rglob(".*") if p.name != ".accepted")
     print("left by the kill:", left)
     assert left and all(".tmp" in name for name in left)
+    if where == "create":  # and the note that the press was accepted
+        assert (root / ".accepted" / f"{accepted}.json").is_file()
 
     async with SimRobot(QUICK_OBJECT, seed=4, cfg=base_config()) as robot, \
             Daemon(robot, fast_config(), tmp_path) as d:
@@ -110,17 +118,25 @@ async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
             ep = await d.wait_status(accepted, {"not_configured"})
             assert ep["attempts"] == 1
         for ep in store_consistent(root):
+            if ep["id"] == accepted and where == "create":
+                continue  # (kept as interrupted, below)
             assert ep["press"]["contact"]
             recording.load(root / ep["id"] / "press.press.npz")
         await wait_health(d, True)
         if where == "create":
             assert f"vtzero_store_discarded_partial_total {len(left)}" in metrics
-            (intact,) = [e["id"] for e in store_consistent(root)]
-            assert intact == committed[0]
-            assert (await d.get(f"/v1/episodes/{intact}"))[1]["status"] == "not_configured"
-            # The episode killed while being written: all of it or none of it.
-            status, missing = await d.get(f"/v1/episodes/{accepted}")
-            assert status == 404 and "no episode" in missing["error"]
+            kept = {e["id"]: e for e in store_consistent(root)}
+            assert set(kept) == {committed[0], accepted}
+            assert (await d.get(f"/v1/episodes/{committed[0]}"))[1]["status"] == (
+                "not_configured")
+            # The episode killed while being written: none of its half-written files, but
+            # the user learns what became of the press.
+            status, lost = await d.get(f"/v1/episodes/{accepted}")
+            print("the press cut off:", lost)
+            assert status == 200 and lost["status"] == "failed"
+            assert lost["error"].startswith("interrupted: the daemon stopped")
+            assert lost["candidates"] == FOOD and lost["source"] == "api"
+            assert not (root / accepted / "press.press.npz").exists()
         assert gripper_open(robot)
 
 
@@ -208,14 +224,16 @@ async def test_real_daemon_killed_9_while_writing_then_restarted(tmp_path):
                 async with http.get(f"{api}/v1/episodes/{accepted}") as resp:
                     status, body = resp.status, await resp.json()
                 print("after restart:", status, body.get("status") or body)
-                if status == 200:  # renamed into place before the kill landed: whole
-                    if body["press"]["contact"]:  # (a loaded host may fail the press itself)
-                        recording.load(state / "episodes" / accepted / "press.press.npz")
-                else:  # none of it
-                    assert status == 404 and "no episode" in body["error"]
+                assert status == 200
+                if body.get("error", "").startswith("interrupted"):  # none of its data
+                    assert body["status"] == "failed" and "press" not in body
+                elif body["press"]["contact"]:  # renamed into place before the kill: whole
+                    # (a loaded host may fail the press itself)
+                    recording.load(state / "episodes" / accepted / "press.press.npz")
                 async with http.get(api + "/metrics") as resp:
                     text = await resp.text()
-                assert f"vtzero_store_discarded_partial_total {int(status == 404)}" in text
+                interrupted = body.get("error", "").startswith("interrupted")
+                assert f"vtzero_store_discarded_partial_total {int(interrupted)}" in text
         finally:
             if proc.returncode is None:
                 proc.send_signal(signal.SIGTERM)
