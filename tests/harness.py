@@ -104,11 +104,12 @@ class Daemon:
         async with self.http.get(self.url + path, headers=headers) as resp:
             return resp.status, await resp.json()
 
-    async def wait_status(self, episode_id, statuses, timeout_s=20.0):
+    async def wait_status(self, episode_id, statuses, timeout_s=20.0, until=None):
+        """Poll the episode until its status is one of ``statuses`` (and ``until(ep)``)."""
         deadline = asyncio.get_running_loop().time() + timeout_s
         while True:
             status, ep = await self.get(f"/v1/episodes/{episode_id}")
-            if status == 200 and ep.get("status") in statuses:
+            if status == 200 and ep.get("status") in statuses and (until is None or until(ep)):
                 return ep
             assert asyncio.get_running_loop().time() < deadline, (status, ep)
             await asyncio.sleep(0.1)

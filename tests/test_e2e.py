@@ -60,7 +60,10 @@ async def test_busy_answer_then_vlm_down_pending_completed_after_restart(tmp_pat
             assert status == 202
             status, busy = await d.post("/v1/recognize", {"candidates": CUBE})
             assert status == 409 and busy["episode"] == first["id"]
-            ep = await d.wait_status(first["id"], {"pending"})
+            # Stored as pending while its first question is still in flight; then asked and
+            # refused: still pending, now with why.
+            ep = await d.wait_status(first["id"], {"pending"},
+                                     until=lambda ep: ep.get("attempts", 0) >= 1)
             assert ep["last_error"] and ep.get("label") is None
         # Restart the daemon with the VLM back: the pending episode completes.
         async with FakeVLM(model="fake-vlm", port=port) as fake, \
