@@ -360,11 +360,11 @@ class PressRecord:
     message: str = ""
 
 
-def encode_for(directory: str, digest: str, seconds: float) -> int:
+def encode_for(ref: Any, seconds: float) -> int:
     """The encoder load, in the compute process: encode and top-k back to back."""
     from edge.compute import model_for
 
-    model = model_for(directory, digest)
+    model = model_for(ref)
     x = np.random.default_rng(1).normal(0, 2e-3, (25, 96)).astype(np.float32)
     n, end = 0, time.monotonic() + seconds
     while time.monotonic() < end:
@@ -727,7 +727,7 @@ class RuntimeBench:
             pause = s.encode_load_s * (1.0 / s.encode_duty - 1.0)
             while not stop.is_set():
                 counters["encodes"] += await self.compute.run(
-                    encode_for, str(model.directory), model.digest, s.encode_load_s)
+                    encode_for, model, s.encode_load_s)
                 if pause > 0:
                     await asyncio.sleep(pause)
 

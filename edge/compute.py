@@ -37,7 +37,7 @@ import numpy as np
 # edge.images is imported for the forkserver to preload: the worker decodes images too.
 from edge import images, preprocess, recording  # noqa: F401
 from edge.errors import ComputeError, ModelError
-from edge.model import Model, load_model
+from edge.model import Model, ModelRef, load_model
 
 log = logging.getLogger(__name__)
 
@@ -155,30 +155,30 @@ def _ready() -> bool:
 _model: Model | None = None
 
 
-def model_for(directory: str, digest: str) -> Model:
+def model_for(ref: ModelRef) -> Model:
     """The daemon's model, loaded here once per model (a reload gives a new digest)."""
     global _model
-    if _model is None or str(_model.directory) != directory or _model.digest != digest:
-        model = load_model(directory)
-        if model.digest != digest:
+    if _model is None or _model.directory != ref.directory or _model.digest != ref.digest:
+        model = load_model(ref.directory)
+        if model.digest != ref.digest:
             raise ModelError(
-                f"{directory}: the model files changed since the daemon loaded them; send "
+                f"{ref.directory}: the model files changed since the daemon loaded them; send "
                 "SIGHUP (systemctl reload vtzero-edge) to load the new ones")
         _model = model
     return _model
 
 
-def warm_up(directory: str, digest: str) -> None:
+def warm_up(ref: ModelRef) -> None:
     """Load the model here and run it once (onnxruntime allocates on its first run)."""
-    model = model_for(directory, digest)
+    model = model_for(ref)
     model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
 
 
-def analyse_press(directory: str, digest: str, rec: recording.Recording
+def analyse_press(ref: ModelRef, rec: recording.Recording
                   ) -> tuple[np.ndarray, int, list[tuple[str, float]], str, bytes, bytes]:
     """A press -> (z, code, top-k, description, recording bytes, model I/O bytes): the crop,
     the encoder, the nearest references, and the episode's arrays serialised."""
-    model = model_for(directory, digest)
+    model = model_for(ref)
     units = preprocess.recording_units(rec)
     window = preprocess.crop(rec.recv_time, units, rec.t_stop)
     x = preprocess.subsample(window, 0)

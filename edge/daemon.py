@@ -91,7 +91,7 @@ async def serve(cfg: Config, config_path: str | None = None,
     async with ComputeWorker() as compute:
         # Every model file verified and the encoder run once, before any device is touched:
         # no torque on an arm the daemon could not recognise with.
-        await compute.run(warm_up, str(model.directory), model.digest)
+        await compute.run(warm_up, model)
         vlm = make_vlm(cfg, compute)
         store = EpisodeStore(state_dir(cfg) / "episodes")
         if devices is None:

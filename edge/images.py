@@ -56,9 +56,6 @@ class PreparedImage:
     def sha256(self) -> str:
         return hashlib.sha256(self.data).hexdigest()
 
-    def data_url(self) -> str:
-        return data_url(self.data, self.mime)
-
     def info(self) -> dict[str, object]:
         """A JSON-able summary for storage (no pixel data)."""
         return {
@@ -112,8 +109,7 @@ def prepare_for_vlm(data: bytes, max_side_px: int, max_bytes: int
     sending an image, done in one call where the caller runs CPU work."""
     prepared = prepare_image(data, max_side_px, max_bytes)
     _ = prepared.sha256  # hashed here too
-    url = b"data:" + prepared.mime.encode("ascii") + b";base64," + base64.b64encode(prepared.data)
-    return prepared, url
+    return prepared, data_url(prepared.data, prepared.mime).encode("ascii")
 
 
 def check_image(data: bytes, max_pixels: int = DEFAULT_MAX_PIXELS) -> tuple[str, int, int]:

@@ -245,7 +245,7 @@ class PressController:
             while self.ring.latest_time() < end and time.monotonic() < give_up:  # noqa: ASYNC110
                 await asyncio.sleep(0.01)
             outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
-                                              outcome.t_stop + spec.after_s + RECORD_MARGIN_S)
+                                              end)
         self._enter(outcome, "idle")
         self._outcome = None
         return outcome
@@ -279,7 +279,7 @@ class PressController:
             crossed.cancel()
             aborted.cancel()
         outcome.peak_level = armed.peak
-        if armed.crossed.is_set() and armed.stop_error is None:
+        if armed.crossed.is_set():  # (set only once the stop went out)
             outcome.t_cross = armed.t_cross
             outcome.level_at_cross = armed.level_at_cross
             outcome.result = "ok"

@@ -320,11 +320,11 @@ class Runtime:
             episode.update(status="failed", error=outcome.message or outcome.result)
             return episode, files
         t = time.monotonic()
+        rec = None
         try:
             # The crop, the encoder and the serialisation run in the compute process.
             rec = outcome_recording(outcome, self.cfg)
-            analysed = await self.compute.run(analyse_press, str(self.model.directory),
-                                              self.model.digest, rec)
+            analysed = await self.compute.run(analyse_press, self.model, rec)
         except EdgeError as exc:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
@@ -332,9 +332,9 @@ class Runtime:
             why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
                    else "its tactile window is unusable")
             episode.update(status="failed", error=f"the press worked but {why}: {exc}")
-            with contextlib.suppress(EdgeError):
-                files["press.press.npz"] = recording.to_bytes(
-                    outcome_recording(outcome, self.cfg))
+            if rec is not None:  # (none when the window itself is unusable)
+                with contextlib.suppress(EdgeError):
+                    files["press.press.npz"] = recording.to_bytes(rec)
             return episode, files
         timings["encode_s"] = time.monotonic() - t
         z, code, topk, description, press_npz, model_io_npz = analysed
@@ -395,9 +395,9 @@ class Runtime:
         except EdgeError as exc:
             if stored is not None:
                 await stored
+            self.metrics.vlm_errors += 1
             if not isinstance(exc, VLMUnavailableError):
                 # Refused (4xx), a broken answer or a bad image: asking again will not help.
-                self.metrics.vlm_errors += 1
                 log.error("episode %s: VLM error: %s", episode_id, exc)
                 await asyncio.to_thread(self.store.update, episode_id, status="vlm_error",
                                         attempts=attempts, last_error=str(exc))
@@ -406,7 +406,6 @@ class Runtime:
                 return
             delay = min(self.cfg.runtime.vlm_retry_base_s * 2 ** (attempts - 1),
                         self.cfg.runtime.vlm_retry_max_s)
-            self.metrics.vlm_errors += 1
             log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode_id, exc,
                         delay)
             await asyncio.to_thread(self.store.update, episode_id, attempts=attempts,
@@ -481,7 +480,7 @@ class Runtime:
                     await api.start()
                 # The model loaded and run once in the compute process: the first press
                 # pays nothing for it.
-                await self.compute.run(warm_up, str(self.model.directory), self.model.digest)
+                await self.compute.run(warm_up, self.model)
                 await self._wait_first_frame()
                 self.ready.set()
                 self.notifier.ready(f"ready: {self.cfg.mode} mode")
@@ -526,7 +525,7 @@ class Runtime:
             return
         async with self._press_lock:  # never swap under a press in progress
             try:
-                await self.compute.run(warm_up, str(model.directory), model.digest)
+                await self.compute.run(warm_up, model)
             except EdgeError as exc:
                 log.error("reload refused, keeping the running model: %s", exc)
                 return

@@ -32,7 +32,7 @@ async def test_analysis_in_the_worker_equals_the_model_in_process(model):
     rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
     async with ComputeWorker() as worker:
         z, code, topk, description, press_npz, io_npz = await worker.run(
-            analyse_press, str(MODELS), model.digest, rec)
+            analyse_press, model_ref(MODELS), rec)
         assert worker.pid() not in (None, os.getpid())
     x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
     z_here, code_here = model.encode(x)
@@ -60,23 +60,23 @@ async def test_a_crashed_worker_fails_one_call_and_is_replaced(model):
         with pytest.raises(ComputeError, match="died during _exit"):
             await worker.run(os._exit, 3)  # as a decoder crash would end it
         assert worker.restarts == 1
-        out = await worker.run(analyse_press, str(MODELS), model.digest, rec)
+        out = await worker.run(analyse_press, model_ref(MODELS), rec)
         assert worker.pid() != first and out[3]  # a description from the new worker
 
 
 async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model):
     copy = tmp_path / "models"
     shutil.copytree(MODELS, copy)
-    loaded = load_model(copy)
+    loaded = model_ref(copy)
     rec = simulate_press("stainless_cube", np.random.default_rng(2)).recording
     async with ComputeWorker() as worker:
         manifest = copy / "manifest.json"
         manifest.write_text(manifest.read_text().replace('"schema_version"',
                                                          '"note": "edited", "schema_version"'))
         with pytest.raises(ModelError, match="changed since the daemon loaded them; send SIGHUP"):
-            await worker.run(analyse_press, str(copy), loaded.digest, rec)
+            await worker.run(analyse_press, loaded, rec)
         reloaded = model_ref(copy)  # what SIGHUP does
-        assert (await worker.run(analyse_press, str(copy), reloaded.digest, rec))[3]
+        assert (await worker.run(analyse_press, reloaded, rec))[3]
 
 
 async def test_the_worker_outlives_sigint_and_sigterm(model):
