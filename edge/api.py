@@ -207,11 +207,11 @@ class Api:
         if request.content_type == "multipart/form-data":
             try:
                 fields, image = await self._read_multipart(request)
+            except BadRequest:
+                raise
             except (ValueError, LookupError, AssertionError, HttpProcessingError) as exc:
                 # aiohttp's reader on a broken stream (no or a wrong boundary, a cut body,
                 # a bad part header), an unknown charset, text that is not in its charset.
-                if isinstance(exc, BadRequest):
-                    raise
                 raise BadRequest(f"malformed multipart/form-data body: "
                                  f"{type(exc).__name__}: {str(exc)[:200]}") from None
         elif request.content_type == "application/json":

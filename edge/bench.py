@@ -394,9 +394,11 @@ def first_crossing(ring: Any, outcome: PressOutcome,
 READ_INSTRUCTION = 0x02
 
 
-def _proc_cpu_s(pid: int) -> float:
+def _proc_cpu_s(pid: int, reaped_children: bool = False) -> float:
+    """User + system CPU seconds of ``pid`` (and of its children it has waited for)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    ticks = fields[11:15] if reaped_children else fields[11:13]
+    return sum(int(v) for v in ticks) / os.sysconf("SC_CLK_TCK")
 
 
 def _host_cpu() -> tuple[float, float]:
@@ -424,8 +426,7 @@ def _bench_cpu_s() -> float:
     total = t.user + t.system + t.children_user + t.children_system
     for pid in process_tree(os.getpid())[1:]:
         with contextlib.suppress(OSError, ValueError, IndexError):
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            total += sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+            total += _proc_cpu_s(pid, reaped_children=True)
     return total
 
 
@@ -944,23 +945,26 @@ def process_tree(pid: int) -> list[int]:
     return tree
 
 
-def _rss_mb(pid: int, tree: bool = True) -> tuple[float, float, float]:
-    """Over ``pid``'s process tree (or ``pid`` alone), in MiB: the sum of VmRSS (pages
-    shared between the processes counted in each: an upper bound), of VmHWM (peaks), and of
-    Pss (shared pages split between their processes: the memory the tree really takes)."""
-    rss = hwm = pss = 0.0
-    for p in process_tree(pid) if tree else [pid]:
+def _rss_mb(pid: int) -> tuple[float, float, float, float]:
+    """Over ``pid``'s process tree, in MiB: the sum of VmRSS (pages shared between the
+    processes counted in each: an upper bound), of VmHWM (peaks), of Pss (shared pages
+    split between their processes: the memory the tree really takes), and ``pid``'s own
+    VmRSS."""
+    rss = hwm = pss = own = 0.0
+    for p in process_tree(pid):
         with contextlib.suppress(OSError):
             for line in Path(f"/proc/{p}/status").read_text().splitlines():
                 key, _, value = line.partition(":")
                 if key == "VmRSS":
                     rss += int(value.split()[0]) / 1024.0
+                    if p == pid:
+                        own = int(value.split()[0]) / 1024.0
                 elif key == "VmHWM":
                     hwm += int(value.split()[0]) / 1024.0
             for line in Path(f"/proc/{p}/smaps_rollup").read_text().splitlines():
                 if line.startswith("Pss:"):
                     pss += int(line.split()[1]) / 1024.0
-    return rss, hwm, pss
+    return rss, hwm, pss, own
 
 
 def torch_mappings(pid: int) -> list[str]:
@@ -1026,11 +1030,11 @@ def daemon_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
                         for _ in range(s.rss_samples):
                             time.sleep(0.5)
                             http_json("GET", f"{api}/healthz", timeout=5)
-                            now, peak, proportional = _rss_mb(proc.pid)
+                            now, peak, proportional, own = _rss_mb(proc.pid)
                             rss.append(now)
                             hwm.append(peak)
                             pss.append(proportional)
-                            main_rss.append(_rss_mb(proc.pid, tree=False)[0])
+                            main_rss.append(own)
                         torch_found.append([m for p in process_tree(proc.pid)
                                             for m in torch_mappings(p)])
                     finally:
