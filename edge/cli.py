@@ -9,8 +9,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from edge import __version__
-from edge.errors import EdgeError
-from edge.logs import setup_logging
+from edge.core.errors import EdgeError
+from edge.core.logs import setup_logging
 
 log = logging.getLogger(__name__)
 
@@ -47,13 +47,13 @@ def _cmd_sim_press(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from edge.demo import run_demo
+    from edge.tools.demo import run_demo
 
     return run_demo(args.config)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from edge.daemon import run
+    from edge.daemon.serve import run
 
     return run(args.config)
 
@@ -62,8 +62,8 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
     import asyncio
     import signal
 
-    from edge import tomledit
-    from edge.config import load_config
+    from edge.core import tomledit
+    from edge.core.config import load_config
     from edge.sim.robot import SimRobot
 
     cfg = load_config(args.config)
@@ -93,8 +93,8 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
 def _cmd_collect(args: argparse.Namespace) -> int:
     import asyncio
 
-    from edge.collect import collect
-    from edge.config import load_config
+    from edge.core.config import load_config
+    from edge.tools.collect import collect
 
     files = asyncio.run(collect(load_config(args.config), args.label, args.presses, args.out,
                                 prompt=None if args.no_prompt else input))
@@ -105,15 +105,15 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 def _cmd_pose_teach(args: argparse.Namespace) -> int:
     import asyncio
 
-    from edge.collect import teach_pose
-    from edge.config import load_config
+    from edge.core.config import load_config
+    from edge.tools.collect import teach_pose
 
     asyncio.run(teach_pose(load_config(args.config), args.config, args.name))
     return 0
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from edge.bench import run_bench
+    from edge.tools.bench import run_bench
 
     return run_bench(args)
 
@@ -121,9 +121,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
 
-    from edge.config import load_config
-    from edge.daemon import state_dir
-    from edge.store import EpisodeStore
+    from edge.core.config import load_config
+    from edge.daemon.serve import state_dir
+    from edge.daemon.store import EpisodeStore
 
     store = EpisodeStore(state_dir(load_config(args.config)) / "episodes")
     if args.episodes_command == "list":
@@ -141,7 +141,7 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
     import shutil
     from pathlib import Path
 
-    from edge import systemd
+    from edge.daemon import systemd
 
     beside = Path(sys.executable).with_name("vt-edge")
     exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"

@@ -17,16 +17,16 @@ from typing import Any
 
 import aiohttp
 
-from edge.api import Api
-from edge.compute import ComputeWorker
-from edge.config import Config
-from edge.daemon import make_vlm, model_ref
-from edge.devices import open_devices
+from edge.core.config import Config
+from edge.daemon.api import Api
+from edge.daemon.compute import ComputeWorker
+from edge.daemon.devices import open_devices
+from edge.daemon.runtime import Runtime
+from edge.daemon.serve import make_vlm, model_ref
+from edge.daemon.store import EPISODE_FILE, EpisodeStore
 from edge.hw.arm import gripper_raw
-from edge.runtime import Runtime
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
-from edge.store import EPISODE_FILE, EpisodeStore
 
 ROOT = Path(__file__).resolve().parents[1]
 CUBE = names("cube")

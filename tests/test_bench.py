@@ -9,7 +9,7 @@ import json
 import math
 from dataclasses import replace
 
-from edge import bench
+from edge.tools import bench
 
 TINY = replace(bench.QUICK, presses=2, quiet_presses=1, load_min_s=2.0, daemon_runs=1,
                rss_samples=1, encode_n=30, retrieval_queries=10, brute_queries_1m=2,

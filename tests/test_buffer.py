@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from edge.buffer import FrameRing, Sampler
+from edge.daemon.sensor import FrameRing, Sampler
 
 
 def test_ring_wraps_and_windows_by_time():

@@ -1,7 +1,7 @@
 import subprocess
 import sys
 
-from edge import recording
+from edge.core import recording
 from edge.sim.record import DATASET_INDEX
 
 
@@ -37,7 +37,7 @@ def test_bad_arguments_exit_nonzero():
 
 
 def test_episodes_list_show_export(tmp_path):
-    from edge.store import EpisodeStore
+    from edge.daemon.store import EpisodeStore
 
     store = EpisodeStore(tmp_path / "episodes")
     eid = store.create({"status": "done", "label": "macaron", "description": "soft"}, {})

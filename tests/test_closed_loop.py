@@ -7,11 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from edge import preprocess, recording
-from edge.buffer import FrameRing
-from edge.config import Config
-from edge.devices import open_devices
-from edge.press import PressController, outcome_recording
+from edge.core import preprocess, recording
+from edge.core.config import Config
+from edge.daemon.devices import open_devices
+from edge.daemon.press import PressController, outcome_recording
+from edge.daemon.sensor import FrameRing
 from edge.sim.robot import SimRobot
 
 

@@ -2,10 +2,10 @@
 
 import pytest
 
-from edge import recording
-from edge.collect import collect, teach_pose
-from edge.config import Config, load_config
+from edge.core import recording
+from edge.core.config import Config, load_config
 from edge.sim.robot import SimRobot
+from edge.tools.collect import collect, teach_pose
 from tests.test_closed_loop import fast_config
 
 

@@ -10,11 +10,11 @@ import signal
 import numpy as np
 import pytest
 
-from edge import preprocess, recording
-from edge.compute import ComputeWorker, analyse_press
-from edge.errors import ComputeError, ModelError
-from edge.images import ImageError, check_image
-from edge.model import load_model, model_ref
+from edge.core import preprocess, recording
+from edge.core.errors import ComputeError, ModelError
+from edge.core.images import ImageError, check_image
+from edge.core.model import load_model, model_ref
+from edge.daemon.compute import ComputeWorker, analyse_press
 from edge.sim.press import simulate_press
 from tests.harness import ROOT
 from tests.vlm.helpers import image_bytes

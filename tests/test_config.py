@@ -2,8 +2,8 @@ from pathlib import Path
 
 import pytest
 
-from edge.config import Config, config_from_dict, load_config
-from edge.errors import ConfigError, EdgeError
+from edge.core.config import Config, config_from_dict, load_config
+from edge.core.errors import ConfigError, EdgeError
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -4,7 +4,7 @@ import asyncio
 import resource
 import selectors
 
-from edge.daemon import FD_SETSIZE, new_event_loop
+from edge.daemon.serve import FD_SETSIZE, new_event_loop
 
 DELAY_S = 0.0023  # 2.3 ms: epoll's whole-millisecond timeout makes it at least 3 ms
 

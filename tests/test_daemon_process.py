@@ -9,10 +9,10 @@ import sys
 import time
 from pathlib import Path
 
-from edge import tomledit
-from edge.config import load_config
-from edge.demo import _wait_for, http_json
-from edge.store import EpisodeStore
+from edge.core import tomledit
+from edge.core.config import load_config
+from edge.daemon.store import EpisodeStore
+from edge.tools.demo import _wait_for, http_json
 
 ROOT = Path(__file__).resolve().parents[1]
 

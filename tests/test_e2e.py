@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from edge import recording
+from edge.core import recording
 from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
 from edge.sim.fake_vlm import FakeVLM, Reply

@@ -3,7 +3,7 @@ import sys
 
 
 def _log_line(env_extra):
-    code = ("import logging; from edge.logs import setup_logging; setup_logging(); "
+    code = ("import logging; from edge.core.logs import setup_logging; setup_logging(); "
             "logging.getLogger('edge.x').info('hello %s', 'there')")
     import os
     env = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}

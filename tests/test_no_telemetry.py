@@ -9,7 +9,7 @@ from tests.harness import ROOT
 
 LOAD_AND_RUN = """
 import numpy as np
-from edge.model import load_model
+from edge.core.model import load_model
 model = load_model("models")
 print(model.encode(np.zeros((25, 96), np.float32))[1])
 """

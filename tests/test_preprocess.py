@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from edge import preprocess, recording
-from edge.errors import PreprocessError
-from edge.preprocess import DEFAULT_WINDOW as W
+from edge.core import preprocess, recording
+from edge.core.errors import PreprocessError
+from edge.core.preprocess import DEFAULT_WINDOW as W
 from edge.sim.press import simulate_press
 
 

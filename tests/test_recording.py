@@ -5,8 +5,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from edge import recording
-from edge.errors import EdgeError, RecordingError
+from edge.core import recording
+from edge.core.errors import EdgeError, RecordingError
 from edge.sim.press import simulate_press
 
 

@@ -7,8 +7,8 @@ import tarfile
 
 import pytest
 
-from edge.errors import NotFoundError, StoreError
-from edge.store import EpisodeStore, new_id, valid_id
+from edge.core.errors import NotFoundError, StoreError
+from edge.daemon.store import EpisodeStore, new_id, valid_id
 
 
 def test_create_get_update_list(tmp_path):
@@ -43,7 +43,7 @@ def test_export_is_a_complete_tarball(tmp_path):
 
 KILL_WHILE_WRITING = """
 import os, sys
-from edge.store import EpisodeStore
+from edge.daemon.store import EpisodeStore
 store = EpisodeStore(sys.argv[1])
 orig = os.rename
 def die(*a, **k):

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from edge.systemd import Notifier, unit_text
+from edge.daemon.systemd import Notifier, unit_text
 
 needs_systemd = pytest.mark.skipif(shutil.which("systemd-analyze") is None,
                                    reason="systemd-analyze is not installed")

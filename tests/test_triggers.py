@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 
-from edge.daemon import model_ref
+from edge.daemon.serve import model_ref
 from edge.hw.button import FakeButton
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
@@ -101,7 +101,7 @@ async def test_systemd_ready_watchdog_only_while_frames_arrive_and_stopping(tmp_
                                                                         monkeypatch):
     import socket
 
-    from edge.systemd import Notifier
+    from edge.daemon.systemd import Notifier
 
     path = tmp_path / "notify.sock"
     server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)

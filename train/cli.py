@@ -14,8 +14,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from edge import __version__
-from edge.errors import EdgeError
-from edge.logs import setup_logging
+from edge.core.errors import EdgeError
+from edge.core.logs import setup_logging
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from edge.model import ENCODER_FILE
+    from edge.core.model import ENCODER_FILE
     from train.data import load_presses
     from train.export import check_parity, export_onnx, parity
     from train.trainer import load_checkpoint
@@ -90,7 +90,7 @@ def _cmd_db_add(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from edge.model import load_model
+    from edge.core.model import load_model
     from train import evaluate
     from train.data import PressSet, Splits, load_presses
     from train.trainer import embed, load_checkpoint
@@ -116,7 +116,7 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
     import dataclasses
 
-    from edge.config import VLMConfig, load_config
+    from edge.core.config import VLMConfig, load_config
     from train import eval_vlm
 
     vlm = load_config(args.config).vlm if args.config else VLMConfig()
@@ -141,7 +141,7 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
         beta=beta, images=Path(args.images) if args.images else None, limit=args.limit,
         concurrency=args.concurrency)
     if not args.verbose:  # one INFO line per answer from the client is too much here
-        logging.getLogger("edge.vlm").setLevel(logging.WARNING)
+        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     if args.dry_run:
         plan = eval_vlm.prepare(cfg, endpoint=False)
         cache = eval_vlm.AnswerCache(out / eval_vlm.ANSWERS_FILE)
@@ -182,7 +182,7 @@ def _cmd_rehash(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from edge.model import load_model
+    from edge.core.model import load_model
     from train.database import synthetic, topk_timing
     from train.release import encode_timing
 

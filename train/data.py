@@ -1,6 +1,6 @@
 """Press recordings -> training samples, exactly as DESIGN section 1 says.
 
-Every press is cropped and subsampled by :mod:`edge.preprocess` (never re-implemented here):
+Every press is cropped and subsampled by :mod:`edge.core.preprocess` (never re-implemented here):
 ``recording_pairs`` gives the 5 subsampling offsets of the input ``X`` and of the smoothed
 target ``X_bar``. Training and validation use all 5 offsets per press (1350 + 250 samples on
 the paper's reference set); anything that mimics recognition time (the database, the
@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from edge import preprocess, recording
-from edge.errors import RecordingError
+from edge.core import preprocess, recording
+from edge.core.errors import RecordingError
 from edge.sim.record import DATASET_INDEX
 
 STD_FLOOR_FRACTION = 1.0

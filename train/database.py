@@ -1,7 +1,7 @@
 """Build the tactile-to-text reference database, and add classes to it without retraining.
 
 Every reference press (training and validation classes) is encoded with the *exported* ONNX
-encoder, exactly as the robot will encode a press: :func:`edge.preprocess.recording_pairs`
+encoder, exactly as the robot will encode a press: :func:`edge.core.preprocess.recording_pairs`
 offset 0 in tactile units, through onnxruntime. One press gives one reference (offset 0 only:
 the other four offsets are the same press seen a few milliseconds apart, and the robot only
 ever computes offset 0). Stored per reference: z, z_q (= codebook[code]), code, label,
@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from edge.errors import ModelError, RecordingError
-from edge.model import (
+from edge.core.errors import ModelError, RecordingError
+from edge.core.model import (
     DEFAULT_K,
     ENCODER_FILE,
     ClassInfo,

@@ -3,9 +3,9 @@
 For every press of each unseen test set (FoodReplica: 22 classes, Cube: 4) the VLM is asked
 once per condition to name the object among that set's labels, exactly as the robot asks it:
 the offset-0 input through the shipped encoder and reference database
-(:func:`edge.model.load_model`), the description of the nearest distinct classes, the
-shipped prompt templates (:mod:`edge.prompt`, ``models/prompts``) and the robot's own client
-(:class:`edge.vlm.OpenAIVLM`: data-URL image, temperature 0, seed, strict ``json_schema``,
+(:func:`edge.core.model.load_model`), the description of the nearest distinct classes, the
+shipped prompt templates (:mod:`edge.core.prompt`, ``models/prompts``) and the robot's own client
+(:class:`edge.core.vlm.OpenAIVLM`: data-URL image, temperature 0, seed, strict ``json_schema``,
 answer checked against the candidates with one corrective retry, transport retries with
 backoff). The picture is :func:`edge.sim.camera.render` of the press's label (a real food
 and its replica look the same), or a photo from a user's directory for real data.
@@ -50,14 +50,14 @@ from typing import Any, TextIO
 import aiohttp
 import numpy as np
 
-from edge.atomic import atomic_write_text
-from edge.config import VLMConfig
-from edge.errors import EdgeError, ModelError, RecordingError
-from edge.images import ImageError, prepare_image
-from edge.model import ReferenceDatabase, load_model
-from edge.prompt import PromptTemplate, load_template
+from edge.core.atomic import atomic_write_text
+from edge.core.config import VLMConfig
+from edge.core.errors import EdgeError, ModelError, RecordingError
+from edge.core.images import ImageError, prepare_image
+from edge.core.model import ReferenceDatabase, load_model
+from edge.core.prompt import PromptTemplate, load_template
+from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
 from edge.sim.record import DATASET_INDEX
-from edge.vlm import OpenAIVLM, VLMAnswer, VLMClient
 from train.data import PressSet, load_presses
 
 log = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 Everything is measured on recognition-time inputs (offset 0 of each press) and, for every
 model variant and embedding space compared, with the same retrieval code the robot runs
-(:class:`edge.model.ReferenceDatabase`). Rows of the comparison: VQ-VAE with retrieval on z,
+(:class:`edge.core.model.ReferenceDatabase`). Rows of the comparison: VQ-VAE with retrieval on z,
 VQ-VAE on z_q, beta-VAE on z (its posterior mean). Metrics:
 
 - ``loo_1nn`` / ``loo_5nn``: on the reference presses, leave one press out, classify by its
@@ -39,9 +39,9 @@ from typing import Any
 import numpy as np
 from scipy.stats import rankdata
 
-from edge import preprocess, recording
-from edge.atomic import atomic_write_text
-from edge.model import OnnxEncoder, ReferenceDatabase, Space
+from edge.core import preprocess, recording
+from edge.core.atomic import atomic_write_text
+from edge.core.model import OnnxEncoder, ReferenceDatabase, Space
 from train import database
 from train.data import PressSet, Splits
 

@@ -3,7 +3,7 @@
 The graph takes ``x`` (batch, 25, 96) float32 in *tactile units* and normalises it inside
 (``(x - mean) / std``, the training statistics as constants), then runs the bidirectional GRU
 encoder and the nearest-code search: outputs ``z`` (batch, 4) float32 and ``code`` (batch,)
-int64. The robot feeds :func:`edge.preprocess.model_input` straight in.
+int64. The robot feeds :func:`edge.core.preprocess.model_input` straight in.
 
 Exporter: the TorchScript exporter (``dynamo=False``, opset 17) emits the native ONNX ``GRU``
 op and a symbolic batch dimension. (The dynamo exporter unrolled the GRU into a per-step
@@ -25,9 +25,9 @@ import numpy as np
 import onnx
 import torch
 
-from edge.atomic import atomic_write_bytes
-from edge.errors import ModelError
-from edge.model import INPUT_NAME, OUTPUT_NAMES, OnnxEncoder, nearest_code
+from edge.core.atomic import atomic_write_bytes
+from edge.core.errors import ModelError
+from edge.core.model import INPUT_NAME, OUTPUT_NAMES, OnnxEncoder, nearest_code
 from train.data import Normaliser
 from train.model import ExportEncoder, TactileAutoencoder
 

@@ -1,6 +1,6 @@
 """``models/manifest.json``: sha256 of every runtime file, plus training config, metrics and
 versions. Written last (atomically) by every command that changes a model directory, so
-:func:`edge.model.load_model` either sees a consistent directory or refuses it by name.
+:func:`edge.core.model.load_model` either sees a consistent directory or refuses it by name.
 
 ``files`` (verified by the robot at load): ``encoder.onnx``, ``database.npz``,
 ``database.json`` and every ``prompts/*.txt`` present (another component writes those; they
@@ -20,9 +20,9 @@ from typing import Any
 import numpy as np
 
 from edge import __version__
-from edge.atomic import atomic_write_text
-from edge.errors import ModelError
-from edge.model import MANIFEST, MANIFEST_SCHEMA, REQUIRED_FILES, file_entry
+from edge.core.atomic import atomic_write_text
+from edge.core.errors import ModelError
+from edge.core.model import MANIFEST, MANIFEST_SCHEMA, REQUIRED_FILES, file_entry
 
 PROMPTS_DIR = "prompts"
 

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from edge.atomic import atomic_write_bytes
-from edge.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
-from edge.preprocess import DEFAULT_WINDOW
+from edge.core.atomic import atomic_write_bytes
+from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
+from edge.core.preprocess import DEFAULT_WINDOW
 from edge.sim.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
@@ -153,7 +153,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "created_by": cfg.command(),
         "encoder": {
             "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", 25, 96],
-            "input_units": "tactile units (raw - tare) / 65536, edge.preprocess.model_input",
+            "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
             "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
             "mean": data.norm.mean.tolist(), "std": data.norm.std.tolist(),
             "outputs": {"z": ["batch", 4], "code": ["batch"]},

@@ -27,8 +27,8 @@ from typing import Any, TextIO
 import numpy as np
 import torch
 
-from edge.atomic import atomic_write_bytes
-from edge.errors import ModelError
+from edge.core.atomic import atomic_write_bytes
+from edge.core.errors import ModelError
 from train.data import Normaliser, Samples, TrainingData
 from train.model import ModelConfig, TactileAutoencoder, set_determinism
 

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from edge.errors import DeviceTimeoutError
+from edge.core.errors import DeviceTimeoutError
 from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
 from edge.hw.dynamixel import DynamixelBus
 

@@ -15,7 +15,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 from typing import Literal, Protocol
 
-from edge.errors import DeviceError
+from edge.core.errors import DeviceError
 
 log = logging.getLogger(__name__)
 

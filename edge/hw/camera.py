@@ -16,7 +16,7 @@ import tempfile
 from pathlib import Path
 from typing import Protocol
 
-from edge.errors import DeviceError, DeviceTimeoutError
+from edge.core.errors import DeviceError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)
 

@@ -34,8 +34,8 @@ from typing import Any
 
 import dynamixel_sdk as sdk
 
-from edge.config import BusConfig
-from edge.errors import DeviceError, EdgeError, MotorError
+from edge.core.config import BusConfig
+from edge.core.errors import DeviceError, EdgeError, MotorError
 from edge.hw.control_table import (
     BUS_WATCHDOG_UNIT_S,
     DRIVE_MODE_REVERSE,

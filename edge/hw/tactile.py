@@ -17,7 +17,7 @@ from typing import Protocol, Self, runtime_checkable
 
 import numpy as np
 
-from edge.errors import StaleSensorError
+from edge.core.errors import StaleSensorError
 
 log = logging.getLogger(__name__)
 
@@ -102,7 +102,7 @@ class TactileSource(Protocol):
     """Anything that yields :class:`TactileFrame` s: the XELA client, a fake, a replay.
 
     ``frames()`` yields fresh frames to one consumer and raises
-    :class:`~edge.errors.StaleSensorError` when no fresh frame arrived within the source's
+    :class:`~edge.core.errors.StaleSensorError` when no fresh frame arrived within the source's
     stale timeout; the source keeps running (and reconnecting), so call ``frames()`` again to
     resume. Iteration ends after ``close()``.
     """

@@ -22,8 +22,8 @@ from typing import Any, Self
 import aiohttp
 import numpy as np
 
-from edge.config import SensorConfig
-from edge.errors import SensorError, StaleSensorError
+from edge.core.config import SensorConfig
+from edge.core.errors import SensorError, StaleSensorError
 from edge.hw.tactile import StreamStats, TactileFrame
 
 log = logging.getLogger(__name__)

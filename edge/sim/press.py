@@ -5,7 +5,7 @@ tactile norm of an arriving frame exceeds ``x_th`` (the stop takes effect after 
 controller's reaction latency, an input, so a slower stop overshoots the force), hold
 ``dt_stopping``, open. The gripper is current-limited (it stalls at ``force_cap_n``) and the
 stop is a goal a little past the present position, as on the real gripper. Output is a
-:class:`edge.recording.Recording` in raw counts plus a summary of the press.
+:class:`edge.core.recording.Recording` in raw counts plus a summary of the press.
 
 Deterministic for a seed: everything random comes from one ``numpy.random.Generator``.
 """
@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edge import preprocess
-from edge.config import PressConfig, SimConfig
+from edge.core import preprocess
+from edge.core.config import PressConfig, SimConfig
+from edge.core.recording import Recording
 from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
-from edge.recording import Recording
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.skin import Skin

@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from edge import __version__, recording
-from edge.atomic import atomic_write_text
+from edge import __version__
+from edge.core import recording
+from edge.core.atomic import atomic_write_text
 from edge.sim.catalogue import DATASETS
 from edge.sim.press import PressParams, simulate_press
 

@@ -11,7 +11,7 @@ from dataclasses import replace
 
 from aiohttp import web
 
-from edge.config import Config
+from edge.core.config import Config
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
 from edge.sim.dxl_emulator import DxlEmulator

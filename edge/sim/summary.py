@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from edge import preprocess
+from edge.core import preprocess
 from edge.sim.press import PressParams, PressResult, simulate_press
 
 

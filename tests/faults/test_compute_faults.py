@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from edge import recording, tomledit
+from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
 from tests.harness import (
     FOOD,

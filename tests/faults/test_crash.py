@@ -22,7 +22,7 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from edge import recording, tomledit
+from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
 from tests.harness import (
     FOOD,
@@ -43,9 +43,9 @@ SELF_KILLING_DAEMON = """
 import asyncio, os, signal, sys
 from pathlib import Path
 
-import edge.atomic
+import edge.core.atomic
 from edge.sim.robot import SimRobot
-from edge.store import EpisodeStore
+from edge.daemon.store import EpisodeStore
 from tests.harness import FOOD, QUICK_OBJECT, Daemon, base_config, fast_config
 
 state, where = Path(sys.argv[1]), sys.argv[2]
@@ -66,7 +66,7 @@ async def main():
                     die()
                 os.replace(src, dst)
 
-            edge.atomic.os = type("os", (), {**vars(os), "replace": replace})
+            edge.core.atomic.os = type("os", (), {**vars(os), "replace": replace})
         else:
             status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
             print("committed", ep["id"], ep["status"], flush=True)

@@ -12,7 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from edge import recording, store
+from edge.core import recording
+from edge.daemon import store
 from tests.harness import (
     FOOD,
     at_pose,

@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from edge.errors import MotorError
+from edge.core.errors import MotorError
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 from edge.sim.robot import SimRobot
 from edge.sim.world import FORCE_PER_MA_N
@@ -143,7 +143,7 @@ async def test_one_lost_ping_reply_at_start_is_not_a_missing_motor(tmp_path):
 
 async def test_motor_missing_at_daemon_start_process_exits_with_the_reason(tmp_path):
     """As systemd sees it: ``vt-edge run`` exits 2 and says which motor, on stderr."""
-    from edge import tomledit
+    from edge.core import tomledit
 
     async with SimRobot(QUICK_OBJECT, seed=1, cfg=base_config()) as robot:
         robot.dxl.set_missing(GRIPPER)

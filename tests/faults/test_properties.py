@@ -30,9 +30,9 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from edge import recording
-from edge.config import Config, config_from_dict
-from edge.errors import ConfigError, RecordingError, SensorError
+from edge.core import recording
+from edge.core.config import Config, config_from_dict
+from edge.core.errors import ConfigError, RecordingError, SensorError
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
 from tests.harness import QUICK_OBJECT, Daemon, base_config, fast_config
@@ -563,7 +563,7 @@ def test_xela_hex_data_parses_to_exactly_its_words(words, style):
 
 
 def test_config_file_with_an_absurd_integer_is_refused_clearly(tmp_path):
-    from edge.config import load_config
+    from edge.core.config import load_config
 
     path = tmp_path / "big.toml"
     path.write_text("[press]\nx_th = " + "9" * 5000 + "\n")

@@ -12,14 +12,14 @@ from dataclasses import replace
 
 import pytest
 
-from edge import tomledit
-from edge.api import Api
-from edge.config import ApiConfig
-from edge.errors import ConfigError
+from edge.core import tomledit
+from edge.core.config import ApiConfig
+from edge.core.errors import ConfigError
+from edge.core.vlm import VLMError
+from edge.daemon.api import Api
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.vlm import VLMError
 from tests.harness import (
     FOOD,
     QUICK_OBJECT,

@@ -8,7 +8,7 @@ import asyncio
 import numpy as np
 import pytest
 
-from edge import recording
+from edge.core import recording
 from edge.sim.xela_server import Fault
 from tests.harness import (
     FOOD,

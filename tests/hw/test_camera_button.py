@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from edge.errors import DeviceError, DeviceTimeoutError
+from edge.core.errors import DeviceError, DeviceTimeoutError
 from edge.hw.button import _PolledButton
 from edge.hw.camera import CommandCamera, HttpCamera
 from edge.sim.robot import SimRobot

@@ -6,8 +6,8 @@ import time
 
 import pytest
 
-from edge.config import BusConfig
-from edge.errors import DeviceTimeoutError
+from edge.core.config import BusConfig
+from edge.core.errors import DeviceTimeoutError
 from edge.hw.arm import (
     Arm,
     DynamixelArm,

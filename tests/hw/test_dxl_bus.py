@@ -17,8 +17,8 @@ import dynamixel_sdk as sdk
 import pytest
 import pytest_asyncio
 
-from edge.config import BusConfig
-from edge.errors import DeviceError, MotorError
+from edge.core.config import BusConfig
+from edge.core.errors import DeviceError, MotorError
 from edge.hw.arm import DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import LATENCY_TIMER_UDEV_RULE, BlockingPortHandler, DynamixelBus
 from edge.sim.dxl_emulator import INST_SYNC_READ, INST_WRITE, DxlEmulator

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from edge.errors import SensorError, StaleSensorError
+from edge.core.errors import SensorError, StaleSensorError
 from edge.hw.tactile import FakeTactileSource, StreamStats, TactileFrame, TactileSource
 
 

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 import pytest_asyncio
 
-from edge.config import SensorConfig
-from edge.errors import SensorError, StaleSensorError
+from edge.core.config import SensorConfig
+from edge.core.errors import SensorError, StaleSensorError
 from edge.hw.tactile import TactileFrame, TactileSource
 from edge.hw.xela import SensorLayoutError, XelaClient
 from edge.sim.xela_server import Fault, XelaServerEmulator

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.errors import SensorError
+from edge.core.errors import SensorError
 from edge.hw.xela import (
     MAX_FRAME_CHARS,
     SensorLayoutError,

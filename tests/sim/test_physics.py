@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from edge import preprocess, recording
+from edge.core import preprocess, recording
 from edge.sim import catalogue
 from edge.sim.press import PressParams, simulate_press
 

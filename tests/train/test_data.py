@@ -3,8 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from edge import preprocess, recording
-from edge.errors import RecordingError
+from edge.core import preprocess, recording
+from edge.core.errors import RecordingError
 from train.data import (
     STD_FLOOR_FRACTION,
     Normaliser,
@@ -24,7 +24,7 @@ def test_samples_follow_design_section_1(data, reference_dir):
     assert data.val.x.shape == (5 * PRESSES * 5, 25, 96)
     assert data.train.x.dtype == np.float32
     # The first sample is offset 0 of the first press of the first class, normalised;
-    # built by edge.preprocess, not by a copy of it.
+    # built by edge.core.preprocess, not by a copy of it.
     first = sorted((reference_dir / data.splits.train[0]).glob("*.press.npz"))[0]
     x, x_bar = preprocess.recording_pairs(recording.load(first))
     np.testing.assert_array_equal(data.train.x[0], data.norm(x[0]))

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.errors import ModelError, RecordingError
-from edge.model import ClassInfo, ReferenceDatabase, load_model
+from edge.core.errors import ModelError, RecordingError
+from edge.core.model import ClassInfo, ReferenceDatabase, load_model
 from train.database import add_class, build_into, synthetic, topk_timing
 
 

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from edge.errors import ModelError
-from edge.model import load_model
+from edge.core.errors import ModelError
+from edge.core.model import load_model
 from train.data import load_presses
 
 
@@ -87,7 +87,7 @@ class NoTorch(importlib.abc.MetaPathFinder):
             raise ModuleNotFoundError("torch blocked")
 sys.meta_path.insert(0, NoTorch())
 import numpy as np
-from edge.model import load_model
+from edge.core.model import load_model
 m = load_model({str(released)!r})
 z, c = m.encode(np.zeros((25, 96), np.float32))
 print(m.describe(l for l, _ in m.topk(z)))

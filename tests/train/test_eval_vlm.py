@@ -12,9 +12,9 @@ import threading
 import pytest
 from PIL import Image
 
-from edge.config import VLMConfig
-from edge.model import load_model
-from edge.prompt import load_template
+from edge.core.config import VLMConfig
+from edge.core.model import load_model
+from edge.core.prompt import load_template
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_touch
 from train import eval_vlm
@@ -70,7 +70,7 @@ async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work
     assert all(r["n"] == len(CUBE) * PRESSES and r["invalid_answer"] == 0
                for r in res.values())
 
-    # One request per question, each with the shipped template rendered by edge.prompt.
+    # One request per question, each with the shipped template rendered by edge.core.prompt.
     requests = fake.chat_requests
     records = cache_lines(out)
     assert len(requests) == len(records) == JOBS

@@ -2,7 +2,7 @@ import numpy as np
 import onnx
 import torch
 
-from edge.model import OnnxEncoder
+from edge.core.model import OnnxEncoder
 from train.export import PARITY_BOUND, codebook_of, export_onnx, parity
 from train.model import ExportEncoder
 

@@ -13,12 +13,11 @@ import time
 import pytest
 from PIL import Image
 
-import edge.vlm as vlm_module
-from edge.errors import ConfigError, EdgeError, VLMError
-from edge.images import ImageError
-from edge.prompt import load_template
-from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
-from edge.vlm import (
+import edge.core.vlm as vlm_module
+from edge.core.errors import ConfigError, EdgeError, VLMError
+from edge.core.images import ImageError
+from edge.core.prompt import load_template
+from edge.core.vlm import (
     NoVLM,
     OpenAIVLM,
     VLMAnswer,
@@ -34,6 +33,7 @@ from edge.vlm import (
     make_vlm,
     response_format,
 )
+from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
 from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, fast_config, image_bytes
 
 
@@ -305,7 +305,7 @@ async def test_api_key_never_leaks(monkeypatch, caplog, tmp_path, jpeg):
     seen += [str(err.value), repr(err.value)]
     # Everything logged on this side (the fake server is the careless other side).
     ours = [r for r in caplog.records if r.name != "edge.sim.fake_vlm"]
-    assert any(r.name == "edge.vlm" for r in ours)
+    assert any(r.name == "edge.core.vlm" for r in ours)
     seen += [logging.Formatter().format(r) for r in ours]
     for text in seen:
         assert planted not in text

@@ -13,7 +13,7 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from edge.vlm import response_format
+from edge.core.vlm import response_format
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,8 +5,8 @@ import re
 
 import pytest
 
-from edge.errors import EdgeError
-from edge.prompt import (
+from edge.core.errors import EdgeError
+from edge.core.prompt import (
     DEFAULT_PROMPT_DIR,
     MODES,
     PromptError,

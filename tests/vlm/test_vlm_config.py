@@ -1,10 +1,10 @@
-"""VLMConfig: defaults, loading through edge.config.from_dict, errors naming the field."""
+"""VLMConfig: defaults, loading through edge.core.config.from_dict, errors naming the field."""
 
 import pytest
 
-from edge.config import from_dict
-from edge.errors import ConfigError
-from edge.vlm import VLMConfig
+from edge.core.config import from_dict
+from edge.core.errors import ConfigError
+from edge.core.vlm import VLMConfig
 
 
 def test_defaults_mean_no_vlm_and_are_valid():

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from edge.errors import EdgeError
+from edge.core.errors import EdgeError
 
 log = logging.getLogger(__name__)
 

@@ -17,11 +17,11 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from edge import recording, tomledit
-from edge.buffer import FrameRing
-from edge.config import Config
-from edge.errors import EdgeError
-from edge.press import PressController, outcome_recording
+from edge.core import recording, tomledit
+from edge.core.config import Config
+from edge.core.errors import EdgeError
+from edge.daemon.press import PressController, outcome_recording
+from edge.daemon.sensor import FrameRing
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +35,7 @@ async def _sensor(devices, ring: FrameRing, controller: PressController) -> None
 async def collect(cfg: Config, label: str, presses: int, out: str | Path,
                   prompt: Callable[[str], object] | None = input, devices=None) -> list[Path]:
     """Record ``presses`` presses of ``label`` into ``out/label/``; returns the files."""
-    from edge.devices import open_devices
+    from edge.daemon.devices import open_devices
 
     if not label.replace("_", "").isalnum():
         raise EdgeError(f"label {label!r}: use letters, digits and underscores")

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-from edge.errors import ConfigError
+from edge.core.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -21,11 +21,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from edge import __version__, recording
-from edge.buffer import FrameRing, Sampler
-from edge.compute import ComputeWorker, analyse_press, warm_up
-from edge.config import Config
-from edge.errors import (
+from edge import __version__
+from edge.core import recording
+from edge.core.config import Config
+from edge.core.errors import (
     BusyError,
     ComputeError,
     EdgeError,
@@ -35,12 +34,14 @@ from edge.errors import (
     StaleSensorError,
     StoreError,
 )
-from edge.metrics import Metrics
-from edge.model import ModelRef
-from edge.press import PressController, PressOutcome, outcome_recording
-from edge.store import EpisodeStore, new_id
-from edge.systemd import Notifier, watchdog_period_s
-from edge.vlm import VLMUnavailableError
+from edge.core.model import ModelRef
+from edge.core.vlm import VLMUnavailableError
+from edge.daemon.compute import ComputeWorker, analyse_press, warm_up
+from edge.daemon.metrics import Metrics
+from edge.daemon.press import PressController, PressOutcome, outcome_recording
+from edge.daemon.sensor import FrameRing, Sampler
+from edge.daemon.store import EpisodeStore, new_id
+from edge.daemon.systemd import Notifier, watchdog_period_s
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -53,7 +54,7 @@ FIRST_FRAME_TIMEOUT_S = 5.0
 
 @dataclass
 class Devices:
-    """Everything the daemon talks to; built by :mod:`edge.devices`."""
+    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
 
     tactile: Any  # TactileSource
     gripper: Any  # Gripper

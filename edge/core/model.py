@@ -3,7 +3,7 @@
 numpy + onnxruntime only (never torch). A model directory holds:
 
 - ``encoder.onnx``: input ``x`` (batch, 25, 96) float32 in *tactile units* (``(raw - tare) /
-  65536``, exactly what :func:`edge.preprocess.model_input` returns). The per-channel
+  65536``, exactly what :func:`edge.core.preprocess.model_input` returns). The per-channel
   normalisation computed on the training data is the first operation *inside* the graph, so
   the robot never applies it by hand and can never apply the wrong one. Outputs ``z``
   (batch, 4) float32, the continuous embedding, and ``code`` (batch,) int64, the index of the
@@ -40,9 +40,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from edge.atomic import atomic_write_bytes, atomic_write_text
-from edge.errors import ModelError
-from edge.preprocess import DEFAULT_WINDOW, WindowSpec
+from edge.core.atomic import atomic_write_bytes, atomic_write_text
+from edge.core.errors import ModelError
+from edge.core.preprocess import DEFAULT_WINDOW, WindowSpec
 
 log = logging.getLogger(__name__)
 
@@ -416,7 +416,7 @@ class Model:
 @dataclass(frozen=True)
 class ModelRef:
     """Which model: its directory and digest. What the daemon's event-loop process holds;
-    the model itself is loaded where it runs (:mod:`edge.compute`)."""
+    the model itself is loaded where it runs (:mod:`edge.daemon.compute`)."""
 
     directory: Path
     digest: str

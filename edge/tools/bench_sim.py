@@ -91,7 +91,7 @@ async def _until_signal(announce: dict[str, Any],
 
 
 async def _robot(args: argparse.Namespace) -> None:
-    from edge.config import Config, load_config
+    from edge.core.config import Config, load_config
     from edge.sim.robot import SimRobot
 
     niced = None
@@ -210,7 +210,7 @@ async def _poll(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m edge.bench_sim", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m edge.tools.bench_sim", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="role", required=True)
     p = sub.add_parser("robot")

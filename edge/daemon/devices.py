@@ -6,13 +6,13 @@ from __future__ import annotations
 import contextlib
 import logging
 
-from edge.config import Config
+from edge.core.config import Config
+from edge.daemon.runtime import Devices
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton
 from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.xela import XelaClient
-from edge.runtime import Devices
 
 log = logging.getLogger(__name__)
 

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from edge.errors import PreprocessError
+from edge.core.errors import PreprocessError
 
 UNITS_SCALE = 65536.0
 
@@ -140,5 +140,5 @@ def recording_units(rec) -> np.ndarray:
 
 
 def recording_pairs(rec, spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
-    """Training pairs (X, X_bar) of a :class:`edge.recording.Recording`."""
+    """Training pairs (X, X_bar) of a :class:`edge.core.recording.Recording`."""
     return training_pairs(rec.recv_time, recording_units(rec), rec.t_stop, spec)

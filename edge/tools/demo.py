@@ -109,7 +109,7 @@ def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE +
         daemon = None
         try:
             _wait_for(run_cfg.exists, START_TIMEOUT_S, "emulated robot", sim)
-            from edge.config import load_config
+            from edge.core.config import load_config
 
             cfg = load_config(run_cfg)
             control = cfg.camera.url.rsplit("/", 1)[0]

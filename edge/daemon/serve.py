@@ -11,14 +11,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from edge.api import Api, load_token
-from edge.compute import ComputeWorker, warm_up
-from edge.config import Config, load_config
-from edge.model import ModelRef
-from edge.model import model_ref as _model_ref
-from edge.runtime import Devices, Runtime
-from edge.store import EpisodeStore
-from edge.systemd import Notifier
+from edge.core.config import Config, load_config
+from edge.core.model import ModelRef
+from edge.core.model import model_ref as _model_ref
+from edge.daemon.api import Api, load_token
+from edge.daemon.compute import ComputeWorker, warm_up
+from edge.daemon.runtime import Devices, Runtime
+from edge.daemon.store import EpisodeStore
+from edge.daemon.systemd import Notifier
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def vlm_config(cfg: Config):
 
 def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
     """The configured VLM client; with ``compute``, images are prepared in that process."""
-    from edge.vlm import make_vlm as _make
+    from edge.core.vlm import make_vlm as _make
 
     return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 
@@ -95,7 +95,7 @@ async def serve(cfg: Config, config_path: str | None = None,
         vlm = make_vlm(cfg, compute)
         store = EpisodeStore(state_dir(cfg) / "episodes")
         if devices is None:
-            from edge.devices import open_devices
+            from edge.daemon.devices import open_devices
 
             notifier.status("starting: connecting devices")
             devices = await open_devices(cfg)

@@ -34,10 +34,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-# edge.images is imported for the forkserver to preload: the worker decodes images too.
-from edge import images, preprocess, recording  # noqa: F401
-from edge.errors import ComputeError, ModelError
-from edge.model import Model, ModelRef, load_model
+# edge.core.images is imported for the forkserver to preload: the worker decodes images too.
+from edge.core import images, preprocess, recording  # noqa: F401
+from edge.core.errors import ComputeError, ModelError
+from edge.core.model import Model, ModelRef, load_model
 
 log = logging.getLogger(__name__)
 

@@ -4,9 +4,9 @@ Writes ``OUT/results.json`` (one key per figure: p50, p99, max, n, unit, target,
 ``host`` and ``run``), ``OUT/results.md`` (the table and notes) and ``OUT/raw.json`` (every
 press). Phases, each printed on stderr as it runs:
 
-1. **Runtime under load.** The daemon's :class:`~edge.runtime.Runtime` (real drivers, HTTP
+1. **Runtime under load.** The daemon's :class:`~edge.daemon.runtime.Runtime` (real drivers, HTTP
    API, episode store, VLM client) runs in this process against the emulated robot, which
-   runs in its own process (:mod:`edge.bench_sim`), as do a slow fake VLM and a poller of
+   runs in its own process (:mod:`edge.tools.bench_sim`), as do a slow fake VLM and a poller of
    ``/healthz`` and ``/metrics``. A few presses first with no extra load (the software
    overhead, trigger to VLM request), then the load: the VLM client sends large camera
    stills to the slow VLM, the encoder runs over and over in the daemon's compute process
@@ -56,13 +56,13 @@ from typing import Any
 
 import numpy as np
 
-from edge import preprocess
-from edge.demo import http_json
-from edge.press import PressController, PressOutcome
+from edge.core import preprocess
+from edge.daemon.press import PressController, PressOutcome
+from edge.tools.demo import http_json
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SIM_CONFIG = ROOT / "configs" / "sim.toml"
 MODELS = ROOT / "models"
 CUBE = ["raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash", "boiled_kabocha_squash"]
@@ -222,11 +222,11 @@ def host_info() -> dict[str, Any]:
 
 
 class Helper:
-    """One :mod:`edge.bench_sim` process: its announcement line, then SIGTERM to stop."""
+    """One :mod:`edge.tools.bench_sim` process: its announcement line, then SIGTERM to stop."""
 
     def __init__(self, *args: str) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen([sys.executable, "-m", "edge.bench_sim", *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "edge.tools.bench_sim", *args],
                                      cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
         self.info = json.loads(self._line(HELPER_START_S, args[0]))
 
@@ -362,7 +362,7 @@ class PressRecord:
 
 def encode_for(ref: Any, seconds: float) -> int:
     """The encoder load, in the compute process: encode and top-k back to back."""
-    from edge.compute import model_for
+    from edge.daemon.compute import model_for
 
     model = model_for(ref)
     x = np.random.default_rng(1).normal(0, 2e-3, (25, 96)).astype(np.float32)
@@ -553,7 +553,7 @@ class RuntimeBench:
         self.compute: Any = None  # the ComputeWorker, while run() runs
 
     def config(self):
-        from edge.config import load_config
+        from edge.core.config import load_config
 
         cfg = load_config(SIM_CONFIG)
         return replace(
@@ -572,12 +572,12 @@ class RuntimeBench:
     async def run(self) -> None:
         import aiohttp
 
-        from edge.api import Api
-        from edge.compute import ComputeWorker
-        from edge.daemon import make_vlm, model_ref
-        from edge.devices import open_devices
-        from edge.runtime import Runtime
-        from edge.store import EpisodeStore
+        from edge.daemon.api import Api
+        from edge.daemon.compute import ComputeWorker
+        from edge.daemon.devices import open_devices
+        from edge.daemon.runtime import Runtime
+        from edge.daemon.serve import make_vlm, model_ref
+        from edge.daemon.store import EpisodeStore
 
         cfg = self.config()
         model = model_ref(cfg)
@@ -696,9 +696,9 @@ class RuntimeBench:
             self.quiet_stats = window.close()
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
-        from edge.daemon import vlm_config
-        from edge.errors import EdgeError
-        from edge.vlm import OpenAIVLM
+        from edge.core.errors import EdgeError
+        from edge.core.vlm import OpenAIVLM
+        from edge.daemon.serve import vlm_config
 
         s = self.s
         runtime = self.runtime
@@ -889,7 +889,7 @@ def _fmt(value: float | None, digits: int = 2) -> str:
 
 def runtime_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str], list[dict],
                                                    dict[str, Any]]:
-    from edge.daemon import new_event_loop
+    from edge.daemon.serve import new_event_loop
 
     _progress("starting the emulated robot and the fake VLM (own processes)")
     robot = Helper("robot", "--config", str(SIM_CONFIG), "--object", OBJECTS[0],
@@ -905,7 +905,7 @@ def runtime_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str], li
         for lg in quiet_loggers:
             lg.setLevel(logging.WARNING)
         try:
-            # The daemon's own event loop (edge.daemon.new_event_loop), as `vt-edge run` has.
+            # The daemon's own event loop (edge.daemon.serve.new_event_loop), as `vt-edge run` has.
             with asyncio.Runner(loop_factory=new_event_loop) as runner:
                 runner.run(bench.run())
         finally:
@@ -979,8 +979,8 @@ def torch_mappings(pid: int) -> list[str]:
 
 
 def daemon_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
-    from edge import tomledit
-    from edge.config import load_config
+    from edge.core import tomledit
+    from edge.core.config import load_config
 
     notes: list[str] = []
     env = dict(os.environ, VTZERO_STATE_DIR=str(tmp / "daemon-state"), PYTHONUNBUFFERED="1",
@@ -1158,8 +1158,8 @@ ENCODE_BLOCK = 50
 
 
 def encode_phase(s: Settings) -> tuple[dict[str, Any], list[str]]:
-    """onnxruntime through edge.model against torch eager on the same weights and inputs."""
-    from edge.model import load_model
+    """onnxruntime through edge.core.model against torch eager on the same weights and inputs."""
+    from edge.core.model import load_model
 
     notes: list[str] = []
     model = load_model(MODELS)
@@ -1200,7 +1200,7 @@ def encode_phase(s: Settings) -> tuple[dict[str, Any], list[str]]:
                 if i >= 0:
                     times[name].append(1e3 * (time.perf_counter() - t0))
     figs = {"encode_ms": figure(times["ort"], "ms", target(("p50", "<=", 0.3)),
-                                what="edge.model Model.encode of one (25, 96) sequence, "
+                                what="edge.core.model Model.encode of one (25, 96) sequence, "
                                      "onnxruntime CPU, 1 intra-op thread")}
     if "torch" in times:
         figs["encode_ms_torch"] = figure(
@@ -1225,7 +1225,7 @@ def numpy_topk(refs: np.ndarray, labels: np.ndarray, q: np.ndarray, k: int) -> l
 
 
 def retrieval_phase(s: Settings) -> tuple[dict[str, Any], list[str]]:
-    from edge.model import load_model
+    from edge.core.model import load_model
 
     notes: list[str] = []
     figs: dict[str, Any] = {}
@@ -1285,7 +1285,7 @@ def train_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
     if _version("torch") is None:
         notes.append("torch is not installed: no training figure")
         return {}, notes
-    from edge.model import read_manifest
+    from edge.core.model import read_manifest
     from edge.sim.record import record_dataset
     from train.data import training_data
     from train.trainer import Progress, TrainConfig, train

@@ -2,7 +2,7 @@
 
 Every arriving frame is written, with its receive time and sequence number, into a
 preallocated ring (no allocation on the per-frame path). The crop around ``t_stop`` is cut
-from these timestamped frames on an ideal 8 ms grid (:mod:`edge.preprocess`), so a late
+from these timestamped frames on an ideal 8 ms grid (:mod:`edge.core.preprocess`), so a late
 wake-up of the sampler never shifts the data.
 
 The sampler runs on an absolute 125 Hz deadline grid and watches the stream's health: it

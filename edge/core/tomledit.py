@@ -7,9 +7,9 @@ from typing import Any
 
 import tomlkit
 
-from edge.atomic import atomic_write_text
-from edge.config import config_from_dict
-from edge.errors import ConfigError
+from edge.core.atomic import atomic_write_text
+from edge.core.config import config_from_dict
+from edge.core.errors import ConfigError
 
 
 def update(src: str | Path, dest: str | Path, changes: dict[str, dict[str, Any]]) -> None:

@@ -24,9 +24,9 @@ from typing import Any, Protocol, TypeVar
 from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from edge.config import ApiConfig
-from edge.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
-from edge.images import ImageError, check_image
+from edge.core.config import ApiConfig
+from edge.core.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
+from edge.core.images import ImageError, check_image
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

@@ -37,10 +37,10 @@ from urllib.parse import urlsplit
 
 import aiohttp
 
-from edge.config import VLMConfig
-from edge.errors import ConfigError, VLMError
-from edge.images import ImageError, PreparedImage, prepare_for_vlm
-from edge.prompt import (
+from edge.core.config import VLMConfig
+from edge.core.errors import ConfigError, VLMError
+from edge.core.images import ImageError, PreparedImage, prepare_for_vlm
+from edge.core.prompt import (
     PromptMode,
     PromptTemplate,
     check_candidates,

@@ -27,8 +27,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from edge.atomic import _fsync_dir, atomic_write_text
-from edge.errors import NotFoundError, StoreError
+from edge.core.atomic import _fsync_dir, atomic_write_text
+from edge.core.errors import NotFoundError, StoreError
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class EpisodeStore:
         return episode
 
     def add_file(self, episode_id: str, name: str, data: bytes) -> None:
-        from edge.atomic import atomic_write_bytes
+        from edge.core.atomic import atomic_write_bytes
 
         if "/" in name or name.startswith(".") or name == EPISODE_FILE:
             raise ValueError(f"bad episode file name {name!r}")

@@ -23,10 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from edge import preprocess, recording
-from edge.buffer import FrameRing, Window
-from edge.config import Config
-from edge.errors import DeviceError, EdgeError, StaleSensorError
+from edge.core import preprocess, recording
+from edge.core.config import Config
+from edge.core.errors import DeviceError, EdgeError, StaleSensorError
+from edge.daemon.sensor import FrameRing, Window
 from edge.hw.arm import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 

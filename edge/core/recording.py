@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from edge import __version__
-from edge.atomic import atomic_write_bytes
-from edge.errors import RecordingError
+from edge.core.atomic import atomic_write_bytes
+from edge.core.errors import RecordingError
 
 SCHEMA_VERSION = 1
 SUFFIX = ".press.npz"

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
 
-from edge.errors import EdgeError
+from edge.core.errors import EdgeError
 
 PromptMode = Literal["vision_tactile", "vision_only", "tactile_only"]
 MODES: tuple[str, ...] = get_args(PromptMode)
@@ -30,7 +30,7 @@ CANDIDATES_SLOT = "test_time_classes"
 SLOTS = frozenset({DESCRIPTION_SLOT, CANDIDATES_SLOT})
 
 # The shipped templates: <repo>/models/prompts/<mode>.txt
-DEFAULT_PROMPT_DIR = Path(__file__).resolve().parents[1] / "models" / "prompts"
+DEFAULT_PROMPT_DIR = Path(__file__).resolve().parents[2] / "models" / "prompts"
 
 # A label is a short identifier-like name; refuse anything that could not be one.
 MAX_LABEL_CHARS = 200

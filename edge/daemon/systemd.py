@@ -75,13 +75,13 @@ def watchdog_period_s() -> float | None:
 
 
 def unit_text(exec_start: str, config: str, user: str = "vtzero") -> str:
-    template = resources.files("edge").joinpath("vtzero-edge.service").read_text()
+    template = resources.files("edge.daemon").joinpath("vtzero-edge.service").read_text()
     return (template.replace("@EXEC_START@", exec_start).replace("@CONFIG@", config)
             .replace("@USER@", user))
 
 
 def install(unit: str, dest_dir: Path = Path("/etc/systemd/system")) -> Path:
-    from edge.atomic import atomic_write_text
+    from edge.core.atomic import atomic_write_text
 
     path = dest_dir / UNIT_NAME
     atomic_write_text(path, unit)

@@ -1,0 +1,1 @@
+"""Test support: fakes of the device contracts and helpers shared by the tests."""
