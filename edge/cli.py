@@ -11,6 +11,7 @@ from dataclasses import replace
 from edge import __version__
 from edge.core.errors import EdgeError
 from edge.core.logs import setup_logging
+from edge.daemon.episode import Status
 
 log = logging.getLogger(__name__)
 
@@ -122,16 +123,18 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
 
     from edge.core.config import load_config
+    from edge.daemon.episode import Status
     from edge.daemon.serve import state_dir
     from edge.daemon.store import EpisodeStore
 
     store = EpisodeStore(state_dir(load_config(args.config)) / "episodes")
     if args.episodes_command == "list":
-        for ep in store.list(status=args.status, limit=args.limit):
-            print(f"{ep['id']}  {ep.get('status', '?'):15s} {ep.get('label') or '-':28s} "
-                  f"{ep.get('description', ep.get('error', ''))[:60]}")
+        status = Status(args.status) if args.status else None
+        for ep in store.list(status=status, limit=args.limit):
+            print(f"{ep.id}  {ep.status:15s} {ep.label or '-':28s} "
+                  f"{(ep.description or ep.error or '')[:60]}")
     elif args.episodes_command == "show":
-        print(json.dumps(store.get(args.id), indent=2))
+        print(json.dumps(store.get(args.id).to_json(), indent=2))
     else:
         print(store.export(args.id, args.out))
     return 0
@@ -195,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     eps.add_argument("--config", default="configs/robot.toml")
     epsub = eps.add_subparsers(dest="episodes_command", required=True)
     ls = epsub.add_parser("list")
-    ls.add_argument("--status", default=None)
+    ls.add_argument("--status", default=None, choices=[s.value for s in Status])
     ls.add_argument("--limit", type=int, default=50)
     show = epsub.add_parser("show")
     show.add_argument("id")

@@ -2,6 +2,8 @@ import subprocess
 import sys
 
 from edge.core import recording
+from edge.daemon.episode import Episode, Status
+from edge.daemon.store import new_id
 from edge.sim.record import DATASET_INDEX
 
 
@@ -40,7 +42,7 @@ def test_episodes_list_show_export(tmp_path):
     from edge.daemon.store import EpisodeStore
 
     store = EpisodeStore(tmp_path / "episodes")
-    eid = store.create({"status": "done", "label": "macaron", "description": "soft"}, {})
+    eid = store.create(Episode(new_id(), Status.DONE, label="macaron", description="soft"), {})
     env = {**__import__("os").environ, "VTZERO_STATE_DIR": str(tmp_path)}
     out = run("episodes", "--config", "configs/sim.toml", "list", env=env)
     assert out.returncode == 0 and eid in out.stdout and "macaron" in out.stdout

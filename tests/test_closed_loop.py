@@ -9,9 +9,9 @@ import pytest
 
 from edge.core import preprocess, recording
 from edge.core.config import Config
-from edge.daemon.devices import open_devices
+from edge.daemon.devices import enable_torque, open_devices
 from edge.daemon.press import PressController, outcome_recording
-from edge.daemon.sensor import FrameRing
+from edge.daemon.sensor import FrameRing, SensorTask
 from edge.sim.robot import SimRobot
 
 
@@ -24,15 +24,10 @@ def fast_config() -> Config:
 async def press_once(robot: SimRobot, cfg: Config):
     rcfg = robot.runtime_config(cfg)
     devices = await open_devices(rcfg)
+    await enable_torque(devices)
     ring = FrameRing(96, 4000)
     controller = PressController(rcfg, devices.gripper, devices.arm, ring)
-
-    async def sensor():
-        async for frame in devices.tactile.frames():
-            ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
-            await controller.on_frame(frame.raw, frame.recv_time)
-
-    task = asyncio.create_task(sensor())
+    task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
     try:
         await asyncio.sleep(0.3)
         outcome = await controller.run()

@@ -55,8 +55,8 @@ def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
         store = EpisodeStore(tmp_path / "state" / "episodes")
         assert store.recover() == 0  # nothing half-written
         stored = store.get(ep["id"])
-        assert stored["status"] == "failed" and "abort" in stored["error"]
-        print(json.dumps(stored["press"]["states"]))
+        assert stored.status == "failed" and "abort" in stored.error
+        print(json.dumps(stored.press["states"]))
     finally:
         if daemon is not None and daemon.poll() is None:
             daemon.kill()

@@ -13,7 +13,7 @@ from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from tests.harness import CUBE, Daemon, base_config
+from tests.support.daemon import CUBE, Daemon, base_config
 
 
 @pytest.mark.asyncio

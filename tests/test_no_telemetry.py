@@ -5,7 +5,7 @@ import os
 import subprocess
 import sys
 
-from tests.harness import ROOT
+from tests.support.daemon import ROOT
 
 LOAD_AND_RUN = """
 import numpy as np

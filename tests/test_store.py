@@ -8,19 +8,24 @@ import tarfile
 import pytest
 
 from edge.core.errors import NotFoundError, StoreError
+from edge.daemon.episode import Episode, Status
 from edge.daemon.store import EpisodeStore, new_id, valid_id
+
+
+def ep(status: str, episode_id: str | None = None, **fields) -> Episode:
+    return Episode(episode_id or new_id(), Status(status), **fields)
 
 
 def test_create_get_update_list(tmp_path):
     store = EpisodeStore(tmp_path)
-    a = store.create({"status": "pending", "candidates": ["x", "y"]}, {"image.jpg": b"\xff\xd8"})
-    b = store.create({"status": "done", "label": "y"}, {})
+    a = store.create(ep("pending", candidates=["x", "y"]), {"image.jpg": b"\xff\xd8"})
+    b = store.create(ep("done", label="y"), {})
     assert valid_id(a) and valid_id(b)
-    assert store.get(a)["candidates"] == ["x", "y"]
+    assert store.get(a).candidates == ["x", "y"]
     assert store.file(a, "image.jpg").read_bytes() == b"\xff\xd8"
     store.update(a, status="done", label="x")
-    assert store.get(a)["label"] == "x"
-    assert [e["id"] for e in store.list()] == sorted([a, b], reverse=True)
+    assert store.get(a).label == "x"
+    assert [e.id for e in store.list()] == sorted([a, b], reverse=True)
     assert store.pending() == []
     assert not list(tmp_path.glob(".tmp-*")) and not list(tmp_path.glob("*/.*.tmp"))
 
@@ -34,7 +39,7 @@ def test_ids_cannot_escape_the_store(tmp_path):
 
 def test_export_is_a_complete_tarball(tmp_path):
     store = EpisodeStore(tmp_path / "s")
-    eid = store.create({"status": "done"}, {"press.press.npz": b"abc"})
+    eid = store.create(ep("done"), {"press.press.npz": b"abc"})
     out = store.export(eid, tmp_path)
     with tarfile.open(out) as tar:
         names = tar.getnames()
@@ -43,31 +48,32 @@ def test_export_is_a_complete_tarball(tmp_path):
 
 KILL_WHILE_WRITING = """
 import os, sys
-from edge.daemon.store import EpisodeStore
+from edge.daemon.episode import Episode, Status
+from edge.daemon.store import EpisodeStore, new_id
 store = EpisodeStore(sys.argv[1])
 orig = os.rename
 def die(*a, **k):
     os.kill(os.getpid(), 9)  # killed after the files, before the rename
 os.rename = die
-store.create({"status": "pending"}, {"big.bin": b"x" * 1_000_000})
+store.create(Episode(new_id(), Status.PENDING), {"big.bin": b"x" * 1_000_000})
 """
 
 
 def test_kill_9_mid_write_loses_nothing_committed(tmp_path):
     store = EpisodeStore(tmp_path)
-    done = store.create({"status": "done", "label": "a"}, {})
+    done = store.create(ep("done", label="a"), {})
     proc = subprocess.run([sys.executable, "-c", KILL_WHILE_WRITING, str(tmp_path)])
     assert proc.returncode == -9
     assert list(tmp_path.glob(".tmp-*")), "the interrupted episode left its temp dir"
     reopened = EpisodeStore(tmp_path)
     assert reopened.recover() == 1
-    assert [e["id"] for e in reopened.list()] == [done]
-    assert reopened.get(done)["label"] == "a"
+    assert [e.id for e in reopened.list()] == [done]
+    assert reopened.get(done).label == "a"
 
 
 def test_disk_full_is_a_clear_error_and_keeps_older_episodes(tmp_path, monkeypatch):
     store = EpisodeStore(tmp_path)
-    old = store.create({"status": "done"}, {})
+    old = store.create(ep("done"), {})
     real_open = open
 
     def full(path, mode="r", *a, **k):
@@ -77,9 +83,9 @@ def test_disk_full_is_a_clear_error_and_keeps_older_episodes(tmp_path, monkeypat
 
     monkeypatch.setattr("builtins.open", full)
     with pytest.raises(StoreError, match="disk is full"):
-        store.create({"status": "pending"}, {"x": b"1"})
+        store.create(ep("pending"), {"x": b"1"})
     monkeypatch.undo()
-    assert [e["id"] for e in store.list()] == [old]
+    assert [e.id for e in store.list()] == [old]
     assert not list(tmp_path.glob(".tmp-*"))
     assert json.loads((tmp_path / old / "episode.json").read_text())["status"] == "done"
 
@@ -89,17 +95,34 @@ def test_a_press_accepted_but_never_kept_comes_back_interrupted(tmp_path):
     kept, lost, garbled = new_id(), new_id(), new_id()
     for episode_id in (kept, lost, garbled):
         store.accept(episode_id, ["a", "b"], "button")
-    store.create({"id": kept, "status": "done"}, {})
+    store.create(ep("done", kept), {})
     (tmp_path / ".accepted" / f"{garbled}.json").write_bytes(b"\x00{not json")
     (tmp_path / ".accepted" / ".x.json.abc.tmp").write_text("half")  # a note cut off
     assert not (tmp_path / ".accepted" / f"{kept}.json").exists()  # kept: note gone
     assert store.recover() == 0  # (counts discarded half-written episodes only)
     assert store.ids() == sorted([kept, lost, garbled])
-    assert store.get(kept)["status"] == "done"
+    assert store.get(kept).status == Status.DONE
     back = store.get(lost)
-    assert back["status"] == "failed" and back["error"].startswith("interrupted")
-    assert back["candidates"] == ["a", "b"] and back["source"] == "button"
-    assert store.get(garbled)["status"] == "failed" and store.get(garbled)["candidates"] is None
+    assert back.status == Status.FAILED and back.error.startswith("interrupted")
+    assert back.candidates == ["a", "b"] and back.source == "button"
+    assert store.get(garbled).status == Status.FAILED and store.get(garbled).candidates is None
     assert list((tmp_path / ".accepted").iterdir()) == []
     store.recover()  # a second start changes nothing
     assert store.ids() == sorted([kept, lost, garbled])
+
+
+def test_episodes_from_a_newer_version_keep_their_extra_keys(tmp_path):
+    store = EpisodeStore(tmp_path)
+    eid = store.create(ep("done", label="a", extra={"future_key": [1, 2]}), {})
+    store.update(eid, attempts=2)
+    raw = json.loads((tmp_path / eid / "episode.json").read_text())
+    assert raw["future_key"] == [1, 2] and raw["attempts"] == 2 and raw["status"] == "done"
+
+
+def test_a_malformed_episode_file_is_refused_by_name(tmp_path):
+    store = EpisodeStore(tmp_path)
+    eid = store.create(ep("done"), {})
+    (tmp_path / eid / "episode.json").write_text(json.dumps({"id": eid, "status": "weird"}))
+    with pytest.raises(StoreError, match=f"episode {eid}: unknown status 'weird'"):
+        store.get(eid)
+    assert store.list() == []  # skipped with a warning, not a crash

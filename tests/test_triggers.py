@@ -12,7 +12,7 @@ from edge.daemon.serve import model_ref
 from edge.hw.button import FakeButton
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
-from tests.harness import Daemon, base_config
+from tests.support.daemon import Daemon, base_config
 
 CUBE = names("cube")
 
@@ -80,7 +80,7 @@ async def test_sighup_reloads_between_presses_never_during_one(tmp_path):
             old = d.runtime.model
             new = model_ref(d.cfg)
             new_press = replace(d.cfg.press, x_th=0.0045)
-            d.runtime._reload = lambda: (replace(d.cfg, press=new_press), new, d.vlm)
+            d.runtime.reloader = lambda: (replace(d.cfg, press=new_press), new, d.vlm)
             _, ep = await d.post("/v1/recognize", {"candidates": CUBE})
             while d.runtime.press.state != "closing":  # noqa: ASYNC110
                 await asyncio.sleep(0.01)

@@ -52,8 +52,8 @@ import numpy as np
 
 from edge.core.atomic import atomic_write_text
 from edge.core.config import VLMConfig
-from edge.core.errors import EdgeError, ModelError, RecordingError
-from edge.core.images import ImageError, prepare_image
+from edge.core.errors import EdgeError, EvalVLMError, ImageError, ModelError, RecordingError
+from edge.core.images import prepare_image
 from edge.core.model import ReferenceDatabase, load_model
 from edge.core.prompt import PromptTemplate, load_template
 from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
@@ -72,8 +72,6 @@ DEFAULT_CONCURRENCY = 4
 DPI = 80
 
 
-class EvalVLMError(EdgeError, RuntimeError):
-    """The evaluation cannot start or had to stop; what is cached stays cached."""
 
 
 @dataclass(frozen=True)

@@ -77,3 +77,64 @@ class StoreError(EdgeError, OSError):
 
 class NotFoundError(EdgeError, KeyError):
     """A named thing (episode, pose, object) does not exist."""
+
+
+class VLMUnavailableError(VLMError):
+    """The VLM could not be reached or stayed busy after every retry: try again later."""
+
+
+class VLMTimeoutError(VLMUnavailableError, TimeoutError):
+    """No complete answer within ``total_timeout_s`` (or no connection in ``connect_timeout_s``)."""
+
+
+class VLMConnectionError(VLMUnavailableError, ConnectionError):
+    """Connection refused, reset or dropped before a complete answer."""
+
+
+class VLMHTTPError(VLMError):
+    """The server answered an HTTP error; ``status`` and a short ``excerpt`` of its body."""
+
+    def __init__(self, message: str, status: int, excerpt: str = "") -> None:
+        super().__init__(message)
+        self.status = status
+        self.excerpt = excerpt
+
+
+class VLMServerError(VLMHTTPError, VLMUnavailableError):
+    """408/409/429/5xx, still so after every retry."""
+
+
+class VLMRejectedError(VLMHTTPError):
+    """A status that is never retried (400, 401, 403, 404, 413, other 4xx, a redirect)."""
+
+
+class VLMResponseError(VLMError, ValueError):
+    """The server's 200 answer is unusable: not JSON, no choices, or an error object."""
+
+
+class VLMResponseTooLargeError(VLMResponseError):
+    """The response body is larger than ``max_response_bytes``."""
+
+
+class SensorLayoutError(SensorError):
+    """The server's sensors do not match the configured pads/taxels: fix the configuration."""
+
+
+class PromptError(EdgeError, ValueError):
+    """A prompt template is malformed, or the values to render into it are unusable."""
+
+
+class ImageError(EdgeError, ValueError):
+    """The image is not a usable JPEG/PNG (or cannot be brought under the size limits)."""
+
+
+class EvalVLMError(EdgeError, RuntimeError):
+    """The evaluation cannot start or had to stop; what is cached stays cached."""
+
+
+class BadRequest(EdgeError, ValueError):
+    """An API request the daemon refuses (HTTP 400): the message says what to change."""
+
+
+class StartError(EdgeError, RuntimeError):
+    """The daemon cannot start; the message is the one line a person needs to fix it."""

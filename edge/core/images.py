@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from edge.core.errors import EdgeError
+from edge.core.errors import ImageError
 
 log = logging.getLogger(__name__)
 
@@ -34,8 +34,6 @@ _SHRINK_STEP = 0.75
 _MIN_SIDE_PX = 32
 
 
-class ImageError(EdgeError, ValueError):
-    """The image is not a usable JPEG/PNG (or cannot be brought under the size limits)."""
 
 
 @dataclass(frozen=True)
@@ -103,8 +101,11 @@ def prepare_image(
                          reencoded=True)
 
 
-def prepare_for_vlm(data: bytes, max_side_px: int, max_bytes: int
-                    ) -> tuple[PreparedImage, bytes]:
+# An image ready to send: as it is sent, and its data URL (ASCII bytes).
+VLMImage = tuple[PreparedImage, bytes]
+
+
+def prepare_for_vlm(data: bytes, max_side_px: int, max_bytes: int) -> VLMImage:
     """:func:`prepare_image`, and the result's data URL as ASCII bytes: the CPU work of
     sending an image, done in one call where the caller runs CPU work."""
     prepared = prepare_image(data, max_side_px, max_bytes)

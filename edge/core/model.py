@@ -420,6 +420,9 @@ class ModelRef:
 
     directory: Path
     digest: str
+    # Where the model's input is cut around the stop (the manifest's encoder.window): the
+    # press records around it and the analysis crops it.
+    window: WindowSpec = DEFAULT_WINDOW
 
 
 def manifest_digest(manifest: Mapping[str, Any]) -> str:
@@ -431,7 +434,8 @@ def model_ref(models_dir: str | Path) -> ModelRef:
     """The model in ``models_dir`` by its manifest (checked; the files are verified when
     the model is loaded)."""
     directory = Path(models_dir).resolve()  # absolute: errors and logs say where
-    return ModelRef(directory, manifest_digest(read_manifest(directory)))
+    manifest = read_manifest(directory)
+    return ModelRef(directory, manifest_digest(manifest), _window(manifest))
 
 
 def _read(path: Path) -> bytes:

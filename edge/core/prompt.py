@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
 
-from edge.core.errors import EdgeError
+from edge.core.errors import PromptError
 
 PromptMode = Literal["vision_tactile", "vision_only", "tactile_only"]
 MODES: tuple[str, ...] = get_args(PromptMode)
@@ -36,8 +36,6 @@ DEFAULT_PROMPT_DIR = Path(__file__).resolve().parents[2] / "models" / "prompts"
 MAX_LABEL_CHARS = 200
 
 
-class PromptError(EdgeError, ValueError):
-    """A prompt template is malformed, or the values to render into it are unusable."""
 
 
 @dataclass(frozen=True)

@@ -38,8 +38,20 @@ from urllib.parse import urlsplit
 import aiohttp
 
 from edge.core.config import VLMConfig
-from edge.core.errors import ConfigError, VLMError
-from edge.core.images import ImageError, PreparedImage, prepare_for_vlm
+from edge.core.errors import (
+    ConfigError,
+    ImageError,
+    VLMConnectionError,
+    VLMError,
+    VLMHTTPError,
+    VLMRejectedError,
+    VLMResponseError,
+    VLMResponseTooLargeError,
+    VLMServerError,
+    VLMTimeoutError,
+    VLMUnavailableError,
+)
+from edge.core.images import PreparedImage, VLMImage, prepare_for_vlm
 from edge.core.prompt import (
     PromptMode,
     PromptTemplate,
@@ -65,41 +77,20 @@ Status = Literal["ok", "invalid_answer", "not_configured"]
 
 # --- errors -------------------------------------------------------------------------------
 
-class VLMUnavailableError(VLMError):
-    """The VLM could not be reached or stayed busy after every retry: try again later."""
 
 
-class VLMTimeoutError(VLMUnavailableError, TimeoutError):
-    """No complete answer within ``total_timeout_s`` (or no connection in ``connect_timeout_s``)."""
 
 
-class VLMConnectionError(VLMUnavailableError, ConnectionError):
-    """Connection refused, reset or dropped before a complete answer."""
 
 
-class VLMHTTPError(VLMError):
-    """The server answered an HTTP error; ``status`` and a short ``excerpt`` of its body."""
-
-    def __init__(self, message: str, status: int, excerpt: str = "") -> None:
-        super().__init__(message)
-        self.status = status
-        self.excerpt = excerpt
 
 
-class VLMServerError(VLMHTTPError, VLMUnavailableError):
-    """408/409/429/5xx, still so after every retry."""
 
 
-class VLMRejectedError(VLMHTTPError):
-    """A status that is never retried (400, 401, 403, 404, 413, other 4xx, a redirect)."""
 
 
-class VLMResponseError(VLMError, ValueError):
-    """The server's 200 answer is unusable: not JSON, no choices, or an error object."""
 
 
-class VLMResponseTooLargeError(VLMResponseError):
-    """The response body is larger than ``max_response_bytes``."""
 
 
 # --- configuration -----------------------------------------------------------------------
@@ -140,8 +131,20 @@ class VLMAnswer:
 class VLMClient(Protocol):
     """What the runtime needs from a VLM."""
 
-    async def ask(self, image: bytes | None, description: str,
-                  candidates: Sequence[str]) -> VLMAnswer: ...
+    async def ask(self, image: bytes | VLMImage | None, description: str,
+                  candidates: Sequence[str]) -> VLMAnswer:
+        """``image`` as taken, or already prepared within :meth:`image_limits`."""
+        ...
+
+    @property
+    def mode(self) -> str:
+        """The prompt mode (vision_tactile, vision_only, tactile_only)."""
+        ...
+
+    def image_limits(self) -> tuple[int, int] | None:
+        """(longest side in px, bytes) an image is prepared to before it is sent, or None
+        when no image is sent."""
+        ...
 
     async def close(self) -> None: ...
 
@@ -364,7 +367,16 @@ class OpenAIVLM:
             await self._session.close()
             self._session = None
 
-    async def ask(self, image: bytes | None, description: str,
+    @property
+    def mode(self) -> str:
+        return self.template.mode
+
+    def image_limits(self) -> tuple[int, int] | None:
+        if not self.template.uses_image:
+            return None
+        return self.config.max_image_side_px, self.config.max_image_bytes
+
+    async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:
         started = time.monotonic()
         labels = check_candidates(candidates)
@@ -375,9 +387,12 @@ class OpenAIVLM:
         if self.template.uses_image:
             if image is None:
                 raise ImageError(f"VLM mode {self.template.mode} needs an image; none given")
-            cfg = self.config
-            prepared, data_url = await self._offload(
-                prepare_for_vlm, image, cfg.max_image_side_px, cfg.max_image_bytes)
+            if isinstance(image, tuple):  # prepared by the caller within image_limits()
+                prepared, data_url = image
+            else:
+                cfg = self.config
+                prepared, data_url = await self._offload(
+                    prepare_for_vlm, image, cfg.max_image_side_px, cfg.max_image_bytes)
             # The stored request names the image; the one sent has its data URL there.
             stored_url = _elided(prepared)
             splice = (stored_url, data_url)
@@ -615,7 +630,14 @@ class NoVLM:
     def __repr__(self) -> str:
         return f"NoVLM(mode={self.template.mode!r})"
 
-    async def ask(self, image: bytes | None, description: str,
+    @property
+    def mode(self) -> str:
+        return self.template.mode
+
+    def image_limits(self) -> tuple[int, int] | None:
+        return None
+
+    async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:
         labels = check_candidates(candidates)
         prompt = self.template.render(description, labels)

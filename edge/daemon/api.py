@@ -12,11 +12,13 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
+import contextlib
 import hmac
 import json
 import logging
 import os
-from collections.abc import AsyncIterator, Callable
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -25,8 +27,18 @@ from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from edge.core.config import ApiConfig
-from edge.core.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
-from edge.core.images import ImageError, check_image
+from edge.core.errors import (
+    BadRequest,
+    BusyError,
+    ComputeError,
+    ConfigError,
+    EdgeError,
+    ImageError,
+    NotFoundError,
+)
+from edge.core.images import check_image
+from edge.daemon.episode import Episode
+from edge.daemon.events import Subscription
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -43,13 +55,13 @@ class Runtime(Protocol):
     """What the API needs from the daemon."""
 
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str) -> dict[str, Any]: ...
+                        timeout_s: float | None, source: str) -> Episode: ...
 
     async def abort(self) -> bool: ...
 
-    async def episode(self, episode_id: str) -> dict[str, Any]: ...
+    async def episode(self, episode_id: str) -> Episode: ...
 
-    def subscribe(self) -> AsyncIterator[dict[str, Any]]: ...
+    def subscribe(self) -> AbstractContextManager[Subscription]: ...
 
     def health(self) -> dict[str, Any]: ...
 
@@ -58,8 +70,6 @@ class Runtime(Protocol):
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T: ...
 
 
-class BadRequest(EdgeError, ValueError):
-    pass
 
 
 def load_token(cfg: ApiConfig) -> str:
@@ -131,7 +141,9 @@ class _Parsed:
 
 
 class Api:
-    def __init__(self, runtime: Runtime, cfg: ApiConfig) -> None:
+    def __init__(self, runtime: Runtime | None, cfg: ApiConfig) -> None:
+        # None while the daemon starts: the port is bound first (a taken port fails the
+        # start before any motor has torque), requests get 503 until the runtime is set.
         self.runtime = runtime
         self.cfg = cfg
         self.token = load_token(cfg)
@@ -184,6 +196,8 @@ class Api:
                 return web.json_response({"error": "missing or wrong bearer token"},
                                          status=401,
                                          headers={"WWW-Authenticate": "Bearer"})
+        if self.runtime is None:
+            return _error(503, "the daemon is starting; try again in a moment")
         return await handler(request)
 
     async def start(self) -> int:
@@ -291,10 +305,11 @@ class Api:
         except BusyError as exc:
             return _error(409, str(exc), episode=exc.episode_id)
         status = 200 if parsed.wait else 202
-        return web.json_response(episode, status=status)
+        return web.json_response(episode.to_json(), status=status)
 
     async def episode(self, request: web.Request) -> web.Response:
-        return web.json_response(await self.runtime.episode(request.match_info["id"]))
+        episode = await self.runtime.episode(request.match_info["id"])
+        return web.json_response(episode.to_json())
 
     async def abort(self, request: web.Request) -> web.Response:
         aborted = await self.runtime.abort()
@@ -313,20 +328,14 @@ class Api:
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                            "Cache-Control": "no-cache"})
         await resp.prepare(request)
-        stream = self.runtime.subscribe()
-        try:
+        with contextlib.suppress(ConnectionResetError), self.runtime.subscribe() as events:
             while True:
                 try:
-                    event = await asyncio.wait_for(anext(stream), SSE_KEEPALIVE_S)
+                    # A timeout cancels only this wait; the subscription goes on.
+                    event = await asyncio.wait_for(events.get(), SSE_KEEPALIVE_S)
                 except TimeoutError:
                     await resp.write(b": keepalive\n\n")
                     continue
-                except StopAsyncIteration:
-                    break
                 kind = event.get("type", "message")
                 await resp.write(f"event: {kind}\ndata: {json.dumps(event)}\n\n".encode())
-        except (ConnectionResetError, asyncio.CancelledError):
-            pass
-        finally:
-            await stream.aclose()
         return resp

@@ -30,13 +30,14 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 
-# edge.core.images is imported for the forkserver to preload: the worker decodes images too.
-from edge.core import images, preprocess, recording  # noqa: F401
-from edge.core.errors import ComputeError, ModelError
+from edge.core import images, preprocess, recording
+from edge.core.errors import ComputeError, ImageError, ModelError
+from edge.core.images import VLMImage
 from edge.core.model import Model, ModelRef, load_model
 
 log = logging.getLogger(__name__)
@@ -174,14 +175,32 @@ def warm_up(ref: ModelRef) -> None:
     model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
 
 
-def analyse_press(ref: ModelRef, rec: recording.Recording
-                  ) -> tuple[np.ndarray, int, list[tuple[str, float]], str, bytes, bytes]:
-    """A press -> (z, code, top-k, description, recording bytes, model I/O bytes): the crop,
-    the encoder, the nearest references, and the episode's arrays serialised."""
+@dataclass(frozen=True)
+class Analysis:
+    """What the compute process makes of one press (and its photo), in one round trip."""
+
+    z: list[float]
+    code: int
+    topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
+    description: str
+    press_npz: bytes  # the press as a recording file
+    model_io_npz: bytes  # the crop, the model input and the embedding
+    # The photo prepared for the VLM (None without a photo, when the VLM sends none, or
+    # when it could not be prepared: ``image_error`` says why).
+    image: VLMImage | None = None
+    image_error: str | None = None
+
+
+def analyse_press(ref: ModelRef, rec: recording.Recording, image: bytes | None = None,
+                  image_limits: tuple[int, int] | None = None) -> Analysis:
+    """The crop (the model's own window), the encoder, the nearest references, the
+    episode's arrays serialised, and the photo prepared for the VLM within
+    ``image_limits``."""
     model = model_for(ref)
+    spec = model.window
     units = preprocess.recording_units(rec)
-    window = preprocess.crop(rec.recv_time, units, rec.t_stop)
-    x = preprocess.subsample(window, 0)
+    window = preprocess.crop(rec.recv_time, units, rec.t_stop, spec)
+    x = preprocess.subsample(window, 0, spec)
     z, code = model.encode(x)
     z = np.asarray(z).reshape(-1)
     code = int(np.asarray(code).reshape(-1)[0])
@@ -189,7 +208,15 @@ def analyse_press(ref: ModelRef, rec: recording.Recording
     description = model.describe([label for label, _ in topk])
     buf = io.BytesIO()
     np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-    return z, code, topk, description, recording.to_bytes(rec), buf.getvalue()
+    prepared, image_error = None, None
+    if image is not None and image_limits is not None:
+        try:
+            prepared = images.prepare_for_vlm(image, *image_limits)
+        except ImageError as exc:
+            image_error = str(exc)
+    return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
+                    description, recording.to_bytes(rec), buf.getvalue(), prepared,
+                    image_error)
 
 
-__all__ = ["ComputeError", "ComputeWorker", "analyse_press", "model_for", "warm_up"]
+__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for", "warm_up"]

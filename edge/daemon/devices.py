@@ -7,7 +7,7 @@ import contextlib
 import logging
 
 from edge.core.config import Config
-from edge.daemon.runtime import Devices
+from edge.daemon.lifecycle import Devices
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton
 from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
@@ -38,22 +38,43 @@ def make_button(cfg: Config):
 
 
 async def open_devices(cfg: Config) -> Devices:
-    """Connect everything; on failure, close what was opened and re-raise."""
+    """Connect everything, torque still off (see :func:`enable_torque`); on failure, close
+    what was opened and re-raise."""
     tactile = XelaClient(cfg.sensor)
     bus = DynamixelBus(cfg.bus)
     try:
         await tactile.start()
         await bus.connect()
-        await bus.set_torque(True)
         gripper = DynamixelGripper(bus, open_width_m=cfg.press.open_width_m,
                                    stop_past_raw=cfg.press.stop_squeeze_raw)
         arm = DynamixelArm(bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
-        devices = Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),
-                          button=make_button(cfg), bus=bus)
+        return Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),
+                       button=make_button(cfg), bus=bus)
     except BaseException:
         with contextlib.suppress(Exception):
             await bus.close()
         with contextlib.suppress(Exception):
             await tactile.close()
         raise
-    return devices
+
+
+async def enable_torque(devices: Devices) -> None:
+    """The last step of a start: from here on the arm holds its pose and can move."""
+    if devices.bus is not None:
+        await devices.bus.set_torque(True)
+
+
+async def close_devices(devices: Devices, rest_timeout_s: float) -> None:
+    """Arm to ``rest`` (if torque is on), torque off, bus closed, sensor and button
+    closed. Each step runs even if one before it failed."""
+    if devices.bus is not None:
+        try:
+            await devices.bus.close(
+                safe_pose=lambda: devices.arm.move_to("rest", rest_timeout_s))
+        except Exception as exc:
+            log.error("bus shutdown: %s", exc)
+    with contextlib.suppress(Exception):
+        await devices.tactile.close()
+    if devices.button is not None:
+        with contextlib.suppress(Exception):
+            await devices.button.close()

@@ -32,8 +32,6 @@ class Histogram:
 
 class Metrics:
     def __init__(self) -> None:
-        self.frames = 0
-        self.stale_events = 0
         self.vlm_errors = 0
         self.discarded_partial = 0
         self.presses: dict[str, int] = {}
@@ -48,8 +46,9 @@ class Metrics:
     def observe_vlm(self, latency_s: float) -> None:
         self.vlm_latency.observe(latency_s)
 
-    def render(self, runtime: Any) -> str:
-        st = runtime.sampler.stats
+    def render(self, st: Any, sensor: Any) -> str:
+        """Prometheus text: these counters, the sampler's stats ``st`` and the sensor
+        task's frame and stale counts."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
@@ -71,10 +70,10 @@ class Metrics:
             f"vtzero_store_discarded_partial_total {self.discarded_partial}",
             "# HELP vtzero_tactile_frames_total Tactile frames received.",
             "# TYPE vtzero_tactile_frames_total counter",
-            f"vtzero_tactile_frames_total {self.frames}",
+            f"vtzero_tactile_frames_total {sensor.frames}",
             "# HELP vtzero_tactile_stale_total Times the tactile stream went stale.",
             "# TYPE vtzero_tactile_stale_total counter",
-            f"vtzero_tactile_stale_total {self.stale_events}",
+            f"vtzero_tactile_stale_total {sensor.stale_events}",
             "# HELP vtzero_sampler_gaps_total 125 Hz ticks without a new frame.",
             "# TYPE vtzero_sampler_gaps_total counter",
             f"vtzero_sampler_gaps_total {st.gaps}",

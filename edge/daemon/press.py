@@ -92,10 +92,21 @@ class _Armed:
 
 
 class PressController:
+    """One press at a time. Hooks: ``on_state(state)`` at every state change,
+    ``on_outcome(outcome)`` when a press ends, ``clock`` the monotonic clock the frames'
+    receive times are on; ``window`` is where the model's crop lies around the stop (the
+    recording covers it)."""
+
     def __init__(self, cfg: Config, gripper: Gripper, arm: Arm, ring: FrameRing,
                  on_state: Callable[[str], None] | None = None,
-                 recover: Callable[[], Awaitable[object]] | None = None) -> None:
+                 recover: Callable[[], Awaitable[object]] | None = None,
+                 on_outcome: Callable[[PressOutcome], None] | None = None,
+                 window: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
+        self.window = window
+        self.clock = clock
+        self.on_outcome = on_outcome
         # Clears a tripped Bus Watchdog (a stalled loop stops the motors; that is the point,
         # but the next press must not inherit motors that refuse every goal).
         self.recover = recover
@@ -111,6 +122,17 @@ class PressController:
 
     # --- called by the sensor task -------------------------------------------------------
     async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
+        """Every arriving frame: the threshold is checked on each (the fastest reaction the
+        stream allows). A comparison controller may check less often, with :meth:`check`."""
+        await self.check(raw, recv_time)
+
+    @property
+    def armed(self) -> bool:
+        """Whether the threshold is being watched (closing or holding)."""
+        return self._armed is not None
+
+    async def check(self, raw: np.ndarray, recv_time: float) -> None:
+        """The threshold check on one frame; on the first crossing, the stop."""
         armed = self._armed
         if armed is None:
             return
@@ -124,7 +146,7 @@ class PressController:
             try:
                 await self.gripper.stop_now()
                 # The stop's packet time at the port if the driver knows it, else now.
-                t_sent = getattr(self.gripper, "last_stop_t", 0.0) or time.monotonic()
+                t_sent = getattr(self.gripper, "last_stop_t", 0.0) or self.clock()
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time
@@ -162,7 +184,7 @@ class PressController:
     # --- the press ------------------------------------------------------------------------
     def _enter(self, outcome: PressOutcome, state: str) -> None:
         self.state = state
-        outcome.states.append((state, time.monotonic()))
+        outcome.states.append((state, self.clock()))
         self.on_state(state)
 
     async def run(self) -> PressOutcome:
@@ -198,7 +220,7 @@ class PressController:
             await self._wait_closing(armed, outcome)
             if outcome.result == "ok" and outcome.t_stop is not None:
                 self._enter(outcome, "holding")
-                hold_left = outcome.t_stop + press.dt_stopping_s - time.monotonic()
+                hold_left = outcome.t_stop + press.dt_stopping_s - self.clock()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
                 if armed.abort.is_set():
@@ -235,23 +257,25 @@ class PressController:
                     outcome.result, outcome.message = "error", f"return failed: {exc}"
         if outcome.t_stop is not None:
             # The window reaches 0.6 s past the stop; normally the opening took that long.
-            spec = preprocess.DEFAULT_WINDOW
+            spec = self.window
             end = outcome.t_stop + spec.after_s + RECORD_MARGIN_S
-            wait = end - time.monotonic()
+            wait = end - self.clock()
             if wait > 0:
                 await asyncio.sleep(wait)
             # A stream that paused after the stop (a server hiccup, a busy host) catches up.
-            give_up = time.monotonic() + STREAM_CATCH_UP_S
-            while self.ring.latest_time() < end and time.monotonic() < give_up:  # noqa: ASYNC110
+            give_up = self.clock() + STREAM_CATCH_UP_S
+            while self.ring.latest_time() < end and self.clock() < give_up:  # noqa: ASYNC110
                 await asyncio.sleep(0.01)
             outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
                                               end)
         self._enter(outcome, "idle")
         self._outcome = None
+        if self.on_outcome is not None:
+            self.on_outcome(outcome)
         return outcome
 
     def _check_fresh(self) -> None:
-        age = time.monotonic() - self.ring.latest_time()
+        age = self.clock() - self.ring.latest_time()
         if self._stale.is_set() or age > FRESH_FRAME_S:
             raise StaleSensorError(
                 f"tactile stream is stale (last frame {age:.2f} s ago): not pressing; check "
@@ -259,10 +283,10 @@ class PressController:
 
     async def _tare(self) -> np.ndarray:
         tare_s = self.cfg.press.tare_s
-        t0 = time.monotonic()
+        t0 = self.clock()
         await asyncio.sleep(tare_s)
         self._check_fresh()
-        window = self.ring.window(t0, time.monotonic())
+        window = self.ring.window(t0, self.clock())
         if len(window.raw) < max(3, int(tare_s * 50)):
             raise StaleSensorError(
                 f"only {len(window.raw)} frames in the {tare_s} s tare: the stream is too slow")

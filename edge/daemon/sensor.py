@@ -1,4 +1,5 @@
-"""The tactile ring buffer and its 125 Hz sampler.
+"""The sensor path: the task that feeds every tactile frame to the ring buffer and the press
+controller, the ring buffer, and the 125 Hz sampler.
 
 Every arriving frame is written, with its receive time and sequence number, into a
 preallocated ring (no allocation on the per-frame path). The crop around ``t_stop`` is cut
@@ -16,11 +17,22 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from edge.core.errors import SensorError, StaleSensorError
+from edge.hw.tactile import TactileSource
+
+if TYPE_CHECKING:
+    from edge.daemon.press import PressController
+
 log = logging.getLogger(__name__)
+
+# After the stream failed: how long before connecting again.
+SENSOR_RETRY_S = 0.2
 
 
 @dataclass(frozen=True)
@@ -88,17 +100,17 @@ class SamplerStats:
 class Sampler:
     """Samples the latest frame at a fixed rate on an absolute deadline grid."""
 
-    def __init__(self, ring: FrameRing, rate_hz: float = 125.0,
-                 record_lateness: bool = False) -> None:
+    def __init__(self, ring: FrameRing, rate_hz: float = 125.0) -> None:
         self.ring = ring
         self.period_s = 1.0 / rate_hz
         self.stats = SamplerStats()
         self._frames_at_last_tick: int | None = None
-        # Lateness of each wake-up, for benchmarks; off in production to stay allocation-free.
-        self.lateness_s: list[float] | None = [] if record_lateness else None
+        # Called after each tick with (its monotonic time, its lateness in s): a
+        # benchmark's probe; None in production, where the tick allocates nothing.
+        self.on_tick: Callable[[float, float], None] | None = None
 
     def sample(self, now: float) -> None:
-        """One tick at monotonic time ``now`` (the benchmark wraps this to time ticks)."""
+        """One tick at monotonic time ``now``."""
         st = self.stats
         frames = self.ring.count
         prev = self._frames_at_last_tick
@@ -125,7 +137,54 @@ class Sampler:
                 deadline += skipped * self.period_s
                 late -= skipped * self.period_s
             self.stats.max_late_s = max(self.stats.max_late_s, late)
-            if self.lateness_s is not None:
-                self.lateness_s.append(late)
-            self.sample(time.monotonic())
+            now = time.monotonic()
+            self.sample(now)
+            if self.on_tick is not None:
+                self.on_tick(now, late)
             deadline += self.period_s
+
+
+class SensorTask:
+    """Feeds every frame of a :class:`TactileSource` into the ring and to the press
+    controller, which checks the threshold on it (and sends the stop) before the next frame
+    is read; reconnects after a failure and tells the controller while the stream is stale.
+
+    ``controller`` may be replaced between presses (a benchmark compares controllers).
+    """
+
+    def __init__(self, source: TactileSource, ring: FrameRing, controller: PressController,
+                 on_unusable: Callable[[str], None] | None = None) -> None:
+        self.source = source
+        self.ring = ring
+        self.controller = controller
+        self.on_unusable = on_unusable or (lambda why: None)
+        self.frames = 0
+        self.stale_events = 0
+
+    async def run(self) -> None:
+        """Until cancelled: a bug or a dead stream on the sensor path must not take the
+        daemon (and the arm) down."""
+        while True:
+            try:
+                async for frame in self.source.frames():
+                    self.ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
+                    self.frames += 1
+                    controller = self.controller
+                    await controller.on_frame(frame.raw, frame.recv_time)
+                    if controller.sensor_is_stale:
+                        controller.sensor_fresh()
+                        log.info("tactile stream fresh again")
+            except StaleSensorError as exc:
+                if not self.controller.sensor_is_stale:
+                    log.warning("%s", exc)
+                self.stale_events += 1
+                self.controller.sensor_stale(exc)
+            except SensorError as exc:
+                # A wrong layout is fatal for pressing; keep serving the API and say why.
+                log.error("tactile sensor unusable: %s", exc)
+                self.controller.sensor_stale(exc)
+                self.on_unusable(f"sensor error: {exc}")
+            except Exception as exc:
+                log.exception("sensor task error")
+                self.controller.sensor_stale(exc)
+            await asyncio.sleep(SENSOR_RETRY_S)

@@ -3,20 +3,26 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import resource
 import selectors
+import sys
 import time
-from dataclasses import replace
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from edge.core.config import Config, load_config
+from edge.core.errors import StartError
 from edge.core.model import ModelRef
 from edge.core.model import model_ref as _model_ref
 from edge.daemon.api import Api, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
-from edge.daemon.runtime import Devices, Runtime
+from edge.daemon.devices import close_devices, enable_torque, open_devices
+from edge.daemon.lifecycle import Devices, Runtime
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -78,45 +84,100 @@ def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
     return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 
 
-async def serve(cfg: Config, config_path: str | None = None,
-                devices: Devices | None = None) -> None:
-    """Run the daemon until SIGTERM; ``devices`` overrides the configured ones (tests)."""
+@dataclass
+class Daemon:
+    """The assembled daemon: what :func:`assemble` started, for ``vt-edge run``, tests and
+    the benchmark alike."""
+
+    cfg: Config
+    runtime: Runtime
+    api: Api
+    devices: Devices
+    store: EpisodeStore
+    compute: ComputeWorker
+
+
+@contextlib.asynccontextmanager
+async def assemble(cfg: Config, config_path: str | None = None, *,
+                   devices: Devices | None = None, button: Any = None,
+                   notifier: Notifier | None = None) -> AsyncIterator[Daemon]:
+    """Start everything in the order that keeps a failed start harmless, and make the arm
+    safe on every way out.
+
+    Checked before any device is opened: the API's token, the model (every file verified
+    and the encoder run once in the compute process), the episode store, and the API's
+    port (bound). Then the devices are connected, torque still off; torque is turned on
+    last. Whatever fails raises :class:`StartError` naming what to fix. On exit the API
+    closes, the arm goes to rest, torque goes off and the devices close, whether the
+    daemon ran, failed to start or died. ``devices`` overrides the configured ones (their
+    bus is still closed on exit); ``button`` is added to them.
+    """
     started = time.monotonic()
-    # A configuration the API refuses (exposed without a token) is refused before any
-    # device is touched: no torque on an arm the daemon will not run.
-    load_token(cfg.api)
-    notifier = Notifier()
-    notifier.status("starting: loading model")
-    model = await asyncio.to_thread(model_ref, cfg)
-    async with ComputeWorker() as compute:
+    notifier = notifier or Notifier()
+    async with contextlib.AsyncExitStack() as stack:
+        stack.callback(notifier.close)
+        # A configuration the API refuses (exposed without a token) is refused before any
+        # device is touched: no torque on an arm the daemon will not run.
+        load_token(cfg.api)
+        notifier.status("starting: loading model")
+        model = await asyncio.to_thread(model_ref, cfg)
+        compute = await stack.enter_async_context(ComputeWorker())
         # Every model file verified and the encoder run once, before any device is touched:
         # no torque on an arm the daemon could not recognise with.
         await compute.run(warm_up, model)
         vlm = make_vlm(cfg, compute)
+        runtime: Runtime | None = None
+        # The client in use at the end (a reload replaces it, and closes the old one).
+        stack.push_async_callback(_close_vlm, lambda: runtime.vlm if runtime else vlm)
         store = EpisodeStore(state_dir(cfg) / "episodes")
+        api = Api(None, cfg.api)
+        try:
+            await api.start()
+        except OSError as exc:
+            raise StartError(f"cannot listen on {cfg.api.host}:{cfg.api.port}: "
+                             f"{_os_reason(exc)}") from None
+        stack.push_async_callback(api.close)
         if devices is None:
-            from edge.daemon.devices import open_devices
-
             notifier.status("starting: connecting devices")
             devices = await open_devices(cfg)
+        stack.push_async_callback(close_devices, devices, cfg.runtime.move_timeout_s)
+        if button is not None:
+            devices.button = button
 
-        def reload():
+        def reload() -> tuple[Config, ModelRef, Any]:
             new = load_config(config_path) if config_path else cfg
             return new, model_ref(new), make_vlm(new, compute)
 
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
         runtime.started_at = started
-        api = Api(runtime, cfg.api)
-        try:
-            await runtime.run(api)
-        finally:
-            await vlm.close()
-            notifier.close()
+        api.runtime = runtime
+        await enable_torque(devices)
+        yield Daemon(cfg, runtime, api, devices, store, compute)
+
+
+async def _close_vlm(current: Callable[[], Any]) -> None:
+    await current().close()
+
+
+async def serve(cfg: Config, config_path: str | None = None,
+                devices: Devices | None = None) -> None:
+    """Run the daemon until SIGTERM; ``devices`` overrides the configured ones (tests)."""
+    async with assemble(cfg, config_path, devices=devices) as daemon:
+        await daemon.runtime.run()
 
 
 def run(config_path: str) -> int:
+    """``vt-edge run``: 0 after SIGTERM; 2 with one line saying why if it cannot start."""
     cfg = load_config(config_path)
-    with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        runner.run(serve(cfg, config_path))
+    try:
+        with asyncio.Runner(loop_factory=new_event_loop) as runner:
+            runner.run(serve(cfg, config_path))
+    except StartError as exc:
+        print(f"vt-edge: {exc}", file=sys.stderr)
+        return 2
     log.info("exit")
     return 0
+
+
+def _os_reason(exc: OSError) -> str:
+    return os.strerror(exc.errno).lower() if exc.errno else str(exc)

@@ -27,8 +27,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from edge.core.atomic import _fsync_dir, atomic_write_text
+from edge.core.atomic import _fsync_dir, atomic_write_bytes, atomic_write_text
 from edge.core.errors import NotFoundError, StoreError
+from edge.daemon.episode import Episode, Status
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +44,6 @@ INTERRUPTED = ("interrupted: the daemon stopped (a crash, kill or power loss) be
 # Below this much free space (or 100 free inodes) the store counts as full: an episode
 # takes a few hundred kB; keep room for the rest of the system too.
 MIN_FREE_BYTES = 20 * 1024 * 1024
-# Statuses: pending (VLM not done yet, retried), done, invalid_answer, not_configured,
-# failed (the press itself failed: no contact, stale sensor, abort).
-FINAL_STATUSES = frozenset({"done", "invalid_answer", "not_configured", "failed"})
 
 
 def new_id(now: float | None = None) -> str:
@@ -87,10 +85,10 @@ class EpisodeStore:
                     accepted = {}
                 if not isinstance(accepted, dict):
                     accepted = {}
-                self.create({"id": episode_id, "status": "failed", "error": INTERRUPTED,
-                             "candidates": accepted.get("candidates"),
-                             "source": accepted.get("source"),
-                             "accepted": accepted.get("accepted")}, {})
+                self.create(Episode(episode_id, Status.FAILED, error=INTERRUPTED,
+                                    candidates=accepted.get("candidates"),
+                                    source=accepted.get("source"),
+                                    accepted=accepted.get("accepted")), {})
                 log.warning("episode %s: %s", episode_id, INTERRUPTED)
             note.unlink(missing_ok=True)
         return removed
@@ -126,14 +124,15 @@ class EpisodeStore:
             raise NotFoundError(f"no episode {episode_id!r} (not an episode id)")
         return self.root / episode_id
 
-    def create(self, episode: dict[str, Any], files: dict[str, bytes]) -> str:
+    def create(self, episode: Episode, files: dict[str, bytes]) -> str:
         """Write a new episode with its data files; returns its id."""
-        episode_id = episode.get("id") or new_id()
-        episode = {**episode, "id": episode_id, "created": time.time(), "updated": time.time()}
+        episode_id = episode.id
+        now = time.time()
+        episode = episode.with_(created=now, updated=now)
         tmp = self.root / f"{_TMP_PREFIX}{episode_id}"
         try:
             tmp.mkdir()
-            for name, data in {**files, EPISODE_FILE: _dumps(episode)}.items():
+            for name, data in {**files, EPISODE_FILE: _dumps(episode.to_json())}.items():
                 if "/" in name or name.startswith("."):
                     raise ValueError(f"bad episode file name {name!r}")
                 with open(tmp / name, "wb") as fh:
@@ -151,20 +150,17 @@ class EpisodeStore:
             (self.root / _ACCEPTED / f"{episode_id}.json").unlink(missing_ok=True)
         return episode_id
 
-    def update(self, episode_id: str, **fields: Any) -> dict[str, Any]:
-        """Merge ``fields`` into the episode's JSON, atomically."""
+    def update(self, episode_id: str, **fields: Any) -> Episode:
+        """Change ``fields`` of the episode (names of :class:`Episode` fields), atomically."""
         path = self._dir(episode_id) / EPISODE_FILE
-        episode = self.get(episode_id)
-        episode.update(fields, updated=time.time())
+        episode = self.get(episode_id).with_(**fields, updated=time.time())
         try:
-            atomic_write_text(path, _dumps(episode).decode())
+            atomic_write_text(path, _dumps(episode.to_json()).decode())
         except OSError as exc:
             raise _store_error(f"episode {episode_id} could not be updated", exc) from None
         return episode
 
     def add_file(self, episode_id: str, name: str, data: bytes) -> None:
-        from edge.core.atomic import atomic_write_bytes
-
         if "/" in name or name.startswith(".") or name == EPISODE_FILE:
             raise ValueError(f"bad episode file name {name!r}")
         try:
@@ -173,14 +169,15 @@ class EpisodeStore:
             raise _store_error(f"episode {episode_id}: {name} could not be written",
                                exc) from None
 
-    def get(self, episode_id: str) -> dict[str, Any]:
+    def get(self, episode_id: str) -> Episode:
         path = self._dir(episode_id) / EPISODE_FILE
         try:
-            return json.loads(path.read_text(encoding="utf-8"))
+            data = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise NotFoundError(f"no episode {episode_id}") from None
         except (OSError, ValueError) as exc:
             raise StoreError(f"episode {episode_id} cannot be read: {exc}") from None
+        return Episode.from_json(data, f"episode {episode_id}")
 
     def file(self, episode_id: str, name: str) -> Path:
         path = self._dir(episode_id) / name
@@ -191,7 +188,7 @@ class EpisodeStore:
     def ids(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir() if valid_id(p.name) and p.is_dir())
 
-    def list(self, status: str | None = None, limit: int | None = None) -> list[dict[str, Any]]:
+    def list(self, status: Status | None = None, limit: int | None = None) -> list[Episode]:
         """Episodes, newest first; unreadable entries are skipped with a warning."""
         out = []
         for episode_id in reversed(self.ids()):
@@ -200,14 +197,14 @@ class EpisodeStore:
             except StoreError as exc:
                 log.warning("%s", exc)
                 continue
-            if status is None or episode.get("status") == status:
+            if status is None or episode.status == status:
                 out.append(episode)
                 if limit is not None and len(out) >= limit:
                     break
         return out
 
-    def pending(self) -> list[dict[str, Any]]:
-        return list(reversed(self.list(status="pending")))
+    def pending(self) -> list[Episode]:
+        return list(reversed(self.list(status=Status.PENDING)))
 
     def export(self, episode_id: str, dest: str | Path) -> Path:
         """A .tar.gz of the whole episode directory."""

@@ -109,10 +109,15 @@ class BlockingPortHandler(sdk.PortHandler):
         self.latency_timer_ms = SDK_LATENCY_TIMER_MS
         # Monotonic time the last packet left for the port (the stop latency ends here).
         self.last_write_t = 0.0
+        # Called on the bus thread after each write with (its time, the packet's first 8
+        # bytes: header, ID, length, instruction): a benchmark's probe.
+        self.on_write: Callable[[float, bytes], None] | None = None
 
     def writePort(self, packet) -> int:
         written = super().writePort(packet)
         self.last_write_t = time.monotonic()
+        if self.on_write is not None:
+            self.on_write(self.last_write_t, bytes(packet[:8]))
         return written
 
     def setPacketTimeout(self, packet_length: int) -> None:
@@ -247,6 +252,9 @@ class DynamixelBus:
         latency_timer_dir: Path = LATENCY_TIMER_DIR,
     ) -> None:
         self._config = config
+        # Called on the bus thread after each packet written to the port with (monotonic
+        # time, first 8 bytes of the packet); for measurements (see BlockingPortHandler).
+        self.on_write: Callable[[float, bytes], None] | None = None
         self._ids = (*config.joint_ids, config.gripper_id)
         self._port_handler_factory = port_handler_factory
         self._latency_timer_dir = latency_timer_dir
@@ -630,6 +638,10 @@ class DynamixelBus:
         self.last_state = state
         return state
 
+    def _written(self, t: float, head: bytes) -> None:
+        if self.on_write is not None:
+            self.on_write(t, head)
+
     def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
         port = self._port_handler_factory(cfg.port)
@@ -642,6 +654,8 @@ class DynamixelBus:
             raise DeviceError(f"Dynamixel port {cfg.port}: baud rate {cfg.baudrate} is not one "
                               "the SDK supports")
         self._port = port
+        if isinstance(port, BlockingPortHandler):
+            port.on_write = self._written
         self._check_latency_timer(port)
 
         models: dict[int, int] = {}

@@ -23,7 +23,7 @@ import aiohttp
 import numpy as np
 
 from edge.core.config import SensorConfig
-from edge.core.errors import SensorError, StaleSensorError
+from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
 from edge.hw.tactile import StreamStats, TactileFrame
 
 log = logging.getLogger(__name__)
@@ -40,8 +40,6 @@ _QUEUE_FRAMES = 256
 _HEX_WORD = re.compile(r"[0-9A-Fa-f]{1,4}")
 
 
-class SensorLayoutError(SensorError):
-    """The server's sensors do not match the configured pads/taxels: fix the configuration."""
 
 
 @dataclass(frozen=True, eq=False)

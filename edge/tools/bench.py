@@ -256,18 +256,14 @@ class Helper:
 
 
 class RecordingController(PressController):
-    """The production controller, unchanged; only hands each outcome to the bench."""
+    """The production controller, unchanged; its ``on_outcome`` hook hands each outcome to
+    the bench."""
 
     name = "per_frame"
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
         self.outcomes: asyncio.Queue[PressOutcome] = asyncio.Queue()
-
-    async def run(self) -> PressOutcome:
-        outcome = await super().run()
-        self.outcomes.put_nowait(outcome)
-        return outcome
+        super().__init__(*args, on_outcome=self.outcomes.put_nowait, **kwargs)
 
 
 class TickedController(RecordingController):
@@ -306,8 +302,8 @@ class TickedController(RecordingController):
         while True:
             await asyncio.sleep(max(0.0, deadline - loop.time()))
             latest = self._latest
-            if latest is not None and self._armed is not None:
-                await PressController.on_frame(self, *latest)
+            if latest is not None and self.armed:
+                await self.check(*latest)
             deadline += period
             behind = loop.time() - deadline
             if behind > period:
@@ -471,22 +467,15 @@ def cpu_times_since(snap: dict[str, Any]) -> dict[str, float]:
 
 
 def instrument_port(bus: Any) -> collections.deque[tuple[float, bytes]]:
-    """Bench instrumentation: the time and header of every packet the bus thread writes.
+    """The time and header of every packet the bus thread writes (the bus's ``on_write``
+    hook).
 
     The stop is READ Present Position, then WRITE Goal Position (its write time is the stop
     latency's end); the READ's write time splits the latency into the software part (loop,
     hand-off to the bus thread, a transaction already on the wire) and the bus round trip.
     """
-    port = bus._port  # the driver's BlockingPortHandler; wrapped on this instance only
     writes: collections.deque[tuple[float, bytes]] = collections.deque(maxlen=8192)
-    original = port.writePort
-
-    def write_port(packet: Any) -> int:
-        written = original(packet)
-        writes.append((time.monotonic(), bytes(packet[:8])))
-        return written
-
-    port.writePort = write_port
+    bus.on_write = lambda t, head: writes.append((t, head))
     return writes
 
 
@@ -510,21 +499,20 @@ class SamplerWindow:
         self.before = asdict(sampler.stats)
         self.t0 = time.monotonic()
         self.intervals: list[float] = []
-        sampler.lateness_s = []
-        sample, last = sampler.sample, [time.monotonic()]
+        self.lateness: list[float] = []
+        last = [time.monotonic()]
 
-        def timed_sample(now: float) -> None:
+        def on_tick(now: float, late: float) -> None:
             self.intervals.append(now - last[0])
+            self.lateness.append(late)
             last[0] = now
-            sample(now)
 
-        sampler.sample = timed_sample
+        sampler.on_tick = on_tick
 
     def close(self) -> dict[str, Any]:
         sampler = self.sampler
-        lateness = list(sampler.lateness_s or [])
-        sampler.lateness_s = None
-        del sampler.sample
+        sampler.on_tick = None
+        lateness = self.lateness
         after = asdict(sampler.stats)
         gaps = self.intervals[1:]
         return {
@@ -572,54 +560,39 @@ class RuntimeBench:
     async def run(self) -> None:
         import aiohttp
 
-        from edge.daemon.api import Api
-        from edge.daemon.compute import ComputeWorker
-        from edge.daemon.devices import open_devices
-        from edge.daemon.runtime import Runtime
-        from edge.daemon.serve import make_vlm, model_ref
-        from edge.daemon.store import EpisodeStore
+        from edge.daemon.serve import assemble
 
         cfg = self.config()
-        model = model_ref(cfg)
-        compute = ComputeWorker()
-        await compute.start()
-        self.compute = compute
-        worker = compute.pid()
-        if worker is not None:
-            self.pids["compute worker"] = worker
-        devices = await open_devices(cfg)
-        self.port_writes = instrument_port(devices.bus)
-        vlm = make_vlm(cfg, compute)
-        runtime = Runtime(cfg, devices, model, vlm, EpisodeStore(self.state / "episodes"),
-                          compute)
-        api = Api(runtime, cfg.api)
-        self.runtime = runtime
-        common = dict(on_state=runtime._on_press_state, recover=devices.bus.recover_watchdog)
-        args = (cfg, devices.gripper, devices.arm, runtime.ring)
-        rng = np.random.default_rng(0)
-        self.controllers: dict[str, RecordingController] = {
-            "per_frame": RecordingController(*args, **common),
-            "tick125": TickedController(*args, name="tick125", period_s=1 / 125.0, rng=rng,
-                                        **common),
-            "loop100": TickedController(*args, name="loop100", period_s=1 / 100.0, rng=rng,
-                                        **common),
-        }
-        runtime.press = self.controllers["per_frame"]
-        task = asyncio.create_task(runtime.run(api), name="bench-runtime")
-        try:
-            await asyncio.wait_for(runtime.ready.wait(), 30)
-            self.api_url = f"http://127.0.0.1:{api.port}"
-            async with aiohttp.ClientSession() as http:
-                self.http = http
-                await self._quiet_phase()
-                await self._loaded_phase(cfg, model)
-                await self._vlm_arrivals()
-        finally:
-            runtime.stop()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(task, 30)
-            await vlm.close()
-            compute.close()
+        async with assemble(cfg) as daemon:
+            runtime, compute = daemon.runtime, daemon.compute
+            self.compute = compute
+            worker = compute.pid()
+            if worker is not None:
+                self.pids["compute worker"] = worker
+            self.port_writes = instrument_port(daemon.devices.bus)
+            self.runtime = runtime
+            rng = np.random.default_rng(0)
+            self.controllers: dict[str, RecordingController] = {
+                "per_frame": runtime.make_press_controller(RecordingController),
+                "tick125": runtime.make_press_controller(
+                    TickedController, name="tick125", period_s=1 / 125.0, rng=rng),
+                "loop100": runtime.make_press_controller(
+                    TickedController, name="loop100", period_s=1 / 100.0, rng=rng),
+            }
+            runtime.use_press_controller(self.controllers["per_frame"])
+            task = asyncio.create_task(runtime.run(), name="bench-runtime")
+            try:
+                await asyncio.wait_for(runtime.ready.wait(), 30)
+                self.api_url = f"http://127.0.0.1:{daemon.api.port}"
+                async with aiohttp.ClientSession() as http:
+                    self.http = http
+                    await self._quiet_phase()
+                    await self._loaded_phase(cfg, runtime.model)
+                    await self._vlm_arrivals()
+            finally:
+                runtime.stop()
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(task, 30)
 
     # ----- one press
 
@@ -628,7 +601,7 @@ class RuntimeBench:
         ctl = self.controllers[name]
         async with http.post(f"{self.robot['control_url']}/object", json={"name": obj}) as r:
             r.raise_for_status()
-        runtime.press = ctl  # between presses: the sensor task calls whichever is current
+        runtime.use_press_controller(ctl)
         marker = f"bench_{len(self.records):04d}"
         while True:
             t_trigger = time.monotonic()

@@ -21,31 +21,31 @@ from edge.core import recording, tomledit
 from edge.core.config import Config
 from edge.core.errors import EdgeError
 from edge.daemon.press import PressController, outcome_recording
-from edge.daemon.sensor import FrameRing
+from edge.daemon.sensor import FrameRing, SensorTask
 
 log = logging.getLogger(__name__)
 
-
-async def _sensor(devices, ring: FrameRing, controller: PressController) -> None:
-    async for frame in devices.tactile.frames():
-        ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
-        await controller.on_frame(frame.raw, frame.recv_time)
+# The ring keeps the last minute of frames (a press and its margins take a few seconds).
+RING_FRAMES = 8000
 
 
 async def collect(cfg: Config, label: str, presses: int, out: str | Path,
                   prompt: Callable[[str], object] | None = input, devices=None) -> list[Path]:
     """Record ``presses`` presses of ``label`` into ``out/label/``; returns the files."""
-    from edge.daemon.devices import open_devices
+    from edge.daemon.devices import close_devices, enable_torque, open_devices
 
     if not label.replace("_", "").isalnum():
         raise EdgeError(f"label {label!r}: use letters, digits and underscores")
     out_dir = Path(out) / label
     start = len(list(out_dir.glob(f"*{recording.SUFFIX}"))) if out_dir.exists() else 0
     own = devices is None
-    devices = devices or await open_devices(cfg)
-    ring = FrameRing(cfg.sensor.channels, 8000)
+    if own:
+        devices = await open_devices(cfg)
+        await enable_torque(devices)
+    ring = FrameRing(cfg.sensor.channels, RING_FRAMES)
     controller = PressController(cfg, devices.gripper, devices.arm, ring)
-    task = asyncio.create_task(_sensor(devices, ring, controller), name="sensor")
+    task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run(),
+                               name="sensor")
     written: list[Path] = []
     try:
         await asyncio.sleep(0.5)
@@ -71,8 +71,7 @@ async def collect(cfg: Config, label: str, presses: int, out: str | Path,
         with contextlib.suppress(asyncio.CancelledError):
             await task
         if own:
-            await devices.bus.close()
-            await devices.tactile.close()
+            await close_devices(devices, cfg.runtime.move_timeout_s)
     return written
 
 

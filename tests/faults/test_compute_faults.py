@@ -13,7 +13,7 @@ import pytest
 
 from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,
     ROOT,

@@ -24,7 +24,7 @@ import pytest
 
 from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,
     ROOT,
@@ -46,7 +46,7 @@ from pathlib import Path
 import edge.core.atomic
 from edge.sim.robot import SimRobot
 from edge.daemon.store import EpisodeStore
-from tests.harness import FOOD, QUICK_OBJECT, Daemon, base_config, fast_config
+from tests.support.daemon import FOOD, QUICK_OBJECT, Daemon, base_config, fast_config
 
 state, where = Path(sys.argv[1]), sys.argv[2]
 

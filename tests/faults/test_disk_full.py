@@ -14,7 +14,7 @@ import pytest
 
 from edge.core import recording
 from edge.daemon import store
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     at_pose,
     gripper_open,

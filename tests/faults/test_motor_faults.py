@@ -18,7 +18,7 @@ from edge.core.errors import MotorError
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 from edge.sim.robot import SimRobot
 from edge.sim.world import FORCE_PER_MA_N
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,
     ROOT,

@@ -35,7 +35,7 @@ from edge.core.config import Config, config_from_dict
 from edge.core.errors import ConfigError, RecordingError, SensorError
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
-from tests.harness import QUICK_OBJECT, Daemon, base_config, fast_config
+from tests.support.daemon import QUICK_OBJECT, Daemon, base_config, fast_config
 
 API_EXAMPLES = settings(max_examples=60, deadline=None,
                         suppress_health_check=[HealthCheck.function_scoped_fixture,

@@ -20,7 +20,7 @@ from edge.daemon.api import Api
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,
     ROOT,

@@ -10,7 +10,7 @@ import pytest
 
 from edge.core import recording
 from edge.sim.xela_server import Fault
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     at_pose,
     gripper_open,

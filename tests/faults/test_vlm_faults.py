@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.harness import (
+from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,
     Daemon,
@@ -42,8 +42,9 @@ async def recording_events(d: Daemon):
     events: list[dict] = []
 
     async def follow():
-        async for event in d.runtime.subscribe():
-            events.append(event)
+        with d.runtime.subscribe() as subscription:
+            async for event in subscription:
+                events.append(event)
 
     task = asyncio.create_task(follow())
     await asyncio.sleep(0)

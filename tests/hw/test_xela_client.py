@@ -16,9 +16,9 @@ import pytest
 import pytest_asyncio
 
 from edge.core.config import SensorConfig
-from edge.core.errors import SensorError, StaleSensorError
+from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
 from edge.hw.tactile import TactileFrame, TactileSource
-from edge.hw.xela import SensorLayoutError, XelaClient
+from edge.hw.xela import XelaClient
 from edge.sim.xela_server import Fault, XelaServerEmulator
 
 # Connecting on loopback takes milliseconds; this only bounds a broken test.

@@ -12,13 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.core.errors import SensorError
-from edge.hw.xela import (
-    MAX_FRAME_CHARS,
-    SensorLayoutError,
-    parse_frame,
-    parse_layout_free,
-)
+from edge.core.errors import SensorError, SensorLayoutError
+from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.sim.xela_server import GARBAGE_FRAMES, encode_frame, welcome_frame
 
 # The real frames live in shared/, beside the checkout (../shared) or inside it.

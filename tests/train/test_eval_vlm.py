@@ -13,12 +13,13 @@ import pytest
 from PIL import Image
 
 from edge.core.config import VLMConfig
+from edge.core.errors import EvalVLMError
 from edge.core.model import load_model
 from edge.core.prompt import load_template
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_touch
 from train import eval_vlm
-from train.eval_vlm import AnswerCache, EvalVLMConfig, EvalVLMError
+from train.eval_vlm import AnswerCache, EvalVLMConfig
 
 from .conftest import PRESSES
 

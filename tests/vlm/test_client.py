@@ -14,8 +14,19 @@ import pytest
 from PIL import Image
 
 import edge.core.vlm as vlm_module
-from edge.core.errors import ConfigError, EdgeError, VLMError
-from edge.core.images import ImageError
+from edge.core.errors import (
+    ConfigError,
+    EdgeError,
+    ImageError,
+    VLMConnectionError,
+    VLMError,
+    VLMRejectedError,
+    VLMResponseError,
+    VLMResponseTooLargeError,
+    VLMServerError,
+    VLMTimeoutError,
+    VLMUnavailableError,
+)
 from edge.core.prompt import load_template
 from edge.core.vlm import (
     NoVLM,
@@ -23,13 +34,6 @@ from edge.core.vlm import (
     VLMAnswer,
     VLMClient,
     VLMConfig,
-    VLMConnectionError,
-    VLMRejectedError,
-    VLMResponseError,
-    VLMResponseTooLargeError,
-    VLMServerError,
-    VLMTimeoutError,
-    VLMUnavailableError,
     make_vlm,
     response_format,
 )

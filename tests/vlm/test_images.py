@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from edge.core.errors import EdgeError
-from edge.core.images import ImageError, data_url, prepare_image
+from edge.core.errors import EdgeError, ImageError
+from edge.core.images import data_url, prepare_image
 from tests.vlm.helpers import image_bytes
 
 

@@ -5,11 +5,10 @@ import re
 
 import pytest
 
-from edge.core.errors import EdgeError
+from edge.core.errors import EdgeError, PromptError
 from edge.core.prompt import (
     DEFAULT_PROMPT_DIR,
     MODES,
-    PromptError,
     PromptTemplate,
     check_candidates,
     format_candidates,

@@ -3,6 +3,7 @@ changed on disk is refused, and the daemon, not a signal, ends the worker."""
 
 import asyncio
 import io
+import json
 import os
 import shutil
 import signal
@@ -11,12 +12,12 @@ import numpy as np
 import pytest
 
 from edge.core import preprocess, recording
-from edge.core.errors import ComputeError, ModelError
-from edge.core.images import ImageError, check_image
+from edge.core.errors import ComputeError, ImageError, ModelError
+from edge.core.images import check_image
 from edge.core.model import load_model, model_ref
 from edge.daemon.compute import ComputeWorker, analyse_press
 from edge.sim.press import simulate_press
-from tests.harness import ROOT
+from tests.support.daemon import ROOT
 from tests.vlm.helpers import image_bytes
 
 pytestmark = pytest.mark.asyncio
@@ -30,19 +31,43 @@ def model():
 
 async def test_analysis_in_the_worker_equals_the_model_in_process(model):
     rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
+    photo = image_bytes(1600, 1200)
     async with ComputeWorker() as worker:
-        z, code, topk, description, press_npz, io_npz = await worker.run(
-            analyse_press, model_ref(MODELS), rec)
+        result = await worker.run(analyse_press, model_ref(MODELS), rec, photo, (512, 200_000))
         assert worker.pid() not in (None, os.getpid())
     x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
     z_here, code_here = model.encode(x)
-    np.testing.assert_allclose(z, z_here, atol=1e-6)
-    assert code == code_here and topk == model.topk(z_here, 3)
-    assert description == model.describe([label for label, _ in topk])
-    back = recording.from_bytes(press_npz)
+    np.testing.assert_allclose(result.z, np.asarray(z_here).reshape(-1), atol=1e-6)
+    assert result.code == code_here and result.topk == model.topk(z_here, 3)
+    assert result.description == model.describe([label for label, _ in result.topk])
+    back = recording.from_bytes(result.press_npz)
     np.testing.assert_array_equal(back.frames, rec.frames)
-    with np.load(io.BytesIO(io_npz)) as arrays:
+    with np.load(io.BytesIO(result.model_io_npz)) as arrays:
         np.testing.assert_allclose(arrays["x"], x)
+    # The photo prepared for the VLM in the same round trip.
+    prepared, data_url = result.image
+    assert max(prepared.width, prepared.height) <= 512 and len(prepared.data) <= 200_000
+    assert data_url.startswith(b"data:image/jpeg;base64,") and result.image_error is None
+
+
+async def test_the_crop_is_the_window_the_model_states(tmp_path):
+    """A model trained on another window is fed that window, not the default one."""
+    models = tmp_path / "models"
+    shutil.copytree(MODELS, models)
+    manifest = json.loads((models / "manifest.json").read_text())
+    manifest["encoder"]["window"].update(before_s=0.5, after_s=0.5)  # same length
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    ref = model_ref(models)
+    spec = preprocess.WindowSpec(before_s=0.5, after_s=0.5)
+    assert ref.window == spec
+    rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
+    result = analyse_press(ref, rec)
+    units = preprocess.recording_units(rec)
+    with np.load(io.BytesIO(result.model_io_npz)) as arrays:
+        np.testing.assert_allclose(arrays["window"], preprocess.crop(rec.recv_time, units,
+                                                                     rec.t_stop, spec))
+        assert not np.allclose(arrays["window"], preprocess.crop(rec.recv_time, units,
+                                                                 rec.t_stop))
 
 
 async def test_errors_raised_in_the_worker_arrive_as_raised(model):
@@ -61,7 +86,7 @@ async def test_a_crashed_worker_fails_one_call_and_is_replaced(model):
             await worker.run(os._exit, 3)  # as a decoder crash would end it
         assert worker.restarts == 1
         out = await worker.run(analyse_press, model_ref(MODELS), rec)
-        assert worker.pid() != first and out[3]  # a description from the new worker
+        assert worker.pid() != first and out.description  # from the new worker
 
 
 async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model):
@@ -76,7 +101,7 @@ async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model
         with pytest.raises(ModelError, match="changed since the daemon loaded them; send SIGHUP"):
             await worker.run(analyse_press, loaded, rec)
         reloaded = model_ref(copy)  # what SIGHUP does
-        assert (await worker.run(analyse_press, reloaded, rec))[3]
+        assert (await worker.run(analyse_press, reloaded, rec)).description
 
 
 async def test_the_worker_outlives_sigint_and_sigterm(model):

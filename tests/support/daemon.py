@@ -18,17 +18,13 @@ from typing import Any
 import aiohttp
 
 from edge.core.config import Config
-from edge.daemon.api import Api
-from edge.daemon.compute import ComputeWorker
-from edge.daemon.devices import open_devices
-from edge.daemon.runtime import Runtime
-from edge.daemon.serve import make_vlm, model_ref
-from edge.daemon.store import EPISODE_FILE, EpisodeStore
+from edge.daemon.serve import assemble
+from edge.daemon.store import EPISODE_FILE
 from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CUBE = names("cube")
 OPEN_WIDTH_M = 0.008
 
@@ -57,44 +53,54 @@ def fast_config(vlm_url: str = "") -> Config:
 
 
 class Daemon:
-    """The runtime with its API on a free loopback port, running in a task."""
+    """The daemon as ``vt-edge run`` assembles it (:func:`edge.daemon.serve.assemble`), its
+    API on a free loopback port, its runtime running in a task of the test's loop."""
 
     def __init__(self, robot: SimRobot, cfg: Config, state: Path,
                  headers: dict[str, str] | None = None) -> None:
-        self.cfg = robot.runtime_config(cfg)
+        self.cfg = replace(robot.runtime_config(cfg),
+                           runtime=replace(robot.runtime_config(cfg).runtime,
+                                           state_dir=str(state)))
         self.state = state
         self.headers = headers or {}
         # Optional devices and systemd notifier a test sets before entering.
         self.button = None
         self.notifier = None
+        self._stack = contextlib.AsyncExitStack()
 
     async def __aenter__(self):
-        model = model_ref(self.cfg)
-        self.devices = await open_devices(self.cfg)
-        self.devices.button = self.button
-        self.store = EpisodeStore(self.state / "episodes")
-        self.compute = ComputeWorker()
-        await self.compute.start()
-        self.vlm = make_vlm(self.cfg, self.compute)
-        self.runtime = Runtime(self.cfg, self.devices, model, self.vlm, self.store,
-                               self.compute, self.notifier)
-        self.api = Api(self.runtime, self.cfg.api)
-        self.task = asyncio.create_task(self.runtime.run(self.api))
         try:
-            await asyncio.wait_for(self.runtime.ready.wait(), 10)
+            daemon = await self._stack.enter_async_context(
+                assemble(self.cfg, button=self.button, notifier=self.notifier))
+            self.runtime, self.api, self.devices = daemon.runtime, daemon.api, daemon.devices
+            self.store, self.compute = daemon.store, daemon.compute
+            self.task = asyncio.create_task(self.runtime.run())
+            ready = asyncio.create_task(self.runtime.ready.wait())
+            await asyncio.wait({self.task, ready}, timeout=10,
+                               return_when=asyncio.FIRST_COMPLETED)
+            if not ready.done():
+                ready.cancel()
+                if self.task.done():
+                    await self.task  # its error
+                raise TimeoutError("the daemon was not ready within 10 s")
         except BaseException:
-            self.compute.close()  # (the runtime's own failure shows when the task is awaited)
+            await self._stack.aclose()
             raise
         self.url = f"http://127.0.0.1:{self.api.port}"
         self.http = aiohttp.ClientSession(headers=self.headers)
         return self
 
+    @property
+    def vlm(self):
+        return self.runtime.vlm
+
     async def __aexit__(self, *exc):
         await self.http.close()
         self.runtime.stop()
-        await asyncio.wait_for(self.task, 30)
-        await self.vlm.close()
-        self.compute.close()
+        try:
+            await asyncio.wait_for(self.task, 30)
+        finally:
+            await self._stack.aclose()
 
     async def post(self, path, body, headers=None):
         async with self.http.post(self.url + path, json=body, headers=headers) as resp:
@@ -125,7 +131,7 @@ class Daemon:
     async def wait_idle(self, timeout_s=30.0) -> None:
         """Until no press runs and no recognition task is left."""
         deadline = asyncio.get_running_loop().time() + timeout_s
-        while self.runtime._work or self.runtime.press.state != "idle":
+        while self.runtime.recognizer.work or self.runtime.press.state != "idle":
             assert asyncio.get_running_loop().time() < deadline, self.runtime.press.state
             await asyncio.sleep(0.02)
 

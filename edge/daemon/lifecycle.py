@@ -1,0 +1,323 @@
+"""The daemon's lifecycle: one asyncio loop, one root TaskGroup, every task named.
+
+Tasks: ``sensor`` (frames -> ring buffer + the threshold on every frame), ``sampler``
+(125 Hz), ``watchdog`` (sd_notify only while frames keep arriving), ``button``, ``vlm-retry``
+(pending episodes), and one ``recognize`` task per request. The bus has its own owner thread
+(:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT stop taking work and make the
+arm safe; SIGHUP reloads configuration, model, database and VLM client between presses;
+SIGUSR1 triggers a recognition with the default candidates.
+
+Whatever makes the arm safe runs in ``finally`` on every path out of :meth:`Runtime.run`,
+including a task that died: the running press is aborted (its controller opens the
+gripper), the gripper is opened once more, and the caller (:mod:`edge.daemon.serve`) then
+moves the arm to rest, turns torque off and closes the bus.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any, TypeVar
+
+import numpy as np
+
+from edge import __version__
+from edge.core.config import Config
+from edge.core.errors import BusyError, EdgeError
+from edge.core.model import ModelRef
+from edge.core.vlm import VLMClient
+from edge.daemon.compute import ComputeWorker, warm_up
+from edge.daemon.episode import Episode
+from edge.daemon.events import EventBus, Subscription
+from edge.daemon.metrics import Metrics
+from edge.daemon.press import PressController
+from edge.daemon.recognition import Recognition, Recognizer
+from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.store import EpisodeStore
+from edge.daemon.systemd import Notifier, watchdog_period_s
+from edge.hw.dynamixel import DynamixelBus
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+SAMPLE_RATE_HZ = 125.0
+RING_SECONDS = 30.0
+FIRST_FRAME_TIMEOUT_S = 5.0
+# On SIGTERM: how long a recognition in flight (its press, the VLM question) may take to
+# finish before the daemon goes on without it.
+DRAIN_TIMEOUT_S = 10.0
+# The stream counts as fresh for /healthz while its last frame is younger than this.
+HEALTH_FRAME_AGE_S = 1.0
+
+
+@dataclass
+class Devices:
+    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
+
+    tactile: Any  # TactileSource
+    gripper: Any  # Gripper
+    arm: Any  # Arm
+    camera: Any | None = None  # Camera
+    button: Any | None = None  # Button
+    bus: DynamixelBus | None = None  # closed (safe pose, torque off) by the caller
+
+
+# Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
+Reloader = Callable[[], tuple[Config, ModelRef, VLMClient]]
+
+
+class Runtime:
+    def __init__(self, cfg: Config, devices: Devices, model: ModelRef, vlm: VLMClient,
+                 store: EpisodeStore, compute: ComputeWorker,
+                 notifier: Notifier | None = None, reload: Reloader | None = None) -> None:
+        self.devices = devices
+        self.store = store
+        self.compute = compute
+        self.notifier = notifier or Notifier("")
+        self.reloader = reload
+        self.events = EventBus()
+        self.metrics = Metrics()
+        self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * SAMPLE_RATE_HZ * 1.5))
+        self.sampler = Sampler(self.ring, SAMPLE_RATE_HZ)
+        self.recognizer = Recognizer(Recognition(cfg, model, vlm), lambda: self.press,
+                                     compute, store, self.events, self.metrics,
+                                     devices.camera)
+        self.press = self.make_press_controller()
+        self.sensor = SensorTask(devices.tactile, self.ring, self.press,
+                                 on_unusable=self.notifier.status)
+        self._stopping = asyncio.Event()
+        self.ready = asyncio.Event()
+        self.started_at = time.monotonic()
+
+    # The configuration, model and VLM client in force (replaced together on reload).
+    @property
+    def cfg(self) -> Config:
+        return self.recognizer.setup.cfg
+
+    @property
+    def model(self) -> ModelRef:
+        return self.recognizer.setup.model
+
+    @property
+    def vlm(self) -> VLMClient:
+        return self.recognizer.setup.vlm
+
+    # --- public hooks -------------------------------------------------------------------
+    def make_press_controller(self, cls: type[PressController] = PressController,
+                              **kwargs: Any) -> PressController:
+        """A press controller on this runtime's devices, ring and events (``cls`` may be a
+        comparison controller of a benchmark)."""
+        bus = self.devices.bus
+        return cls(self.cfg, self.devices.gripper, self.devices.arm, self.ring,
+                   on_state=self._on_press_state,
+                   recover=bus.recover_watchdog if bus is not None else None,
+                   window=self.model.window, **kwargs)
+
+    def use_press_controller(self, controller: PressController) -> None:
+        """Presses from now on run with ``controller``; refused while a press runs."""
+        if self.recognizer.lock.locked():
+            raise BusyError("a press is running; swap the controller between presses")
+        if self.press.sensor_is_stale:
+            controller.sensor_stale(EdgeError("stale before the swap"))
+        self.press = controller
+        self.sensor.controller = controller
+
+    # --- what the API uses --------------------------------------------------------------
+    async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
+                        timeout_s: float | None, source: str) -> Episode:
+        return await self.recognizer.recognize(candidates, image, wait, timeout_s, source)
+
+    async def episode(self, episode_id: str) -> Episode:
+        return await self.recognizer.episode(episode_id)
+
+    async def abort(self) -> bool:
+        return self.press.request_abort()
+
+    def subscribe(self) -> contextlib.AbstractContextManager[Subscription]:
+        return self.events.subscribe({"state": self.press.state,
+                                      "episode": self.recognizer.current})
+
+    def health(self) -> dict[str, Any]:
+        age = time.monotonic() - self.ring.latest_time()
+        fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
+        bus_error = getattr(self.devices.bus, "fault", None)
+        store_error = self.store.space_error()
+        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error,
+                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
+                "store_error": store_error,
+                "state": self.press.state, "episode": self.recognizer.current,
+                "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
+                "version": __version__}
+
+    def metrics_text(self) -> str:
+        return self.metrics.render(self.sampler.stats, self.sensor)
+
+    async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
+        return await self.compute.run(fn, *args)
+
+    def _on_press_state(self, state: str) -> None:
+        self.events.publish({"type": "state", "state": state,
+                             "episode": self.recognizer.current})
+
+    # --- lifecycle ----------------------------------------------------------------------
+    async def run(self) -> None:
+        """Run until SIGTERM/SIGINT (or :meth:`stop`); the arm is made safe on every path
+        out. A task that dies takes the daemon down (after that), with its error."""
+        loop = asyncio.get_running_loop()
+        installed = []
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            for sig, handler in ((signal.SIGTERM, self.stop), (signal.SIGINT, self.stop),
+                                 (signal.SIGHUP, self._sighup),
+                                 (signal.SIGUSR1, self._sigusr1)):
+                loop.add_signal_handler(sig, handler)
+                installed.append(sig)
+        try:
+            removed = await asyncio.to_thread(self.store.recover)
+            self.metrics.discarded_partial = removed
+            async with asyncio.TaskGroup() as tg:
+                self.recognizer.spawn_in(tg)
+                tg.create_task(self.sensor.run(), name="sensor")
+                tg.create_task(self.sampler.run(), name="sampler")
+                tg.create_task(self._watchdog(), name="watchdog")
+                tg.create_task(self._button(), name="button")
+                tg.create_task(self.recognizer.retry_pending(), name="vlm-retry")
+                # The model loaded and run once in the compute process: the first press
+                # pays nothing for it.
+                await self.compute.run(warm_up, self.model)
+                await self._wait_first_frame()
+                self.ready.set()
+                self.notifier.ready(f"ready: {self.cfg.mode} mode")
+                log.info("ready (%s mode) in %.2f s", self.cfg.mode,
+                         time.monotonic() - self.started_at)
+                await self._stopping.wait()
+                await self._drain()
+                raise _Stop
+        except* _Stop:
+            pass
+        finally:
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+            await _unless_cancelled_twice(self._make_safe())
+
+    async def _wait_first_frame(self) -> None:
+        deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+        while self.ring.count == 0 and time.monotonic() < deadline:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)  # polled: the sensor task must stay allocation-free
+        if self.ring.count == 0:
+            log.warning("no tactile frame within %.0f s; serving anyway (presses are "
+                        "refused)", FIRST_FRAME_TIMEOUT_S)
+
+    def stop(self) -> None:
+        if not self._stopping.is_set():
+            log.info("stopping: no new work; making the arm safe")
+            self._stopping.set()
+
+    async def _drain(self) -> None:
+        """An orderly stop: no new work, the press aborted, recognitions in flight given
+        time to finish (and be stored)."""
+        self.notifier.stopping()
+        self.recognizer.accepting = False
+        self.press.request_abort()
+        for task in list(self.recognizer.work):
+            with contextlib.suppress(TimeoutError, Exception):
+                await asyncio.wait_for(asyncio.shield(task), DRAIN_TIMEOUT_S)
+
+    async def _make_safe(self) -> None:
+        """On every path out: no press left running, the gripper open. (The caller then
+        moves the arm to rest, turns torque off and closes the devices.)"""
+        self.recognizer.accepting = False
+        self.press.request_abort()
+        try:
+            await self.devices.gripper.open()
+        except Exception as exc:
+            log.error("opening the gripper at shutdown failed: %s", exc)
+
+    async def _watchdog(self) -> None:
+        period = watchdog_period_s()
+        if period is None:
+            return
+        while True:
+            await asyncio.sleep(period)
+            # WATCHDOG=1 only while the sensor path makes progress.
+            if time.monotonic() - self.ring.latest_time() < max(1.0, period):
+                self.notifier.watchdog()
+
+    async def _button(self) -> None:
+        button = self.devices.button
+        if button is None:
+            return
+        async for _ in button.presses():
+            await self.recognizer.trigger_default("button")
+
+    def _sigusr1(self) -> None:
+        asyncio.get_running_loop().create_task(self.recognizer.trigger_default("SIGUSR1"),
+                                               name="sigusr1")
+
+    def _sighup(self) -> None:
+        if self.reloader is None:
+            log.warning("SIGHUP: nothing to reload")
+            return
+        asyncio.get_running_loop().create_task(self.reload(), name="reload")
+
+    async def reload(self) -> bool:
+        """Load the configuration, model, database and VLM client again and use them from
+        the next press on (never under a running press). False if refused: the running
+        ones stay."""
+        assert self.reloader is not None
+        try:
+            cfg, model, vlm = await asyncio.to_thread(self.reloader)
+        except EdgeError as exc:
+            log.error("reload refused, keeping the running configuration: %s", exc)
+            return False
+        async with self.recognizer.lock:  # never swap under a press in progress
+            try:
+                await self.compute.run(warm_up, model)
+            except EdgeError as exc:
+                log.error("reload refused, keeping the running model: %s", exc)
+                if vlm is not self.vlm:
+                    await vlm.close()
+                return False
+            # What the devices were opened with (ports, motor IDs, poses) stays; every
+            # setting read per press (press, timeouts, gripper widths and current, VLM,
+            # default candidates) takes effect now.
+            old = self.recognizer.setup
+            cfg = _reloadable(old.cfg, cfg)
+            self.recognizer.setup = Recognition(cfg, model, vlm)
+            self.press.cfg = cfg
+            self.press.window = model.window
+        if old.vlm is not vlm:
+            await old.vlm.close()
+        log.info("reloaded configuration, model, database and VLM client")
+        return True
+
+
+def _reloadable(running: Config, new: Config) -> Config:
+    """``new`` where a setting can change under a running daemon; ``running`` where it is
+    bound to an open device or socket."""
+    return replace(
+        new, mode=running.mode, sensor=running.sensor, sim=running.sim, camera=running.camera,
+        button=running.button, poses=running.poses,
+        api=replace(running.api, default_candidates=new.api.default_candidates),
+        bus=replace(running.bus, gripper_goal_current=new.bus.gripper_goal_current),
+        runtime=replace(new.runtime, state_dir=running.runtime.state_dir,
+                        move_time_s=running.runtime.move_time_s))
+
+
+async def _unless_cancelled_twice(coro: Any) -> None:
+    """Run ``coro`` to its end even if the caller is cancelled once more meanwhile."""
+    task = asyncio.ensure_future(coro)
+    try:
+        await asyncio.shield(task)
+    except asyncio.CancelledError:
+        await task
+        raise
+
+
+class _Stop(Exception):
+    """Ends the root TaskGroup after an orderly stop."""

@@ -1,0 +1,353 @@
+"""Recognition: one press -> its analysis in the compute process -> the VLM -> a stored
+episode; and the retry of episodes whose VLM question is still due.
+
+One press at a time (a second trigger gets :class:`BusyError` and never moves the arm). An
+episode is noted as accepted before the press runs, kept whole (the store writes
+atomically) whatever happens to the press, and waits ``pending`` while the VLM cannot be
+reached; the retry task asks again with capped exponential backoff, also after a restart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from edge import __version__
+from edge.core import recording
+from edge.core.config import Config
+from edge.core.errors import (
+    BusyError,
+    ComputeError,
+    EdgeError,
+    ModelError,
+    NotFoundError,
+    StoreError,
+    VLMUnavailableError,
+)
+from edge.core.images import VLMImage
+from edge.core.model import ModelRef
+from edge.core.vlm import VLMClient
+from edge.daemon.compute import Analysis, ComputeWorker, analyse_press
+from edge.daemon.episode import Episode, Neighbour, Status
+from edge.daemon.events import EventBus
+from edge.daemon.metrics import Metrics
+from edge.daemon.press import PressController, PressOutcome, outcome_recording
+from edge.daemon.store import EpisodeStore, new_id
+from edge.hw.camera import Camera
+
+log = logging.getLogger(__name__)
+
+# How many episodes that could not be stored at all (disk full) are remembered, for
+# whoever asks about them.
+UNSTORED_KEPT = 100
+
+
+@dataclass
+class Recognition:
+    """What a recognition runs with; swapped as a whole on reload, between presses."""
+
+    cfg: Config
+    model: ModelRef
+    vlm: VLMClient
+
+
+class Recognizer:
+    def __init__(self, setup: Recognition, press: Callable[[], PressController],
+                 compute: ComputeWorker, store: EpisodeStore, events: EventBus,
+                 metrics: Metrics, camera: Camera | None = None) -> None:
+        self.setup = setup
+        self._press = press  # the current controller (a benchmark may swap it)
+        self.compute = compute
+        self.store = store
+        self.events = events
+        self.metrics = metrics
+        self.camera = camera
+        self.lock = asyncio.Lock()  # held while a press runs
+        self.current: str | None = None  # the episode whose press runs
+        self.accepting = True
+        self.work: set[asyncio.Task] = set()  # recognitions in flight
+        self._spawn: Callable[..., asyncio.Task] = asyncio.create_task
+        self._retry_wakeup = asyncio.Event()
+        # Episodes whose VLM question is in flight: never asked twice at once.
+        self._asking: set[str] = set()
+        # Episodes that could not be written at all (disk full): why, for whoever asks.
+        self._unstored: dict[str, str] = {}
+
+    def spawn_in(self, tg: asyncio.TaskGroup) -> None:
+        """Run recognitions inside the daemon's root TaskGroup."""
+        self._spawn = tg.create_task
+
+    # --- triggering -------------------------------------------------------------------
+    async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
+                        timeout_s: float | None, source: str) -> Episode:
+        if not self.accepting:
+            raise BusyError("the daemon is shutting down; not starting a press")
+        full = self.store.space_error()
+        if full:
+            raise StoreError(f"not pressing: the episode could not be kept: {full}")
+        if self.lock.locked():
+            raise BusyError(f"a press is running (episode {self.current}); one at a time",
+                            self.current)
+        episode_id = new_id()
+        self.current = episode_id
+        await self.lock.acquire()  # free: checked above, no await in between
+        done = asyncio.get_running_loop().create_future()
+        task = self._spawn(self._recognize(episode_id, candidates, image, source, done),
+                           name=f"recognize {episode_id}")
+        self.work.add(task)
+        task.add_done_callback(self.work.discard)
+        running = Episode(episode_id, Status.RUNNING, candidates, source)
+        if not wait:
+            return running
+        try:
+            await asyncio.wait_for(asyncio.shield(done), timeout_s)
+        except TimeoutError:
+            return running.with_(note=f"not finished within {timeout_s} s; poll "
+                                      f"/v1/episodes/{episode_id}")
+        return await self.episode(episode_id)
+
+    async def trigger_default(self, source: str) -> None:
+        """A button or a signal: the configured default candidates, the camera's photo."""
+        candidates = list(self.setup.cfg.api.default_candidates)
+        if not candidates:
+            log.warning("%s trigger ignored: api.default_candidates is empty", source)
+            return
+        try:
+            episode = await self.recognize(candidates, None, False, None, source)
+            log.info("%s trigger: episode %s", source, episode.id)
+        except BusyError as exc:
+            log.warning("%s trigger ignored: %s", source, exc)
+
+    async def episode(self, episode_id: str) -> Episode:
+        try:
+            return await asyncio.to_thread(self.store.get, episode_id)
+        except NotFoundError:
+            if episode_id in self._unstored:
+                raise StoreError(self._unstored[episode_id]) from None
+            raise
+
+    # --- one recognition ----------------------------------------------------------------
+    async def _recognize(self, episode_id: str, candidates: list[str], image: bytes | None,
+                         source: str, done: asyncio.Future) -> None:
+        t0 = time.monotonic()
+        setup = self.setup  # one configuration for the whole episode
+        # Noted while the press starts (its fsyncs off the loop): a crash before the episode
+        # is kept leaves it "interrupted" after the restart, not unknown.
+        noted = asyncio.get_running_loop().run_in_executor(
+            None, self.store.accept, episode_id, candidates, source)
+        try:
+            self.events.publish({"type": "episode", "episode": episode_id,
+                                 "status": "running"})
+            camera_task = None
+            if image is None and self.camera is not None:
+                # The photo is taken while the arm moves.
+                camera_task = asyncio.create_task(self.camera.capture(), name="camera")
+            try:
+                outcome = await self._press().run()
+            finally:
+                self.lock.release()
+            self.metrics.observe_press(outcome)
+            if camera_task is not None:
+                try:
+                    image = await camera_task
+                except EdgeError as exc:
+                    log.warning("camera failed: %s", exc)
+            episode = Episode(episode_id, Status.RUNNING, candidates, source,
+                              press=outcome.summary(), software_version=__version__,
+                              x_th=setup.cfg.press.x_th, vlm_mode=setup.vlm.mode,
+                              timings={"press_s": time.monotonic() - t0})
+            episode, files, prepared = await self._analyse(setup, episode, image, outcome)
+            await _noted(noted)
+            if episode.status != Status.PENDING:
+                await asyncio.to_thread(self.store.create, episode, files)
+                return
+            # The durable write and the VLM request overlap (the write takes ~10 ms of
+            # fsyncs); the answer is stored only once the episode is. A crash before the
+            # write completes loses the press, as it would have a moment earlier.
+            stored = asyncio.get_running_loop().run_in_executor(
+                None, self.store.create, episode, files)  # submitted now, not next turn
+            stored.add_done_callback(self._tactile_event(episode))
+            try:
+                await self._ask(episode, prepared if prepared is not None else image,
+                                setup.vlm, stored)
+            finally:
+                await stored
+        except Exception as exc:
+            log.exception("episode %s failed", episode_id)
+            await self._keep_failure(episode_id, candidates, source, exc, noted)
+        finally:
+            if self.current == episode_id:
+                self.current = None
+            if not done.done():
+                done.set_result(None)
+            self.events.publish({"type": "episode", "episode": episode_id,
+                                 "status": "finished"})
+
+    async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
+                            exc: Exception, noted: asyncio.Future) -> None:
+        error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
+        try:
+            await _noted(noted)
+            await asyncio.to_thread(self.store.create, Episode(
+                episode_id, Status.FAILED, candidates, source, error=error), {})
+        except StoreError as store_exc:
+            # Not even the failure could be kept: answer for it from memory.
+            self._unstored[episode_id] = (
+                error if isinstance(exc, StoreError)
+                else f"{error}; and it could not be stored: {store_exc}")
+            while len(self._unstored) > UNSTORED_KEPT:
+                self._unstored.pop(next(iter(self._unstored)))
+        except Exception:
+            log.exception("episode %s: the failure could not be stored", episode_id)
+
+    async def _analyse(self, setup: Recognition, episode: Episode, image: bytes | None,
+                       outcome: PressOutcome
+                       ) -> tuple[Episode, dict[str, bytes], VLMImage | None]:
+        """The episode (``failed``, or ``pending`` for the VLM), its files, and the photo
+        prepared for the VLM: one round trip to the compute process."""
+        files: dict[str, bytes] = {}
+        if image is not None:
+            files["image" + (".png" if image.startswith(b"\x89PNG") else ".jpg")] = image
+        if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
+            return (episode.with_(status=Status.FAILED,
+                                  error=outcome.message or outcome.result), files, None)
+        t = time.monotonic()
+        rec = None
+        try:
+            rec = outcome_recording(outcome, setup.cfg)
+            analysis: Analysis = await self.compute.run(
+                analyse_press, setup.model, rec, image, setup.vlm.image_limits())
+        except EdgeError as exc:
+            # E.g. the stream died before the window after the stop was complete: the press
+            # is still kept, raw, with why it could not be recognised.
+            log.error("episode %s: press not usable for recognition: %s", episode.id, exc)
+            why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
+                   else "its tactile window is unusable")
+            if rec is not None:  # (none when the window itself is unusable)
+                with contextlib.suppress(EdgeError):
+                    files["press.press.npz"] = recording.to_bytes(rec)
+            return (episode.with_(status=Status.FAILED,
+                                  error=f"the press worked but {why}: {exc}"), files, None)
+        if analysis.image_error is not None:
+            log.warning("episode %s: the photo cannot be sent: %s", episode.id,
+                        analysis.image_error)
+        files["press.press.npz"] = analysis.press_npz
+        files["model_io.npz"] = analysis.model_io_npz
+        episode = episode.with_(
+            status=Status.PENDING, code=analysis.code, z=analysis.z,
+            topk=[Neighbour(label, d) for label, d in analysis.topk],
+            description=analysis.description,
+            timings={**episode.timings, "encode_s": time.monotonic() - t})
+        return episode, files, analysis.image
+
+    def _tactile_event(self, episode: Episode) -> Callable[[asyncio.Future], None]:
+        """Publishes the tactile result once the episode is stored (a done-callback)."""
+        def done(stored: asyncio.Future) -> None:
+            if not stored.cancelled() and stored.exception() is None:
+                self.events.publish({
+                    "type": "tactile", "episode": episode.id,
+                    "description": episode.description,
+                    "topk": [{"label": n.label, "distance": n.distance}
+                             for n in episode.topk or ()]})
+        return done
+
+    # --- the VLM ------------------------------------------------------------------------
+    async def _ask(self, episode: Episode, image: bytes | VLMImage | None, vlm: VLMClient,
+                   stored: asyncio.Future | None = None) -> None:
+        """Ask about ``episode``; ``stored`` (its first write, still under way) is awaited
+        before any update. Never two questions about one episode at once."""
+        if episode.id in self._asking:
+            return
+        self._asking.add(episode.id)
+        try:
+            await self._ask_once(episode, image, vlm, stored)
+        finally:
+            self._asking.discard(episode.id)
+
+    async def _ask_once(self, episode: Episode, image: bytes | VLMImage | None,
+                        vlm: VLMClient, stored: asyncio.Future | None) -> None:
+        t = time.monotonic()
+        attempts = episode.attempts + 1
+        try:
+            answer = await vlm.ask(image, episode.description or "", episode.candidates or [])
+        except EdgeError as exc:
+            if stored is not None:
+                await stored
+            self.metrics.vlm_errors += 1
+            if not isinstance(exc, VLMUnavailableError):
+                # Refused (4xx), a broken answer or a bad image: asking again will not help.
+                log.error("episode %s: VLM error: %s", episode.id, exc)
+                await asyncio.to_thread(self.store.update, episode.id,
+                                        status=Status.VLM_ERROR, attempts=attempts,
+                                        last_error=str(exc))
+                self.events.publish({"type": "result", "episode": episode.id,
+                                     "status": Status.VLM_ERROR.value, "error": str(exc)})
+                return
+            runtime = self.setup.cfg.runtime
+            delay = min(runtime.vlm_retry_base_s * 2 ** (attempts - 1), runtime.vlm_retry_max_s)
+            log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode.id, exc,
+                        delay)
+            await asyncio.to_thread(self.store.update, episode.id, attempts=attempts,
+                                    last_error=str(exc), next_retry_at=time.time() + delay)
+            self._retry_wakeup.set()  # the retry task plans from the new due time
+            self.events.publish({"type": "episode", "episode": episode.id,
+                                 "status": Status.PENDING.value, "error": str(exc)})
+            return
+        latency = time.monotonic() - t
+        if stored is not None:
+            await stored
+        self.metrics.observe_vlm(latency)
+        status = Status.DONE if answer.status == "ok" else Status(answer.status)
+        await asyncio.to_thread(self.store.update, episode.id, status=status,
+                                label=answer.label, vlm=answer.to_dict(), attempts=attempts,
+                                timings={**episode.timings, "vlm_s": latency})
+        self.events.publish({"type": "result", "episode": episode.id, "status": status.value,
+                             "label": answer.label})
+        log.info("episode %s: %s%s", episode.id, status,
+                 f" -> {answer.label}" if answer.label else "")
+
+    async def retry_pending(self) -> None:
+        """The retry task: asks again about every pending episode when it is due."""
+        while True:
+            # Cleared before the scan: a failure during it (a new due time) wakes the next.
+            self._retry_wakeup.clear()
+            pending = await asyncio.to_thread(self.store.pending)
+            runtime = self.setup.cfg.runtime
+            now = time.time()
+            next_due = now + runtime.vlm_retry_max_s
+            for episode in pending:
+                if episode.next_retry_at <= now:
+                    try:
+                        await self._retry(episode)
+                    except Exception:
+                        # One broken episode must not stop the daemon or the other retries.
+                        log.exception("retrying episode %s failed", episode.id)
+                        next_due = min(next_due, now + runtime.vlm_retry_max_s)
+                else:
+                    next_due = min(next_due, episode.next_retry_at)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._retry_wakeup.wait(),
+                                       max(0.05, next_due - time.time()))
+
+    async def _retry(self, episode: Episode) -> None:
+        if episode.id in self._asking:
+            return
+        image = None
+        for name in ("image.jpg", "image.png"):
+            with contextlib.suppress(NotFoundError):
+                path = self.store.file(episode.id, name)
+                image = await asyncio.to_thread(path.read_bytes)
+        await self._ask(episode, image, self.setup.vlm)
+
+
+async def _noted(noted: asyncio.Future) -> None:
+    """Wait for the acceptance note before the episode is written (else the note could land
+    after it, and outlive it until the next start)."""
+    try:
+        await noted
+    except StoreError as exc:
+        log.warning("%s: a crash before this episode is kept would lose it", exc)
