@@ -27,7 +27,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.daemon.sensor import FrameRing, Window
-from edge.hw.arm import Arm, Gripper, GripperState
+from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""Arm and gripper contracts, their implementations over the Dynamixel bus, and fakes.
+"""The arm and gripper over the Dynamixel bus (contracts in :mod:`edge.hw.contracts`), and fakes.
 
 Positions are raw Dynamixel counts (4096 per turn) unless a name says metres. The gripper's
 width follows the current ROBOTIS description of the OpenMANIPULATOR-X:
@@ -13,10 +13,9 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 from edge.core.errors import DeviceTimeoutError
+from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, JointPose
 from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
 from edge.hw.dynamixel import DynamixelBus
 
@@ -28,10 +27,7 @@ GRIPPER_OPEN_WIDTH_M = 0.019
 GRIPPER_OPEN_SPEED_MPS = 0.02
 GRIPPER_CLOSED_WIDTH_M = -0.010
 
-DEFAULT_MOVE_TIMEOUT_S = 5.0
 DEFAULT_GRIPPER_TIMEOUT_S = 3.0
-
-JointPose = tuple[int, int, int, int]
 
 
 def gripper_width_m(raw: float, reverse: bool = False) -> float:
@@ -45,55 +41,6 @@ def gripper_raw(width_m: float, reverse: bool = False) -> int:
     """The gripper motor's raw position for a width in metres (inverse of the above)."""
     raw = round((width_m + GRIPPER_OFFSET_M) / GRIPPER_M_PER_RAW)
     return RAW_PER_REV - raw if reverse else raw
-
-
-@dataclass(frozen=True)
-class GripperState:
-    """``t``: monotonic time of the reading; ``squeeze_ma``: motor current pushing the fingers
-    closed (positive while squeezing, whatever the Drive Mode)."""
-
-    t: float
-    width_m: float
-    squeeze_ma: float
-    position_raw: int
-
-
-@runtime_checkable
-class Gripper(Protocol):
-    async def open(self) -> None:
-        """Open fully and wait until open (``DeviceTimeoutError`` past the timeout)."""
-        ...
-
-    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
-        """Start closing at ``speed_mps`` with the squeeze capped at ``current_cap_ma``;
-        returns once commanded (watch :meth:`state` and call :meth:`stop_now`)."""
-        ...
-
-    async def stop_now(self) -> int:
-        """Stop at once, keeping the squeeze: one Goal Position write a little past the
-        present position in the closing direction, ahead of anything queued. Returns the
-        goal (raw)."""
-        ...
-
-    async def state(self) -> GripperState:
-        ...
-
-
-@runtime_checkable
-class Arm(Protocol):
-    @property
-    def poses(self) -> Mapping[str, JointPose]:
-        """Named joint poses (raw positions of the four joints, in joint ID order)."""
-        ...
-
-    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        """Move to a named pose and wait for arrival (``DeviceTimeoutError`` past
-        ``timeout_s``)."""
-        ...
-
-    async def joints(self) -> JointPose:
-        """Present raw joint positions."""
-        ...
 
 
 def _pose_or_raise(poses: Mapping[str, JointPose], pose: str) -> JointPose:

@@ -24,7 +24,7 @@ import numpy as np
 
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, StaleSensorError
-from edge.hw.tactile import StreamStats, TactileFrame
+from edge.hw.contracts import StreamStats, TactileFrame
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class ParsedFrame:
 
     seq: int
     time: float
-    raw: np.ndarray  # (sum of taxels * 3,) uint16, channel order of edge.hw.tactile
+    raw: np.ndarray  # (sum of taxels * 3,) uint16, channel order of edge.hw.contracts
     sensors: tuple[str, ...]  # sensor numbers, e.g. ("1", "2")
     models: tuple[str, ...]
     taxels: tuple[int, ...]
@@ -235,7 +235,7 @@ _CLOSED = object()
 
 
 class XelaClient:
-    """:class:`~edge.hw.tactile.TactileSource` reading ``xela_server`` over WebSocket.
+    """:class:`~edge.hw.contracts.TactileSource` reading ``xela_server`` over WebSocket.
 
     A background task owns the connection: it skips the Welcome frame, drops repeated
     frames (counted), timestamps fresh ones with ``time.monotonic()`` and queues them; it

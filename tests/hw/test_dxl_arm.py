@@ -9,15 +9,14 @@ import pytest
 from edge.core.config import BusConfig
 from edge.core.errors import DeviceTimeoutError
 from edge.hw.arm import (
-    Arm,
     DynamixelArm,
     DynamixelGripper,
     FakeArm,
     FakeGripper,
-    Gripper,
     gripper_raw,
     gripper_width_m,
 )
+from edge.hw.contracts import Arm, Gripper
 from edge.hw.dynamixel import DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
 
