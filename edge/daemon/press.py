@@ -122,9 +122,8 @@ class PressController:
             armed.level_at_cross = level
             stopped = False
             try:
-                await self.gripper.stop_now()
-                # The stop's packet time at the port if the driver knows it, else now.
-                t_sent = getattr(self.gripper, "last_stop_t", 0.0) or time.monotonic()
+                stop = await self.gripper.stop_now(self.cfg.press.stop_squeeze_raw)
+                t_sent = stop.t_sent
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time
@@ -180,7 +179,8 @@ class PressController:
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.
             touched = True
-            await self.gripper.open()
+            await self.gripper.open(self.cfg.press.open_width_m,
+                                    self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT)
             moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
@@ -313,7 +313,8 @@ class PressController:
         last: DeviceError | None = None
         for attempt in range(3):
             try:
-                await self.gripper.open()
+                await self.gripper.open(self.cfg.press.open_width_m,
+                                        self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT)
                 return True
             except DeviceError as exc:
                 last = exc

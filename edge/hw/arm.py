@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Mapping
 
 from edge.core.errors import DeviceTimeoutError
-from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, JointPose
+from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, GripperStop, JointPose
 from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
 from edge.hw.dynamixel import DynamixelBus
 
@@ -57,22 +57,16 @@ class DynamixelGripper:
         self,
         bus: DynamixelBus,
         *,
-        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
         closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
         open_speed_mps: float = GRIPPER_OPEN_SPEED_MPS,
-        stop_past_raw: int = 8,
         tolerance_raw: int = 15,
         timeout_s: float = DEFAULT_GRIPPER_TIMEOUT_S,
         poll_interval_s: float = 0.01,
     ) -> None:
         self._bus = bus
         self._id = bus.config.gripper_id
-        self._open_width_m = open_width_m
         self._closed_width_m = closed_width_m
         self._open_speed_mps = open_speed_mps
-        # How far past the present position the stop goal lies: enough to keep squeezing
-        # (the present position itself would remove the squeeze), small enough not to crush.
-        self._stop_past_raw = stop_past_raw
         self._tolerance_raw = tolerance_raw
         self._timeout_s = timeout_s
         self._poll_interval_s = poll_interval_s
@@ -86,9 +80,13 @@ class DynamixelGripper:
         """+1 if closing increases the raw position (reverse Drive Mode), else -1."""
         return 1 if self._reverse else -1
 
-    async def open(self) -> None:
-        goal = gripper_raw(self._open_width_m, self._reverse)
-        await self._bus.write(self._id, "Goal Current", self._bus.config.gripper_goal_current)
+    async def open(self, width_m: float, current_cap_ma: float) -> None:
+        goal = gripper_raw(width_m, self._reverse)
+        # Not checked against the Current Limit as close() does: opening is every press's
+        # way out, and a cap the motor refuses comes back as a MotorError the caller retries,
+        # where a ValueError would skip the retries.
+        cap = round(current_cap_ma / CURRENT_MA_PER_UNIT)
+        await self._bus.write(self._id, "Goal Current", cap)
         await self._bus.write(self._id, "Profile Velocity", _velocity_units(self._open_speed_mps))
         await self._bus.write(self._id, "Goal Position", goal)
         deadline = time.monotonic() + self._timeout_s
@@ -113,14 +111,11 @@ class DynamixelGripper:
         await self._bus.write(self._id, "Goal Position",
                               gripper_raw(self._closed_width_m, self._reverse))
 
-    async def stop_now(self) -> int:
-        return await self._bus.stop_past_present(self._id,
-                                                 self.closing_sign * self._stop_past_raw)
-
-    @property
-    def last_stop_t(self) -> float:
-        """When the last stop packet went out to the port (monotonic)."""
-        return self._bus.last_stop_t
+    async def stop_now(self, squeeze_raw: int) -> GripperStop:
+        goal = await self._bus.stop_past_present(self._id, self.closing_sign * squeeze_raw)
+        # The bus stamps the stop when its packet leaves for the port, on the bus thread:
+        # later than any time taken here before the await, earlier than one taken after.
+        return GripperStop(goal, self._bus.last_stop_t)
 
     async def state(self) -> GripperState:
         bus_state = await self._bus.read_state()
@@ -203,15 +198,14 @@ class FakeGripper:
         self,
         *,
         object_width_m: float | None = None,
-        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
+        start_width_m: float = GRIPPER_OPEN_WIDTH_M,
         closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.object_width_m = object_width_m
-        self._open_width_m = open_width_m
         self._closed_width_m = closed_width_m
         self._clock = clock
-        self._width = open_width_m
+        self._width = start_width_m
         self._t0 = clock()
         self._speed = 0.0
         self._cap_ma = 0.0
@@ -229,19 +223,19 @@ class FakeGripper:
         touching = self.object_width_m is not None and width <= self.object_width_m + 1e-9
         return self._cap_ma if touching else 0.0
 
-    async def open(self) -> None:
-        self.calls.append("open")
-        self._width, self._speed, self._cap_ma = self._open_width_m, 0.0, 0.0
+    async def open(self, width_m: float, current_cap_ma: float) -> None:
+        self.calls.append(f"open {width_m} {current_cap_ma}")
+        self._width, self._speed, self._cap_ma = width_m, 0.0, 0.0
 
     async def close(self, speed_mps: float, current_cap_ma: float) -> None:
         self.calls.append(f"close {speed_mps} {current_cap_ma}")
         self._width, self._t0 = self._width_now(), self._clock()
         self._speed, self._cap_ma = speed_mps, current_cap_ma
 
-    async def stop_now(self) -> int:
-        self.calls.append("stop_now")
+    async def stop_now(self, squeeze_raw: int) -> GripperStop:
+        self.calls.append(f"stop_now {squeeze_raw}")
         self._width, self._speed = self._width_now(), 0.0
-        return gripper_raw(self._width) - 8
+        return GripperStop(gripper_raw(self._width) - squeeze_raw, self._clock())
 
     async def state(self) -> GripperState:
         width = self._width_now()

@@ -153,10 +153,25 @@ class GripperState:
     position_raw: int
 
 
+@dataclass(frozen=True)
+class GripperStop:
+    """What :meth:`Gripper.stop_now` sent: ``goal_raw`` is the Goal Position written,
+    ``t_sent`` the monotonic time the stop packet went out to the port (the end of the
+    threshold-to-stop latency)."""
+
+    goal_raw: int
+    t_sent: float
+
+
 @runtime_checkable
 class Gripper(Protocol):
-    async def open(self) -> None:
-        """Open fully and wait until open (``DeviceTimeoutError`` past the timeout)."""
+    """The gripper. Opening width and current cap are arguments of every call, not settings
+    copied into the driver at start, so a configuration reload takes effect on the next
+    press."""
+
+    async def open(self, width_m: float, current_cap_ma: float) -> None:
+        """Open to ``width_m`` with the squeeze capped at ``current_cap_ma`` and wait until
+        there (``DeviceTimeoutError`` past the timeout)."""
         ...
 
     async def close(self, speed_mps: float, current_cap_ma: float) -> None:
@@ -164,10 +179,10 @@ class Gripper(Protocol):
         returns once commanded (watch :meth:`state` and call :meth:`stop_now`)."""
         ...
 
-    async def stop_now(self) -> int:
-        """Stop at once, keeping the squeeze: one Goal Position write a little past the
-        present position in the closing direction, ahead of anything queued. Returns the
-        goal (raw)."""
+    async def stop_now(self, squeeze_raw: int) -> GripperStop:
+        """Stop at once, keeping the squeeze: one Goal Position write ``squeeze_raw`` counts
+        past the present position in the closing direction (the present position itself
+        would release the squeeze), ahead of anything queued."""
         ...
 
     async def state(self) -> GripperState: ...

@@ -16,7 +16,7 @@ from edge.hw.arm import (
     gripper_raw,
     gripper_width_m,
 )
-from edge.hw.contracts import Arm, Gripper
+from edge.hw.contracts import Arm, Gripper, GripperStop
 from edge.hw.dynamixel import DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
 
@@ -50,10 +50,11 @@ async def test_fake_gripper_closes_onto_the_object_and_stops():
     now[0] = 3.0
     state = await gripper.state()
     assert state.width_m == pytest.approx(0.005) and state.squeeze_ma == 300
-    await gripper.stop_now()
-    await gripper.open()
-    assert (await gripper.state()).width_m == pytest.approx(0.019)
-    assert gripper.calls == ["close 0.01 300", "stop_now", "open"]
+    stop = await gripper.stop_now(2)
+    assert stop == GripperStop(gripper_raw(0.005) - 2, 3.0)  # past present, closing = down
+    await gripper.open(0.015, 538)
+    assert (await gripper.state()).width_m == pytest.approx(0.015)
+    assert gripper.calls == ["close 0.01 300", "stop_now 2", "open 0.015 538"]
 
 
 @pytest.mark.asyncio
