@@ -1,4 +1,4 @@
-"""The arm and gripper over the Dynamixel bus (contracts in :mod:`edge.hw.contracts`), and fakes.
+"""The arm and gripper over the Dynamixel bus (contracts in :mod:`edge.hw.contracts`).
 
 Positions are raw Dynamixel counts (4096 per turn) unless a name says metres. The gripper's
 width follows the current ROBOTIS description of the OpenMANIPULATOR-X:
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 from edge.core.errors import DeviceTimeoutError
 from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, GripperStop, JointPose
@@ -187,83 +187,3 @@ class DynamixelArm:
         state = await self._bus.read_state()
         a, b, c, d = (state.motors[i].position for i in self._joint_ids)
         return (a, b, c, d)
-
-
-class FakeGripper:
-    """In-memory gripper for unit tests: closes at the commanded speed and stops against an
-    object of width ``object_width_m`` (None: nothing between the fingers), squeezing at the
-    current cap there. Every call is appended to ``calls``."""
-
-    def __init__(
-        self,
-        *,
-        object_width_m: float | None = None,
-        start_width_m: float = GRIPPER_OPEN_WIDTH_M,
-        closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
-        self.object_width_m = object_width_m
-        self._closed_width_m = closed_width_m
-        self._clock = clock
-        self._width = start_width_m
-        self._t0 = clock()
-        self._speed = 0.0
-        self._cap_ma = 0.0
-        self.calls: list[str] = []
-
-    def _width_now(self) -> float:
-        if self._speed <= 0:
-            return self._width
-        width = max(self._closed_width_m, self._width - self._speed * (self._clock() - self._t0))
-        if self.object_width_m is not None:
-            width = max(width, self.object_width_m)
-        return width
-
-    def _squeeze_ma(self, width: float) -> float:
-        touching = self.object_width_m is not None and width <= self.object_width_m + 1e-9
-        return self._cap_ma if touching else 0.0
-
-    async def open(self, width_m: float, current_cap_ma: float) -> None:
-        self.calls.append(f"open {width_m} {current_cap_ma}")
-        self._width, self._speed, self._cap_ma = width_m, 0.0, 0.0
-
-    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
-        self.calls.append(f"close {speed_mps} {current_cap_ma}")
-        self._width, self._t0 = self._width_now(), self._clock()
-        self._speed, self._cap_ma = speed_mps, current_cap_ma
-
-    async def stop_now(self, squeeze_raw: int) -> GripperStop:
-        self.calls.append(f"stop_now {squeeze_raw}")
-        self._width, self._speed = self._width_now(), 0.0
-        return GripperStop(gripper_raw(self._width) - squeeze_raw, self._clock())
-
-    async def state(self) -> GripperState:
-        width = self._width_now()
-        return GripperState(self._clock(), width, self._squeeze_ma(width), gripper_raw(width))
-
-
-class FakeArm:
-    """In-memory arm for unit tests: arrives at once; ``history`` lists the poses visited;
-    set ``fail_next`` to make the next move raise it."""
-
-    def __init__(self, poses: Mapping[str, JointPose], start: str | None = None) -> None:
-        self._poses = dict(poses)
-        first = start if start is not None else next(iter(self._poses))
-        self._joints = _pose_or_raise(self._poses, first)
-        self.history: list[str] = []
-        self.fail_next: Exception | None = None
-
-    @property
-    def poses(self) -> Mapping[str, JointPose]:
-        return self._poses
-
-    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        target = _pose_or_raise(self._poses, pose)
-        if self.fail_next is not None:
-            exc, self.fail_next = self.fail_next, None
-            raise exc
-        self._joints = target
-        self.history.append(pose)
-
-    async def joints(self) -> JointPose:
-        return self._joints

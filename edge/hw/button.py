@@ -2,9 +2,8 @@
 
 The contract is :class:`~edge.hw.contracts.Button`: an async iterator of presses.
 Implementations: a foot switch wired to a serial port's modem-status line (CTS or DSR, read
-with pyserial: a common cheap wiring), a GPIO line through libgpiod (optional extra
-``gpio``), and :class:`FakeButton`.
-Both real ones poll in a thread and debounce, so no blocking call touches the event loop.
+with pyserial: a common cheap wiring) and a GPIO line through libgpiod (optional extra
+``gpio``). Both poll in a thread and debounce, so no blocking call touches the event loop.
 """
 
 from __future__ import annotations
@@ -110,20 +109,3 @@ class GPIOButton(_PolledButton):
     async def close(self) -> None:
         await super().close()
         self._request.release()
-
-
-class FakeButton:
-    """A button pressed by calling :meth:`press`."""
-
-    def __init__(self) -> None:
-        self._queue: asyncio.Queue[float] = asyncio.Queue()
-
-    def press(self) -> None:
-        self._queue.put_nowait(time.monotonic())
-
-    async def presses(self) -> AsyncIterator[float]:
-        while True:
-            yield await self._queue.get()
-
-    async def close(self) -> None:
-        return None

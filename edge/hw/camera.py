@@ -98,18 +98,6 @@ class V4L2Camera:
         return await asyncio.wait_for(asyncio.to_thread(self._grab), CAPTURE_TIMEOUT_S)
 
 
-class FakeCamera:
-    """Returns fixed bytes; counts captures."""
-
-    def __init__(self, image: bytes) -> None:
-        self.image = image
-        self.captures = 0
-
-    async def capture(self) -> bytes:
-        self.captures += 1
-        return self.image
-
-
 class HttpCamera:
     """A snapshot URL (IP cameras; the simulated robot serves one)."""
 

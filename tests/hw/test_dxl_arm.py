@@ -1,4 +1,5 @@
-"""Arm and gripper: the contracts, the fakes, and the Dynamixel implementations on the emulator."""
+"""Arm and gripper: the width formula, the fakes, and the Dynamixel implementations on the
+emulator (their conformance to the contracts: tests/hw/test_contracts.py)."""
 
 from __future__ import annotations
 
@@ -8,17 +9,11 @@ import pytest
 
 from edge.core.config import BusConfig
 from edge.core.errors import DeviceTimeoutError
-from edge.hw.arm import (
-    DynamixelArm,
-    DynamixelGripper,
-    FakeArm,
-    FakeGripper,
-    gripper_raw,
-    gripper_width_m,
-)
-from edge.hw.contracts import Arm, Gripper, GripperStop
+from edge.hw.arm import DynamixelArm, gripper_raw, gripper_width_m
+from edge.hw.contracts import GripperStop
 from edge.hw.dynamixel import DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
+from tests.support.fakes import FakeArm, FakeGripper
 
 POSES = {"home": (2048, 2048, 2048, 2048), "above": (2048, 1800, 2300, 2048)}
 
@@ -31,12 +26,6 @@ def test_width_formula_and_its_inverse():
         assert gripper_width_m(gripper_raw(width, True), True) == pytest.approx(width, abs=1e-5)
     # Reversed, closing is toward increasing raw.
     assert gripper_raw(-0.010, True) > gripper_raw(0.019, True)
-
-
-def test_implementations_satisfy_the_contracts():
-    bus = DynamixelBus(BusConfig())
-    assert isinstance(FakeGripper(), Gripper) and isinstance(DynamixelGripper(bus), Gripper)
-    assert isinstance(FakeArm(POSES), Arm) and isinstance(DynamixelArm(bus, POSES), Arm)
 
 
 @pytest.mark.asyncio

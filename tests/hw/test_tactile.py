@@ -10,7 +10,7 @@ import pytest
 
 from edge.core.errors import SensorError, StaleSensorError
 from edge.hw.contracts import StreamStats, TactileFrame, TactileSource
-from edge.hw.tactile import FakeTactileSource
+from tests.support.fakes import FakeTactileSource
 
 
 def idle(n: int = 1) -> np.ndarray:
