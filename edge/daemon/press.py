@@ -1,4 +1,4 @@
-"""The press controller: the state machine of one press (DESIGN sections 1 and 4).
+"""The press controller: the state machine of one press (docs/method.md, 'Press').
 
 idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -> idle
 

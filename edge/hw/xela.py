@@ -3,7 +3,8 @@
 The server sends one JSON text frame per update: bookkeeping keys (``message`` = sequence
 number, ``time``, ``sensors``, ...) plus one object per sensor under its number (``"1"``,
 ``"2"``) whose ``data`` holds x, y, z hex words per taxel (1.7.7: a list of ints; 1.8 adds
-``integer``, ``temp``, ``ups``). See DESIGN section 2 and ``shared/fixtures/xela/``.
+``integer``, ``temp``, ``ups``). See docs/hardware.md, 'XELA server', and a real frame in
+``tests/fixtures/xela/``.
 """
 
 from __future__ import annotations
