@@ -9,10 +9,10 @@ from dataclasses import replace
 import pytest
 
 from edge.daemon.serve import model_ref
-from edge.hw.button import FakeButton
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
 from tests.support.daemon import Daemon, base_config
+from tests.support.fakes import FakeButton
 
 CUBE = names("cube")
 

@@ -1,4 +1,5 @@
-"""Press recordings -> training samples, exactly as DESIGN section 1 says.
+"""Press recordings -> training samples, exactly as docs/method.md, 'Crop and preprocessing',
+says.
 
 Every press is cropped and subsampled by :mod:`edge.core.preprocess` (never re-implemented here):
 ``recording_pairs`` gives the 5 subsampling offsets of the input ``X`` and of the smoothed

@@ -1,4 +1,4 @@
-"""The Seq2Seq GRU VQ-VAE of DESIGN section 1.3, and its beta-VAE variant.
+"""The Seq2Seq GRU VQ-VAE of docs/method.md, 'Encoder', and its beta-VAE variant.
 
 Encoder: 2-layer bidirectional GRU (hidden 32) over the normalised X (B, 25, 96); the last
 layer's final forward and backward states, concatenated (64), go through a Linear to

@@ -123,7 +123,7 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class PressConfig:
-    """The press of DESIGN section 1."""
+    """The press (docs/method.md, 'Press')."""
 
     # Tactile norm threshold in tactile units ((raw - tare) / 65536); 0.003 for fragile objects.
     x_th: float = 0.004

@@ -15,12 +15,12 @@ numpy + onnxruntime only (never torch). A model directory holds:
   included), the training configuration, metrics and versions. :func:`load_model` checks
   every listed file before using any of it and refuses a missing or altered one.
 
-Retrieval (DESIGN section 1.4): L2 distance from the query embedding to every reference
-embedding; the first ``k`` *distinct* classes, nearest first. Classes are stored in contiguous
-blocks, so the nearest reference of every class is one ``np.minimum.reduceat`` over the
-squared distances ``||r||^2 - 2 r.z`` (norms precomputed, float32); no retry loop is needed to
-find k distinct classes however many references one class has. The distances returned are
-recomputed exactly (float64) for the winners.
+Retrieval (docs/method.md, 'Reference database and retrieval'): L2 distance from the query
+embedding to every reference embedding; the first ``k`` *distinct* classes, nearest first.
+Classes are stored in contiguous blocks, so the nearest reference of every class is one
+``np.minimum.reduceat`` over the squared distances ``||r||^2 - 2 r.z`` (norms precomputed,
+float32); no retry loop is needed to find k distinct classes however many references one class
+has. The distances returned are recomputed exactly (float64) for the winners.
 """
 
 from __future__ import annotations

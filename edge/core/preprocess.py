@@ -23,7 +23,8 @@ UNITS_SCALE = 65536.0
 
 @dataclass(frozen=True)
 class WindowSpec:
-    """Where and how the model's input is cut from the stream (DESIGN section 1)."""
+    """Where and how the model's input is cut from the stream (docs/method.md,
+    'Crop and preprocessing')."""
 
     rate_hz: float = 125.0
     before_s: float = 0.4

@@ -1,4 +1,4 @@
-"""Prompt templates for the VLM (DESIGN section 1 step 5).
+"""Prompt templates for the VLM (docs/method.md, 'Prompt').
 
 A template is a text file (``models/prompts/<mode>.txt``) read with :class:`string.Template`
 and two slots: ``${topk_refs}`` (the tactile description, e.g. "a cube of hard wood that does

@@ -1,4 +1,5 @@
-"""The VLM client (DESIGN section 4): ask an OpenAI-compatible server for one label.
+"""The VLM client (docs/method.md, 'The VLM answer'): ask an OpenAI-compatible server
+for one label.
 
 ``OpenAIVLM.ask(image, description, candidates)`` renders the prompt, prepares the image off
 the loop, POSTs ``{base_url}/chat/completions`` with the image as a base64 data URL,

@@ -45,8 +45,7 @@ async def open_devices(cfg: Config) -> Devices:
     try:
         await tactile.start()
         await bus.connect()
-        gripper = DynamixelGripper(bus, open_width_m=cfg.press.open_width_m,
-                                   stop_past_raw=cfg.press.stop_squeeze_raw)
+        gripper = DynamixelGripper(bus)
         arm = DynamixelArm(bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
         return Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),
                        button=make_button(cfg), bus=bus)

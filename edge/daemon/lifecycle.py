@@ -40,6 +40,7 @@ from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import FrameRing, Sampler, SensorTask
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
+from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
 from edge.hw.dynamixel import DynamixelBus
 
 log = logging.getLogger(__name__)
@@ -59,11 +60,11 @@ HEALTH_FRAME_AGE_S = 1.0
 class Devices:
     """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
 
-    tactile: Any  # TactileSource
-    gripper: Any  # Gripper
-    arm: Any  # Arm
-    camera: Any | None = None  # Camera
-    button: Any | None = None  # Button
+    tactile: TactileSource
+    gripper: Gripper
+    arm: Arm
+    camera: Camera | None = None
+    button: Button | None = None
     bus: DynamixelBus | None = None  # closed (safe pose, torque off) by the caller
 
 
@@ -234,9 +235,12 @@ class Runtime:
         self.recognizer.accepting = False
         self.press.request_abort()
         try:
-            await self.devices.gripper.open()
-        except Exception as exc:
-            log.error("opening the gripper at shutdown failed: %s", exc)
+            failed = await self.press.open_gripper_retrying()
+        except Exception as exc:  # a bug here must not skip the torque-off that follows
+            log.exception("opening the gripper at shutdown failed")
+            failed = exc
+        if failed is not None:
+            log.error("the gripper may still be closed at shutdown: %s", failed)
 
     async def _watchdog(self) -> None:
         period = watchdog_period_s()

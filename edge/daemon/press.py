@@ -1,4 +1,4 @@
-"""The press controller: the state machine of one press (DESIGN sections 1 and 4).
+"""The press controller: the state machine of one press (docs/method.md, 'Press').
 
 idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -> idle
 
@@ -27,7 +27,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.daemon.sensor import FrameRing, Window
-from edge.hw.arm import Arm, Gripper, GripperState
+from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 
 log = logging.getLogger(__name__)
@@ -37,6 +37,8 @@ RECORD_MARGIN_S = 0.2
 GRIPPER_TRACE_PERIOD_S = 0.02
 # A stream this long without a fresh frame means the press must not start.
 FRESH_FRAME_S = 0.1
+# Tries to open the gripper before a press gives up and says it may still be closed.
+OPEN_TRIES = 3
 # After the press, how long the recording waits for a late stream to cover its window.
 STREAM_CATCH_UP_S = 1.0
 
@@ -144,9 +146,8 @@ class PressController:
             armed.level_at_cross = level
             stopped = False
             try:
-                await self.gripper.stop_now()
-                # The stop's packet time at the port if the driver knows it, else now.
-                t_sent = getattr(self.gripper, "last_stop_t", 0.0) or self.clock()
+                stop = await self.gripper.stop_now(self.cfg.press.stop_squeeze_raw)
+                t_sent = stop.t_sent
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
                     self._outcome.stop_latency_s = t_sent - recv_time
@@ -181,6 +182,13 @@ class PressController:
             self._armed.abort.set()
         return True
 
+    async def open_gripper(self) -> None:
+        """Open to the configured width, the squeeze capped at the configured current."""
+        await self.gripper.open(self.cfg.press.open_width_m, self._current_cap_ma())
+
+    def _current_cap_ma(self) -> float:
+        return self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT
+
     # --- the press ------------------------------------------------------------------------
     def _enter(self, outcome: PressOutcome, state: str) -> None:
         self.state = state
@@ -202,7 +210,7 @@ class PressController:
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.
             touched = True
-            await self.gripper.open()
+            await self.open_gripper()
             moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, "lowered")
@@ -214,7 +222,7 @@ class PressController:
             self._armed = armed
             self._enter(outcome, "closing")
             trace_task = asyncio.create_task(self._trace(outcome), name="gripper-trace")
-            goal_ma = self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT
+            goal_ma = self._current_cap_ma()
             # Both fingers move: each closes at half the gap speed.
             await self.gripper.close(press.close_speed_mps / 2, goal_ma)
             await self._wait_closing(armed, outcome)
@@ -332,24 +340,33 @@ class PressController:
                                f"{armed.abort_level:.4f}): gripper opened")
 
     async def _open_safely(self, outcome: PressOutcome) -> bool:
-        """Open the gripper, three tries; False (and said in the outcome) if it failed."""
+        """Open the gripper (see :meth:`open_gripper_retrying`); False, and said in the
+        outcome, if it failed."""
         self._enter(outcome, "opening")
+        failed = await self.open_gripper_retrying()
+        if failed is None:
+            return True
+        if outcome.result == "ok":
+            outcome.result = "error"
+        outcome.message = (outcome.message + "; " if outcome.message else "") + (
+            f"GRIPPER MAY STILL BE CLOSED: opening failed {OPEN_TRIES} times (last: {failed})")
+        return False
+
+    async def open_gripper_retrying(self) -> DeviceError | None:
+        """Open the gripper, up to ``OPEN_TRIES`` times, clearing a tripped Bus Watchdog
+        between tries; the last error if every try failed, else None."""
         last: DeviceError | None = None
-        for attempt in range(3):
+        for attempt in range(OPEN_TRIES):
             try:
-                await self.gripper.open()
-                return True
+                await self.open_gripper()
+                return None
             except DeviceError as exc:
                 last = exc
                 log.error("opening the gripper failed (attempt %d): %s", attempt + 1, exc)
                 if self.recover is not None:
                     with contextlib.suppress(DeviceError):
                         await self.recover()
-        if outcome.result == "ok":
-            outcome.result = "error"
-        outcome.message = (outcome.message + "; " if outcome.message else "") + (
-            f"GRIPPER MAY STILL BE CLOSED: opening failed three times (last: {last})")
-        return False
+        return last
 
     async def _trace(self, outcome: PressOutcome) -> None:
         while True:

@@ -37,7 +37,7 @@ from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.store import EpisodeStore, new_id
-from edge.hw.camera import Camera
+from edge.hw.contracts import Camera
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from edge.core.errors import SensorError, StaleSensorError
-from edge.hw.tactile import TactileSource
+from edge.hw.contracts import TactileSource
 
 if TYPE_CHECKING:
     from edge.daemon.press import PressController

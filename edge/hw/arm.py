@@ -1,4 +1,4 @@
-"""Arm and gripper contracts, their implementations over the Dynamixel bus, and fakes.
+"""The arm and gripper over the Dynamixel bus (contracts in :mod:`edge.hw.contracts`).
 
 Positions are raw Dynamixel counts (4096 per turn) unless a name says metres. The gripper's
 width follows the current ROBOTIS description of the OpenMANIPULATOR-X:
@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from collections.abc import Mapping
 
 from edge.core.errors import DeviceTimeoutError
+from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, GripperStop, JointPose
 from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
 from edge.hw.dynamixel import DynamixelBus
 
@@ -28,10 +27,7 @@ GRIPPER_OPEN_WIDTH_M = 0.019
 GRIPPER_OPEN_SPEED_MPS = 0.02
 GRIPPER_CLOSED_WIDTH_M = -0.010
 
-DEFAULT_MOVE_TIMEOUT_S = 5.0
 DEFAULT_GRIPPER_TIMEOUT_S = 3.0
-
-JointPose = tuple[int, int, int, int]
 
 
 def gripper_width_m(raw: float, reverse: bool = False) -> float:
@@ -45,55 +41,6 @@ def gripper_raw(width_m: float, reverse: bool = False) -> int:
     """The gripper motor's raw position for a width in metres (inverse of the above)."""
     raw = round((width_m + GRIPPER_OFFSET_M) / GRIPPER_M_PER_RAW)
     return RAW_PER_REV - raw if reverse else raw
-
-
-@dataclass(frozen=True)
-class GripperState:
-    """``t``: monotonic time of the reading; ``squeeze_ma``: motor current pushing the fingers
-    closed (positive while squeezing, whatever the Drive Mode)."""
-
-    t: float
-    width_m: float
-    squeeze_ma: float
-    position_raw: int
-
-
-@runtime_checkable
-class Gripper(Protocol):
-    async def open(self) -> None:
-        """Open fully and wait until open (``DeviceTimeoutError`` past the timeout)."""
-        ...
-
-    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
-        """Start closing at ``speed_mps`` with the squeeze capped at ``current_cap_ma``;
-        returns once commanded (watch :meth:`state` and call :meth:`stop_now`)."""
-        ...
-
-    async def stop_now(self) -> int:
-        """Stop at once, keeping the squeeze: one Goal Position write a little past the
-        present position in the closing direction, ahead of anything queued. Returns the
-        goal (raw)."""
-        ...
-
-    async def state(self) -> GripperState:
-        ...
-
-
-@runtime_checkable
-class Arm(Protocol):
-    @property
-    def poses(self) -> Mapping[str, JointPose]:
-        """Named joint poses (raw positions of the four joints, in joint ID order)."""
-        ...
-
-    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        """Move to a named pose and wait for arrival (``DeviceTimeoutError`` past
-        ``timeout_s``)."""
-        ...
-
-    async def joints(self) -> JointPose:
-        """Present raw joint positions."""
-        ...
 
 
 def _pose_or_raise(poses: Mapping[str, JointPose], pose: str) -> JointPose:
@@ -110,22 +57,16 @@ class DynamixelGripper:
         self,
         bus: DynamixelBus,
         *,
-        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
         closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
         open_speed_mps: float = GRIPPER_OPEN_SPEED_MPS,
-        stop_past_raw: int = 8,
         tolerance_raw: int = 15,
         timeout_s: float = DEFAULT_GRIPPER_TIMEOUT_S,
         poll_interval_s: float = 0.01,
     ) -> None:
         self._bus = bus
         self._id = bus.config.gripper_id
-        self._open_width_m = open_width_m
         self._closed_width_m = closed_width_m
         self._open_speed_mps = open_speed_mps
-        # How far past the present position the stop goal lies: enough to keep squeezing
-        # (the present position itself would remove the squeeze), small enough not to crush.
-        self._stop_past_raw = stop_past_raw
         self._tolerance_raw = tolerance_raw
         self._timeout_s = timeout_s
         self._poll_interval_s = poll_interval_s
@@ -139,9 +80,13 @@ class DynamixelGripper:
         """+1 if closing increases the raw position (reverse Drive Mode), else -1."""
         return 1 if self._reverse else -1
 
-    async def open(self) -> None:
-        goal = gripper_raw(self._open_width_m, self._reverse)
-        await self._bus.write(self._id, "Goal Current", self._bus.config.gripper_goal_current)
+    async def open(self, width_m: float, current_cap_ma: float) -> None:
+        goal = gripper_raw(width_m, self._reverse)
+        # Not checked against the Current Limit as close() does: opening is every press's
+        # way out, and a cap the motor refuses comes back as a MotorError the caller retries,
+        # where a ValueError would skip the retries.
+        cap = round(current_cap_ma / CURRENT_MA_PER_UNIT)
+        await self._bus.write(self._id, "Goal Current", cap)
         await self._bus.write(self._id, "Profile Velocity", _velocity_units(self._open_speed_mps))
         await self._bus.write(self._id, "Goal Position", goal)
         deadline = time.monotonic() + self._timeout_s
@@ -166,14 +111,11 @@ class DynamixelGripper:
         await self._bus.write(self._id, "Goal Position",
                               gripper_raw(self._closed_width_m, self._reverse))
 
-    async def stop_now(self) -> int:
-        return await self._bus.stop_past_present(self._id,
-                                                 self.closing_sign * self._stop_past_raw)
-
-    @property
-    def last_stop_t(self) -> float:
-        """When the last stop packet went out to the port (monotonic)."""
-        return self._bus.last_stop_t
+    async def stop_now(self, squeeze_raw: int) -> GripperStop:
+        goal = await self._bus.stop_past_present(self._id, self.closing_sign * squeeze_raw)
+        # The bus stamps the stop when its packet leaves for the port, on the bus thread:
+        # later than any time taken here before the await, earlier than one taken after.
+        return GripperStop(goal, self._bus.last_stop_t)
 
     async def state(self) -> GripperState:
         bus_state = await self._bus.read_state()
@@ -245,84 +187,3 @@ class DynamixelArm:
         state = await self._bus.read_state()
         a, b, c, d = (state.motors[i].position for i in self._joint_ids)
         return (a, b, c, d)
-
-
-class FakeGripper:
-    """In-memory gripper for unit tests: closes at the commanded speed and stops against an
-    object of width ``object_width_m`` (None: nothing between the fingers), squeezing at the
-    current cap there. Every call is appended to ``calls``."""
-
-    def __init__(
-        self,
-        *,
-        object_width_m: float | None = None,
-        open_width_m: float = GRIPPER_OPEN_WIDTH_M,
-        closed_width_m: float = GRIPPER_CLOSED_WIDTH_M,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
-        self.object_width_m = object_width_m
-        self._open_width_m = open_width_m
-        self._closed_width_m = closed_width_m
-        self._clock = clock
-        self._width = open_width_m
-        self._t0 = clock()
-        self._speed = 0.0
-        self._cap_ma = 0.0
-        self.calls: list[str] = []
-
-    def _width_now(self) -> float:
-        if self._speed <= 0:
-            return self._width
-        width = max(self._closed_width_m, self._width - self._speed * (self._clock() - self._t0))
-        if self.object_width_m is not None:
-            width = max(width, self.object_width_m)
-        return width
-
-    def _squeeze_ma(self, width: float) -> float:
-        touching = self.object_width_m is not None and width <= self.object_width_m + 1e-9
-        return self._cap_ma if touching else 0.0
-
-    async def open(self) -> None:
-        self.calls.append("open")
-        self._width, self._speed, self._cap_ma = self._open_width_m, 0.0, 0.0
-
-    async def close(self, speed_mps: float, current_cap_ma: float) -> None:
-        self.calls.append(f"close {speed_mps} {current_cap_ma}")
-        self._width, self._t0 = self._width_now(), self._clock()
-        self._speed, self._cap_ma = speed_mps, current_cap_ma
-
-    async def stop_now(self) -> int:
-        self.calls.append("stop_now")
-        self._width, self._speed = self._width_now(), 0.0
-        return gripper_raw(self._width) - 8
-
-    async def state(self) -> GripperState:
-        width = self._width_now()
-        return GripperState(self._clock(), width, self._squeeze_ma(width), gripper_raw(width))
-
-
-class FakeArm:
-    """In-memory arm for unit tests: arrives at once; ``history`` lists the poses visited;
-    set ``fail_next`` to make the next move raise it."""
-
-    def __init__(self, poses: Mapping[str, JointPose], start: str | None = None) -> None:
-        self._poses = dict(poses)
-        first = start if start is not None else next(iter(self._poses))
-        self._joints = _pose_or_raise(self._poses, first)
-        self.history: list[str] = []
-        self.fail_next: Exception | None = None
-
-    @property
-    def poses(self) -> Mapping[str, JointPose]:
-        return self._poses
-
-    async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        target = _pose_or_raise(self._poses, pose)
-        if self.fail_next is not None:
-            exc, self.fail_next = self.fail_next, None
-            raise exc
-        self._joints = target
-        self.history.append(pose)
-
-    async def joints(self) -> JointPose:
-        return self._joints

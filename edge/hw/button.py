@@ -1,9 +1,9 @@
 """Hardware buttons that trigger a recognition.
 
-``Button`` is the contract: an async iterator of presses. Implementations: a foot switch
-wired to a serial port's modem-status line (CTS or DSR, read with pyserial: a common cheap
-wiring), a GPIO line through libgpiod (optional extra ``gpio``), and :class:`FakeButton`.
-Both real ones poll in a thread and debounce, so no blocking call touches the event loop.
+The contract is :class:`~edge.hw.contracts.Button`: an async iterator of presses.
+Implementations: a foot switch wired to a serial port's modem-status line (CTS or DSR, read
+with pyserial: a common cheap wiring) and a GPIO line through libgpiod (optional extra
+``gpio``). Both poll in a thread and debounce, so no blocking call touches the event loop.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import logging
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
-from typing import Literal, Protocol
+from typing import Literal
 
 from edge.core.errors import DeviceError
 
@@ -21,14 +21,6 @@ log = logging.getLogger(__name__)
 
 POLL_PERIOD_S = 0.01
 DEBOUNCE_S = 0.05
-
-
-class Button(Protocol):
-    def presses(self) -> AsyncIterator[float]:
-        """Yields the monotonic time of each debounced press."""
-        ...
-
-    async def close(self) -> None: ...
 
 
 class _PolledButton:
@@ -117,20 +109,3 @@ class GPIOButton(_PolledButton):
     async def close(self) -> None:
         await super().close()
         self._request.release()
-
-
-class FakeButton:
-    """A button pressed by calling :meth:`press`."""
-
-    def __init__(self) -> None:
-        self._queue: asyncio.Queue[float] = asyncio.Queue()
-
-    def press(self) -> None:
-        self._queue.put_nowait(time.monotonic())
-
-    async def presses(self) -> AsyncIterator[float]:
-        while True:
-            yield await self._queue.get()
-
-    async def close(self) -> None:
-        return None

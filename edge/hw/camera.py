@@ -1,9 +1,9 @@
 """Cameras: one still image per recognition.
 
-``Camera`` is the contract; implementations: a still-capture command (any program that
-writes a JPEG, e.g. ``libcamera-still`` or ``fswebcam``), a V4L2/USB camera through OpenCV
-(optional extra ``camera``), and an HTTP snapshot URL (IP cameras; the simulated robot
-serves one).
+The contract is :class:`~edge.hw.contracts.Camera`; implementations: a still-capture
+command (any program that writes a JPEG, e.g. ``libcamera-still`` or ``fswebcam``), a
+V4L2/USB camera through OpenCV (optional extra ``camera``), and an HTTP snapshot URL (IP
+cameras; the simulated robot serves one).
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import logging
 import shlex
 import tempfile
 from pathlib import Path
-from typing import Protocol
 
 from edge.core.errors import DeviceError, DeviceTimeoutError
 
@@ -22,12 +21,6 @@ log = logging.getLogger(__name__)
 
 CAPTURE_TIMEOUT_S = 10.0
 MAX_IMAGE_BYTES = 20 * 1024 * 1024
-
-
-class Camera(Protocol):
-    async def capture(self) -> bytes:
-        """One still image, JPEG or PNG bytes."""
-        ...
 
 
 class CommandCamera:
@@ -103,18 +96,6 @@ class V4L2Camera:
 
     async def capture(self) -> bytes:
         return await asyncio.wait_for(asyncio.to_thread(self._grab), CAPTURE_TIMEOUT_S)
-
-
-class FakeCamera:
-    """Returns fixed bytes; counts captures."""
-
-    def __init__(self, image: bytes) -> None:
-        self.image = image
-        self.captures = 0
-
-    async def capture(self) -> bytes:
-        self.captures += 1
-        return self.image
 
 
 class HttpCamera:

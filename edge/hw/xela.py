@@ -3,7 +3,8 @@
 The server sends one JSON text frame per update: bookkeeping keys (``message`` = sequence
 number, ``time``, ``sensors``, ...) plus one object per sensor under its number (``"1"``,
 ``"2"``) whose ``data`` holds x, y, z hex words per taxel (1.7.7: a list of ints; 1.8 adds
-``integer``, ``temp``, ``ups``). See DESIGN section 2 and ``shared/fixtures/xela/``.
+``integer``, ``temp``, ``ups``). See docs/hardware.md, 'XELA server', and a real frame in
+``tests/fixtures/xela/``.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import numpy as np
 
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
-from edge.hw.tactile import StreamStats, TactileFrame
+from edge.hw.contracts import StreamStats, TactileFrame
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,9 @@ _CLOSE_TIMEOUT_S = 0.5
 _QUEUE_FRAMES = 256
 
 _HEX_WORD = re.compile(r"[0-9A-Fa-f]{1,4}")
+# Dropped from inside hex words: what a wrapped or indented capture puts there. Anything else
+# (another control character, a stray letter) still makes the word "not a 16-bit hex word".
+_DROP_WHITESPACE = str.maketrans("", "", " \t\r\n")
 
 
 
@@ -48,7 +52,7 @@ class ParsedFrame:
 
     seq: int
     time: float
-    raw: np.ndarray  # (sum of taxels * 3,) uint16, channel order of edge.hw.tactile
+    raw: np.ndarray  # (sum of taxels * 3,) uint16, channel order of edge.hw.contracts
     sensors: tuple[str, ...]  # sensor numbers, e.g. ("1", "2")
     models: tuple[str, ...]
     taxels: tuple[int, ...]
@@ -168,7 +172,10 @@ def _load(msg: str | bytes | Mapping[str, Any]) -> Mapping[str, Any]:
             f"XELA frame of {len(msg)} characters exceeds the {MAX_FRAME_CHARS} limit"
         )
     try:
-        obj = json.loads(msg)
+        # strict=False: frames captured from XELA's tools can carry raw newlines, carriage
+        # returns and tabs inside the long `data` string (a logger wrapping the line), which
+        # strict JSON refuses; XELA's own replay server sanitises them before parsing too.
+        obj = json.loads(msg, strict=False)
     except (ValueError, RecursionError) as exc:
         # UnicodeDecodeError is a ValueError; RecursionError comes from absurd nesting.
         raise SensorError(f"XELA frame is not JSON ({exc}): {msg[:60]!r}") from None
@@ -207,13 +214,16 @@ def _hex_words(text: str, seq: int, number: str) -> np.ndarray:
             packed = b""
         if len(packed) == 2 * n:
             return np.frombuffer(packed, dtype=">u2").astype(np.uint16)
-    words = [w.strip() for w in text.split(",")]
-    for i, word in enumerate(words):
+    words = []
+    for i, part in enumerate(text.split(",")):
+        # Whitespace inside a word too: a wrapped capture may break a line mid-word.
+        word = part.translate(_DROP_WHITESPACE).strip()
         if not _HEX_WORD.fullmatch(word):
             raise SensorError(
-                f"XELA frame {seq}, sensor {number}: value {i} {word[:20]!r} is not a 16-bit "
+                f"XELA frame {seq}, sensor {number}: value {i} {part[:20]!r} is not a 16-bit "
                 "hex word"
             )
+        words.append(word)
     return np.array([int(w, 16) for w in words], dtype=np.uint16)
 
 
@@ -233,7 +243,7 @@ _CLOSED = object()
 
 
 class XelaClient:
-    """:class:`~edge.hw.tactile.TactileSource` reading ``xela_server`` over WebSocket.
+    """:class:`~edge.hw.contracts.TactileSource` reading ``xela_server`` over WebSocket.
 
     A background task owns the connection: it skips the Welcome frame, drops repeated
     frames (counted), timestamps fresh ones with ``time.monotonic()`` and queues them; it

@@ -1,7 +1,7 @@
 """A whole press on the simulated robot, without device emulators.
 
-Reproduces the protocol of DESIGN section 1: idle (tare), close at a set speed, stop when the
-tactile norm of an arriving frame exceeds ``x_th`` (the stop takes effect after the
+Reproduces the protocol of docs/method.md, 'Press': idle (tare), close at a set speed, stop when
+the tactile norm of an arriving frame exceeds ``x_th`` (the stop takes effect after the
 controller's reaction latency, an input, so a slower stop overshoots the force), hold
 ``dt_stopping``, open. The gripper is current-limited (it stalls at ``force_cap_n``) and the
 stop is a goal a little past the present position, as on the real gripper. Output is a

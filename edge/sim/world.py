@@ -17,7 +17,7 @@ from edge.sim.catalogue import get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.skin import Skin, SkinDraw
 
-# Gripper geometry (DESIGN section 2): width in metres from the raw position.
+# Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
 WIDTH_PER_RAW_M = 1.7626621790e-5
 WIDTH_OFFSET_M = 0.036099321
 # Current-to-force of the gripper: Goal Current 200 (~538 mA) squeezes ~10 N per finger.

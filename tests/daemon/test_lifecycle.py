@@ -17,7 +17,14 @@ from edge.core.errors import StartError
 from edge.daemon.serve import assemble
 from edge.hw.arm import gripper_raw
 from edge.sim.robot import SimRobot
-from tests.support.daemon import CUBE, Daemon, base_config, fast_config, gripper_open
+from tests.support.daemon import (
+    CUBE,
+    QUICK_OBJECT,
+    Daemon,
+    base_config,
+    fast_config,
+    gripper_open,
+)
 
 GRIPPER_TOL_RAW = 20
 
@@ -74,7 +81,7 @@ async def test_events_stay_open_across_silence_and_deliver_the_next_press(tmp_pa
     # stream used to end at the first one.
     keepalive_s = 0.08
     monkeypatch.setattr(edge.daemon.api, "SSE_KEEPALIVE_S", keepalive_s)
-    async with SimRobot("wood_cube", seed=3, cfg=base_config()) as robot, \
+    async with SimRobot(QUICK_OBJECT, seed=3, cfg=base_config()) as robot, \
             Daemon(robot, fast_config(), tmp_path) as d:
         events, keepalives = [], 0
         async with d.http.get(d.url + "/v1/events") as resp:
@@ -101,7 +108,7 @@ async def test_events_stay_open_across_silence_and_deliver_the_next_press(tmp_pa
 
 @pytest.mark.asyncio
 async def test_sighup_changes_open_width_and_close_timeout_for_the_next_press(tmp_path):
-    async with SimRobot("wood_cube", seed=4, cfg=base_config()) as robot:
+    async with SimRobot(QUICK_OBJECT, seed=4, cfg=base_config()) as robot:
         async with Daemon(robot, fast_config(), tmp_path) as d:
             gripper = d.cfg.bus.gripper_id
             _, first = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})

@@ -9,6 +9,7 @@ from edge.core.errors import DeviceError, DeviceTimeoutError
 from edge.hw.button import _PolledButton
 from edge.hw.camera import CommandCamera, HttpCamera
 from edge.sim.robot import SimRobot
+from tests.support.fakes import FakeCamera
 
 WRITE_JPEG = ("import sys; from PIL import Image; "
               "Image.new('RGB', (64, 48), 'red').save(sys.argv[1], 'JPEG')")
@@ -71,7 +72,5 @@ async def test_polled_button_debounces_and_reports_presses():
 
 @pytest.mark.asyncio
 async def test_fake_camera_counts_captures():
-    from edge.hw.camera import FakeCamera
-
     camera = FakeCamera(b"\xff\xd8\xff")
     assert await camera.capture() == b"\xff\xd8\xff" and camera.captures == 1

@@ -1,4 +1,5 @@
-"""Arm and gripper: the contracts, the fakes, and the Dynamixel implementations on the emulator."""
+"""Arm and gripper: the width formula, the fakes, and the Dynamixel implementations on the
+emulator (their conformance to the contracts: tests/hw/test_contracts.py)."""
 
 from __future__ import annotations
 
@@ -8,18 +9,11 @@ import pytest
 
 from edge.core.config import BusConfig
 from edge.core.errors import DeviceTimeoutError
-from edge.hw.arm import (
-    Arm,
-    DynamixelArm,
-    DynamixelGripper,
-    FakeArm,
-    FakeGripper,
-    Gripper,
-    gripper_raw,
-    gripper_width_m,
-)
+from edge.hw.arm import DynamixelArm, gripper_raw, gripper_width_m
+from edge.hw.contracts import GripperStop
 from edge.hw.dynamixel import DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
+from tests.support.fakes import FakeArm, FakeGripper
 
 POSES = {"home": (2048, 2048, 2048, 2048), "above": (2048, 1800, 2300, 2048)}
 
@@ -34,12 +28,6 @@ def test_width_formula_and_its_inverse():
     assert gripper_raw(-0.010, True) > gripper_raw(0.019, True)
 
 
-def test_implementations_satisfy_the_contracts():
-    bus = DynamixelBus(BusConfig())
-    assert isinstance(FakeGripper(), Gripper) and isinstance(DynamixelGripper(bus), Gripper)
-    assert isinstance(FakeArm(POSES), Arm) and isinstance(DynamixelArm(bus, POSES), Arm)
-
-
 @pytest.mark.asyncio
 async def test_fake_gripper_closes_onto_the_object_and_stops():
     now = [0.0]
@@ -51,10 +39,11 @@ async def test_fake_gripper_closes_onto_the_object_and_stops():
     now[0] = 3.0
     state = await gripper.state()
     assert state.width_m == pytest.approx(0.005) and state.squeeze_ma == 300
-    await gripper.stop_now()
-    await gripper.open()
-    assert (await gripper.state()).width_m == pytest.approx(0.019)
-    assert gripper.calls == ["close 0.01 300", "stop_now", "open"]
+    stop = await gripper.stop_now(2)
+    assert stop == GripperStop(gripper_raw(0.005) - 2, 3.0)  # past present, closing = down
+    await gripper.open(0.015, 538)
+    assert (await gripper.state()).width_m == pytest.approx(0.015)
+    assert gripper.calls == ["close 0.01 300", "stop_now 2", "open 0.015 538"]
 
 
 @pytest.mark.asyncio

@@ -80,7 +80,10 @@ async def test_connect_keeps_the_drive_mode_direction(emu):
         gripper = DynamixelGripper(bus)
         assert gripper.closing_sign == 1
         present = (await bus.read_state()).motors[15].position
-        assert await gripper.stop_now() == present + 8  # past present, closing = increasing
+        before = time.monotonic()
+        stop = await gripper.stop_now(8)
+        assert stop.goal_raw == present + 8  # past present, closing = increasing
+        assert before < stop.t_sent < time.monotonic()  # when the packet left for the port
 
 
 @pytest.mark.asyncio
@@ -343,7 +346,8 @@ async def test_gripper_stalls_on_the_object_and_stop_keeps_the_squeeze():
         async with DynamixelBus(BusConfig(port=emu.port)) as bus:
             await bus.set_torque(True)
             gripper = DynamixelGripper(bus)
-            await gripper.open()
+            await gripper.open(0.019, 400)
+            assert emu.get_register(15, "Goal Current") == round(400 / 2.69)
             await gripper.close(speed_mps=0.03, current_cap_ma=400)
 
             async def squeezing() -> bool:
@@ -360,13 +364,15 @@ async def test_gripper_stalls_on_the_object_and_stop_keeps_the_squeeze():
             assert present == pytest.approx(-400 / 2.69, abs=10)  # closing: negative current
             stall = emu.true_position(15)
             assert stall == pytest.approx(contact_raw - 20, abs=2)
-            goal = await gripper.stop_now()
-            assert goal == round(stall) - 8  # past present, in the closing direction
+            stop = await gripper.stop_now(8)
+            assert stop.goal_raw == round(stall) - 8  # past present, in the closing direction
             await asyncio.sleep(0.2)
             after = await gripper.state()
             assert after.squeeze_ma == pytest.approx(400, abs=25)  # still squeezing
-            await gripper.open()
-            assert (await gripper.state()).squeeze_ma == 0
+            # The width is per call: a reloaded configuration opens to its own width.
+            await gripper.open(0.015, 400)
+            state = await gripper.state()
+            assert state.squeeze_ma == 0 and state.width_m == pytest.approx(0.015, abs=3e-4)
 
 
 # ------------------------------------------------------------------ no SDK call on the loop

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from edge.core.errors import SensorError, StaleSensorError
-from edge.hw.tactile import FakeTactileSource, StreamStats, TactileFrame, TactileSource
+from edge.hw.contracts import StreamStats, TactileFrame, TactileSource
+from tests.support.fakes import FakeTactileSource
 
 
 def idle(n: int = 1) -> np.ndarray:

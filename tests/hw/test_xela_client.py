@@ -17,7 +17,7 @@ import pytest_asyncio
 
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
-from edge.hw.tactile import TactileFrame, TactileSource
+from edge.hw.contracts import TactileFrame, TactileSource
 from edge.hw.xela import XelaClient
 from edge.sim.xela_server import Fault, XelaServerEmulator
 

@@ -16,17 +16,12 @@ from edge.core.errors import SensorError, SensorLayoutError
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.sim.xela_server import GARBAGE_FRAMES, encode_frame, welcome_frame
 
-# The real frames live in shared/, beside the checkout (../shared) or inside it.
-_ROOT = Path(__file__).resolve().parents[2]
-_NAME = "shared/fixtures/xela/v1.8_uSPa46_two_sensors.json"
-FIXTURE = next((p for p in (_ROOT.parent / _NAME, _ROOT / _NAME) if p.exists()),
-               _ROOT.parent / _NAME)
+# A real frame, with its provenance and licence beside it.
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures/xela/v1.8_uSPa46_two_sensors.json"
 
 
 @pytest.fixture(scope="module")
 def real_text() -> str:
-    if not FIXTURE.exists():
-        pytest.skip(f"real XELA fixture not found at {FIXTURE}")
     return FIXTURE.read_text()
 
 
@@ -97,6 +92,61 @@ def test_wrong_number_of_sensors_refused(real_text: str) -> None:
     del obj["2"]
     with pytest.raises(SensorLayoutError, match=r"configured 2 x .* 1 sensor:"):
         parse_frame(obj, 2, 24)
+
+
+def _hex_only(text: str) -> dict:
+    """The frame with `integer` removed, so the parser reads the hex `data`."""
+    obj = json.loads(text)
+    for number in ("1", "2"):
+        del obj[number]["integer"]
+    return obj
+
+
+def _wrapped(data: str) -> str:
+    """`data` as a wrapped, indented capture carries it: line breaks every 37 characters
+    (inside words as often as not), a CRLF, tabs and spaces around commas."""
+    parts = [data[i : i + 37] for i in range(0, len(data), 37)]
+    text = "\n".join(parts[:3]) + "\r\n" + "\n".join(parts[3:])
+    return text.replace(",", " ,\t", 5).replace(",", ",  ", 7)
+
+
+def test_real_frame_with_raw_whitespace_inside_data(real_text: str) -> None:
+    clean = _hex_only(real_text)
+    obj = copy.deepcopy(clean)
+    for number in ("1", "2"):
+        obj[number]["data"] = _wrapped(obj[number]["data"])
+    # json.dumps escapes the control characters; undo that so they are raw in the text, as
+    # in a capture (only `data` holds any: the other strings are plain names).
+    text = json.dumps(obj, indent=2).replace("\\n", "\n").replace("\\r", "\r")
+    text = text.replace("\\t", "\t")
+    assert "\r\n" in text and "\t" in text  # (indent=2 alone puts neither in)
+    with pytest.raises(json.JSONDecodeError, match="control character"):
+        json.loads(text)  # strict JSON refuses it: the parser must not
+    frame = parse_frame(text, 2, 24, expected_model="uSPa46")
+    reference = parse_frame(clean, 2, 24, expected_model="uSPa46")
+    from_integer = parse_frame(real_text, 2, 24, expected_model="uSPa46")
+    assert frame is not None and reference is not None and from_integer is not None
+    np.testing.assert_array_equal(frame.raw, reference.raw)
+    np.testing.assert_array_equal(frame.raw, from_integer.raw)
+    assert frame.raw[:3].tolist() == [0x8125, 0x81B2, 0x92B8]
+
+
+@pytest.mark.parametrize(
+    ("data", "bad"),
+    [
+        ("0000,0\n0G0,0000", "0\n0G0"),  # a non-hex letter stays one, whitespace or not
+        ("0000,00\x0100,0000", "00\x0100"),  # other control characters are not whitespace
+        ("0000,10 000,0000", "10 000"),  # five digits once the space is gone
+        ("0000, \n\t ,0000", " \n\t "),  # nothing but whitespace
+        ("0000 0000 0000", "0000 0000 0000"),  # spaces do not separate words: commas do
+    ],
+    ids=["letter", "control", "five-digits", "blank", "no-commas"],
+)
+def test_garbage_with_whitespace_still_refused(data: str, bad: str) -> None:
+    text = '{"message": 1, "time": 1.0, "1": {"data": "' + data + '"}}'
+    with pytest.raises(SensorError, match="not a 16-bit hex word") as err:
+        parse_frame(text, 1, 1)
+    assert repr(bad) in str(err.value)  # the word as it came, whitespace shown
 
 
 # -- dialects -----------------------------------------------------------------------------------
