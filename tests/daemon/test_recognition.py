@@ -1,0 +1,221 @@
+"""Recognition alone: a scripted press controller, the analysis run in-process, a scripted
+VLM client and a real store (no emulator, no compute process): every way an episode ends."""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from edge.core.config import Config
+from edge.core.errors import (
+    BusyError,
+    ComputeError,
+    StoreError,
+    VLMConnectionError,
+    VLMRejectedError,
+)
+from edge.core.model import model_ref
+from edge.core.vlm import VLMAnswer
+from edge.daemon.episode import Status
+from edge.daemon.events import EventBus
+from edge.daemon.metrics import Metrics
+from edge.daemon.press import PressOutcome
+from edge.daemon.recognition import Recognition, Recognizer
+from edge.daemon.sensor import Window
+from edge.daemon.store import EpisodeStore
+from edge.sim.press import simulate_press
+from tests.support.daemon import ROOT
+from tests.support.fakes import FakeCamera
+from tests.vlm.helpers import image_bytes
+
+pytestmark = pytest.mark.asyncio
+CANDIDATES = ["macaron", "resin_replica_macaron"]
+MODEL = model_ref(ROOT / "models")
+
+
+def pressed(seed: int = 3) -> PressOutcome:
+    """A real press of a macaron (from the simulator) as the controller reports it."""
+    rec = simulate_press("macaron", np.random.default_rng(seed)).recording
+    return PressOutcome(result="ok", t_cross=rec.t_stop - 0.001, t_stop=rec.t_stop,
+                        stop_latency_s=0.001, tare=rec.tare,
+                        window=Window(rec.frames, rec.recv_time, rec.sensor_time, rec.seq))
+
+
+class ScriptedPress:
+    """Returns the next outcome; ``gate`` (when set) holds the press until released."""
+
+    def __init__(self, *outcomes: PressOutcome) -> None:
+        self.outcomes = list(outcomes)
+        self.gate: asyncio.Event | None = None
+        self.state = "idle"
+
+    async def run(self) -> PressOutcome:
+        self.state = "closing"
+        if self.gate is not None:
+            await self.gate.wait()
+        self.state = "idle"
+        return self.outcomes.pop(0)
+
+
+class InProcessCompute:
+    """The compute worker's contract, run here; counts round trips."""
+
+    def __init__(self, fail: Exception | None = None) -> None:
+        self.calls: list[str] = []
+        self.fail = fail
+
+    async def run(self, fn, *args):
+        self.calls.append(fn.__name__)
+        if self.fail is not None:
+            raise self.fail
+        return fn(*args)
+
+
+@dataclass
+class ScriptedVLM:
+    """Answers (or raises) from a script, one entry per question."""
+
+    script: list[Any]
+    asked: list[tuple[Any, str, list[str]]] = field(default_factory=list)
+    closed: bool = False
+    mode: str = "vision_tactile"
+
+    def image_limits(self) -> tuple[int, int]:
+        return 512, 200_000
+
+    async def ask(self, image, description, candidates) -> VLMAnswer:
+        self.asked.append((image, description, list(candidates)))
+        step = self.script.pop(0)
+        if isinstance(step, Exception):
+            raise step
+        return VLMAnswer(status="ok", label=step, raw=step, prompt="p",
+                         candidates=tuple(candidates), model="scripted", request=None,
+                         response=None, image=None, attempts=1, latency_s=(0.01,),
+                         outcomes=("ok",), elapsed_s=0.01)
+
+    async def close(self) -> None:
+        self.closed = True
+
+
+async def drain(sub) -> list[dict]:
+    """The events waiting in a subscription."""
+    seen = []
+    while True:
+        try:
+            seen.append(await asyncio.wait_for(sub.get(), 0.01))
+        except TimeoutError:
+            return seen
+
+
+def recognizer(tmp_path, press, vlm, compute=None, camera=None, cfg: Config | None = None):
+    cfg = cfg or Config()
+    events = EventBus()
+    rec = Recognizer(Recognition(cfg, MODEL, vlm), lambda: press,
+                     compute or InProcessCompute(), EpisodeStore(tmp_path / "episodes"),
+                     events, Metrics(), camera)
+    return rec, events
+
+
+async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
+    vlm = ScriptedVLM(["macaron"])
+    compute = InProcessCompute()
+    camera = FakeCamera(image_bytes(1200, 900))
+    rec, events = recognizer(tmp_path, ScriptedPress(pressed()), vlm, compute, camera)
+    with events.subscribe({}) as sub:
+        episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
+        seen = await drain(sub)
+    assert episode.status == Status.DONE and episode.label == "macaron"
+    assert [n.label for n in episode.topk][:1] and len(episode.topk) == 3
+    assert episode.description and episode.z and episode.code is not None
+    assert set(episode.timings) == {"press_s", "encode_s", "vlm_s"}
+    # One round trip to the compute process: the analysis and the photo together.
+    assert compute.calls == ["analyse_press"] and camera.captures == 1
+    image, description, candidates = vlm.asked[0]
+    prepared, data_url = image  # prepared for the VLM, not raw bytes
+    assert max(prepared.width, prepared.height) <= 512 and data_url.startswith(b"data:")
+    assert description == episode.description and candidates == CANDIDATES
+    files = sorted(p.name for p in (tmp_path / "episodes" / episode.id).iterdir())
+    assert files == ["episode.json", "image.jpg", "model_io.npz", "press.press.npz"]
+    kinds = [e["type"] for e in seen]
+    assert kinds[0] == "hello" and "tactile" in kinds and kinds[-1] == "episode"
+    assert any(e["type"] == "result" and e["label"] == "macaron" for e in seen)
+
+
+async def test_an_unreachable_vlm_leaves_it_pending_then_the_retry_completes_it(tmp_path):
+    vlm = ScriptedVLM([VLMConnectionError("connection refused"), "resin_replica_macaron"])
+    cfg = Config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, vlm_retry_base_s=0.05))
+    rec, _ = recognizer(tmp_path, ScriptedPress(pressed()), vlm, cfg=cfg)
+    episode = await rec.recognize(CANDIDATES, image_bytes(), True, 10, "api")
+    assert episode.status == Status.PENDING and episode.attempts == 1
+    assert episode.last_error == "connection refused" and episode.next_retry_at > 0
+    retry = asyncio.create_task(rec.retry_pending())
+    try:
+        for _ in range(100):
+            episode = await rec.episode(episode.id)
+            if episode.status.final:
+                break
+            await asyncio.sleep(0.02)
+    finally:
+        retry.cancel()
+    assert episode.status == Status.DONE and episode.label == "resin_replica_macaron"
+    assert episode.attempts == 2
+    assert isinstance(vlm.asked[1][0], bytes)  # asked again with the stored photo
+
+
+async def test_a_refused_question_is_a_vlm_error_not_retried(tmp_path):
+    vlm = ScriptedVLM([VLMRejectedError("401 Unauthorized", 401)])
+    rec, _ = recognizer(tmp_path, ScriptedPress(pressed()), vlm)
+    episode = await rec.recognize(CANDIDATES, image_bytes(), True, 10, "api")
+    assert episode.status == Status.VLM_ERROR and "401" in episode.last_error
+    assert episode.label is None and vlm.script == []
+
+
+async def test_a_failed_press_is_kept_failed_and_never_asked(tmp_path):
+    vlm = ScriptedVLM([])
+    outcome = PressOutcome(result="no_contact", message="no contact: the norm stayed below")
+    compute = InProcessCompute()
+    rec, _ = recognizer(tmp_path, ScriptedPress(outcome), vlm, compute)
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "button")
+    assert episode.status == Status.FAILED and episode.error.startswith("no contact")
+    assert episode.source == "button" and vlm.asked == [] and compute.calls == []
+
+
+async def test_a_failed_analysis_keeps_the_raw_press(tmp_path):
+    compute = InProcessCompute(fail=ComputeError("the compute worker died during "
+                                                 "analyse_press"))
+    rec, _ = recognizer(tmp_path, ScriptedPress(pressed()), ScriptedVLM([]), compute)
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
+    assert episode.status == Status.FAILED
+    assert episode.error.startswith("the press worked but its analysis failed")
+    assert (tmp_path / "episodes" / episode.id / "press.press.npz").is_file()
+
+
+async def test_one_press_at_a_time_and_none_while_the_disk_is_full(tmp_path, monkeypatch):
+    press = ScriptedPress(pressed(), pressed(4))
+    press.gate = asyncio.Event()
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]))
+    first = await rec.recognize(CANDIDATES, None, False, None, "api")
+    assert first.status == Status.RUNNING
+    with pytest.raises(BusyError) as busy:
+        await rec.recognize(CANDIDATES, None, False, None, "api")
+    assert busy.value.episode_id == first.id
+    press.gate.set()
+    await asyncio.gather(*rec.work)
+    monkeypatch.setattr(rec.store, "space_error", lambda: "disk full (1.0 MiB free)")
+    with pytest.raises(StoreError, match="not pressing: the episode could not be kept"):
+        await rec.recognize(CANDIDATES, None, False, None, "api")
+    assert press.outcomes == [press.outcomes[0]]  # the second press never ran
+
+
+async def test_after_shutdown_begins_no_press_starts(tmp_path):
+    press = ScriptedPress(pressed())
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM([]))
+    rec.accepting = False
+    with pytest.raises(BusyError, match="shutting down"):
+        await rec.recognize(CANDIDATES, None, False, None, "api")
+    assert len(press.outcomes) == 1
