@@ -25,6 +25,7 @@ from tests.support.daemon import (
     fast_config,
     gripper_open,
 )
+from tests.support.waits import wait_until
 
 GRIPPER_TOL_RAW = 20
 
@@ -120,10 +121,8 @@ async def test_sighup_changes_open_width_and_close_timeout_for_the_next_press(tm
                           runtime=replace(d.cfg.runtime, close_timeout_s=short))
             d.runtime.reloader = lambda: (new, d.runtime.model, d.runtime.vlm)
             os.kill(os.getpid(), signal.SIGHUP)
-            for _ in range(100):
-                if d.runtime.cfg.press.open_width_m == wider:
-                    break
-                await asyncio.sleep(0.02)
+            await wait_until(lambda: d.runtime.cfg.press.open_width_m == wider, 5,
+                             "the reload")
             _, second = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
             # Closing stops after the new, short timeout: no contact.
             assert second["status"] == "failed", second

@@ -13,7 +13,6 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -36,6 +35,7 @@ from tests.support.daemon import (
     store_consistent,
     wait_health,
 )
+from tests.support.waits import free_port
 
 pytestmark = pytest.mark.asyncio
 
@@ -138,12 +138,6 @@ async def test_kill_9_inside_a_store_write_then_restart(tmp_path, where):
             assert lost["candidates"] == FOOD and lost["source"] == "api"
             assert not (root / accepted / "press.press.npz").exists()
         assert gripper_open(robot)
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def kill_when_writing(pid: int, root: Path, episode_id: str, timeout_s: float) -> dict:

@@ -22,6 +22,7 @@ from tests.support.daemon import (
     sim_daemon,
     store_consistent,
 )
+from tests.support.waits import wait_until
 
 pytestmark = pytest.mark.asyncio
 OBJECT = QUICK_OBJECT
@@ -70,13 +71,10 @@ def labels_given(events: list[dict]) -> set:
 async def result_event(events: list[dict], episode_id: str, timeout_s: float = 5.0) -> dict:
     """The episode's ``result`` event. It is published once the store update is durable, so
     a poll of GET /v1/episodes can see the final status a moment before it arrives."""
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while True:
-        for event in events:
-            if event.get("type") == "result" and event.get("episode") == episode_id:
-                return event
-        assert asyncio.get_running_loop().time() < deadline, f"no result event in {events}"
-        await asyncio.sleep(0.01)
+    return await wait_until(
+        lambda: next((e for e in events if e.get("type") == "result"
+                      and e.get("episode") == episode_id), None),
+        timeout_s, f"a result event for {episode_id} among {events}")
 
 
 # (name, scripted replies, [vlm] overrides, how the first answer ends, words in its error)

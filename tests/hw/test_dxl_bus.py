@@ -22,6 +22,7 @@ from edge.core.errors import DeviceError, MotorError
 from edge.hw.arm import DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import LATENCY_TIMER_UDEV_RULE, BlockingPortHandler, DynamixelBus
 from edge.sim.dxl_emulator import INST_SYNC_READ, INST_WRITE, DxlEmulator
+from tests.support.waits import wait_until
 
 IDS = (11, 12, 13, 14, 15)
 
@@ -39,14 +40,6 @@ async def bus(emu):
     # A short watchdog keeps the trip tests quick.
     async with DynamixelBus(BusConfig(port=emu.port, watchdog_ms=100)) as connected:
         yield connected
-
-
-async def _until(predicate, timeout_s: float = 3.0, interval_s: float = 0.01) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not await predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout_s} s")
-        await asyncio.sleep(interval_s)
 
 
 # ------------------------------------------------------------------ start-up
@@ -147,7 +140,7 @@ async def test_sync_write_and_sync_read_all_five(emu, bus):
         state = await bus.read_state()
         return {i: s.position for i, s in state.motors.items()} == goals
 
-    await _until(arrived)
+    await wait_until(arrived, 3.0, "arrival at the goal")
     assert bus.last_state is not None and set(bus.last_state.motors) == set(IDS)
     assert await bus.read(11, "Present Position") == goals[11]
     await bus.write(12, "LED", 1)
@@ -252,7 +245,8 @@ async def test_stop_goes_out_before_queued_reads(emu, bus):
     async def first_read_on_the_wire() -> bool:
         return any(r.instruction == INST_SYNC_READ for r in list(emu.received)[mark:])
 
-    await _until(first_read_on_the_wire, interval_s=0.001)
+    await wait_until(first_read_on_the_wire, 3.0, "the first read on the wire",
+                     interval_s=0.001)
     t0 = time.perf_counter()
     await bus.stop(15, 2000)
     latency_s = time.perf_counter() - t0
@@ -354,7 +348,7 @@ async def test_gripper_stalls_on_the_object_and_stop_keeps_the_squeeze():
                 state = await gripper.state()
                 return state.squeeze_ma > 380 and state.width_m < 0.005
 
-            await _until(squeezing)
+            await wait_until(squeezing, 3.0, "squeezing")
             await asyncio.sleep(0.05)
             state = await gripper.state()
             present = await bus.read(15, "Present Current")

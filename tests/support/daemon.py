@@ -23,6 +23,7 @@ from edge.daemon.store import EPISODE_FILE
 from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
+from tests.support.waits import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 CUBE = names("cube")
@@ -112,28 +113,31 @@ class Daemon:
 
     async def wait_status(self, episode_id, statuses, timeout_s=20.0, until=None):
         """Poll the episode until its status is one of ``statuses`` (and ``until(ep)``)."""
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while True:
+        last: list = []
+
+        async def reached():
             status, ep = await self.get(f"/v1/episodes/{episode_id}")
-            if status == 200 and ep.get("status") in statuses and (until is None or until(ep)):
-                return ep
-            assert asyncio.get_running_loop().time() < deadline, (status, ep)
-            await asyncio.sleep(0.1)
+            last[:] = [status, ep]
+            return ep if (status == 200 and ep.get("status") in statuses
+                          and (until is None or until(ep))) else None
+
+        try:
+            return await wait_until(reached, timeout_s, f"episode {episode_id} in {statuses}",
+                                    interval_s=0.1)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; last answer {last}") from None
 
     async def wait_press_state(self, states, timeout_s=20.0) -> str:
         """Poll the press controller until it is in one of ``states``."""
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while self.runtime.press.state not in states:
-            assert asyncio.get_running_loop().time() < deadline, self.runtime.press.state
-            await asyncio.sleep(0.005)
-        return self.runtime.press.state
+        return await wait_until(lambda: self.runtime.press.state in states
+                                and self.runtime.press.state, timeout_s,
+                                f"press state in {states}", interval_s=0.005)
 
     async def wait_idle(self, timeout_s=30.0) -> None:
         """Until no press runs and no recognition task is left."""
-        deadline = asyncio.get_running_loop().time() + timeout_s
-        while self.runtime.recognizer.work or self.runtime.press.state != "idle":
-            assert asyncio.get_running_loop().time() < deadline, self.runtime.press.state
-            await asyncio.sleep(0.02)
+        await wait_until(lambda: not self.runtime.recognizer.work
+                         and self.runtime.press.state == "idle", timeout_s,
+                         "no press and no recognition left", interval_s=0.02)
 
 
 # --- what the robot did --------------------------------------------------------------------
@@ -200,11 +204,9 @@ async def sim_daemon(state: Path, object_name: str = QUICK_OBJECT, *, seed: int 
 
 async def wait_health(d: Daemon, ok: bool, timeout_s: float = 5.0) -> dict[str, Any]:
     """Poll /healthz until its ``ok`` is ``ok`` (HTTP 200 or 503 to match)."""
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    while True:
+    async def matches():
         status, health = await d.get("/healthz")
         assert status == (200 if health["ok"] else 503), (status, health)
-        if health["ok"] is ok:
-            return health
-        assert asyncio.get_running_loop().time() < deadline, health
-        await asyncio.sleep(0.05)
+        return health if health["ok"] is ok else None
+
+    return await wait_until(matches, timeout_s, f"/healthz ok={ok}", interval_s=0.05)

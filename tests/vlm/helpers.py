@@ -29,7 +29,7 @@ def image_bytes(width: int = 320, height: int = 240, fmt: str = "JPEG", *,
     return buf.getvalue()
 
 
-def fast_config(base_url: str, **overrides) -> VLMConfig:
+def vlm_config(base_url: str, **overrides) -> VLMConfig:
     """Real settings, scaled so a test's retries take milliseconds."""
     values = dict(base_url=base_url, model=MODEL, connect_timeout_s=1.0, total_timeout_s=5.0,
                   max_retries=3, backoff_base_s=0.01, backoff_cap_s=0.05,

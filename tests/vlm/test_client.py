@@ -7,7 +7,6 @@ import hashlib
 import io
 import json
 import logging
-import socket
 import time
 
 import pytest
@@ -38,7 +37,8 @@ from edge.core.vlm import (
     response_format,
 )
 from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
-from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, fast_config, image_bytes
+from tests.support.waits import free_port
+from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, image_bytes, vlm_config
 
 
 class RecordedSleep:
@@ -58,7 +58,7 @@ async def ask(config, image, *, candidates=CANDIDATES, description=DESCRIPTION, 
 
 @pytest.mark.asyncio
 async def test_request_has_image_temperature_seed_and_schema(fake, jpeg):
-    answer = await ask(fast_config(fake.base_url, seed=1234), jpeg)
+    answer = await ask(vlm_config(fake.base_url, seed=1234), jpeg)
     assert answer.status == "ok" and answer.label == CANDIDATES[0]
     assert answer.attempts == 1 and len(answer.latency_s) == 1 and answer.outcomes == ("200",)
     [req] = fake.requests
@@ -96,7 +96,7 @@ async def test_request_has_image_temperature_seed_and_schema(fake, jpeg):
 )
 async def test_variants_map_to_the_candidate(fake, jpeg, content, label):
     fake.script(Reply(content=content))
-    answer = await ask(fast_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url), jpeg)
     assert (answer.status, answer.label, answer.attempts) == ("ok", label, 1)
     assert answer.raw == content
 
@@ -104,7 +104,7 @@ async def test_variants_map_to_the_candidate(fake, jpeg, content, label):
 @pytest.mark.asyncio
 async def test_label_outside_candidates_gets_one_corrective_retry(fake, jpeg):
     fake.script(Reply(label="pizza"), Reply(label="boiled_kiri_mochi"))
-    answer = await ask(fast_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url), jpeg)
     assert (answer.status, answer.label, answer.attempts) == ("ok", "boiled_kiri_mochi", 2)
     first, second = fake.requests
     msgs = second.body["messages"]
@@ -118,7 +118,7 @@ async def test_label_outside_candidates_gets_one_corrective_retry(fake, jpeg):
 @pytest.mark.asyncio
 async def test_two_bad_answers_give_invalid_answer_never_a_label(fake, jpeg):
     fake.script(Reply(content="{not json"), Reply(content="It is a delicious rice cake."))
-    answer = await ask(fast_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url), jpeg)
     assert answer.status == "invalid_answer" and answer.label is None
     assert answer.raw == "It is a delicious rice cake." and answer.attempts == 2
     assert len(fake.requests) == 2  # exactly one corrective retry
@@ -128,7 +128,7 @@ async def test_two_bad_answers_give_invalid_answer_never_a_label(fake, jpeg):
 async def test_429_retry_after_seconds_is_honoured(fake, jpeg):
     fake.script(Reply.error(429, "slow down", retry_after=1))
     started = time.monotonic()
-    answer = await ask(fast_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url), jpeg)
     waited = time.monotonic() - started
     print(f"\n429 with Retry-After: 1 -> answer after {waited:.3f} s")
     assert answer.status == "ok" and answer.outcomes == ("429", "200")
@@ -140,7 +140,7 @@ async def test_retry_after_http_date_and_cap(fake, jpeg):
     sleep = RecordedSleep()
     later = email.utils.formatdate(time.time() + 3, usegmt=True)
     fake.script(Reply.error(503, retry_after=later), Reply.error(429, retry_after=3600))
-    cfg = fast_config(fake.base_url, retry_after_cap_s=2.0)
+    cfg = vlm_config(fake.base_url, retry_after_cap_s=2.0)
     answer = await ask(cfg, jpeg, sleep=sleep)
     assert answer.status == "ok" and answer.attempts == 3
     print(f"\nrecorded waits for Retry-After <date +3 s>, 3600: {sleep.delays}")
@@ -152,7 +152,7 @@ async def test_retry_after_http_date_and_cap(fake, jpeg):
 async def test_5xx_are_retried_with_capped_backoff_then_succeed(fake, jpeg):
     sleep = RecordedSleep()
     fake.script(Reply.error(500), Reply.error(502), Reply.error(503), Reply.error(504))
-    cfg = fast_config(fake.base_url, max_retries=4, backoff_base_s=1.0, backoff_cap_s=3.0)
+    cfg = vlm_config(fake.base_url, max_retries=4, backoff_base_s=1.0, backoff_cap_s=3.0)
     answer = await ask(cfg, jpeg, sleep=sleep)
     assert answer.status == "ok" and answer.outcomes == ("500", "502", "503", "504", "200")
     assert len(answer.latency_s) == 5 and len(fake.requests) == 5
@@ -165,7 +165,7 @@ async def test_5xx_are_retried_with_capped_backoff_then_succeed(fake, jpeg):
 async def test_retryable_statuses_run_out_as_unavailable(fake, jpeg, status):
     fake.script(*[Reply.error(status, "busy")] * 3)
     with pytest.raises(VLMServerError) as err:
-        await ask(fast_config(fake.base_url, max_retries=2), jpeg)
+        await ask(vlm_config(fake.base_url, max_retries=2), jpeg)
     assert err.value.status == status and "busy" in str(err.value)
     assert isinstance(err.value, VLMUnavailableError) and isinstance(err.value, EdgeError)
     assert len(fake.requests) == 3
@@ -190,7 +190,7 @@ async def test_client_errors_are_never_retried(jpeg, status):
             if status != 401:
                 cfg["api_key_env"] = "VTZERO_TEST_KEY"
             with pytest.raises(VLMRejectedError) as err:
-                await ask(fast_config(fake.base_url, **cfg), image_bytes(200, 200, noise=True))
+                await ask(vlm_config(fake.base_url, **cfg), image_bytes(200, 200, noise=True))
         assert err.value.status == status and f"HTTP {status}" in str(err.value)
         assert not isinstance(err.value, VLMUnavailableError)
         assert len(fake.requests) == 1, "never retried"
@@ -200,7 +200,7 @@ async def test_client_errors_are_never_retried(jpeg, status):
 @pytest.mark.asyncio
 async def test_timeouts_are_retried_then_raise_timeout_error(fake, jpeg):
     fake.script(Reply(delay_s=10), Reply(delay_s=10))
-    cfg = fast_config(fake.base_url, connect_timeout_s=0.2, total_timeout_s=0.3,
+    cfg = vlm_config(fake.base_url, connect_timeout_s=0.2, total_timeout_s=0.3,
                       max_retries=1)
     started = time.monotonic()
     with pytest.raises(VLMTimeoutError) as err:
@@ -215,7 +215,7 @@ async def test_timeouts_are_retried_then_raise_timeout_error(fake, jpeg):
 @pytest.mark.asyncio
 async def test_a_trickling_body_times_out(fake, jpeg):
     fake.script(Reply(chunk_delay_s=0.1, chunk_bytes=4))  # ~250 bytes over ~6 s
-    cfg = fast_config(fake.base_url, connect_timeout_s=0.3, total_timeout_s=0.6,
+    cfg = vlm_config(fake.base_url, connect_timeout_s=0.3, total_timeout_s=0.6,
                       max_retries=0)
     started = time.monotonic()
     with pytest.raises(VLMTimeoutError):
@@ -227,7 +227,7 @@ async def test_a_trickling_body_times_out(fake, jpeg):
 async def test_non_json_body_is_refused_clearly(fake, jpeg):
     fake.script(Reply(body=b"<html><body>502 Bad Gateway</body></html>"))
     with pytest.raises(VLMResponseError, match="not JSON: '<html><body>502 Bad Gateway"):
-        await ask(fast_config(fake.base_url), jpeg)
+        await ask(vlm_config(fake.base_url), jpeg)
     assert len(fake.requests) == 1
 
 
@@ -235,14 +235,14 @@ async def test_non_json_body_is_refused_clearly(fake, jpeg):
 async def test_json_without_choices_is_refused_clearly(fake, jpeg):
     fake.script(Reply(body=json.dumps({"error": "model is loading"}).encode()))
     with pytest.raises(VLMResponseError, match=r"no choices.*model is loading"):
-        await ask(fast_config(fake.base_url), jpeg)
+        await ask(vlm_config(fake.base_url), jpeg)
 
 
 @pytest.mark.asyncio
 @pytest.mark.parametrize("chunked", [False, True])
 async def test_huge_answer_is_refused(fake, jpeg, chunked):
     fake.script(Reply.huge(8_000_000, chunked=chunked))
-    cfg = fast_config(fake.base_url, max_response_bytes=65_536)
+    cfg = vlm_config(fake.base_url, max_response_bytes=65_536)
     started = time.monotonic()
     with pytest.raises(VLMResponseTooLargeError, match="max_response_bytes=65536"):
         await ask(cfg, jpeg)
@@ -252,12 +252,10 @@ async def test_huge_answer_is_refused(fake, jpeg, chunked):
 
 @pytest.mark.asyncio
 async def test_connection_refused_is_retried_then_raises(jpeg):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # nothing listens there
     sleep = RecordedSleep()
     with pytest.raises(VLMConnectionError) as err:
-        await ask(fast_config(f"http://127.0.0.1:{port}/v1", max_retries=2), jpeg,
+        await ask(vlm_config(f"http://127.0.0.1:{port}/v1", max_retries=2), jpeg,
                   sleep=sleep)
     assert isinstance(err.value, ConnectionError) and isinstance(err.value, VLMError)
     assert len(sleep.delays) == 2
@@ -267,7 +265,7 @@ async def test_connection_refused_is_retried_then_raises(jpeg):
 @pytest.mark.asyncio
 async def test_dropped_connection_is_retried(fake, jpeg):
     fake.script(Reply.dropped())
-    answer = await ask(fast_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url), jpeg)
     assert answer.status == "ok" and answer.outcomes == ("connection", "200")
 
 
@@ -279,7 +277,7 @@ async def test_api_key_never_leaks(monkeypatch, caplog, tmp_path, jpeg):
     seen = []
     # 1. A careless server that quotes the (wrong) key in its 401.
     async with FakeVLM(model=MODEL, api_key="another-key", echo_key_in_errors=True) as fake:
-        vlm = OpenAIVLM(fast_config(fake.base_url))
+        vlm = OpenAIVLM(vlm_config(fake.base_url))
         seen.append(repr(vlm))
         with pytest.raises(VLMRejectedError) as err:
             await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
@@ -294,18 +292,16 @@ async def test_api_key_never_leaks(monkeypatch, caplog, tmp_path, jpeg):
     key_file.chmod(0o644)
     async with FakeVLM(model=MODEL, api_key=planted) as fake:
         fake.script(Reply(content=f"my key is {planted}"), Reply(content=planted))
-        cfg = fast_config(fake.base_url, api_key_env="", api_key_file=key_file)
+        cfg = vlm_config(fake.base_url, api_key_env="", api_key_file=key_file)
         answer = await ask(cfg, jpeg)
         assert answer.status == "invalid_answer"
         seen.append(json.dumps(answer.to_dict()))
         seen.append(repr(answer))
     assert "readable by group or others" in caplog.text
     # 3. Timeouts and refused connections.
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()  # nothing listens there
     with pytest.raises(VLMConnectionError) as err:
-        await ask(fast_config(f"http://127.0.0.1:{port}/v1", max_retries=0), jpeg)
+        await ask(vlm_config(f"http://127.0.0.1:{port}/v1", max_retries=0), jpeg)
     seen += [str(err.value), repr(err.value)]
     # Everything logged on this side (the fake server is the careless other side).
     ours = [r for r in caplog.records if r.name != "edge.sim.fake_vlm"]
@@ -320,20 +316,20 @@ async def test_api_key_file_problems_are_config_errors(tmp_path, fake):
     empty = tmp_path / "empty.key"
     empty.write_text("\n")
     with pytest.raises(ConfigError, match="empty"):
-        OpenAIVLM(fast_config(fake.base_url, api_key_file=empty))
+        OpenAIVLM(vlm_config(fake.base_url, api_key_file=empty))
     with pytest.raises(ConfigError, match="cannot be read"):
-        OpenAIVLM(fast_config(fake.base_url, api_key_file=tmp_path / "missing.key"))
+        OpenAIVLM(vlm_config(fake.base_url, api_key_file=tmp_path / "missing.key"))
     bad = tmp_path / "bad.key"
     bad.write_text("sk-two words")
     with pytest.raises(ConfigError, match="not allowed in a header") as err:
-        OpenAIVLM(fast_config(fake.base_url, api_key_file=bad))
+        OpenAIVLM(vlm_config(fake.base_url, api_key_file=bad))
     assert "two words" not in str(err.value)
 
 
 @pytest.mark.asyncio
 async def test_large_image_is_shrunk_before_sending(fake):
     big = image_bytes(3000, 2000, noise=True)
-    answer = await ask(fast_config(fake.base_url, max_image_side_px=512,
+    answer = await ask(vlm_config(fake.base_url, max_image_side_px=512,
                                    max_image_bytes=60_000), big)
     sent = Image.open(io.BytesIO(fake.requests[0].images[0]))
     assert sent.format == "JPEG" and max(sent.size) <= 512
@@ -346,26 +342,26 @@ async def test_large_image_is_shrunk_before_sending(fake):
 @pytest.mark.asyncio
 async def test_non_image_is_refused_before_any_request(fake):
     with pytest.raises(ImageError, match="not a JPEG or PNG"):
-        await ask(fast_config(fake.base_url), b"%PDF-1.7 not a photo")
+        await ask(vlm_config(fake.base_url), b"%PDF-1.7 not a photo")
     with pytest.raises(ImageError, match="needs an image"):
-        await ask(fast_config(fake.base_url), None)
+        await ask(vlm_config(fake.base_url), None)
     assert fake.requests == []
 
 
 @pytest.mark.asyncio
 async def test_tactile_only_sends_no_image_and_vision_only_no_description(fake, jpeg):
-    answer = await ask(fast_config(fake.base_url, mode="tactile_only"), jpeg)
+    answer = await ask(vlm_config(fake.base_url, mode="tactile_only"), jpeg)
     [req] = fake.requests
     assert req.images == [] and isinstance(req.body["messages"][0]["content"], str)
     assert answer.image is None and DESCRIPTION in answer.prompt
-    await ask(fast_config(fake.base_url, mode="vision_only"), jpeg)
+    await ask(vlm_config(fake.base_url, mode="vision_only"), jpeg)
     assert len(fake.requests[1].images) == 1 and DESCRIPTION not in fake.requests[1].prompt
 
 
 @pytest.mark.asyncio
 async def test_fake_can_choose_from_the_tactile_description(jpeg):
     async with FakeVLM(model=MODEL, choose=choose_by_description) as fake:
-        answer = await ask(fast_config(fake.base_url), jpeg,
+        answer = await ask(vlm_config(fake.base_url), jpeg,
                            candidates=["stainless_cube", "wood_cube", "sponge_cube"],
                            description="a cube of hard wood that does not give at all")
     assert answer.label == "wood_cube"
@@ -373,7 +369,7 @@ async def test_fake_can_choose_from_the_tactile_description(jpeg):
 
 @pytest.mark.asyncio
 async def test_concurrent_asks_share_one_client(fake):
-    async with OpenAIVLM(fast_config(fake.base_url)) as vlm:
+    async with OpenAIVLM(vlm_config(fake.base_url)) as vlm:
         answers = await asyncio.gather(*[
             vlm.ask(image_bytes(seed=i, noise=True), DESCRIPTION, CANDIDATES)
             for i in range(8)])
@@ -396,7 +392,7 @@ async def test_no_vlm_gives_the_prompt_it_would_send(jpeg):
 
 @pytest.mark.asyncio
 async def test_make_vlm_and_repr(fake):
-    client = make_vlm(fast_config(fake.base_url))
+    client = make_vlm(vlm_config(fake.base_url))
     assert isinstance(client, OpenAIVLM) and isinstance(client, VLMClient)
     assert repr(client) == (f"OpenAIVLM(url='{fake.base_url}/chat/completions', "
                             f"model='{MODEL}', mode='vision_tactile', api_key=none)")
@@ -416,7 +412,7 @@ async def test_image_work_goes_to_the_offload_and_arrives_whole(fake):
         return await asyncio.to_thread(fn, *args)
 
     big = image_bytes(2000, 1500, noise=True)
-    answer = await ask(fast_config(fake.base_url), big, offload=offload)
+    answer = await ask(vlm_config(fake.base_url), big, offload=offload)
     assert calls == ["prepare_for_vlm"] and answer.status == "ok"
     [req] = fake.requests
     assert req.error is None

@@ -5,7 +5,6 @@ import base64
 import copy
 import json
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ import aiohttp
 import pytest
 
 from edge.core.vlm import response_format
+from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -101,9 +101,7 @@ async def test_good_request_is_answered_like_openai(fake):
 
 
 def test_standalone_server_runs_and_stops():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
         [sys.executable, "-m", "edge.sim.fake_vlm", "--port", str(port), "--choose",

@@ -13,12 +13,7 @@ from edge.daemon.devices import enable_torque, open_devices
 from edge.daemon.press import PressController, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
 from edge.sim.robot import SimRobot
-
-
-def fast_config() -> Config:
-    cfg = Config()
-    return replace(cfg, press=replace(cfg.press, open_width_m=0.008),
-                   runtime=replace(cfg.runtime, move_time_s=0.2, close_timeout_s=5.0))
+from tests.support.daemon import base_config
 
 
 async def press_once(robot: SimRobot, cfg: Config):
@@ -43,7 +38,7 @@ async def press_once(robot: SimRobot, cfg: Config):
 
 @pytest.mark.asyncio
 async def test_press_stops_on_the_threshold_and_records(tmp_path):
-    cfg = fast_config()
+    cfg = base_config()
     async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
         rcfg, outcome, width = await press_once(robot, cfg)
         peak_n = robot.world.peak_force_n
@@ -71,7 +66,7 @@ async def test_press_stops_on_the_threshold_and_records(tmp_path):
 
 @pytest.mark.asyncio
 async def test_soft_object_takes_longer_and_no_object_means_no_contact():
-    cfg = fast_config()
+    cfg = base_config()
     async with SimRobot("gelatin_soft", seed=2, cfg=cfg) as robot:
         _, soft, _ = await press_once(robot, cfg)
     assert soft.result == "ok", soft.message

@@ -6,12 +6,12 @@ from edge.core import recording
 from edge.core.config import Config, load_config
 from edge.sim.robot import SimRobot
 from edge.tools.collect import collect, teach_pose
-from tests.test_closed_loop import fast_config
+from tests.support.daemon import base_config
 
 
 @pytest.mark.asyncio
 async def test_collect_writes_labelled_recordings(tmp_path):
-    cfg = fast_config()
+    cfg = base_config()
     prompts = []
     async with SimRobot("otedama", seed=11, cfg=cfg) as robot:
         files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path,

@@ -5,7 +5,7 @@ import pytest
 from edge.core.config import Config, config_from_dict, load_config
 from edge.core.errors import ConfigError, EdgeError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("name", ["sim.toml", "robot.toml"])

@@ -1,4 +1,5 @@
-"""The daemon as a process, as systemd runs it: SIGTERM in the middle of a press."""
+"""The daemon as a process, as systemd runs it: SIGTERM in the middle of a press; a start
+that cannot succeed."""
 
 import json
 import os
@@ -6,21 +7,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from edge.core import tomledit
 from edge.core.config import load_config
 from edge.daemon.store import EpisodeStore
 from edge.tools.demo import _wait_for, http_json
+from tests.support.waits import free_port, wait_until_sync
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
@@ -42,10 +37,8 @@ def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
                                   text=True)
         _wait_for(lambda: http_json("GET", f"{api}/healthz").get("ok"), 60, "daemon", daemon)
         ep = http_json("POST", f"{api}/v1/recognize", {"candidates": ["a", "b"]})
-        deadline = time.monotonic() + 30
-        while http_json("GET", f"{api}/healthz")["state"] not in ("closing", "holding"):
-            assert time.monotonic() < deadline
-            time.sleep(0.01)
+        wait_until_sync(lambda: http_json("GET", f"{api}/healthz")["state"]
+                        in ("closing", "holding"), 30, "the press closing")
         daemon.send_signal(signal.SIGTERM)
         _, err = daemon.communicate(timeout=30)
         print(err[-2000:])
@@ -62,3 +55,21 @@ def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
             daemon.kill()
         sim.send_signal(signal.SIGTERM)
         sim.wait(20)
+
+
+def test_a_start_that_cannot_listen_says_why_in_one_line_and_exits_2(tmp_path):
+    """Nothing else is needed to see it: the port is bound before any device is opened."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        run_cfg = tmp_path / "run.toml"
+        tomledit.update(ROOT / "configs" / "sim.toml", run_cfg, {"api": {"port": port}})
+        env = dict(os.environ, VTZERO_STATE_DIR=str(tmp_path / "state"))
+        proc = subprocess.run([sys.executable, "-m", "edge", "run", "--config", str(run_cfg)],
+                              env=env, cwd=ROOT, capture_output=True, text=True, timeout=120)
+    print(proc.stderr[-1500:])
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"vt-edge: cannot listen on 127.0.0.1:{port}: address already in use")

@@ -13,6 +13,7 @@ from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
 from tests.support.daemon import Daemon, base_config
 from tests.support.fakes import FakeButton
+from tests.support.waits import wait_until
 
 CUBE = names("cube")
 
@@ -22,12 +23,9 @@ def with_defaults(cfg):
 
 
 async def next_episode(d, before):
-    for _ in range(200):
-        ids = set(d.store.ids()) - before
-        if ids:
-            return ids.pop()
-        await asyncio.sleep(0.05)
-    raise AssertionError("no episode was stored")
+    ids = await wait_until(lambda: set(d.store.ids()) - before, 10, "a new stored episode",
+                           interval_s=0.05)
+    return ids.pop()
 
 
 @pytest.mark.asyncio
