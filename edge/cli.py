@@ -16,19 +16,17 @@ log = logging.getLogger(__name__)
 
 
 def _cmd_sim_record(args: argparse.Namespace) -> int:
+    from edge.core.progress import Progress
+    from edge.sim.catalogue import DATASETS
     from edge.sim.press import PressParams
     from edge.sim.record import record_dataset
 
-    def progress(done: int, total: int) -> None:
-        if done == total or done % max(1, total // 20) == 0:
-            print(f"\r  {done}/{total} presses", end="", file=sys.stderr, flush=True)
-
     params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
-    index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
-                           params=params, workers=args.workers,
-                           progress=None if args.quiet else progress)
-    if not args.quiet:
-        print(file=sys.stderr)
+    total = len(DATASETS[args.dataset]) * args.presses
+    with Progress(f"record {args.dataset}", total, "presses", enabled=not args.quiet) as bar:
+        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
+                               params=params, workers=args.workers,
+                               progress=lambda done, _total: bar.set(done))
     n = len(index["classes"]) * args.presses
     print(f"wrote {n} presses of {len(index['classes'])} classes ({args.dataset}) to {args.out}")
     if index["no_contact"]:
