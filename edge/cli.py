@@ -130,6 +130,10 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
                   f"{ep.get('description', ep.get('error', ''))[:60]}")
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id), indent=2))
+    elif args.format == "mcap":
+        from edge.daemon.mcaplog import export_episode
+
+        print(export_episode(store, args.id, args.out))
     else:
         print(store.export(args.id, args.out))
     return 0
@@ -199,7 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("id")
     export = epsub.add_parser("export")
     export.add_argument("id")
-    export.add_argument("--out", default=".")
+    export.add_argument("--out", default=".", help="a file, or a directory for ID.tar.gz/ID.mcap")
+    export.add_argument("--format", choices=["tar.gz", "mcap"], default="tar.gz",
+                        help="tar.gz: the episode directory as stored; mcap: tactile frames, "
+                             "gripper, press states, photo and result for Foxglove")
     eps.set_defaults(func=_cmd_episodes)
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")

@@ -235,11 +235,16 @@ class RuntimeConfig:
     close_timeout_s: float = 8.0
     vlm_retry_base_s: float = 5.0
     vlm_retry_max_s: float = 300.0
+    # Record the live tactile stream and events to MCAP segments here ("": off).
+    record_mcap_dir: str = ""
+    record_mcap_segment_s: float = 600.0
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
                      "vlm_retry_max_s"):
             _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
+        _require(self.record_mcap_segment_s >= 1, path, "record_mcap_segment_s",
+                 self.record_mcap_segment_s, "must be >= 1 s")
 
 
 def _default_poses() -> dict[str, tuple[int, ...]]:

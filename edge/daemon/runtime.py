@@ -40,6 +40,7 @@ from edge.daemon.compute import ComputeWorker, analyse_press, warm_up
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, Sampler
+from edge.daemon.services import optional_services
 from edge.daemon.store import EpisodeStore, new_id
 from edge.daemon.systemd import Notifier, watchdog_period_s
 
@@ -477,6 +478,9 @@ class Runtime:
                 tg.create_task(self._watchdog(), name="watchdog")
                 tg.create_task(self._button(), name="button")
                 tg.create_task(self._vlm_retry(), name="vlm-retry")
+                # Optional services (issue 12): live MCAP recording, MQTT bridge.
+                for name, service in optional_services(self):
+                    tg.create_task(service, name=name)
                 if api is not None:
                     await api.start()
                 # The model loaded and run once in the compute process: the first press
