@@ -19,7 +19,7 @@ import os
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
@@ -27,6 +27,11 @@ from aiohttp.http_exceptions import HttpProcessingError
 from edge.core.config import ApiConfig
 from edge.core.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
 from edge.core.images import ImageError, check_image
+
+if TYPE_CHECKING:
+    from edge.core.config import Config
+    from edge.daemon.sensor import FrameRing
+    from edge.daemon.store import EpisodeStore
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -56,6 +61,11 @@ class Runtime(Protocol):
     def metrics_text(self) -> str: ...
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T: ...
+
+    # Read by the services beside the press (issue 12: the operator page, MQTT, MCAP).
+    cfg: Config
+    ring: FrameRing  # read only, through edge.daemon.taps
+    store: EpisodeStore  # read only, through its public methods
 
 
 class BadRequest(EdgeError, ValueError):

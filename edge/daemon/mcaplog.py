@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import dataclasses
 import json
 import logging
 import os
@@ -44,6 +43,7 @@ from edge import __version__
 from edge.core import preprocess, recording
 from edge.core.atomic import _fsync_dir
 from edge.core.errors import NotFoundError, StoreError
+from edge.daemon.views import as_dict
 
 log = logging.getLogger(__name__)
 
@@ -214,18 +214,6 @@ class McapLog:
 
 # --------------------------------------------------------------------------------------
 # One stored episode
-
-
-def as_dict(episode: Any) -> dict[str, Any]:
-    """The episode as its JSON keys, whether the store gives a dict or a typed episode."""
-    if isinstance(episode, dict):
-        return episode
-    for method in ("to_dict", "as_dict", "to_json_dict"):
-        if callable(getattr(episode, method, None)):
-            return dict(getattr(episode, method)())
-    if dataclasses.is_dataclass(episode) and not isinstance(episode, type):
-        return dataclasses.asdict(episode)
-    return dict(vars(episode))
 
 
 def _optional_file(store: Any, episode_id: str, name: str) -> Path | None:

@@ -16,6 +16,7 @@ from edge.core.model import ModelRef
 from edge.core.model import model_ref as _model_ref
 from edge.daemon.api import Api, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
+from edge.daemon.mqtt import check_config as check_mqtt
 from edge.daemon.runtime import Devices, Runtime
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
@@ -85,6 +86,7 @@ async def serve(cfg: Config, config_path: str | None = None,
     # A configuration the API refuses (exposed without a token) is refused before any
     # device is touched: no torque on an arm the daemon will not run.
     load_token(cfg.api)
+    check_mqtt(cfg.mqtt)  # (issue 12: the MQTT bridge's client, password and CA files)
     notifier = Notifier()
     notifier.status("starting: loading model")
     model = await asyncio.to_thread(model_ref, cfg)

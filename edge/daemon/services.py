@@ -21,6 +21,10 @@ def optional_services(runtime: Any) -> list[tuple[str, Coroutine[Any, Any, None]
         recorder = McapRecorder(runtime, cfg.runtime.record_mcap_dir,
                                 cfg.runtime.record_mcap_segment_s)
         services.append(("mcap-record", recorder.run()))
+    if cfg.mqtt.enabled:
+        from edge.daemon.mqtt import MqttBridge
+
+        services.append(("mqtt", MqttBridge(runtime, cfg.mqtt).run()))
     return [(name, _guarded(name, coro)) for name, coro in services]
 
 
