@@ -1,7 +1,8 @@
 """The HTTP API (aiohttp): trigger recognitions, read episodes, follow events.
 
 Routes: ``POST /v1/recognize``, ``GET /v1/episodes/{id}``, ``GET /v1/events`` (server-sent
-events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text).
+events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text); the
+operator page at ``/`` and its data routes (:mod:`edge.daemon.webui`).
 Loopback only by default; bound anywhere else it refuses to start without a bearer token,
 and then every route but ``/healthz`` requires it. Bad input gets a 4xx with a message a
 person can act on, and nothing is half-done: validation happens before any arm motion.
@@ -27,6 +28,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 from edge.core.config import ApiConfig
 from edge.core.errors import BusyError, ComputeError, ConfigError, EdgeError, NotFoundError
 from edge.core.images import ImageError, check_image
+from edge.daemon.webui import OperatorPage
 
 if TYPE_CHECKING:
     from edge.core.config import Config
@@ -41,7 +43,8 @@ SSE_KEEPALIVE_S = 15.0
 _RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
 _ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, GET /v1/events, POST /v1/abort, "
-           "GET /healthz, GET /metrics")
+           "GET /healthz, GET /metrics, GET / (operator page), GET /v1/episodes?limit=N, "
+           "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile")
 
 
 class Runtime(Protocol):
@@ -155,6 +158,9 @@ class Api:
             web.get("/healthz", self.healthz),
             web.get("/metrics", self.metrics),
         ])
+        # The operator page at / and its data (issue 12): edge/daemon/webui.py.
+        self.ui = OperatorPage(runtime, self.token)
+        self.ui.install(self.app)
         self._runner: web.AppRunner | None = None
         self.port: int | None = None
 
@@ -191,9 +197,14 @@ class Api:
             given = request.headers.get("Authorization", "")
             expected = f"Bearer {self.token}"
             if not hmac.compare_digest(given.encode(), expected.encode()):
-                return web.json_response({"error": "missing or wrong bearer token"},
-                                         status=401,
-                                         headers={"WWW-Authenticate": "Bearer"})
+                # The operator page (issue 12): a browser's session cookie, or the login.
+                verdict = self.ui.check(request)
+                if verdict == "login":
+                    return await self.ui.login(request)
+                if verdict != "ok":
+                    return web.json_response({"error": "missing or wrong bearer token"},
+                                             status=401,
+                                             headers={"WWW-Authenticate": "Bearer"})
         return await handler(request)
 
     async def start(self) -> int:
