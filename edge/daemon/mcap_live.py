@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 FLUSH_PERIOD_S = 0.25
 # Events kept for the writer between two flushes (a burst past this loses the oldest).
 EVENT_BACKLOG = 1000
+# After a failed segment (the writer died, the disk refused), a new one is tried this late.
+RETRY_S = 1.0
 # Closing the open segment at shutdown.
 CLOSE_TIMEOUT_S = 10.0
 # Smaller chunks than the default 1 MiB: a crash loses less of the open segment.
@@ -87,24 +89,27 @@ class McapRecorder:
         opened = False
         try:
             while True:
-                if not opened:
-                    await worker.run(segment_open, str(self.directory), segment_name())
-                    opened, started = True, time.monotonic()
-                    log.info("recording the live stream to %s", self.directory)
-                await asyncio.sleep(FLUSH_PERIOD_S)
                 try:
+                    if not opened:
+                        await worker.run(segment_open, str(self.directory), segment_name())
+                        opened, started = True, time.monotonic()
+                        log.info("recording the live stream to %s", self.directory)
+                    await asyncio.sleep(FLUSH_PERIOD_S)
                     await worker.run(segment_append, self._batch())
                     if time.monotonic() - started >= self.segment_s:
                         opened = False
                         self._done(await worker.run(segment_close))
                 except EdgeError as exc:  # the writer died (ComputeError) or the disk failed
-                    log.error("live MCAP recording: %s; starting a new segment", exc)
+                    log.error("live MCAP recording: %s; a new segment in %.0f s", exc,
+                              RETRY_S)
                     opened = False
                     with contextlib.suppress(EdgeError):
                         await worker.run(segment_abandon)
-                    await asyncio.sleep(1.0)
+                    await asyncio.sleep(RETRY_S)
         finally:
             pump.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await pump
             if opened:
                 closing = asyncio.ensure_future(self._close(worker))
                 try:
@@ -179,7 +184,12 @@ def segment_open(directory: str, name: str) -> None:
     global _segment
     if _segment is not None:
         _segment.log.abandon()
-    _segment = _Segment(directory, name)
+        _segment = None
+    try:
+        _segment = _Segment(directory, name)
+    except OSError as exc:
+        raise EdgeError(f"live MCAP recording: cannot create a segment in {directory}: "
+                        f"{exc}") from None
 
 
 def segment_append(batch: Batch) -> None:
