@@ -102,7 +102,11 @@ def drive_the_page(url: str, tmp: Path, candidates: list[str]) -> dict:
         found["states"] = set()
         card = "document.querySelector('.episode[data-status=done]')"
         while not driver.execute_script(f"return {card} && {card}.querySelector('.label')"):
-            found["states"].add(driver.find_element(By.ID, "state").text)
+            state = driver.find_element(By.ID, "state").text
+            found["states"].add(state)
+            if state == "holding" and "press_screenshot" not in found:  # the pads loaded
+                found["press_screenshot"] = tmp / "operator-page-press.png"
+                driver.save_screenshot(str(found["press_screenshot"]))
             assert time.monotonic() - t0 < 30, "no done episode on the page"
             time.sleep(0.05)
         # Frames drawn from the click until the result was on the page.
@@ -156,7 +160,7 @@ async def test_operator_page_in_a_real_browser(tmp_path):
             candidates = [*CUBE, "melon_pan"]
             found = await asyncio.to_thread(drive_the_page, d.url, tmp_path, candidates)
             [ep] = d.store.list()
-    print(f"screenshot: {found['screenshot']}")
+    print(f"screenshots: {found['screenshot']}, {found.get('press_screenshot')}")
     print(f"live view frame rate: {found['fps_session']:.1f}/s over the whole session "
           f"({found['session_s']:.1f} s); {found['fps_idle']:.1f}/s idle (3 s), "
           f"{found['fps_press']:.1f}/s from the click to the result "
