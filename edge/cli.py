@@ -17,19 +17,17 @@ log = logging.getLogger(__name__)
 
 
 def _cmd_sim_record(args: argparse.Namespace) -> int:
+    from edge.core.progress import Progress
+    from edge.sim.catalogue import DATASETS
     from edge.sim.press import PressParams
     from edge.sim.record import record_dataset
 
-    def progress(done: int, total: int) -> None:
-        if done == total or done % max(1, total // 20) == 0:
-            print(f"\r  {done}/{total} presses", end="", file=sys.stderr, flush=True)
-
     params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
-    index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
-                           params=params, workers=args.workers,
-                           progress=None if args.quiet else progress)
-    if not args.quiet:
-        print(file=sys.stderr)
+    total = len(DATASETS[args.dataset]) * args.presses
+    with Progress(f"record {args.dataset}", total, "presses", enabled=not args.quiet) as bar:
+        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
+                               params=params, workers=args.workers,
+                               progress=lambda done, _total: bar.set(done))
     n = len(index["classes"]) * args.presses
     print(f"wrote {n} presses of {len(index['classes'])} classes ({args.dataset}) to {args.out}")
     if index["no_contact"]:
@@ -135,6 +133,10 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
                   f"{(ep.description or ep.error or '')[:60]}")
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id).to_json(), indent=2))
+    elif args.format == "mcap":
+        from edge.daemon.mcaplog import export_episode
+
+        print(export_episode(store, args.id, args.out))
     else:
         print(store.export(args.id, args.out))
     return 0
@@ -204,7 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("id")
     export = epsub.add_parser("export")
     export.add_argument("id")
-    export.add_argument("--out", default=".")
+    export.add_argument("--out", default=".", help="a file, or a directory for ID.tar.gz/ID.mcap")
+    export.add_argument("--format", choices=["tar.gz", "mcap"], default="tar.gz",
+                        help="tar.gz: the episode directory as stored; mcap: tactile frames, "
+                             "gripper, press states, photo and result for Foxglove")
     eps.set_defaults(func=_cmd_episodes)
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")

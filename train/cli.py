@@ -21,10 +21,14 @@ log = logging.getLogger(__name__)
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
+    from edge.core.progress import Progress
+    from edge.sim.catalogue import DATASETS
     from edge.sim.record import record_dataset
 
-    index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
-                           workers=args.workers)
+    total = len(DATASETS[args.dataset]) * args.presses
+    with Progress(f"record {args.dataset}", total, "presses") as bar:
+        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
+                               workers=args.workers, progress=lambda done, _t: bar.set(done))
     print(f"wrote {len(index['classes']) * args.presses} presses of "
           f"{len(index['classes'])} classes ({args.dataset}) to {args.out}")
     return 0

@@ -39,7 +39,6 @@ import json
 import logging
 import os
 import re
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -55,6 +54,8 @@ from edge.core.config import VLMConfig
 from edge.core.errors import EdgeError, EvalVLMError, ImageError, ModelError, RecordingError
 from edge.core.images import prepare_image
 from edge.core.model import ReferenceDatabase, load_model
+from edge.core.progress import PLAIN_EVERY_S
+from edge.core.progress import Progress as Bar
 from edge.core.prompt import PromptTemplate, load_template
 from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
 from edge.sim.record import DATASET_INDEX
@@ -474,26 +475,22 @@ class AnswerCache:
 
 
 class EvalProgress:
-    """Progress lines on stderr: in place on a terminal, else every few seconds."""
+    """Progress on stderr (:mod:`edge.core.progress`): a tqdm bar on a terminal, else a
+    whole line every few seconds."""
 
     def __init__(self, total: int, cached: int, stream: TextIO | None = None,
-                 enabled: bool = True, every_s: float = 5.0) -> None:
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
+                 enabled: bool = True, every_s: float = PLAIN_EVERY_S) -> None:
         self.total, self.cached = total, cached
         self.asked = self.invalid = 0
-        self.enabled = enabled
-        self.every_s = every_s
         self.started = time.monotonic()
-        self._last = 0.0
+        self.bar = Bar("eval-vlm", total, "answers", stream=stream, every_s=every_s,
+                       enabled=enabled, initial=cached)
 
-    def line(self) -> str:
+    def note(self) -> str:
         done = self.cached + self.asked
-        elapsed = time.monotonic() - self.started
-        text = (f"eval-vlm: {done}/{self.total} answered ({self.cached} cached, {self.asked} "
-                f"asked, {self.invalid} invalid)")
+        text = f"{self.cached} cached, {self.asked} asked, {self.invalid} invalid"
         if self.asked:
-            rate = elapsed / self.asked
+            rate = (time.monotonic() - self.started) / self.asked
             text += f", {rate:.2f} s per answer, ~{rate * (self.total - done) / 60:.1f} min left"
         return text
 
@@ -501,15 +498,9 @@ class EvalProgress:
         if answer is not None:
             self.asked += 1
             self.invalid += answer.status == INVALID
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if self.tty:
-            print(f"\r\x1b[2K{self.line()}", end="\n" if final else "", file=self.stream,
-                  flush=True)
-        elif final or now - self._last >= self.every_s:
-            self._last = now
-            print(self.line(), file=self.stream, flush=True)
+            self.bar.update(1, self.note())
+        if final:
+            self.bar.close(self.note())
 
 
 async def ask_all(plan: Plan, cache: AnswerCache, *,

@@ -4,8 +4,8 @@ The best model (lowest validation loss) is kept in memory and written atomically
 ``checkpoint.pt`` whenever it improves; training ends after ``patience`` epochs without an
 improvement of at least ``min_delta`` (relative) and returns the best model. Every epoch
 appends one JSON line to ``train.jsonl`` (losses, code usage, time); stderr gets a progress
-line (rewritten in place on a terminal, every ``progress_every`` epochs otherwise, so CI logs
-stay short).
+bar on a terminal, else a whole line every few seconds (:mod:`edge.core.progress`), so CI
+logs stay short.
 
 Deterministic on CPU for a seed and thread count: the shuffles come from a seeded numpy
 generator, the beta-VAE noise and the revival of dead codes from seeded torch generators, and
@@ -17,7 +17,6 @@ from __future__ import annotations
 import io
 import json
 import logging
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -29,6 +28,8 @@ import torch
 
 from edge.core.atomic import atomic_write_bytes
 from edge.core.errors import ModelError
+from edge.core.progress import PLAIN_EVERY_S
+from edge.core.progress import Progress as Bar
 from train.data import Normaliser, Samples, TrainingData
 from train.model import ModelConfig, TactileAutoencoder, set_determinism
 
@@ -84,23 +85,31 @@ class TrainResult:
 
 
 class Progress:
-    """One progress line on stderr: in place on a terminal, every N epochs otherwise."""
+    """Training progress on stderr (:mod:`edge.core.progress`: a tqdm bar on a terminal,
+    a whole line every few seconds otherwise). One object can follow several trainings in a
+    row (the release trains the VQ-VAE, then the beta-VAE)."""
 
-    def __init__(self, stream: TextIO | None = None, every: int = 10,
+    def __init__(self, stream: TextIO | None = None, every_s: float = PLAIN_EVERY_S,
                  enabled: bool = True) -> None:
-        self.stream = stream or sys.stderr
-        self.tty = self.stream.isatty()
-        self.every = every
+        self.stream = stream
+        self.every_s = every_s
         self.enabled = enabled
+        self._bar: Bar | None = None
+
+    def begin(self, desc: str, total: int) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        self._bar = Bar(desc, total, "epochs", stream=self.stream, every_s=self.every_s,
+                        enabled=self.enabled)
 
     def update(self, epoch: int, line: str, final: bool = False) -> None:
-        if not self.enabled:
-            return
-        if self.tty:
-            end = "\n" if final else ""
-            print(f"\r\x1b[2K{line}", end=end, file=self.stream, flush=True)
-        elif final or epoch == 1 or epoch % self.every == 0:
-            print(line, file=self.stream, flush=True)
+        if self._bar is None:
+            self.begin("train", 0)
+        assert self._bar is not None
+        self._bar.set(epoch, line)
+        if final:
+            self._bar.close()
+            self._bar = None
 
 
 def _batches(n: int, size: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -184,6 +193,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
     started = time.perf_counter()
     stopped = "max epochs"
     epoch = 0
+    progress.begin(f"train {cfg.variant}", config.max_epochs)
     for epoch in range(1, config.max_epochs + 1):
         t0 = time.perf_counter()
         model.train()
@@ -233,9 +243,9 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
         if on_epoch:
             on_epoch(row)
         codes = f" dead {dead:2d}/{cfg.codebook_size}" if dead is not None else ""
-        progress.update(epoch, f"[{cfg.variant}] epoch {epoch:3d} train "
-                               f"{train_losses['loss']:.4f} (recon {train_losses['recon']:.4f})"
-                               f" val {val:.4f} best {best_val:.4f}@{best_epoch}{codes}")
+        progress.update(epoch, f"train {train_losses['loss']:.4f} (recon "
+                               f"{train_losses['recon']:.4f}) val {val:.4f} best "
+                               f"{best_val:.4f}@{best_epoch}{codes}")
         if wait >= config.patience:
             stopped = "early stop"
             break
@@ -243,8 +253,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
     assert best_state is not None
     model.load_state_dict(best_state)
     model.eval()
-    progress.update(epoch, f"[{cfg.variant}] {stopped} after {epoch} epochs "
-                           f"({seconds:.1f} s): best val {best_val:.4f} at epoch {best_epoch}",
+    progress.update(epoch, f"{stopped}: best val {best_val:.4f} at epoch {best_epoch}",
                     final=True)
     log.info("trained %s: %d epochs, best val %.4f at %d, %.1f s",
              cfg.variant, epoch, best_val, best_epoch, seconds)

@@ -235,11 +235,16 @@ class RuntimeConfig:
     close_timeout_s: float = 8.0
     vlm_retry_base_s: float = 5.0
     vlm_retry_max_s: float = 300.0
+    # Record the live tactile stream and events to MCAP segments here ("": off).
+    record_mcap_dir: str = ""
+    record_mcap_segment_s: float = 600.0
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
                      "vlm_retry_max_s"):
             _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
+        _require(self.record_mcap_segment_s >= 1, path, "record_mcap_segment_s",
+                 self.record_mcap_segment_s, "must be >= 1 s")
 
 
 def _default_poses() -> dict[str, tuple[int, ...]]:
@@ -352,6 +357,57 @@ class VLMConfig:
 
 
 @dataclass(frozen=True)
+class MqttConfig:
+    """The ``[mqtt]`` section: the MQTT bridge (off unless ``enabled``)."""
+
+    enabled: bool = False
+    host: str = "127.0.0.1"
+    port: int = 1883  # 8883 is the usual port with tls
+    # "" = "vtzero-<hostname>"; unique per broker (a second client with it is disconnected).
+    client_id: str = ""
+    # Topic prefix of this robot; "" = "vtzero/<hostname>".
+    prefix: str = ""
+    username: str = ""
+    # The password in a file of its own (kept out of the config file; never logged).
+    password_file: str = ""
+    tls: bool = False
+    # CA bundle for tls; "" = the system's.
+    ca_file: str = ""
+    keepalive_s: int = 30
+    connect_timeout_s: float = 5.0
+    # Waiting for the broker's acknowledgement of a QoS 1 message.
+    publish_timeout_s: float = 5.0
+    reconnect_base_s: float = 0.5
+    reconnect_max_backoff_s: float = 30.0
+    # Results kept for the broker while it is away (the oldest dropped beyond).
+    queue_size: int = 1000
+
+    def validate(self, path: str) -> None:
+        _require(bool(self.host.strip()), path, "host", self.host, "must name the broker")
+        _require(1 <= self.port <= 65535, path, "port", self.port, "must be 1..65535")
+        _require(len(self.client_id) <= 128 and (not self.client_id
+                                                 or self.client_id.isprintable()),
+                 path, "client_id", self.client_id, "must be printable, at most 128 characters")
+        _require(not any(c in self.prefix for c in "+#\0") and not self.prefix.startswith("/")
+                 and not self.prefix.endswith("/") and "//" not in self.prefix
+                 and len(self.prefix) <= 200, path, "prefix", self.prefix,
+                 "must be a topic without wildcards (+, #) or a leading/trailing '/'")
+        _require(not self.password_file or bool(self.username), path, "password_file",
+                 self.password_file, "needs a username")
+        _require(not self.ca_file or self.tls, path, "ca_file", self.ca_file,
+                 "is used with tls = true only")
+        _require(5 <= self.keepalive_s <= 65535, path, "keepalive_s", self.keepalive_s,
+                 "must be 5..65535 s")
+        for name in ("connect_timeout_s", "publish_timeout_s", "reconnect_base_s"):
+            _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
+        _require(self.reconnect_max_backoff_s >= self.reconnect_base_s, path,
+                 "reconnect_max_backoff_s", self.reconnect_max_backoff_s,
+                 "must be >= reconnect_base_s")
+        _require(1 <= self.queue_size <= 100_000, path, "queue_size", self.queue_size,
+                 "must be 1..100000")
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration; ``mode`` says whether devices are real or emulated."""
 
@@ -365,6 +421,7 @@ class Config:
     button: ButtonConfig = field(default_factory=ButtonConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     vlm: VLMConfig = field(default_factory=VLMConfig)
+    mqtt: MqttConfig = field(default_factory=MqttConfig)
     poses: dict[str, tuple[int, ...]] = field(default_factory=_default_poses)
 
     def validate(self, path: str) -> None:

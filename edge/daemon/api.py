@@ -1,7 +1,8 @@
 """The HTTP API (aiohttp): trigger recognitions, read episodes, follow events.
 
 Routes: ``POST /v1/recognize``, ``GET /v1/episodes/{id}``, ``GET /v1/events`` (server-sent
-events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text).
+events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text); the
+operator page at ``/`` and its data routes (:mod:`edge.daemon.webui`).
 Loopback only by default; bound anywhere else it refuses to start without a bearer token,
 and then every route but ``/healthz`` requires it. Bad input gets a 4xx with a message a
 person can act on, and nothing is half-done: validation happens before any arm motion.
@@ -21,7 +22,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
@@ -39,6 +40,12 @@ from edge.core.errors import (
 from edge.core.images import check_image
 from edge.daemon.episode import Episode
 from edge.daemon.events import Subscription
+from edge.daemon.webui import OperatorPage
+
+if TYPE_CHECKING:
+    from edge.core.config import Config
+    from edge.daemon.sensor import FrameRing
+    from edge.daemon.store import EpisodeStore
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -48,7 +55,8 @@ SSE_KEEPALIVE_S = 15.0
 _RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
 _ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, GET /v1/events, POST /v1/abort, "
-           "GET /healthz, GET /metrics")
+           "GET /healthz, GET /metrics, GET / (operator page), GET /v1/episodes?limit=N, "
+           "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile")
 
 
 class Runtime(Protocol):
@@ -68,6 +76,11 @@ class Runtime(Protocol):
     def metrics_text(self) -> str: ...
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T: ...
+
+    # Read by the services beside the press (the operator page, MQTT, MCAP).
+    cfg: Config
+    ring: FrameRing  # read only, through edge.daemon.taps
+    store: EpisodeStore  # read only, through its public methods
 
 
 
@@ -157,6 +170,9 @@ class Api:
             web.get("/healthz", self.healthz),
             web.get("/metrics", self.metrics),
         ])
+        # The operator page at / and its data: edge/daemon/webui.py.
+        self.ui = OperatorPage(runtime, self.token)
+        self.ui.install(self.app)
         self._runner: web.AppRunner | None = None
         self.port: int | None = None
 
@@ -193,12 +209,22 @@ class Api:
             given = request.headers.get("Authorization", "")
             expected = f"Bearer {self.token}"
             if not hmac.compare_digest(given.encode(), expected.encode()):
-                return web.json_response({"error": "missing or wrong bearer token"},
-                                         status=401,
-                                         headers={"WWW-Authenticate": "Bearer"})
+                # The operator page: a browser's session cookie, or the login.
+                verdict = self.ui.check(request)
+                if verdict == "login":
+                    return await self.ui.login(request)
+                if verdict != "ok":
+                    return web.json_response({"error": "missing or wrong bearer token"},
+                                             status=401,
+                                             headers={"WWW-Authenticate": "Bearer"})
         if self.runtime is None:
             return _error(503, "the daemon is starting; try again in a moment")
         return await handler(request)
+
+    def attach(self, runtime: Runtime) -> None:
+        """The runtime the routes serve, once the daemon has one (503 until then)."""
+        self.runtime = runtime
+        self.ui.attach(runtime)
 
     async def start(self) -> int:
         self._runner = web.AppRunner(self.app, access_log=None, handle_signals=False)

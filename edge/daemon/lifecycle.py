@@ -38,6 +38,7 @@ from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.services import optional_services
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
 from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
@@ -188,6 +189,9 @@ class Runtime:
                 tg.create_task(self._watchdog(), name="watchdog")
                 tg.create_task(self._button(), name="button")
                 tg.create_task(self.recognizer.retry_pending(), name="vlm-retry")
+                # What the configuration turns on besides: live MCAP recording, MQTT.
+                for name, service in optional_services(self):
+                    tg.create_task(service, name=name)
                 # The model loaded and run once in the compute process: the first press
                 # pays nothing for it.
                 await self.compute.run(warm_up, self.model)

@@ -194,6 +194,10 @@ class PressController:
         self.state = state
         outcome.states.append((state, self.clock()))
         self.on_state(state)
+        if self._user_abort.is_set() and state in _ABORTABLE:
+            # Asked before the threshold was armed (above, lowered, tare): the press stops
+            # at this step instead of going on to close on the object.
+            raise _AbortRequested
 
     async def run(self) -> PressOutcome:
         outcome = PressOutcome()
@@ -233,6 +237,8 @@ class PressController:
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
                 if armed.abort.is_set():
                     self._abort_reason(outcome, armed)
+        except _AbortRequested:
+            outcome.result, outcome.message = "aborted", "aborted on request"
         except StaleSensorError as exc:
             outcome.result, outcome.message = "stale", str(exc)
         except EdgeError as exc:
@@ -375,6 +381,14 @@ class PressController:
             except DeviceError as exc:
                 log.debug("gripper trace read failed: %s", exc)
             await asyncio.sleep(GRIPPER_TRACE_PERIOD_S)
+
+
+# The states a press can be stopped at by an abort request before the threshold is armed.
+_ABORTABLE = frozenset({"lowered", "tare", "closing"})
+
+
+class _AbortRequested(Exception):
+    """An abort request reached the press before the gripper closed."""
 
 
 def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"

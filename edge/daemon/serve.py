@@ -23,6 +23,7 @@ from edge.daemon.api import Api, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.devices import close_devices, enable_torque, open_devices
 from edge.daemon.lifecycle import Devices, Runtime
+from edge.daemon.mqtt import check_config as check_mqtt
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -119,6 +120,7 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         # A configuration the API refuses (exposed without a token) is refused before any
         # device is touched: no torque on an arm the daemon will not run.
         load_token(cfg.api)
+        check_mqtt(cfg.mqtt)  # the MQTT bridge's client library, password and CA files
         notifier.status("starting: loading model")
         model = await asyncio.to_thread(model_ref, cfg)
         compute = await stack.enter_async_context(ComputeWorker())
@@ -150,7 +152,7 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
 
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
         runtime.started_at = started
-        api.runtime = runtime
+        api.attach(runtime)
         await enable_torque(devices)
         yield Daemon(cfg, runtime, api, devices, store, compute)
 

@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from edge.core import preprocess
+from edge.core.progress import Progress
 from edge.daemon.press import PressController, PressOutcome
 from edge.tools.demo import http_json
 
@@ -661,10 +662,11 @@ class RuntimeBench:
         _progress(f"runtime: {self.s.quiet_presses} presses with no extra load (overhead)")
         window = SamplerWindow(self.runtime.sampler)
         try:
-            for i in range(self.s.quiet_presses):
-                rec = await self._press_ok("quiet", "per_frame", OBJECTS[i % len(OBJECTS)])
-                _progress(f"  quiet press {i + 1}: {rec.result}, stop latency "
-                          f"{_fmt(rec.stop_latency_ms)} ms, press {_fmt(rec.press_s)} s")
+            with Progress("bench quiet", self.s.quiet_presses, "presses") as bar:
+                for i in range(self.s.quiet_presses):
+                    rec = await self._press_ok("quiet", "per_frame", OBJECTS[i % len(OBJECTS)])
+                    bar.update(1, f"{rec.result}, stop latency {_fmt(rec.stop_latency_ms)} ms, "
+                                  f"press {_fmt(rec.press_s)} s")
         finally:
             self.quiet_stats = window.close()
 
@@ -717,15 +719,14 @@ class RuntimeBench:
         try:
             await asyncio.sleep(1.0)  # let the load settle in
             total = s.presses * len(CONTROLLERS)
-            done = 0
-            for i in range(s.presses):
-                obj = OBJECTS[i % len(OBJECTS)]
-                for name in CONTROLLERS:
-                    rec = await self._press_ok("load", name, obj)
-                    done += 1
-                    _progress(f"  loaded press {done}/{total} ({name}, {obj}): {rec.result}, "
-                              f"stop latency {_fmt(rec.stop_latency_ms)} ms, overshoot "
-                              f"{_fmt(rec.overshoot_n, 3)} N")
+            with Progress("bench under load", total, "presses") as bar:
+                for i in range(s.presses):
+                    obj = OBJECTS[i % len(OBJECTS)]
+                    for name in CONTROLLERS:
+                        rec = await self._press_ok("load", name, obj)
+                        bar.update(1, f"{name}, {obj}: {rec.result}, stop latency "
+                                      f"{_fmt(rec.stop_latency_ms)} ms, overshoot "
+                                      f"{_fmt(rec.overshoot_n, 3)} N")
             left = s.load_min_s - (time.monotonic() - t0)
             if left > 0:
                 _progress(f"  load continues {left:.0f} s more (sampler window)")
@@ -1261,7 +1262,8 @@ def train_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
     from edge.core.model import read_manifest
     from edge.sim.record import record_dataset
     from train.data import training_data
-    from train.trainer import Progress, TrainConfig, train
+    from train.trainer import Progress as TrainProgress
+    from train.trainer import TrainConfig, train
 
     manifest = read_manifest(MODELS)
     shipped = manifest["training"]["vq"]
@@ -1277,7 +1279,7 @@ def train_phase(s: Settings, tmp: Path) -> tuple[dict[str, Any], list[str]]:
     _progress(f"training: recorded in {record_s:.1f} s; training the VQ encoder "
               f"(shipped config, max {config.max_epochs} epochs, patience {config.patience}, "
               f"{config.threads} thread(s))")
-    result = train(data, config, None, Progress(every=10))
+    result = train(data, config, None, TrainProgress())
     epochs_note = ("shipped configuration" if s.train_max_epochs is None
                    else f"QUICK: capped at {s.train_max_epochs} epochs, not the shipped run")
     fig = figure([result.seconds], "s", None, epochs=result.epochs,

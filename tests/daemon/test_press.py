@@ -237,3 +237,22 @@ async def test_the_recording_covers_the_window_the_controller_is_given():
         ctl.window = wide
         outcome = await ctl.run()
     assert outcome.window.recv_time[-1] >= outcome.t_stop + wide.after_s
+
+
+@pytest.mark.parametrize("at", ["above", "lowered", "tare"])
+async def test_an_abort_request_before_closing_stops_the_press_there(at):
+    cfg = config()
+    async with rig(cfg) as (ctl, gripper, arm, _p, states, _o):
+        answers = []
+
+        def on_state(state: str) -> None:
+            states.append(state)
+            if state == at:  # asked the moment the press gets there
+                answers.append(ctl.request_abort())
+
+        ctl.on_state = on_state
+        outcome = await ctl.run()
+    assert answers == [True]
+    assert (outcome.result, outcome.message) == ("aborted", "aborted on request")
+    assert "closing" not in states and not any(c.startswith("close") for c in gripper.calls)
+    assert opened(gripper, cfg) and arm.history[-1] == "above"

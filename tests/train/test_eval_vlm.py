@@ -240,7 +240,8 @@ def test_cli_with_key_photos_limit_and_dry_run(released, work, tmp_path, capsys,
                    for r in fake.chat_requests)
         assert {r.images[0] for r in fake.chat_requests} == {pictures[c] for c in CUBE[:3]}
         assert "| Vision + tactile (VQ-VAE, top-1) |" in captured.out
-        assert "eval-vlm: 6/6 answered (0 cached, 6 asked, 0 invalid)" in captured.err
+        assert "eval-vlm: 6/6 answers" in captured.err
+        assert "0 cached, 6 asked, 0 invalid" in captured.err
         (photos / "cube" / "raw_kiri_mochi.png").unlink()
         assert main([*args, "--conditions", "vision_only"]) == 2  # a photo missing
         assert "no photo of cube/raw_kiri_mochi" in capsys.readouterr().err
