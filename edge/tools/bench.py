@@ -1214,7 +1214,8 @@ def retrieval_phase(s: Settings) -> tuple[dict[str, Any], list[str]]:
         dbs.append(("1m", synthetic(s.retrieval_refs, s.retrieval_classes)))
     rng = np.random.default_rng(1)
     for name, db in dbs:
-        refs, labels = db._refs, db.label_index
+        # The embeddings topk compares (its space), grouped by class like label_index.
+        refs, labels = (db.z if db.space == "z" else db.z_q), db.label_index
         if name == "shipped":
             qs = refs[rng.integers(0, len(refs), s.retrieval_queries)] + \
                 rng.normal(0, 0.05 * refs.std(), (s.retrieval_queries, db.dim))

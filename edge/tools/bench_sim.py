@@ -131,35 +131,21 @@ async def _robot(args: argparse.Namespace) -> None:
 
 
 async def _vlm(args: argparse.Namespace) -> None:
-    from edge.sim.fake_vlm import FakeVLM
+    from edge.sim.fake_vlm import FakeRequest, FakeVLM
 
-    class TimedFakeVLM(FakeVLM):
-        """Records the monotonic time each chat request arrived (headers read)."""
+    arrivals: list[FakeRequest] = []
 
-        def __init__(self, **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            self.arrivals: list[tuple[float, Any]] = []
+    def on_request(rec: FakeRequest) -> None:
+        arrivals.append(rec)
+        # Keep memory flat under a long load: images are not needed afterwards.
+        rec.images, rec.raw, rec.body = [], b"", None
 
-        async def _chat(self, request: web.Request) -> web.StreamResponse:
-            t = time.monotonic()
-            n = len(self.requests)
-            # FakeVLM appends the request record before its first await: index n is ours.
-            coro = super()._chat(request)
-            try:
-                return await coro
-            finally:
-                if len(self.requests) > n:
-                    self.arrivals.append((t, self.requests[n]))
-                # Keep memory flat under a long load: images are not needed afterwards.
-                for rec in self.requests[n:n + 1]:
-                    rec.images, rec.raw, rec.body = [], b"", None
-
-    fake = TimedFakeVLM(model="fake-vlm", latency_s=args.latency_s)
+    fake = FakeVLM(model="fake-vlm", latency_s=args.latency_s, on_request=on_request)
 
     async def received(request: web.Request) -> web.Response:
         return web.json_response([
-            {"t": t, "candidates": rec.candidates, "status": rec.status, "error": rec.error}
-            for t, rec in fake.arrivals])
+            {"t": rec.received_at, "candidates": rec.candidates, "status": rec.status,
+             "error": rec.error} for rec in arrivals])
 
     async with fake:
         runner, url = await _control_app([web.get("/received", received)])
