@@ -182,8 +182,8 @@ def _cmd_rehash(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from edge.core.model import load_model
-    from train.database import synthetic, topk_timing
+    from edge.core.model import load_model, synthetic_database
+    from train.database import topk_timing
     from train.release import encode_timing
 
     model = load_model(args.model)
@@ -193,7 +193,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
           {k: round(v, 3) for k, v in encode_timing(data, x).items()})
     print(f"top-k on the shipped database ({len(model.database)} refs):",
           topk_timing(model.database))
-    db = synthetic(args.refs, args.classes)
+    db = synthetic_database(args.refs, args.classes)
     print(f"top-k on a synthetic database ({args.refs} refs, {args.classes} classes):",
           topk_timing(db))
     return 0

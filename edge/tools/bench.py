@@ -1198,20 +1198,15 @@ def numpy_topk(refs: np.ndarray, labels: np.ndarray, q: np.ndarray, k: int) -> l
 
 
 def retrieval_phase(s: Settings) -> tuple[dict[str, Any], list[str]]:
-    from edge.core.model import load_model
+    from edge.core.model import load_model, synthetic_database
 
     notes: list[str] = []
     figs: dict[str, Any] = {}
     shipped = load_model(MODELS).database
     dbs = [("shipped", shipped)]
-    try:
-        from train.database import synthetic
-    except ImportError as exc:
-        notes.append(f"no 1M retrieval figure: the train package is unavailable ({exc})")
-    else:
-        _progress(f"retrieval: building a synthetic database of {s.retrieval_refs:,} "
-                  f"references, {s.retrieval_classes} classes")
-        dbs.append(("1m", synthetic(s.retrieval_refs, s.retrieval_classes)))
+    _progress(f"retrieval: building a synthetic database of {s.retrieval_refs:,} "
+              f"references, {s.retrieval_classes} classes")
+    dbs.append(("1m", synthetic_database(s.retrieval_refs, s.retrieval_classes)))
     rng = np.random.default_rng(1)
     for name, db in dbs:
         # The embeddings topk compares (its space), grouped by class like label_index.
