@@ -386,6 +386,16 @@ def synthetic_database(n_refs: int, n_classes: int, dim: int = 4,
                              np.full(n_refs, "synthetic"), codebook)
 
 
+def synthetic_inputs(manifest: Mapping[str, Any], n: int = 64, steps: int = 25,
+                     seed: int = 0) -> np.ndarray:
+    """``n`` encoder inputs of ``steps`` samples drawn around the model's input
+    normalisation (mean + std x N(0, 1), per channel), float32 (for timing the encoder)."""
+    mean = np.asarray(manifest["encoder"]["mean"], dtype=np.float32)
+    std = np.asarray(manifest["encoder"]["std"], dtype=np.float32)
+    rng = np.random.default_rng(seed)
+    return (mean + std * rng.standard_normal((n, steps, mean.shape[-1]))).astype(np.float32)
+
+
 # --------------------------------------------------------------------------------------
 # The model directory
 

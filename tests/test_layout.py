@@ -1,0 +1,79 @@
+"""The layout is the architecture: imports run one way.
+
+edge.core <- edge.hw <- edge.daemon <- edge.tools (and the CLI); edge.sim and train may use
+the core (the simulator also the hardware contracts and tables, train the simulator to
+record datasets); nothing in edge imports train, and the daemon never loads the simulator.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Which packages each layer may import (besides itself and the stdlib/third parties).
+ALLOWED = {
+    "edge.core": {"edge", "edge.core"},
+    "edge.hw": {"edge", "edge.core", "edge.hw"},
+    "edge.daemon": {"edge", "edge.core", "edge.hw", "edge.daemon"},
+    "edge.sim": {"edge", "edge.core", "edge.hw", "edge.sim"},
+    "edge.tools": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools"},
+    "edge.cli": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools"},
+    "edge.__main__": {"edge", "edge.cli"},
+    "edge": {"edge"},
+    "train": {"edge", "edge.core", "edge.sim", "train"},
+}
+
+
+def _module(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _layer(module: str) -> str:
+    for layer in sorted(ALLOWED, key=len, reverse=True):
+        if module == layer or module.startswith(layer + "."):
+            return layer
+    raise AssertionError(f"{module} is in no layer")
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """Every project module ``path`` imports, at any depth (lazy imports included)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.append((node.lineno, node.module))
+            out += [(node.lineno, f"{node.module}.{a.name}") for a in node.names
+                    if node.module in ("edge", "train")]
+    return [(line, m) for line, m in out if m.split(".")[0] in ("edge", "train")]
+
+
+def test_imports_run_one_way():
+    wrong = []
+    for path in sorted([*ROOT.glob("edge/**/*.py"), *ROOT.glob("train/**/*.py")]):
+        layer = _layer(_module(path))
+        for line, target in _imports(path):
+            if target in ("edge.__version__",):
+                continue
+            if _layer(target) not in ALLOWED[layer]:
+                wrong.append(f"{path.relative_to(ROOT)}:{line} ({layer}) imports {target}")
+    assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
+
+
+@pytest.mark.parametrize("module", ["edge.daemon.serve", "edge.daemon.lifecycle", "edge.cli"])
+def test_the_daemon_loads_neither_training_nor_the_simulator(module):
+    code = (f"import sys, {module}; "
+            "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('train') "
+            "or m.startswith('edge.sim') or m.startswith('edge.tools')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True).stdout.strip()
+    assert out == "[]", f"importing {module} loaded {out}"
