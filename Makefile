@@ -20,8 +20,11 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
+# The runtime's figures (vt-edge bench, no torch), then the torch and training ones added to
+# the same bench/results.json and results.md (vt-train bench).
 bench: $(STAMP)
-	$(PY) -m edge bench
+	$(PY) -m edge bench --out bench
+	$(PY) -m train bench --merge-into bench/results.json
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

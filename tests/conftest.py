@@ -1,8 +1,15 @@
-"""Shared pytest set-up: tests marked ``slow`` are deselected unless ``--run-slow``."""
+"""Shared pytest set-up: tests marked ``slow`` are deselected unless ``--run-slow``; tests
+marked ``needs_program(present, reason)`` skip, saying why, where a system program is
+missing, and fail instead under CI (``CI=true``), which installs them: a skip there would
+hide a test that never ran."""
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -16,3 +23,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if slow:
         config.hook.pytest_deselected(items=slow)
         items[:] = [item for item in items if "slow" not in item.keywords]
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    for mark in item.iter_markers("needs_program"):
+        present, reason = mark.args
+        if not present:
+            if IN_CI:
+                pytest.fail(f"{reason}; under CI this test must run", pytrace=False)
+            pytest.skip(reason)

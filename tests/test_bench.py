@@ -1,4 +1,6 @@
-"""``vt-edge bench`` end to end with tiny durations: every figure is written, with numbers.
+"""``make bench`` end to end with tiny durations: ``vt-edge bench`` writes every figure of the
+runtime side, ``vt-train bench --merge-into`` adds the torch and training figures to the same
+results files.
 
 Structure and generous sanity bounds only: the targets are what the bench reports, never
 what this test asserts (the box running the tests is shared and noisy).
@@ -9,32 +11,43 @@ import json
 import math
 from dataclasses import replace
 
+import pytest
+
+from edge.core.figures import figure, ratio_figure, target
+from edge.core.results import markdown
 from edge.tools import bench
+from edge.tools.bench.settings import CONTROLLERS
+from train import bench as train_bench
 
 TINY = replace(bench.QUICK, presses=2, quiet_presses=1, load_min_s=2.0, daemon_runs=1,
-               rss_samples=1, encode_n=30, retrieval_queries=10, brute_queries_1m=2,
-               train_presses=1, train_max_epochs=1)
+               rss_samples=1, encode_n=30, retrieval_queries=10, brute_queries_1m=2)
+TINY_TRAIN = replace(train_bench.QUICK, encode_n=30, train_presses=1, train_max_epochs=1)
 
 
-def test_bench_writes_every_figure(tmp_path):
+def check_figure(key, fig):
+    assert isinstance(fig["n"], int) and fig["n"] >= 1, (key, fig)
+    for stat in ("p50", "p99", "max"):
+        assert isinstance(fig[stat], float | int) and math.isfinite(fig[stat]), (key, fig)
+    assert fig["p50"] <= fig["p99"] + 1e-9 or fig["unit"] == "ratio", (key, fig)
+    assert isinstance(fig["unit"], str) and fig["unit"]
+    assert (fig["target"] is None) == (fig["met"] is None), (key, fig)
+    assert fig["met"] in (True, False, None)
+    assert 0 <= fig["host_cores_busy"] <= 64, (key, fig)
+
+
+def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
+    results_json = tmp_path / "results.json"
     assert bench.bench(tmp_path, TINY) == 0
-    results = json.loads((tmp_path / "results.json").read_text())
-    has_torch = importlib.util.find_spec("torch") is not None
-    expected = [k for k in bench.FIGURES if has_torch or k not in bench.TORCH_FIGURES]
-    missing = [k for k in expected if k not in results]
+    results = json.loads(results_json.read_text())
+    missing = [k for k in bench.FIGURES if k not in results]
     assert not missing, missing
-    for key in expected:
-        fig = results[key]
-        assert isinstance(fig["n"], int) and fig["n"] >= 1, (key, fig)
-        for stat in ("p50", "p99", "max"):
-            assert isinstance(fig[stat], float | int) and math.isfinite(fig[stat]), (key, fig)
-        assert fig["p50"] <= fig["p99"] + 1e-9 or fig["unit"] == "ratio", (key, fig)
-        assert isinstance(fig["unit"], str) and fig["unit"]
-        assert (fig["target"] is None) == (fig["met"] is None), (key, fig)
-        assert fig["met"] in (True, False, None)
+    assert not [k for k in train_bench.FIGURES if k in results]  # the edge side has no torch
+    for key in bench.FIGURES:
+        check_figure(key, results[key])
     host = results["host"]
     assert host["cores"] >= 1 and len(host["loadavg_start"]) == 3 and host["python"]
     assert results["run"]["quick"] is True
+    assert results["run"]["phases"] == list(bench.PHASES)
 
     # Sanity, far from the targets: the stop follows the crossing within a second, the
     # overshoot is a few newtons at most, the daemon starts and stays a plausible size.
@@ -46,20 +59,47 @@ def test_bench_writes_every_figure(tmp_path):
     assert results["sampler_period_error_ms"]["ticks"] > 100
     assert 0 <= results["overhead_ms"]["p50"] < 5000
     assert results["retrieval_ms_1m"]["references"] == 1_000_000
+    raw_before = (tmp_path / "raw.json").read_bytes()
+    raw = json.loads(raw_before)
+    assert len(raw["presses"]) >= TINY.quiet_presses + TINY.presses * len(CONTROLLERS)
 
+    # The training side adds its phases to the same files; raw.json is the edge side's.
+    assert train_bench.bench(TINY_TRAIN, merge_into=results_json) == 0
+    merged = json.loads(results_json.read_text())
+    has_torch = importlib.util.find_spec("torch") is not None
+    added = list(train_bench.FIGURES) if has_torch else []
+    for key in [*bench.FIGURES, *added]:
+        check_figure(key, merged[key])
+    assert {k: merged[k] for k in bench.FIGURES} == {k: results[k] for k in bench.FIGURES}
+    assert merged["run"]["phases"] == [*bench.PHASES, *train_bench.PHASES]
+    assert "vt-edge bench" in merged["run"]["command"]
+    assert "vt-train bench" in merged["run"]["command"]
+    assert merged["notes"][:len(results["notes"])] == results["notes"]
+    assert (tmp_path / "raw.json").read_bytes() == raw_before
+    if has_torch:
+        assert merged["encode_ms_torch"]["parity_max_abs_dz"] < 1e-4
+        assert merged["encode_speedup_vs_torch"]["onnxruntime_ms"]["n"] >= TINY_TRAIN.encode_n
+
+    # results.md is rendered from results.json alone: every figure, the sections, in order.
     md = (tmp_path / "results.md").read_text()
-    assert "| figure | p50 | p99 | max |" in md
-    assert all(f"`{k}`" in md for k in expected)
-    raw = json.loads((tmp_path / "raw.json").read_text())
-    assert len(raw["presses"]) >= TINY.quiet_presses + TINY.presses * len(bench.CONTROLLERS)
+    assert md == markdown(merged)
+    assert "| figure | p50 | p99 | max |" in md and "## The load" in md
+    rows = [line.split("`")[1] for line in md.splitlines() if line.startswith("| `")]
+    assert rows == [*bench.FIGURES, *added]
+
+    # A merge that would mix runs is refused before measuring anything.
+    with pytest.raises(ValueError, match="already holds the phases"):
+        train_bench.bench(TINY_TRAIN, merge_into=results_json)
+    with pytest.raises(ValueError, match="quick"):
+        train_bench.bench(train_bench.FULL, merge_into=results_json)
 
 
 def test_figure_targets_and_ratios():
-    fig = bench.figure([1.0, 2.0, 3.0], "ms", bench.target(("p99", "<=", 2.0)))
+    fig = figure([1.0, 2.0, 3.0], "ms", target(("p99", "<=", 2.0)))
     assert fig["n"] == 3 and fig["max"] == 3.0 and fig["met"] is False
-    fast = bench.figure([1.0] * 10, "ms")
-    slow = bench.figure([8.0] * 10, "ms")
-    ratio = bench.ratio_figure(slow, fast, bench.target(("p50", ">=", 5.0)))
+    fast = figure([1.0] * 10, "ms")
+    slow = figure([8.0] * 10, "ms")
+    ratio = ratio_figure(slow, fast, target(("p50", ">=", 5.0)))
     assert ratio["p50"] == 8.0 and ratio["met"] is True and ratio["unit"] == "ratio"
-    assert bench.figure([], "ms", bench.target(("p50", "<=", 1.0)))["met"] is False
-    assert bench.figure([1.0], "N")["met"] is None
+    assert figure([], "ms", target(("p50", "<=", 1.0)))["met"] is False
+    assert figure([1.0], "N")["met"] is None

@@ -184,23 +184,11 @@ def _cmd_rehash(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    import numpy as np
+    from train.bench import FULL, QUICK, bench
 
-    from edge.core.model import load_model
-    from train.database import synthetic, topk_timing
-    from train.release import encode_timing
-
-    model = load_model(args.model)
-    x = np.random.default_rng(0).normal(0, 1e-3, (64, 25, 96)).astype(np.float32)
-    data = (Path(args.model) / "encoder.onnx").read_bytes()
-    print("encode (onnxruntime, 1 thread, one sequence):",
-          {k: round(v, 3) for k, v in encode_timing(data, x).items()})
-    print(f"top-k on the shipped database ({len(model.database)} refs):",
-          topk_timing(model.database))
-    db = synthetic(args.refs, args.classes)
-    print(f"top-k on a synthetic database ({args.refs} refs, {args.classes} classes):",
-          topk_timing(db))
-    return 0
+    return bench(QUICK if args.quick else FULL, models=Path(args.model),
+                 merge_into=Path(args.merge_into) if args.merge_into else None,
+                 out=Path(args.out))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -317,10 +305,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", required=True)
     p.set_defaults(func=_cmd_rehash)
 
-    p = sub.add_parser("bench", help="encode and top-k timings")
-    p.add_argument("--model", default="models")
-    p.add_argument("--refs", type=int, default=1_000_000)
-    p.add_argument("--classes", type=int, default=1000)
+    p = sub.add_parser("bench", help="the bench's torch and training figures "
+                       "(after vt-edge bench: --merge-into bench/results.json)")
+    p.add_argument("--model", default="models", help="model directory (default models)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--merge-into", metavar="RESULTS_JSON",
+                       help="add the figures to this results.json of vt-edge bench (and "
+                       "render its results.md again)")
+    where.add_argument("--out", default="bench",
+                       help="directory for a results file of its own (default bench)")
+    p.add_argument("--quick", action="store_true",
+                   help="short runs (a smoke test; figures are not representative)")
     p.set_defaults(func=_cmd_bench)
     return parser
 

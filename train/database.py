@@ -132,20 +132,6 @@ def add_class(model_dir: str | Path, recordings: str | Path, label: str,
     return db
 
 
-def synthetic(n_refs: int, n_classes: int, dim: int = 4, seed: int = 0) -> ReferenceDatabase:
-    """A random database of ``n_refs`` references (for timing retrieval)."""
-    rng = np.random.default_rng(seed)
-    z = rng.standard_normal((n_refs, dim)).astype(np.float32)
-    label_index = np.sort(rng.integers(0, n_classes, n_refs)).astype(np.int32)
-    label_index[:n_classes] = np.arange(n_classes)  # every class has a reference
-    label_index.sort()
-    classes = [ClassInfo(f"class_{i:05d}", f"description {i}", "train")
-               for i in range(n_classes)]
-    codebook = rng.standard_normal((32, dim)).astype(np.float32)
-    return ReferenceDatabase(classes, z, z, np.zeros(n_refs, dtype=np.int64), label_index,
-                             np.full(n_refs, "synthetic"), codebook)
-
-
 def topk_timing(db: ReferenceDatabase, queries: int = 50, k: int = DEFAULT_K,
                 seed: int = 1) -> dict[str, float]:
     """Median and 90th percentile wall time of one ``topk`` call, milliseconds."""

@@ -370,6 +370,32 @@ class ReferenceDatabase:
                               _read(directory / DATABASE_INDEX))
 
 
+def synthetic_database(n_refs: int, n_classes: int, dim: int = 4,
+                       seed: int = 0) -> ReferenceDatabase:
+    """A random database of ``n_refs`` references in ``n_classes`` classes (for timing and
+    testing retrieval)."""
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((n_refs, dim)).astype(np.float32)
+    label_index = np.sort(rng.integers(0, n_classes, n_refs)).astype(np.int32)
+    label_index[:n_classes] = np.arange(n_classes)  # every class has a reference
+    label_index.sort()
+    classes = [ClassInfo(f"class_{i:05d}", f"description {i}", "train")
+               for i in range(n_classes)]
+    codebook = rng.standard_normal((32, dim)).astype(np.float32)
+    return ReferenceDatabase(classes, z, z, np.zeros(n_refs, dtype=np.int64), label_index,
+                             np.full(n_refs, "synthetic"), codebook)
+
+
+def synthetic_inputs(manifest: Mapping[str, Any], n: int = 64, steps: int = 25,
+                     seed: int = 0) -> np.ndarray:
+    """``n`` encoder inputs of ``steps`` samples drawn around the model's input
+    normalisation (mean + std x N(0, 1), per channel), float32 (for timing the encoder)."""
+    mean = np.asarray(manifest["encoder"]["mean"], dtype=np.float32)
+    std = np.asarray(manifest["encoder"]["std"], dtype=np.float32)
+    rng = np.random.default_rng(seed)
+    return (mean + std * rng.standard_normal((n, steps, mean.shape[-1]))).astype(np.float32)
+
+
 # --------------------------------------------------------------------------------------
 # The model directory
 

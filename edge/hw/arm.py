@@ -15,7 +15,13 @@ import time
 from collections.abc import Mapping
 
 from edge.core.errors import DeviceTimeoutError
-from edge.hw.contracts import DEFAULT_MOVE_TIMEOUT_S, GripperState, GripperStop, JointPose
+from edge.hw.contracts import (
+    DEFAULT_MOVE_TIMEOUT_S,
+    GripperState,
+    GripperStop,
+    JointPose,
+    named_pose,
+)
 from edge.hw.control_table import CURRENT_MA_PER_UNIT, RAW_PER_REV, RAW_PER_S_PER_VELOCITY_UNIT
 from edge.hw.dynamixel import DynamixelBus
 
@@ -41,13 +47,6 @@ def gripper_raw(width_m: float, reverse: bool = False) -> int:
     """The gripper motor's raw position for a width in metres (inverse of the above)."""
     raw = round((width_m + GRIPPER_OFFSET_M) / GRIPPER_M_PER_RAW)
     return RAW_PER_REV - raw if reverse else raw
-
-
-def _pose_or_raise(poses: Mapping[str, JointPose], pose: str) -> JointPose:
-    try:
-        return poses[pose]
-    except KeyError:
-        raise ValueError(f"unknown arm pose {pose!r}; known: {', '.join(sorted(poses))}") from None
 
 
 class DynamixelGripper:
@@ -164,7 +163,7 @@ class DynamixelArm:
         return self._poses
 
     async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        goals = dict(zip(self._joint_ids, _pose_or_raise(self._poses, pose), strict=True))
+        goals = dict(zip(self._joint_ids, named_pose(self._poses, pose), strict=True))
         await self._bus.sync_write("Profile Acceleration",
                                    dict.fromkeys(self._joint_ids, self._accel_time_ms))
         await self._bus.sync_write("Profile Velocity",

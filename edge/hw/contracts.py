@@ -188,6 +188,14 @@ class Gripper(Protocol):
     async def state(self) -> GripperState: ...
 
 
+def named_pose(poses: Mapping[str, JointPose], pose: str) -> JointPose:
+    """``poses[pose]``, or ValueError naming the known poses (every Arm refuses alike)."""
+    try:
+        return poses[pose]
+    except KeyError:
+        raise ValueError(f"unknown arm pose {pose!r}; known: {', '.join(sorted(poses))}") from None
+
+
 @runtime_checkable
 class Arm(Protocol):
     @property

@@ -4,7 +4,8 @@ It checks requests the way the real servers do and a little more strictly (the s
 runtime promises: ``model``, ``messages`` with a data-URL image that decodes, ``temperature``
 0, a strict ``json_schema`` response format with an enum of candidates), answers 400 to a
 malformed one, 401 to a wrong key, 404 to an unknown model, 413 to an oversized body, and
-records every request it received (``fake.requests``) for assertions.
+records every request it received (``fake.requests``, each with the monotonic time it
+arrived) for assertions; ``on_request`` is called with each once it is answered.
 
 What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
 (a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
@@ -107,6 +108,7 @@ class FakeRequest:
     prompt: str = ""
     images: list[bytes] = field(default_factory=list)
     image_mimes: list[str] = field(default_factory=list)
+    received_at: float = 0.0  # time.monotonic() when the server began handling it
 
     @property
     def description(self) -> str:
@@ -309,6 +311,7 @@ class FakeVLM:
         latency_s: float = 0.0,
         max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
         echo_key_in_errors: bool = False,
+        on_request: Callable[[FakeRequest], None] | None = None,
     ) -> None:
         self.host = host
         self.port = port
@@ -320,6 +323,8 @@ class FakeVLM:
         self.max_request_bytes = max_request_bytes
         # A careless server that quotes the key it got (to test that the client redacts it).
         self.echo_key_in_errors = echo_key_in_errors
+        # Called with each chat request once it is answered, refused or dropped.
+        self.on_request = on_request
         self.requests: list[FakeRequest] = []
         self._replies: collections.deque[Reply] = collections.deque()
         self._runner: web.AppRunner | None = None
@@ -371,8 +376,16 @@ class FakeVLM:
             {"id": self.model or "fake-vlm", "object": "model", "owned_by": "vtzero"}]})
 
     async def _chat(self, request: web.Request) -> web.StreamResponse:
-        rec = FakeRequest(request.method, request.path, dict(request.headers), b"")
+        rec = FakeRequest(request.method, request.path, dict(request.headers), b"",
+                          received_at=time.monotonic())
         self.requests.append(rec)
+        try:
+            return await self._answer(request, rec)
+        finally:
+            if self.on_request is not None:
+                self.on_request(rec)
+
+    async def _answer(self, request: web.Request, rec: FakeRequest) -> web.StreamResponse:
         try:
             rec.raw = await request.read()
         except web.HTTPRequestEntityTooLarge:

@@ -29,9 +29,9 @@ except ImportError:
     SELENIUM = False
 pytestmark = [
     pytest.mark.asyncio,
-    pytest.mark.skipif(not SELENIUM, reason="selenium is not installed (the dev extra)"),
-    pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None,
-                       reason="Chromium and chromedriver are not installed (apt-get install "
+    pytest.mark.needs_program(SELENIUM, "selenium is not installed (the dev extra)"),
+    pytest.mark.needs_program(CHROMIUM is not None and CHROMEDRIVER is not None,
+                              "Chromium and chromedriver are not installed (apt-get install "
                               "chromium chromium-driver; .ci/run installs them)"),
 ]
 TOKEN = "vtzero-test-token-0123456789abcdef"

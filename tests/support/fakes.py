@@ -22,6 +22,7 @@ from edge.hw.contracts import (
     JointPose,
     StreamStats,
     TactileFrame,
+    named_pose,
 )
 
 # --- tactile ------------------------------------------------------------------------------
@@ -209,14 +210,6 @@ class FakeGripper:
         return GripperState(self._clock(), width, self._squeeze_ma(width), gripper_raw(width))
 
 
-def _pose(poses: Mapping[str, JointPose], pose: str) -> JointPose:
-    # The same refusal as the real arm's, so tests of an unknown pose read alike.
-    try:
-        return poses[pose]
-    except KeyError:
-        raise ValueError(f"unknown arm pose {pose!r}; known: {', '.join(sorted(poses))}") from None
-
-
 class FakeArm:
     """In-memory arm: arrives at once; ``history`` lists the poses visited;
     set ``fail_next`` to make the next move raise it."""
@@ -224,7 +217,7 @@ class FakeArm:
     def __init__(self, poses: Mapping[str, JointPose], start: str | None = None) -> None:
         self._poses = dict(poses)
         first = start if start is not None else next(iter(self._poses))
-        self._joints = _pose(self._poses, first)
+        self._joints = named_pose(self._poses, first)
         self.history: list[str] = []
         self.fail_next: Exception | None = None
 
@@ -233,7 +226,7 @@ class FakeArm:
         return self._poses
 
     async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
-        target = _pose(self._poses, pose)
+        target = named_pose(self._poses, pose)
         if self.fail_next is not None:
             exc, self.fail_next = self.fail_next, None
             raise exc

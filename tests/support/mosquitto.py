@@ -15,19 +15,17 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.waits import free_port
+
 MOSQUITTO = shutil.which("mosquitto") or next(
     (p for p in ("/usr/sbin/mosquitto", "/usr/local/sbin/mosquitto") if os.access(p, os.X_OK)),
     None)
-requires_mosquitto = pytest.mark.skipif(
-    MOSQUITTO is None, reason="the mosquitto MQTT broker is not installed (apt-get install "
+requires_mosquitto = pytest.mark.needs_program(
+    MOSQUITTO is not None, "the mosquitto MQTT broker is not installed (apt-get install "
     "mosquitto; .ci/run installs it)")
 START_TIMEOUT_S = 5.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Mosquitto:

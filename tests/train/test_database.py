@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from edge.core.errors import ModelError, RecordingError
-from edge.core.model import ClassInfo, ReferenceDatabase, load_model
-from train.database import add_class, build_into, synthetic, topk_timing
+from edge.core.model import ClassInfo, ReferenceDatabase, load_model, synthetic_database
+from train.database import add_class, build_into, topk_timing
 
 
 def brute_force(db: ReferenceDatabase, q: np.ndarray, k: int) -> list[tuple[str, float]]:
@@ -28,7 +28,7 @@ def brute_force(db: ReferenceDatabase, q: np.ndarray, k: int) -> list[tuple[str,
 def test_topk_returns_k_distinct_classes_nearest_first(seed, n, classes, k):
     classes = min(classes, n)
     rng = np.random.default_rng(seed)
-    db = synthetic(n, classes, seed=seed)
+    db = synthetic_database(n, classes, seed=seed)
     q = rng.standard_normal(4).astype(np.float32)
     got = db.topk(q, k)
     labels = [lab for lab, _ in got]
@@ -66,7 +66,7 @@ def test_describe_and_z_q_space():
 
 
 def test_topk_on_a_million_references_is_fast():
-    db = synthetic(1_000_000, 1000)
+    db = synthetic_database(1_000_000, 1000)
     t = topk_timing(db, queries=30)
     print(f"\ntop-3 of 1,000,000 references (1000 classes): median {t['topk_ms_median']:.2f} "
           f"ms, p90 {t['topk_ms_p90']:.2f} ms")

@@ -7,12 +7,14 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import aiohttp
 import pytest
 
 from edge.core.vlm import response_format
+from edge.sim.fake_vlm import FakeVLM
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes
 
@@ -99,6 +101,21 @@ async def test_good_request_is_answered_like_openai(fake):
     assert req.candidates == CANDIDATES and req.description == "a rock"
     assert req.image_mimes == ["image/png"]
 
+
+
+@pytest.mark.asyncio
+async def test_on_request_sees_each_answered_request_with_its_arrival_time():
+    seen = []
+    async with FakeVLM(model=MODEL, on_request=seen.append) as fake:
+        async with aiohttp.ClientSession() as session:
+            t0 = time.monotonic()
+            for body in (good_body(), "not json"):
+                data = body if isinstance(body, str) else json.dumps(body)
+                async with session.post(f"{fake.base_url}/chat/completions", data=data) as r:
+                    await r.read()
+            t1 = time.monotonic()
+    assert [r.status for r in seen] == [200, 400] and seen == fake.requests
+    assert t0 <= seen[0].received_at <= seen[1].received_at <= t1
 
 def test_standalone_server_runs_and_stops():
     port = free_port()

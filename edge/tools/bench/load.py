@@ -1,19 +1,24 @@
-"""Helper processes of ``vt-edge bench``: the things that are not the daemon run apart from it.
+"""The load of ``vt-edge bench``: the processes around the daemon, and the work put on it.
 
 On a robot the XELA server, the motors, the VLM and whoever scrapes ``/metrics`` are other
 processes (or machines), so the bench runs each of them in its own process, never on the
-daemon's event loop:
+daemon's event loop: ``python -m edge.tools.bench.load ROLE`` with ROLE
 
 - ``robot``: the emulated robot (:class:`~edge.sim.robot.SimRobot`), plus the contact force
   behind every tactile frame it sends, by sequence number (``GET /force?seq=N``), so the
   bench can read the force at the frame that crossed ``x_th``;
-- ``vlm``: a slow :class:`~edge.sim.fake_vlm.FakeVLM` that also records when each request
+- ``vlm``: a slow :class:`~edge.sim.fake_vlm.FakeVLM` that also tells when each request
   arrived on the monotonic clock (``GET /received``), for the trigger-to-VLM overhead;
 - ``poll``: polls the daemon's ``/healthz`` and ``/metrics``; prints a summary on SIGTERM.
 
-Each prints one JSON line on stdout once it serves (its addresses), then runs until SIGTERM.
-``time.monotonic`` is CLOCK_MONOTONIC, shared by every process on the host, so times taken
-here compare directly with the daemon's.
+Each prints one JSON line on stdout once it serves (its addresses), then runs until SIGTERM;
+:class:`Helper` starts one and reads that line. ``time.monotonic`` is CLOCK_MONOTONIC, shared
+by every process on the host, so times taken there compare directly with the daemon's.
+
+The work put on the daemon itself: :func:`big_jpeg` (the camera-like still its VLM client
+sends) and :func:`encode_for` (the encoder, run in the daemon's compute process). The compute
+worker imports this module for :func:`encode_for`, so aiohttp is imported only where the
+helper roles serve.
 """
 
 from __future__ import annotations
@@ -21,23 +26,98 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import io
 import json
 import logging
 import os
+import select
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Awaitable, Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import aiohttp
 import numpy as np
-from aiohttp import web
+
+from edge.tools.bench.settings import HELPER_START_S, ROOT
+
+if TYPE_CHECKING:
+    from aiohttp import web
 
 log = logging.getLogger(__name__)
 
 FORCE_TRACE_FRAMES = 1 << 16  # ~9 min of frames at 125 Hz
 ROBOT_SWITCH_INTERVAL_S = 0.0002
+
+
+# --------------------------------------------------------------------------------------
+# The bench's side: a helper process, the work put on the daemon
+
+
+class Helper:
+    """One helper process (a ROLE of this module): its announcement line, then SIGTERM to stop."""
+
+    def __init__(self, *args: str) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen([sys.executable, "-m", "edge.tools.bench.load", *args],
+                                     cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
+        self.info = json.loads(self._line(HELPER_START_S, args[0]))
+
+    def _line(self, timeout_s: float, what: str) -> str:
+        assert self.proc.stdout is not None
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        line = self.proc.stdout.readline() if ready else ""
+        if not line:
+            self.proc.kill()
+            raise RuntimeError(f"bench helper {what} did not start (exit {self.proc.poll()})")
+        return line
+
+    def stop(self) -> str:
+        """SIGTERM; returns what it printed after its announcement."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            out, _ = self.proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        return out or ""
+
+
+def big_jpeg(size: tuple[int, int], seed: int = 0) -> bytes:
+    """A camera-like still: gradients, texture and noise, JPEG quality 92."""
+    from PIL import Image
+
+    w, h = size
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 255, w, dtype=np.float32)
+    y = np.linspace(0, 255, h, dtype=np.float32)[:, None]
+    img = np.empty((h, w, 3), dtype=np.uint8)
+    noise = rng.normal(0, 10, (h, w)).astype(np.float32)
+    img[..., 0] = np.clip(0.6 * x + 0.3 * y + noise, 0, 255)
+    img[..., 1] = np.clip(0.4 * y + 60 * np.sin(x / 40)[None, :] + 80 + noise, 0, 255)
+    img[..., 2] = np.clip(255 - 0.5 * x - 0.2 * y + noise, 0, 255)
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="JPEG", quality=92)
+    return buf.getvalue()
+
+
+def encode_for(ref: Any, seconds: float) -> int:
+    """The encoder load, in the compute process: encode and top-k back to back."""
+    from edge.daemon.compute import model_for
+
+    model = model_for(ref)
+    x = np.random.default_rng(1).normal(0, 2e-3, (25, 96)).astype(np.float32)
+    n, end = 0, time.monotonic() + seconds
+    while time.monotonic() < end:
+        model.topk(model.encode(x)[0], 3)
+        n += 1
+    return n
+
+
+# --------------------------------------------------------------------------------------
+# The helper processes' side
 
 
 class ForceTrace:
@@ -68,6 +148,8 @@ class ForceTrace:
 
 
 async def _control_app(routes: list[web.RouteDef]) -> tuple[web.AppRunner, str]:
+    from aiohttp import web
+
     app = web.Application()
     app.add_routes(routes)
     runner = web.AppRunner(app, access_log=None, handle_signals=False)
@@ -91,6 +173,8 @@ async def _until_signal(announce: dict[str, Any],
 
 
 async def _robot(args: argparse.Namespace) -> None:
+    from aiohttp import web
+
     from edge.core.config import Config, load_config
     from edge.sim.robot import SimRobot
 
@@ -131,35 +215,23 @@ async def _robot(args: argparse.Namespace) -> None:
 
 
 async def _vlm(args: argparse.Namespace) -> None:
-    from edge.sim.fake_vlm import FakeVLM
+    from aiohttp import web
 
-    class TimedFakeVLM(FakeVLM):
-        """Records the monotonic time each chat request arrived (headers read)."""
+    from edge.sim.fake_vlm import FakeRequest, FakeVLM
 
-        def __init__(self, **kwargs: Any) -> None:
-            super().__init__(**kwargs)
-            self.arrivals: list[tuple[float, Any]] = []
+    arrivals: list[FakeRequest] = []
 
-        async def _chat(self, request: web.Request) -> web.StreamResponse:
-            t = time.monotonic()
-            n = len(self.requests)
-            # FakeVLM appends the request record before its first await: index n is ours.
-            coro = super()._chat(request)
-            try:
-                return await coro
-            finally:
-                if len(self.requests) > n:
-                    self.arrivals.append((t, self.requests[n]))
-                # Keep memory flat under a long load: images are not needed afterwards.
-                for rec in self.requests[n:n + 1]:
-                    rec.images, rec.raw, rec.body = [], b"", None
+    def on_request(rec: FakeRequest) -> None:
+        arrivals.append(rec)
+        # Keep memory flat under a long load: images are not needed afterwards.
+        rec.images, rec.raw, rec.body = [], b"", None
 
-    fake = TimedFakeVLM(model="fake-vlm", latency_s=args.latency_s)
+    fake = FakeVLM(model="fake-vlm", latency_s=args.latency_s, on_request=on_request)
 
     async def received(request: web.Request) -> web.Response:
         return web.json_response([
-            {"t": t, "candidates": rec.candidates, "status": rec.status, "error": rec.error}
-            for t, rec in fake.arrivals])
+            {"t": rec.received_at, "candidates": rec.candidates, "status": rec.status,
+             "error": rec.error} for rec in arrivals])
 
     async with fake:
         runner, url = await _control_app([web.get("/received", received)])
@@ -170,6 +242,8 @@ async def _vlm(args: argparse.Namespace) -> None:
 
 
 async def _poll(args: argparse.Namespace) -> None:
+    import aiohttp
+
     paths = ("/healthz", "/metrics")
     stats: dict[str, Any] = {"requests": 0, "errors": 0, "latency_ms": []}
     period = 1.0 / args.hz
@@ -210,7 +284,7 @@ async def _poll(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m edge.tools.bench_sim", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m edge.tools.bench.load", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="role", required=True)
     p = sub.add_parser("robot")

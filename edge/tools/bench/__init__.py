@@ -1,0 +1,71 @@
+"""``vt-edge bench``: the runtime's figures on the emulated robot, against their targets.
+
+Writes ``OUT/results.json`` (one key per figure: p50, p99, max, n, unit, target, met; plus
+``host``, ``run``, ``sections`` and ``notes``), ``OUT/results.md`` (rendered from it) and
+``OUT/raw.json`` (every press); :mod:`edge.core.results` holds the format. Phases, each
+printed on stderr as it runs:
+
+1. **runtime** (:mod:`.runtime`): the daemon's runtime in this process against the emulated
+   robot, with and without load; presses alternate between the production controller and
+   two comparison controllers (:mod:`.controllers`); helper processes in :mod:`.load`.
+2. **daemon** (:mod:`.daemon`): ``vt-edge run`` as a process: start to ``READY=1``, memory,
+   torch never mapped.
+3. **encode**, **retrieval** (:mod:`.encoder`): onnxruntime on one sequence; top-k on the
+   shipped database and on 1,000,000 synthetic references against numpy brute force.
+
+The training side adds its phases to the same files (``vt-train bench --merge-into
+OUT/results.json``: the encoder in torch eager against onnxruntime, and training); ``make
+bench`` runs both. How the figures read, and why a target is missed: :mod:`.report`.
+
+Timing is on ``time.monotonic`` (CLOCK_MONOTONIC), shared by every process on the host. This
+package never imports torch or ``train``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from collections.abc import Sequence
+from dataclasses import asdict
+from pathlib import Path
+
+from edge.core.results import Results, progress
+from edge.tools.bench.report import FIGURES, WHY
+from edge.tools.bench.settings import FULL, QUICK, Settings
+
+__all__ = ["FIGURES", "FULL", "PHASES", "QUICK", "Settings", "bench", "run_bench"]
+
+PHASES = ("runtime", "daemon", "encode", "retrieval")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    s = QUICK if getattr(args, "quick", False) else FULL
+    return bench(Path(getattr(args, "out", "bench")), s)
+
+
+def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES) -> int:
+    # Imported here, not above: the helper processes (python -m edge.tools.bench.load) and
+    # the compute worker (for the encoder load, load.encode_for) import this package and
+    # need none of the phases.
+    from edge.tools.bench.daemon import daemon_phase
+    from edge.tools.bench.encoder import encode_phase, retrieval_phase
+    from edge.tools.bench.runtime import runtime_phase
+
+    results = Results.start("vt-edge bench" + (" --quick" if s.quick else ""), s.quick,
+                            asdict(s))
+    with tempfile.TemporaryDirectory(prefix="vtzero-bench-") as tmp_name:
+        tmp = Path(tmp_name)
+        measure = {
+            "runtime": lambda: runtime_phase(s, tmp),
+            "daemon": lambda: daemon_phase(s, tmp),
+            "encode": lambda: encode_phase(s),
+            "retrieval": lambda: retrieval_phase(s),
+        }
+        for phase in phases:
+            results.run_phase(phase, measure[phase])
+    results.order(FIGURES)
+    md = results.write(out, WHY)
+    print(md)
+    progress(f"wrote {out / 'results.json'}, {out / 'results.md'}, {out / 'raw.json'} "
+             f"in {results.run['duration_s']:.0f} s")
+    return 0

@@ -1,0 +1,455 @@
+"""The runtime phase: the daemon's runtime in this process against the emulated robot, with
+and without load.
+
+The daemon as ``vt-edge run`` assembles it (:func:`edge.daemon.serve.assemble`: real drivers,
+HTTP API, episode store, VLM client, compute process) runs on the daemon's own event loop in
+this process, against the emulated robot, which runs in its own process, as do a slow fake
+VLM and a poller of ``/healthz`` and ``/metrics`` (:mod:`edge.tools.bench.load`). A few
+presses first with no extra load (the software overhead, trigger to VLM request), then the
+load: the VLM client sends large camera stills to the slow VLM, the encoder runs over and
+over in the daemon's compute process (where its own presses are encoded and its images
+prepared), the API is polled. Under it, presses alternate between the three controllers of
+:mod:`edge.tools.bench.controllers`. The sampler's lateness is recorded throughout.
+
+Every press is triggered over the HTTP API; the bench reads the daemon only through its
+public hooks (:mod:`edge.tools.bench.probes`) and swaps controllers with
+``Runtime.use_press_controller``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge.core.figures import figure, ratio_figure, stats, target
+from edge.core.progress import Progress
+from edge.core.results import PhaseResult, progress
+from edge.tools.bench.controllers import RecordingController, TickedController
+from edge.tools.bench.host import cpu_snapshot, cpu_times_since
+from edge.tools.bench.load import Helper, big_jpeg, encode_for
+from edge.tools.bench.probes import (
+    SamplerWindow,
+    first_crossing,
+    instrument_port,
+    stop_read_time,
+)
+from edge.tools.bench.report import READING, load_text
+from edge.tools.bench.settings import (
+    CONTROLLER_TEXT,
+    CONTROLLERS,
+    CUBE,
+    MODELS,
+    OBJECTS,
+    SIM_CONFIG,
+    Settings,
+)
+
+# The emulated robot stands in for hardware, which never waits for a CPU: it runs favoured
+# (nice -10, where allowed) so that a busy host starves the daemon, not the motors.
+ROBOT_NICE = -10
+# A press that fails (on a starved host the emulated bus can time out) is tried again, up
+# to this many times, so that every controller gets its presses; failures are counted.
+PRESS_ATTEMPTS = 3
+PRESS_TIMEOUT_S = 60.0
+
+
+@dataclass
+class PressRecord:
+    phase: str
+    controller: str
+    object: str
+    marker: str
+    result: str
+    t_trigger: float
+    t_first_cross: float | None = None
+    t_stop: float | None = None
+    stop_latency_ms: float | None = None
+    controller_latency_ms: float | None = None  # as the controller itself logged it
+    to_bus_ms: float | None = None  # first frame over x_th -> the stop's READ packet written
+    from_send_ms: float | None = None  # the server sent that frame -> stop written
+    force_at_cross_n: float | None = None
+    peak_force_n: float | None = None
+    overshoot_n: float | None = None
+    press_s: float | None = None  # 'above' entered -> 'idle' entered
+    pre_press_ms: float | None = None  # trigger -> 'above'
+    t_vlm: float | None = None
+    overhead_ms: float | None = None
+    message: str = ""
+
+
+class RuntimeBench:
+    """The runtime in this process against the helper processes."""
+
+    def __init__(self, settings: Settings, robot: Helper, vlm: Helper, state: Path) -> None:
+        self.s = settings
+        self.robot = robot.info
+        self.vlm_info = vlm.info
+        self.pids = {"daemon (this process)": os.getpid(), "sim robot": robot.proc.pid,
+                     "fake VLM": vlm.proc.pid}
+        self.state = state
+        self.records: list[PressRecord] = []
+        self.notes: list[str] = []
+        self.load_stats: dict[str, Any] = {}
+        self.quiet_stats: dict[str, Any] = {}
+        self.compute: Any = None  # the ComputeWorker, while run() runs
+
+    def config(self):
+        from edge.core.config import load_config
+
+        cfg = load_config(SIM_CONFIG)
+        return replace(
+            cfg,
+            sensor=replace(cfg.sensor, url=self.robot["xela_url"]),
+            bus=replace(cfg.bus, port=self.robot["dxl_port"]),
+            camera=replace(cfg.camera, kind="http",
+                           url=f"{self.robot['control_url']}/camera.jpg"),
+            runtime=replace(cfg.runtime, models_dir=str(MODELS), state_dir=str(self.state),
+                            move_time_s=self.s.move_time_s),
+            api=replace(cfg.api, port=0),
+            vlm=replace(cfg.vlm, base_url=self.vlm_info["base_url"], model="fake-vlm",
+                        max_retries=0, total_timeout_s=60.0),
+        )
+
+    async def run(self) -> None:
+        import aiohttp
+
+        from edge.daemon.serve import assemble
+
+        cfg = self.config()
+        async with assemble(cfg) as daemon:
+            runtime, compute = daemon.runtime, daemon.compute
+            self.compute = compute
+            worker = compute.pid()
+            if worker is not None:
+                self.pids["compute worker"] = worker
+            self.port_writes = instrument_port(daemon.devices.bus)
+            self.runtime = runtime
+            rng = np.random.default_rng(0)
+            self.controllers: dict[str, RecordingController] = {
+                "per_frame": runtime.make_press_controller(RecordingController),
+                "tick125": runtime.make_press_controller(
+                    TickedController, name="tick125", period_s=1 / 125.0, rng=rng),
+                "loop100": runtime.make_press_controller(
+                    TickedController, name="loop100", period_s=1 / 100.0, rng=rng),
+            }
+            runtime.use_press_controller(self.controllers["per_frame"])
+            task = asyncio.create_task(runtime.run(), name="bench-runtime")
+            try:
+                await asyncio.wait_for(runtime.ready.wait(), 30)
+                self.api_url = f"http://127.0.0.1:{daemon.api.port}"
+                async with aiohttp.ClientSession() as http:
+                    self.http = http
+                    await self._quiet_phase()
+                    await self._loaded_phase(cfg, runtime.model)
+                    await self._vlm_arrivals()
+            finally:
+                runtime.stop()
+                with contextlib.suppress(Exception):
+                    await asyncio.wait_for(task, 30)
+
+    # ----- one press
+
+    async def _press(self, phase: str, name: str, obj: str) -> PressRecord:
+        http, runtime = self.http, self.runtime
+        ctl = self.controllers[name]
+        async with http.post(f"{self.robot['control_url']}/object", json={"name": obj}) as r:
+            r.raise_for_status()
+        runtime.use_press_controller(ctl)
+        marker = f"bench_{len(self.records):04d}"
+        while True:
+            t_trigger = time.monotonic()
+            async with http.post(f"{self.api_url}/v1/recognize",
+                                 json={"candidates": [*CUBE, marker]}) as r:
+                if r.status == 202:
+                    break
+                if r.status != 409:
+                    raise RuntimeError(f"recognize answered {r.status}: {await r.text()}")
+            await asyncio.sleep(0.02)  # the previous press is still releasing its lock
+        outcome = await asyncio.wait_for(ctl.outcomes.get(), PRESS_TIMEOUT_S)
+        async with http.get(f"{self.robot['control_url']}/object") as r:
+            world = await r.json()
+        rec = PressRecord(phase, name, obj, marker, outcome.result, t_trigger,
+                          message=outcome.message)
+        states = dict(outcome.states)
+        if "above" in states and "idle" in states:
+            rec.press_s = states["idle"] - states["above"]
+            rec.pre_press_ms = 1e3 * (states["above"] - t_trigger)
+        if outcome.stop_latency_s is not None:
+            rec.controller_latency_ms = 1e3 * outcome.stop_latency_s
+        crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
+        if outcome.t_stop is not None and crossing is not None:
+            # Counted whatever came after the stop (a late stop can still abort the hold).
+            t_first, seq, sent_wall = crossing
+            rec.t_first_cross, rec.t_stop = t_first, outcome.t_stop
+            rec.stop_latency_ms = 1e3 * (outcome.t_stop - t_first)
+            # The same stop seen from the XELA server: its frame time is its wall clock when
+            # it sent the frame; the time the frame waited in the socket for the loop counts.
+            wall_minus_mono = time.time() - time.monotonic()
+            rec.from_send_ms = 1e3 * (outcome.t_stop + wall_minus_mono - sent_wall)
+            t_read = stop_read_time(self.port_writes, outcome.t_stop,
+                                    runtime.cfg.bus.gripper_id)
+            if t_read is not None and t_read >= t_first:
+                rec.to_bus_ms = 1e3 * (t_read - t_first)
+            async with http.get(f"{self.robot['bench_url']}/force",
+                                params={"seq": str(seq)}) as r:
+                if r.status == 200:
+                    rec.force_at_cross_n = (await r.json())["force_n"]
+            rec.peak_force_n = world["peak_force_n"]
+            if rec.force_at_cross_n is not None:
+                rec.overshoot_n = rec.peak_force_n - rec.force_at_cross_n
+        self.records.append(rec)
+        return rec
+
+    # ----- phases
+
+    async def _press_ok(self, phase: str, name: str, obj: str) -> PressRecord:
+        for _ in range(PRESS_ATTEMPTS):
+            rec = await self._press(phase, name, obj)
+            if rec.stop_latency_ms is not None:
+                break
+            progress(f"  press failed ({name}, {obj}): {rec.result}: {rec.message}")
+        return rec
+
+    async def _quiet_phase(self) -> None:
+        progress(f"runtime: {self.s.quiet_presses} presses with no extra load (overhead)")
+        window = SamplerWindow(self.runtime.sampler)
+        try:
+            with Progress("bench quiet", self.s.quiet_presses, "presses") as bar:
+                for i in range(self.s.quiet_presses):
+                    rec = await self._press_ok("quiet", "per_frame", OBJECTS[i % len(OBJECTS)])
+                    bar.update(1, f"{rec.result}, stop latency {_fmt(rec.stop_latency_ms)} ms, "
+                                  f"press {_fmt(rec.press_s)} s")
+        finally:
+            self.quiet_stats = window.close()
+
+    async def _loaded_phase(self, cfg: Any, model: Any) -> None:
+        from edge.core.errors import EdgeError
+        from edge.core.vlm import OpenAIVLM
+        from edge.daemon.serve import vlm_config
+
+        s = self.s
+        runtime = self.runtime
+        image = await asyncio.to_thread(big_jpeg, s.image_px)
+        progress(f"runtime: load on: {s.load_vlm_clients} VLM clients sending a "
+                 f"{s.image_px[0]}x{s.image_px[1]} JPEG ({len(image) / 1e6:.1f} MB) to a fake "
+                 f"VLM answering after {s.vlm_latency_s} s; encoder looping in the compute "
+                 f"process; /healthz and /metrics polled at {s.poll_hz:g} Hz")
+        stop = asyncio.Event()
+        counters = {"vlm_asks": 0, "vlm_errors": 0, "encodes": 0}
+        # The load goes where the daemon's own work goes: images and the encoder to the
+        # compute process.
+        load_vlm = OpenAIVLM(vlm_config(cfg), offload=self.compute.run)
+
+        async def vlm_load() -> None:
+            while not stop.is_set():
+                try:
+                    await load_vlm.ask(image, "a load test", ["load_a", "load_b"])
+                    counters["vlm_asks"] += 1
+                except EdgeError:
+                    counters["vlm_errors"] += 1
+                    await asyncio.sleep(0.1)
+
+        async def encode_load() -> None:
+            if s.encode_duty <= 0:
+                return
+            pause = s.encode_load_s * (1.0 / s.encode_duty - 1.0)
+            while not stop.is_set():
+                counters["encodes"] += await self.compute.run(
+                    encode_for, model, s.encode_load_s)
+                if pause > 0:
+                    await asyncio.sleep(pause)
+
+        poller = await asyncio.to_thread(Helper, "poll", "--url", self.api_url,
+                                         "--hz", str(s.poll_hz)) if s.poll_hz > 0 else None
+        window = SamplerWindow(runtime.sampler)
+        pids = dict(self.pids, **({"poller": poller.proc.pid} if poller else {}))
+        cpu0 = cpu_snapshot(pids)
+        t0 = time.monotonic()
+        tasks = [asyncio.create_task(vlm_load(), name=f"bench-vlm-load-{i}")
+                 for i in range(s.load_vlm_clients)]
+        tasks.append(asyncio.create_task(encode_load(), name="bench-encode-load"))
+        try:
+            await asyncio.sleep(1.0)  # let the load settle in
+            total = s.presses * len(CONTROLLERS)
+            with Progress("bench under load", total, "presses") as bar:
+                for i in range(s.presses):
+                    obj = OBJECTS[i % len(OBJECTS)]
+                    for name in CONTROLLERS:
+                        rec = await self._press_ok("load", name, obj)
+                        bar.update(1, f"{name}, {obj}: {rec.result}, stop latency "
+                                      f"{_fmt(rec.stop_latency_ms)} ms, overshoot "
+                                      f"{_fmt(rec.overshoot_n, 3)} N")
+            left = s.load_min_s - (time.monotonic() - t0)
+            if left > 0:
+                progress(f"  load continues {left:.0f} s more (sampler window)")
+                await asyncio.sleep(left)
+        finally:
+            cpu = cpu_times_since(cpu0)
+            stop.set()
+            duration = time.monotonic() - t0
+            sampled = window.close()
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            await load_vlm.close()
+            poll_out = await asyncio.to_thread(poller.stop) if poller is not None else ""
+        polled: dict[str, Any] = {}
+        with contextlib.suppress(ValueError, IndexError):
+            polled = json.loads(poll_out.strip().splitlines()[-1])
+        self.load_stats = {
+            "duration_s": duration, **sampled, "cpu_s": cpu,
+            **counters, "poll": polled, "image_bytes": len(image),
+        }
+        progress(f"runtime: load off after {duration:.0f} s: {counters['vlm_asks']} VLM asks "
+                 f"({counters['vlm_errors']} failed), {counters['encodes']} encodes, "
+                 f"{polled.get('requests', '?')} API polls ({polled.get('errors', '?')} "
+                 "failed)")
+
+    async def _vlm_arrivals(self) -> None:
+        """Match each press's VLM request (by its marker candidate) to its arrival time."""
+        deadline = time.monotonic() + 30.0
+        wanted = {r.marker: r for r in self.records if r.result == "ok"}
+        while True:
+            async with self.http.get(f"{self.vlm_info['bench_url']}/received") as r:
+                arrivals = await r.json()
+            for a in arrivals:
+                rec = wanted.get(a["candidates"][-1] if a["candidates"] else "")
+                if rec is not None and rec.t_vlm is None:
+                    rec.t_vlm = a["t"]
+            if all(r.t_vlm is not None for r in wanted.values()) or time.monotonic() > deadline:
+                break
+            await asyncio.sleep(0.2)
+        for rec in wanted.values():
+            if rec.t_vlm is not None and rec.press_s is not None:
+                rec.overhead_ms = 1e3 * (rec.t_vlm - rec.t_trigger - rec.press_s)
+        missing = [m for m, r in wanted.items() if r.t_vlm is None]
+        if missing:
+            self.notes.append(f"{len(missing)} VLM requests never arrived: {missing[:5]}")
+
+    # ----- figures
+
+    def figures(self) -> dict[str, Any]:
+        figs: dict[str, Any] = {}
+        load = self.load_stats
+        late_ms = [1e3 * v for v in load.get("lateness_s", [])]
+        figs["sampler_period_error_ms"] = figure(
+            late_ms, "ms", target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)),
+            missed_ticks=load.get("missed_ticks"), ticks=load.get("ticks"),
+            gaps=load.get("gaps"), duration_s=load.get("duration_s"),
+            max_gap_ms=load.get("max_interval_ms"),
+            what="lateness of each 125 Hz sampler wake-up vs its ideal deadline, under load")
+        calm = self.quiet_stats
+        figs["sampler_period_error_ms_no_load"] = figure(
+            [1e3 * v for v in calm.get("lateness_s", [])], "ms", None,
+            missed_ticks=calm.get("missed_ticks"), ticks=calm.get("ticks"),
+            duration_s=calm.get("window_s"), max_gap_ms=calm.get("max_interval_ms"),
+            what="as sampler_period_error_ms, during the presses with no extra load")
+        loaded = [r for r in self.records if r.phase == "load"]
+        lat = {}
+        for name in CONTROLLERS:
+            recs = [r for r in loaded if r.controller == name]
+            key = "stop_latency_ms" if name == "per_frame" else f"stop_latency_ms_{name}"
+            failed = [f"{r.result}: {r.message}" for r in recs if r.stop_latency_ms is None]
+            aborted = [r for r in recs if r.stop_latency_ms is not None and r.result != "ok"]
+            # The controller's own crossing frame was a later one: it never saw the first
+            # frame over x_th (a ticked check sees only the latest frame at each tick).
+            later = [r for r in recs if r.stop_latency_ms is not None
+                     and r.controller_latency_ms is not None
+                     and r.stop_latency_ms - r.controller_latency_ms > 0.5]
+            lat[name] = figs[key] = figure(
+                [r.stop_latency_ms for r in recs], "ms",
+                target(("p99", "<=", 2.0)) if name == "per_frame" else None,
+                controller=CONTROLLER_TEXT[name], failed_presses=len(failed),
+                aborted_after_stop=len(aborted), missed_first_crossing=len(later),
+                to_bus_ms=stats([r.to_bus_ms for r in recs]),
+                from_server_send_ms=stats([r.from_send_ms for r in recs]),
+                what="first frame over x_th received -> stop packet written to the port, "
+                     "under load")
+            if failed:
+                self.notes.append(f"{name}: {len(failed)} presses without a stop (tried again): "
+                                  f"{failed[:3]}")
+            if aborted:
+                self.notes.append(
+                    f"{name}: {len(aborted)} presses stopped, then aborted the hold: "
+                    f"{[r.message for r in aborted][:3]} (their stop latencies are counted)")
+            if later:
+                self.notes.append(
+                    f"{name}: in {len(later)} presses the controller stopped on a later frame "
+                    f"than the first over x_th (by up to "
+                    f"{max(r.stop_latency_ms - r.controller_latency_ms for r in later):.0f} "
+                    "ms): the level crossed x_th and fell back between two checks")
+        quiet = [r for r in self.records if r.phase == "quiet"]
+        figs["stop_latency_ms_no_load"] = figure(
+            [r.stop_latency_ms for r in quiet], "ms", None, controller=CONTROLLER_TEXT["per_frame"],
+            to_bus_ms=stats([r.to_bus_ms for r in quiet]),
+            from_server_send_ms=stats([r.from_send_ms for r in quiet]),
+            what="as stop_latency_ms, with no extra load (the overhead presses)")
+        figs["stop_latency_ratio_loop100"] = ratio_figure(
+            lat["loop100"], lat["per_frame"], target(("p50", ">=", 5.0)),
+            what="100 Hz loop stop latency / per-frame stop latency (statistic by statistic)")
+        figs["stop_latency_ratio_tick125"] = ratio_figure(
+            lat["tick125"], lat["per_frame"],
+            what="125 Hz tick stop latency / per-frame stop latency (statistic by statistic)")
+        for obj in OBJECTS:
+            for name in CONTROLLERS:
+                recs = [r for r in loaded if r.controller == name and r.object == obj]
+                figs[f"force_overshoot_n_{obj}_{name}"] = figure(
+                    [r.overshoot_n for r in recs], "N", None, controller=CONTROLLER_TEXT[name],
+                    what=f"peak normal force minus the force at the first frame over x_th "
+                         f"(SimWorld), {obj}")
+        for phase, key, goal in (("quiet", "overhead_ms", target(("p99", "<=", 20.0))),
+                                 ("load", "overhead_ms_under_load", None)):
+            recs = [r for r in self.records if r.phase == phase]
+            figs[key] = figure(
+                [r.overhead_ms for r in recs], "ms", goal,
+                pre_press_ms_p50=stats([r.pre_press_ms for r in recs])["p50"],
+                what="POST /v1/recognize -> VLM request received, minus the press itself "
+                     "('above' entered -> 'idle' entered)" +
+                     (", no extra load" if phase == "quiet" else ", under the load"))
+        return figs
+
+
+def _fmt(value: float | None, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def runtime_phase(s: Settings, tmp: Path) -> PhaseResult:
+    from edge.daemon.serve import new_event_loop
+
+    progress("starting the emulated robot and the fake VLM (own processes)")
+    robot = Helper("robot", "--config", str(SIM_CONFIG), "--object", OBJECTS[0],
+                   "--nice", str(ROBOT_NICE))
+    if robot.info.get("nice") is None:
+        progress(f"  (the emulated robot could not be reniced to {ROBOT_NICE})")
+    vlm = None
+    try:
+        vlm = Helper("vlm", "--latency-s", str(s.vlm_latency_s))
+        bench = RuntimeBench(s, robot, vlm, tmp / "state")
+        quiet_loggers = [logging.getLogger(n) for n in ("edge", "aiohttp")]
+        levels = [lg.level for lg in quiet_loggers]
+        for lg in quiet_loggers:
+            lg.setLevel(logging.WARNING)
+        try:
+            # The daemon's own event loop (edge.daemon.serve.new_event_loop), as `vt-edge run` has.
+            with asyncio.Runner(loop_factory=new_event_loop) as runner:
+                runner.run(bench.run())
+        finally:
+            for lg, level in zip(quiet_loggers, levels, strict=True):
+                lg.setLevel(level)
+    finally:
+        if vlm is not None:
+            vlm.stop()
+        robot.stop()
+    load = {k: v for k, v in bench.load_stats.items() if k != "lateness_s"}
+    return PhaseResult(bench.figures(), bench.notes, run={"load": load},
+                       raw={"presses": [asdict(r) for r in bench.records]},
+                       sections={"The load": load_text(load), "Reading the figures": READING})
