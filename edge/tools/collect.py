@@ -25,6 +25,10 @@ from edge.daemon.sensor import FrameRing, SensorTask
 
 log = logging.getLogger(__name__)
 
+# Presses that may fail in a row (no contact, a stale stream) before collecting stops, and
+# the pause after each.
+MAX_FAILED_IN_A_ROW = 5
+FAILED_PRESS_PAUSE_S = 0.5
 # The ring keeps the last minute of frames (a press and its margins take a few seconds).
 RING_FRAMES = 8000
 
@@ -41,25 +45,30 @@ async def collect(cfg: Config, label: str, presses: int, out: str | Path,
     own = devices is None
     if own:
         devices = await open_devices(cfg)
-        await enable_torque(devices)
     ring = FrameRing(cfg.sensor.channels, RING_FRAMES)
     controller = PressController(cfg, devices.gripper, devices.arm, ring)
     task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run(),
                                name="sensor")
     written: list[Path] = []
     try:
+        if own:
+            await enable_torque(devices)
         await asyncio.sleep(0.5)
-        i = 0
+        i = failures = 0
         while i < presses:
             if prompt is not None and i > 0:
                 await asyncio.to_thread(
                     prompt, f"press {i + 1}/{presses}: move the {label} slightly, then Enter ")
             outcome = await controller.run()
             if not outcome.contact:
+                failures += 1
                 print(f"press {i + 1}: {outcome.result}: {outcome.message}; not kept")
-                if prompt is None:
-                    raise EdgeError(f"press failed: {outcome.message}")
+                if prompt is None or failures >= MAX_FAILED_IN_A_ROW:
+                    raise EdgeError(f"press failed ({failures} in a row): {outcome.message}")
+                # (a stale stream refuses at once: give it time to come back)
+                await asyncio.sleep(FAILED_PRESS_PAUSE_S)
                 continue
+            failures = 0
             path = out_dir / f"{label}_{start + i:03d}{recording.SUFFIX}"
             recording.save(outcome_recording(outcome, cfg, label), path)
             written.append(path)

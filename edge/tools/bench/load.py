@@ -10,6 +10,10 @@ daemon's event loop: ``python -m edge.tools.bench.load ROLE`` with ROLE
 - ``vlm``: a slow :class:`~edge.sim.fake_vlm.FakeVLM` that also tells when each request
   arrived on the monotonic clock (``GET /received``), for the trigger-to-VLM overhead;
 - ``poll``: polls the daemon's ``/healthz`` and ``/metrics``; prints a summary on SIGTERM.
+- ``page``: what an open operator page asks of the daemon (edge/daemon/static/app.js): the
+  page, both event streams (``/v1/tactile`` at 30 Hz, ``/v1/events``), ``/healthz`` each
+  second, the last episodes every 5 s and each new episode's trace and photo; prints the
+  frames and requests it got on SIGTERM.
 
 Each prints one JSON line on stdout once it serves (its addresses), then runs until SIGTERM;
 :class:`Helper` starts one and reads that line. ``time.monotonic`` is CLOCK_MONOTONIC, shared
@@ -283,6 +287,66 @@ async def _poll(args: argparse.Namespace) -> None:
     await _until_signal({"polling": args.url}, on_stop)
 
 
+# What the operator page polls, and how often (edge/daemon/static/app.js).
+PAGE_HEALTH_S = 1.0
+PAGE_EPISODES_S = 5.0
+
+
+async def _page(args: argparse.Namespace) -> None:
+    import aiohttp
+
+    stats: dict[str, Any] = {"tactile_frames": 0, "events": 0, "requests": 0, "errors": 0}
+    seen: set[str] = set()
+
+    async def stream(http: aiohttp.ClientSession, path: str, key: str) -> None:
+        async with http.get(args.url + path) as resp:
+            async for line in resp.content:
+                if line.startswith(b"data: "):
+                    stats[key] += 1
+
+    async def get(http: aiohttp.ClientSession, path: str) -> Any:
+        stats["requests"] += 1
+        try:
+            async with http.get(args.url + path) as resp:
+                body = await resp.read()
+                if resp.status >= 500 and path != "/healthz":
+                    stats["errors"] += 1
+                return json.loads(body) if resp.content_type == "application/json" else None
+        except (aiohttp.ClientError, TimeoutError, ValueError):
+            stats["errors"] += 1
+            return None
+
+    async def every(period_s: float, fn: Callable[[], Awaitable[None]]) -> None:
+        while True:
+            await fn()
+            await asyncio.sleep(period_s)
+
+    async def episodes(http: aiohttp.ClientSession) -> None:
+        for ep in (await get(http, "/v1/episodes?limit=8") or {}).get("episodes", []):
+            if ep.get("id") not in seen:
+                seen.add(ep["id"])
+                await get(http, f"/v1/episodes/{ep['id']}/trace")
+                await get(http, f"/v1/episodes/{ep['id']}/image")
+
+    http = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=None, sock_read=30))
+    await get(http, "/")
+    tasks = [asyncio.create_task(stream(http, "/v1/tactile", "tactile_frames")),
+             asyncio.create_task(stream(http, "/v1/events", "events")),
+             asyncio.create_task(every(PAGE_HEALTH_S, lambda: get(http, "/healthz"))),
+             asyncio.create_task(every(PAGE_EPISODES_S, lambda: episodes(http)))]
+    t0 = time.monotonic()
+
+    async def on_stop() -> None:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        await http.close()
+        stats["seconds"] = time.monotonic() - t0
+        print(json.dumps(stats), flush=True)
+
+    await _until_signal({"page": args.url}, on_stop)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m edge.tools.bench.load", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -297,10 +361,12 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("poll")
     p.add_argument("--url", required=True)
     p.add_argument("--hz", type=float, default=10.0)
+    p = sub.add_parser("page")
+    p.add_argument("--url", required=True)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="bench-" + args.role + " %(levelname)s %(name)s: %(message)s")
-    role = {"robot": _robot, "vlm": _vlm, "poll": _poll}[args.role]
+    role = {"robot": _robot, "vlm": _vlm, "poll": _poll, "page": _page}[args.role]
     asyncio.run(role(args))
     return 0
 

@@ -15,6 +15,7 @@ FIGURES = (
     "stop_latency_ms", "stop_latency_ms_tick125",
     "stop_latency_ms_loop100", "stop_latency_ratio_loop100", "stop_latency_ratio_tick125",
     "stop_latency_ms_no_load",
+    "sampler_period_error_ms_two_pages", "stop_latency_ms_two_pages", "operator_page_feed_fps",
     *(f"force_overshoot_n_{o}_{c}" for o in OBJECTS for c in CONTROLLERS),
     "overhead_ms", "overhead_ms_under_load",
     "startup_to_ready_s", "daemon_rss_mb", "daemon_torch_mapped",

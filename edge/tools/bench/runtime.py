@@ -60,6 +60,8 @@ ROBOT_NICE = -10
 # to this many times, so that every controller gets its presses; failures are counted.
 PRESS_ATTEMPTS = 3
 PRESS_TIMEOUT_S = 60.0
+# Operator pages kept open during the pages phase.
+PAGES = 2
 
 
 @dataclass
@@ -100,6 +102,8 @@ class RuntimeBench:
         self.notes: list[str] = []
         self.load_stats: dict[str, Any] = {}
         self.quiet_stats: dict[str, Any] = {}
+        self.pages_stats: dict[str, Any] = {}
+        self.page_stats: list[dict[str, Any]] = []
         self.compute: Any = None  # the ComputeWorker, while run() runs
 
     def config(self):
@@ -149,6 +153,7 @@ class RuntimeBench:
                 async with aiohttp.ClientSession() as http:
                     self.http = http
                     await self._quiet_phase()
+                    await self._pages_phase()
                     await self._loaded_phase(cfg, runtime.model)
                     await self._vlm_arrivals()
             finally:
@@ -230,6 +235,25 @@ class RuntimeBench:
                                   f"press {_fmt(rec.press_s)} s")
         finally:
             self.quiet_stats = window.close()
+
+    async def _pages_phase(self) -> None:
+        """The quiet presses again, with two operator pages open (each its own process, as
+        a browser is): what watching the robot costs the 125 Hz path."""
+        progress(f"runtime: {self.s.quiet_presses} presses with {PAGES} operator pages open")
+        pages = [await asyncio.to_thread(Helper, "page", "--url", self.api_url)
+                 for _ in range(PAGES)]
+        window = SamplerWindow(self.runtime.sampler)
+        try:
+            await asyncio.sleep(1.0)  # the pages load and their streams start
+            with Progress("bench two pages", self.s.quiet_presses, "presses") as bar:
+                for i in range(self.s.quiet_presses):
+                    rec = await self._press_ok("pages", "per_frame", OBJECTS[i % len(OBJECTS)])
+                    bar.update(1, f"{rec.result}, stop latency {_fmt(rec.stop_latency_ms)} ms")
+        finally:
+            self.pages_stats = window.close()
+            outs = await asyncio.gather(*(asyncio.to_thread(p.stop) for p in pages))
+            self.page_stats = [json.loads(out.strip().splitlines()[-1]) for out in outs
+                               if out.strip()]
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
         from edge.core.errors import EdgeError
@@ -393,6 +417,23 @@ class RuntimeBench:
             to_bus_ms=stats([r.to_bus_ms for r in quiet]),
             from_server_send_ms=stats([r.from_send_ms for r in quiet]),
             what="as stop_latency_ms, with no extra load (the overhead presses)")
+        pages = self.pages_stats
+        figs["sampler_period_error_ms_two_pages"] = figure(
+            [1e3 * v for v in pages.get("lateness_s", [])], "ms", None,
+            missed_ticks=pages.get("missed_ticks"), ticks=pages.get("ticks"),
+            duration_s=pages.get("window_s"), max_gap_ms=pages.get("max_interval_ms"),
+            what=f"as sampler_period_error_ms_no_load, with {PAGES} operator pages open")
+        with_pages = [r for r in self.records if r.phase == "pages"]
+        figs["stop_latency_ms_two_pages"] = figure(
+            [r.stop_latency_ms for r in with_pages], "ms", None,
+            controller=CONTROLLER_TEXT["per_frame"],
+            what=f"as stop_latency_ms_no_load, with {PAGES} operator pages open")
+        figs["operator_page_feed_fps"] = figure(
+            [p["tactile_frames"] / p["seconds"] for p in self.page_stats if p.get("seconds")],
+            "frames/s", target(("p50", ">=", 25.0)),
+            requests=sum(p.get("requests", 0) for p in self.page_stats),
+            errors=sum(p.get("errors", 0) for p in self.page_stats),
+            what="live tactile frames each open page received per second (/v1/tactile)")
         figs["stop_latency_ratio_loop100"] = ratio_figure(
             lat["loop100"], lat["per_frame"], target(("p50", ">=", 5.0)),
             what="100 Hz loop stop latency / per-frame stop latency (statistic by statistic)")
