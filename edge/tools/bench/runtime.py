@@ -371,12 +371,8 @@ class RuntimeBench:
             gaps=load.get("gaps"), duration_s=load.get("duration_s"),
             max_gap_ms=load.get("max_interval_ms"),
             what="lateness of each 125 Hz sampler wake-up vs its ideal deadline, under load")
-        calm = self.quiet_stats
-        figs["sampler_period_error_ms_no_load"] = figure(
-            [1e3 * v for v in calm.get("lateness_s", [])], "ms", None,
-            missed_ticks=calm.get("missed_ticks"), ticks=calm.get("ticks"),
-            duration_s=calm.get("window_s"), max_gap_ms=calm.get("max_interval_ms"),
-            what="as sampler_period_error_ms, during the presses with no extra load")
+        figs["sampler_period_error_ms_no_load"] = _sampler_figure(
+            self.quiet_stats, "as sampler_period_error_ms, during the presses with no extra load")
         loaded = [r for r in self.records if r.phase == "load"]
         lat = {}
         for name in CONTROLLERS:
@@ -417,12 +413,9 @@ class RuntimeBench:
             to_bus_ms=stats([r.to_bus_ms for r in quiet]),
             from_server_send_ms=stats([r.from_send_ms for r in quiet]),
             what="as stop_latency_ms, with no extra load (the overhead presses)")
-        pages = self.pages_stats
-        figs["sampler_period_error_ms_two_pages"] = figure(
-            [1e3 * v for v in pages.get("lateness_s", [])], "ms", None,
-            missed_ticks=pages.get("missed_ticks"), ticks=pages.get("ticks"),
-            duration_s=pages.get("window_s"), max_gap_ms=pages.get("max_interval_ms"),
-            what=f"as sampler_period_error_ms_no_load, with {PAGES} operator pages open")
+        figs["sampler_period_error_ms_two_pages"] = _sampler_figure(
+            self.pages_stats, f"as sampler_period_error_ms_no_load, with {PAGES} operator "
+            "pages open")
         with_pages = [r for r in self.records if r.phase == "pages"]
         figs["stop_latency_ms_two_pages"] = figure(
             [r.stop_latency_ms for r in with_pages], "ms", None,
@@ -457,6 +450,14 @@ class RuntimeBench:
                      "('above' entered -> 'idle' entered)" +
                      (", no extra load" if phase == "quiet" else ", under the load"))
         return figs
+
+
+def _sampler_figure(window: dict[str, Any], what: str) -> dict[str, Any]:
+    """The sampler's lateness over one :class:`SamplerWindow` of presses."""
+    return figure([1e3 * v for v in window.get("lateness_s", [])], "ms", None,
+                  missed_ticks=window.get("missed_ticks"), ticks=window.get("ticks"),
+                  duration_s=window.get("window_s"), max_gap_ms=window.get("max_interval_ms"),
+                  what=what)
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
