@@ -79,15 +79,17 @@ class McapRecorder:
     async def run(self) -> None:
         from edge.daemon.compute import ComputeWorker
 
-        await asyncio.to_thread(self.directory.mkdir, parents=True, exist_ok=True)
+        # From the first frame and event on: the writer starting below takes a moment, and a
+        # press may begin meanwhile.
+        self._after = self.runtime.ring.count
+        pump = asyncio.create_task(self._pump(), name="mcap-record-events")
         own = self._worker is None
         worker = self._worker or ComputeWorker()
-        if own:
-            await worker.start()
-        pump = asyncio.create_task(self._pump(), name="mcap-record-events")
-        self._after = self.runtime.ring.count
         opened = False
         try:
+            await asyncio.to_thread(self.directory.mkdir, parents=True, exist_ok=True)
+            if own:
+                await worker.start()
             while True:
                 try:
                     if not opened:
