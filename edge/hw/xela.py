@@ -333,7 +333,10 @@ class XelaClient:
                 async with asyncio.timeout_at(deadline):
                     item = await self._queue.get()
             except TimeoutError:
-                raise self._stale_error() from None
+                if self._queue.empty():
+                    raise self._stale_error() from None
+                # A frame came in while the loop was late to look: the stream is alive.
+                item = self._queue.get_nowait()
             if item is _CLOSED:
                 return
             if isinstance(item, SensorError):
