@@ -31,9 +31,15 @@ OPEN_WIDTH_M = 0.008
 
 
 def base_config(vlm_url: str = "", *, move_time_s: float = 0.2, tare_s: float = 0.3) -> Config:
+    """The shipped settings but shorter moves, a VLM at ``vlm_url``, and the stream counted
+    stale after 0.25 s, not the shipped 0.1 s: the emulators share the test's event loop on
+    a (often loaded) two-core host, and a stall of a tenth of a second must not fail a press
+    whose test is about something else (the client's own staleness is tested apart, at the
+    shipped timeout, in tests/hw/test_xela_client.py)."""
     cfg = Config()
     return replace(
         cfg,
+        sensor=replace(cfg.sensor, stale_timeout_s=0.25),
         press=replace(cfg.press, open_width_m=OPEN_WIDTH_M, tare_s=tare_s),
         runtime=replace(cfg.runtime, move_time_s=move_time_s, close_timeout_s=5.0,
                         models_dir=str(ROOT / "models"), vlm_retry_base_s=0.2,
@@ -45,12 +51,8 @@ def base_config(vlm_url: str = "", *, move_time_s: float = 0.2, tare_s: float = 
 
 
 def fast_config(vlm_url: str = "") -> Config:
-    """Shorter moves and tare: the fault tests press many times. The stream counts as stale
-    after 0.25 s, not the shipped 0.1 s: the emulators share this (often loaded, two-core)
-    host with the daemon, and a stall of a tenth of a second must not fail a press whose
-    test is about something else."""
-    cfg = base_config(vlm_url, move_time_s=0.1, tare_s=0.15)
-    return replace(cfg, sensor=replace(cfg.sensor, stale_timeout_s=0.25))
+    """Shorter moves and tare still: the fault tests press many times."""
+    return base_config(vlm_url, move_time_s=0.1, tare_s=0.15)
 
 
 class Daemon:
