@@ -18,6 +18,7 @@ import hmac
 import json
 import logging
 import os
+import weakref
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -173,6 +174,9 @@ class Api:
         # The operator page at / and its data: edge/daemon/webui.py.
         self.ui = OperatorPage(runtime, self.token)
         self.ui.install(self.app)
+        # /v1/events streams never end by themselves: the server's shutdown ends them.
+        self._event_streams: weakref.WeakSet[asyncio.Task] = weakref.WeakSet()
+        self.app.on_shutdown.append(self._end_event_streams)
         self._runner: web.AppRunner | None = None
         self.port: int | None = None
 
@@ -236,6 +240,10 @@ class Api:
         log.info("API listening on http://%s:%s%s", self.cfg.host, self.port,
                  " (bearer token required)" if self.token else "")
         return self.port or 0
+
+    async def _end_event_streams(self, app: web.Application) -> None:
+        for task in list(self._event_streams):
+            task.cancel()
 
     async def close(self) -> None:
         if self._runner is not None:
@@ -354,6 +362,7 @@ class Api:
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                            "Cache-Control": "no-cache"})
         await resp.prepare(request)
+        self._event_streams.add(asyncio.current_task())
         with contextlib.suppress(ConnectionResetError), self.runtime.subscribe() as events:
             while True:
                 try:

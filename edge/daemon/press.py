@@ -123,11 +123,6 @@ class PressController:
         self._user_abort = asyncio.Event()
 
     # --- called by the sensor task -------------------------------------------------------
-    async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
-        """Every arriving frame: the threshold is checked on each (the fastest reaction the
-        stream allows). A comparison controller may check less often, with :meth:`check`."""
-        await self.check(raw, recv_time)
-
     @property
     def armed(self) -> bool:
         """Whether the threshold is being watched (closing or holding)."""
@@ -161,6 +156,11 @@ class PressController:
                 (armed.crossed if stopped else armed.abort).set()
         elif level > armed.abort_level:
             armed.abort.set()
+
+    # The sensor task calls this with every arriving frame: the threshold checked on each
+    # (the fastest reaction the stream allows), with no extra call on the per-frame path. A
+    # comparison controller overrides it and calls :meth:`check` less often.
+    on_frame = check
 
     def sensor_stale(self, exc: BaseException) -> None:
         self._stale.set()

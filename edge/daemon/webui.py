@@ -25,7 +25,6 @@ import hmac
 import html
 import importlib.resources
 import logging
-import weakref
 from pathlib import Path
 from typing import Any
 
@@ -76,7 +75,6 @@ class OperatorPage:
         self.token = token
         self.feed = TactileFeed(runtime)
         self._static: dict[str, bytes] = {}
-        self._streams: weakref.WeakSet[asyncio.Task] = weakref.WeakSet()
         self._traces: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
 
     def attach(self, runtime: Any) -> None:
@@ -85,22 +83,13 @@ class OperatorPage:
         self.feed.runtime = runtime
 
     def install(self, app: web.Application) -> None:
-        """The routes, and the end of every event stream when the server stops."""
+        """The routes, and the end of the live feed when the server stops (its streams
+        would otherwise hold the API's shutdown)."""
         app.add_routes(self.routes())
-        app.on_response_prepare.append(self._track_stream)
         app.on_shutdown.append(self._end_streams)
 
-    async def _track_stream(self, request: web.Request, response: web.StreamResponse) -> None:
-        if response.content_type == "text/event-stream" and request.path != "/v1/tactile":
-            self._streams.add(request.task)
-
     async def _end_streams(self, app: web.Application) -> None:
-        """Server-sent event streams never end by themselves: without this, the API's
-        shutdown waits for them (an open page would hold a daemon's stop)."""
         self.feed.close()
-        for task in list(self._streams):
-            if not task.done():
-                task.cancel()  # (/v1/events ends its stream on cancellation)
 
     def routes(self) -> list[web.RouteDef]:
         return [

@@ -61,9 +61,8 @@ class Daemon:
 
     def __init__(self, robot: SimRobot, cfg: Config, state: Path,
                  headers: dict[str, str] | None = None) -> None:
-        self.cfg = replace(robot.runtime_config(cfg),
-                           runtime=replace(robot.runtime_config(cfg).runtime,
-                                           state_dir=str(state)))
+        cfg = robot.runtime_config(cfg)
+        self.cfg = replace(cfg, runtime=replace(cfg.runtime, state_dir=str(state)))
         self.state = state
         self.headers = headers or {}
         # Optional devices and systemd notifier a test sets before entering.
