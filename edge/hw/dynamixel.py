@@ -59,6 +59,8 @@ SDK_LATENCY_TIMER_MS = 16.0
 # is an error.
 READ_ATTEMPTS = 2
 _TRANSIENT = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
+# Protocol 2.0 status error number (not a bit field): "Data Range Error".
+ERR_DATA_RANGE = 4
 # Before a retry: how long late replies to the failed attempt are waited for and dropped.
 LATE_REPLY_DRAIN_S = 0.05
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
@@ -538,6 +540,10 @@ class DynamixelBus:
                 if other:
                     message += " " + self._ph.getRxPacketError(other)
                 message += f" Hardware Error Status: {self._hardware_error_detail(motor_id)}"
+            elif error & ~sdk.ERRBIT_ALERT == ERR_DATA_RANGE and self._watchdog_tripped(motor_id):
+                # A tripped Bus Watchdog refuses every goal with a range error: say why.
+                message += (" (its Bus Watchdog has tripped: the host was silent on the bus"
+                            " longer than the watchdog allows)")
             raise MotorError(f"motor {motor_id}: {what}: {message}", motor_id)
 
     @contextlib.contextmanager
@@ -562,6 +568,11 @@ class DynamixelBus:
         if result != sdk.COMM_SUCCESS:
             return "unreadable"
         return f"0x{status:02x} ({describe_hardware_error(status)})"
+
+    def _watchdog_tripped(self, motor_id: int) -> bool:
+        with self._expect(BUS_WATCHDOG.size):
+            value, result, _ = self._ph.read1ByteTxRx(self._port, motor_id, BUS_WATCHDOG.address)
+        return result == sdk.COMM_SUCCESS and BUS_WATCHDOG.from_unsigned(value) == -1
 
     def _read(self, motor_id: int, reg: Register) -> int:
         read = {1: self._ph.read1ByteTxRx, 2: self._ph.read2ByteTxRx,

@@ -213,7 +213,11 @@ async def test_stalled_host_trips_the_watchdog_mid_press_and_the_next_press_reco
         print(f"gripper moved {moved:.0f} counts during a 0.8 s stall; episode "
               f"{ep['status']}: {ep.get('error')}")
         assert moved < 150 and tripped == [11, 12, 13, 14, 15]
-        assert ep["status"] == "failed" and "stale" in ep["error"]
+        # Either the staleness check saw the silent stream first, or the first frame after the
+        # stall crossed the threshold and the tripped motor refused the stop: both fail the
+        # press with a reason a person can act on.
+        assert ep["status"] == "failed"
+        assert "stale" in ep["error"] or "Bus Watchdog has tripped" in ep["error"]
         # Opening found the trip, cleared it and opened; the next press re-arms all.
         assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
         await next_press_works(robot, d)

@@ -205,13 +205,16 @@ async def test_watchdog_fed_while_the_loop_runs_trips_when_it_stalls(emu, bus):
     assert 2048 < stopped < 3000  # the motion stopped on the way
     assert await bus.read(11, "Bus Watchdog") == -1
     assert await bus.read(11, "Torque Enable") == 1
-    with pytest.raises(MotorError, match="out of range") as caught:
+    with pytest.raises(MotorError, match=r"out of range.*Bus Watchdog has tripped") as caught:
         await bus.write(11, "Goal Position", 2048)
     assert caught.value.motor_id == 11
     assert await bus.recover_watchdog() == list(IDS)
     assert all(emu.get_register(i, "Bus Watchdog") == 5 for i in IDS)
     await bus.write(11, "Goal Position", 2048)
     assert abs(emu.true_position(11) - stopped) < 20  # held where it stopped, then moves
+    with pytest.raises(MotorError, match="out of range") as caught:
+        await bus.write(11, "Profile Acceleration", 40000)  # a plain range error gets no such hint
+    assert "Watchdog" not in str(caught.value)
 
 
 @pytest.mark.asyncio
