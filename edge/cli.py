@@ -6,7 +6,6 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
-from dataclasses import replace
 
 from edge import __version__
 from edge.core.errors import EdgeError
@@ -17,31 +16,29 @@ log = logging.getLogger(__name__)
 
 
 def _cmd_sim_record(args: argparse.Namespace) -> int:
+    from edge.core.config import load_config
     from edge.core.progress import Progress
     from edge.sim.catalogue import DATASETS
-    from edge.sim.press import PressParams
-    from edge.sim.record import record_dataset
+    from edge.tools.record import record_dataset
 
-    params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
+    cfg = load_config(args.config)
     total = len(DATASETS[args.dataset]) * args.presses
     with Progress(f"record {args.dataset}", total, "presses", enabled=not args.quiet) as bar:
-        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
-                               params=params, workers=args.workers,
+        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed, cfg=cfg,
+                               x_th=args.x_th, workers=args.workers,
                                progress=lambda done, _total: bar.set(done))
     n = len(index["classes"]) * args.presses
     print(f"wrote {n} presses of {len(index['classes'])} classes ({args.dataset}) to {args.out}")
-    if index["no_contact"]:
-        print(f"warning: no contact in {len(index['no_contact'])} presses: "
-              + ", ".join(index["no_contact"][:10]))
+    if index["retried"]:
+        print(f"note: {len(index['retried'])} presses needed a second try: "
+              + ", ".join(index["retried"][:10]))
     return 0
 
 
 def _cmd_sim_press(args: argparse.Namespace) -> int:
-    from edge.sim.press import PressParams
-    from edge.sim.summary import print_press_table
+    from edge.tools.press_table import print_press_table
 
-    params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
-    print_press_table(args.objects, seed=args.seed, params=params)
+    print_press_table(args.objects, seed=args.seed, x_th=args.x_th)
     return 0
 
 
@@ -228,8 +225,11 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, help="output directory")
     rec.add_argument("--seed", type=int, default=0)
     rec.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
-    rec.add_argument("--x-th", type=float, default=0.004, help="stop threshold")
-    rec.add_argument("--latency-ms", type=float, default=2.0, help="controller reaction")
+    rec.add_argument("--config", default="configs/sim.toml",
+                     help="the emulated robot's configuration (press settings)")
+    rec.add_argument("--x-th", type=float, default=None,
+                     help="stop threshold for every class (default: [press] x_th, the "
+                          "catalogue's per-class threshold for fragile classes)")
     rec.add_argument("-q", "--quiet", action="store_true")
     rec.set_defaults(func=_cmd_sim_record)
 
@@ -245,8 +245,8 @@ def build_parser() -> argparse.ArgumentParser:
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")
     press.add_argument("--seed", type=int, default=0)
-    press.add_argument("--x-th", type=float, default=0.004)
-    press.add_argument("--latency-ms", type=float, default=2.0)
+    press.add_argument("--x-th", type=float, default=None,
+                       help="stop threshold (default: the configuration's or the class's)")
     press.set_defaults(func=_cmd_sim_press)
     return parser
 

@@ -22,7 +22,7 @@ import numpy as np
 from edge.core.atomic import atomic_write_bytes
 from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
 from edge.core.preprocess import DEFAULT_WINDOW
-from edge.sim.record import DATASET_INDEX, record_dataset
+from edge.tools.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
 from train.export import OPSET, PARITY_BOUND, check_parity, codebook_of, export_onnx, parity
@@ -170,7 +170,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                         "train_classes": list(data.splits.train),
                         "val_classes": list(data.splits.val),
                         "train_samples": len(data.train), "val_samples": len(data.val),
-                        "press_params": ref_index["press_params"]},
+                        "recorder": ref_index["recorder"], "press": ref_index["press"],
+                        "transport": ref_index["transport"]},
             "vq": {"config": vq.config.to_dict(), "result": vq.summary()},
             "beta": {"config": beta.config.to_dict(), "result": beta.summary()} if beta else None,
             "normalisation_floor": f"per-channel std floored at {STD_FLOOR_FRACTION} x the "

@@ -51,6 +51,9 @@ class ObjectClass:
     width_sd_m: float = 0.3e-3
     youngs_cv: float = 0.05  # per-press coefficient of variation of the modulus
     exponent: float | None = None  # elastic law F = k d**n; default 1 (flat), 1.5 (round)
+    # Press threshold for this class when recording references; None: the press default.
+    # Very fragile objects (gelatins) are pressed gentler, as in the paper (x_th = 0.003).
+    x_th: float | None = None
 
     @property
     def elastic_exponent(self) -> float:
@@ -100,7 +103,7 @@ REFERENCE: tuple[ObjectClass, ...] = (
        width_sd_m=0.8e-3, youngs_cv=0.1),
     _c("gelatin_soft", "a soft wobbly gelatin that yields and slowly settles", "train",
        "flat", 28, 25, 6e3, prony=_GEL, damping_ns_per_m=8.0, mu=0.3, bulge=0.5,
-       width_sd_m=1.0e-3, youngs_cv=0.15),
+       width_sd_m=1.0e-3, youngs_cv=0.15, x_th=0.003),
     _c("tofu_firm", "a block of firm tofu, soft, moist and slightly crumbly", "train",
        "flat", 28, 25, 30e3, prony=_FOOD, damping_ns_per_m=6.0, yield_n=2.5, mu=0.35,
        bulge=0.45, width_sd_m=1.0e-3, youngs_cv=0.15),
@@ -145,7 +148,7 @@ REFERENCE: tuple[ObjectClass, ...] = (
     # --- validation classes (5) ---
     _c("gelatin_hard", "a firm gelatin that gives a little and settles slowly", "val",
        "flat", 28, 25, 30e3, prony=_GEL, damping_ns_per_m=8.0, mu=0.3, bulge=0.5,
-       width_sd_m=1.0e-3, youngs_cv=0.15),
+       width_sd_m=1.0e-3, youngs_cv=0.15, x_th=0.003),
     _c("cherry_tomato", "a cherry tomato, round, taut and springy", "val",
        "round", 25, 12.5, 0.2e6, prony=_FOOD, damping_ns_per_m=3.0, mu=0.3, bulge=0.2,
        width_sd_m=1.0e-3, youngs_cv=0.15),
