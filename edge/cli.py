@@ -42,6 +42,17 @@ def _cmd_sim_press(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim_consistency(args: argparse.Namespace) -> int:
+    from edge.tools.consistency import run_consistency
+
+    command = "vt-edge sim consistency " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else (
+        "vt-edge sim consistency")
+    report = run_consistency(args.objects, args.presses, args.dataset_presses, args.seed,
+                             args.models, args.config, args.out, command=command.strip())
+    print(report.markdown(command.strip()))
+    return 0 if report.passed else 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from edge.tools.demo import run_demo
 
@@ -241,6 +252,18 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--write-config", default=None,
                        help="write the config with this robot's addresses here")
     serve.set_defaults(func=_cmd_sim_serve)
+
+    cons = simsub.add_parser(
+        "consistency", help="the daemon's presses on the emulated robot against the dataset "
+        "recorder's, encoded by the shipped model (exit 1 if the targets are missed)")
+    cons.add_argument("--objects", nargs="+", default=None, help="default: the 8 of the report")
+    cons.add_argument("--presses", type=int, default=5, help="daemon presses per object")
+    cons.add_argument("--dataset-presses", type=int, default=10)
+    cons.add_argument("--seed", type=int, default=0)
+    cons.add_argument("--models", default="models")
+    cons.add_argument("--config", default="configs/sim.toml")
+    cons.add_argument("--out", default=None, help="write consistency.md/.json here")
+    cons.set_defaults(func=_cmd_sim_consistency)
 
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")

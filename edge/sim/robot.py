@@ -36,6 +36,8 @@ class SimRobot:
         positions[bus.gripper_id] = raw_from_width(width)
         self.dxl = DxlEmulator((*bus.joint_ids, bus.gripper_id), load=self.world.load,
                                reply_latency_s=reply_latency_s, initial_positions=positions)
+        gripper_id = bus.gripper_id
+        self.world.sync = lambda: self.dxl.true_position(gripper_id)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
                                        dialect=dialect)  # type: ignore[arg-type]
         self._control_port = control_port

@@ -189,13 +189,10 @@ class VirtualTactileSource:
     """The XELA stream of ``world`` on the virtual clock: a frame rendered on every tick of
     the 125 Hz grid (late by the server's jitter), received after the WebSocket hop."""
 
-    def __init__(self, world: SimWorld, emulator: DxlEmulator, gripper_id: int,
-                 rate_hz: float, transport: Transport, rng: np.random.Generator,
-                 pads: int = 2) -> None:
+    def __init__(self, world: SimWorld, rate_hz: float, transport: Transport,
+                 rng: np.random.Generator, pads: int = 2) -> None:
         self.stats = StreamStats()
         self._world = world
-        self._emulator = emulator
-        self._gripper_id = gripper_id
         self._period_s = 1.0 / rate_hz
         self._transport = transport
         self._rng = rng
@@ -232,8 +229,6 @@ class VirtualTactileSource:
         while not self._closed:
             made = tick + abs(self._rng.normal(0.0, t.frame_lateness_sd_s))
             await asyncio.sleep(made - loop.time())
-            # The gripper's motion up to now reaches the physics before the pads are read.
-            self._emulator.true_position(self._gripper_id)
             raw = self._world.frame(made)
             raw.flags.writeable = False
             arrive = made + t.frame_delivery_s + self._rng.exponential(t.frame_delivery_tail_s)
@@ -270,8 +265,9 @@ class VirtualRobot:
         self.bus = VirtualBus(bus_cfg, self.dxl, clock, transport, rng)
         self.gripper = DynamixelGripper(self.bus)
         self.arm = DynamixelArm(self.bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
-        self.tactile = VirtualTactileSource(self.world, self.dxl, bus_cfg.gripper_id,
-                                            cfg.sim.sensor_rate_hz, transport, rng,
+        gripper_id = bus_cfg.gripper_id
+        self.world.sync = lambda: self.dxl.true_position(gripper_id)
+        self.tactile = VirtualTactileSource(self.world, cfg.sim.sensor_rate_hz, transport, rng,
                                             pads=cfg.sensor.channels // 48)
 
     async def __aenter__(self) -> Self:

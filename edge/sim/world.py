@@ -44,6 +44,17 @@ def gap_from_raw(raw: float) -> float:
     return max(2.0 * (width_from_raw(raw) - CLOSED_WIDTH_M), 0.0)
 
 
+# The random stream of a robot's pads, apart from the world's own draws.
+_PADS_STREAM = 0x7AD5
+
+
+def robot_pads(seed: int) -> SkinDraw:
+    """The pads of the simulated robot of ``seed``: the daemon's emulated robot
+    (``[sim] seed``) and the dataset recorder of the same seed press with the same pads, as
+    references collected on a robot are recognised by that robot."""
+    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])))
+
+
 class SimWorld:
     """Holds the object, advances the contact physics and renders tactile frames."""
 
@@ -52,9 +63,14 @@ class SimWorld:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
-        # The pads of one robot: drawn once, or shared by the presses of one dataset.
-        self._skin_draw = skin_draw or SkinDraw.draw(self._rng)
+        if skin_draw is None:
+            skin_draw = robot_pads(seed) if isinstance(seed, int) else SkinDraw.draw(self._rng)
+        self._skin_draw = skin_draw
         self.gripper_id = gripper_id
+        # Brings the gripper's motion up to now before the pads are read (the motor model
+        # steps on its own thread, in batches): set by whoever owns the motors. Called
+        # without the world's lock, which the motors' load hook takes.
+        self.sync: Callable[[], object] = lambda: None
         self._t0 = clock()
         self._t = self._t0
         self._gap = 0.07
@@ -99,6 +115,7 @@ class SimWorld:
 
     def frame(self, t: float) -> np.ndarray:
         """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
+        self.sync()
         with self._lock:
             self._advance(t)
             self.frame_force_n = self._contact.force

@@ -5,8 +5,8 @@ gripper and arm drivers and the sensor task, on the emulated robot run on a virt
 presses; only the transport timing is modelled instead of lived.
 
 Each press draws from its own seed ``SeedSequence([seed, class index, press index])`` on a
-robot of its own (the pads drawn once per dataset, as one robot's pads), so a dataset is
-byte-identical whatever the number of worker processes or the order they finish in.
+robot of its own with the pads of the emulated robot of that seed (``[sim] seed``), so a
+dataset is byte-identical whatever the number of worker processes or the order they finish in.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from edge.daemon.sensor import FrameRing, SensorTask
 from edge.sim.catalogue import DATASETS, ObjectClass, get
 from edge.sim.skin import SkinDraw
 from edge.sim.virtual import Transport, VirtualClockLoop, VirtualRobot
+from edge.sim.world import robot_pads
 
 log = logging.getLogger(__name__)
 
@@ -87,11 +88,6 @@ def sim_config() -> Config:
     return load_config(SIM_CONFIG)
 
 
-def pad_draw(seed: int) -> SkinDraw:
-    """The pads of the robot that records the dataset of ``seed``."""
-    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, 0x7AD5])))
-
-
 async def _press_once(cfg: Config, name: str, rng: np.random.Generator, skin: SkinDraw,
                       transport: Transport, window: preprocess.WindowSpec
                       ) -> tuple[PressOutcome, tuple[float | None, float, float]]:
@@ -124,7 +120,7 @@ def record_press(name: str, rng: np.random.Generator | int = 0, *, cfg: Config |
     cls = get(name)
     cfg = class_config(cfg or sim_config(), cls, x_th)
     rng = np.random.default_rng(rng)
-    skin = skin or pad_draw(0)
+    skin = skin or robot_pads(0)
     # The drivers' start-up lines, once per press, would bury the recorder's own output.
     drivers = logging.getLogger("edge.hw")
     level = drivers.level
@@ -156,7 +152,7 @@ def _record_one(job: tuple[str, int, int, int, str, Config, float | None, Transp
     label, class_index, index, seed, out, cfg, x_th, transport = job
     rng = np.random.default_rng(np.random.SeedSequence([seed, class_index, index]))
     t0 = CLOCK_START_S + CLOCK_SPACING_S * PRESS_TRIES * (class_index * 1000 + index)
-    pressed = record_press(label, rng, cfg=cfg, skin=pad_draw(seed), transport=transport,
+    pressed = record_press(label, rng, cfg=cfg, skin=robot_pads(seed), transport=transport,
                            x_th=x_th, t0=t0)
     recording.save(pressed.recording, press_path(Path(out), label, index))
     return label, index, pressed.tries
