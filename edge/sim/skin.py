@@ -29,6 +29,8 @@ Channel order everywhere: ``pad * 48 + taxel * 3 + axis``, taxels row-major from
 
 from __future__ import annotations
 
+import cmath
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,44 +155,45 @@ class PadNoise:
 
     def __init__(self, draw: SkinDraw, rng: np.random.Generator) -> None:
         channels = len(draw.offsets)
-        axis = np.arange(channels) % _AXES
+        # State and parameters as (taxels, axis): per-axis figures broadcast, no gathers.
+        self._shape = (channels // _AXES, _AXES)
         self._rng = rng
-        self._white = _per_axis(WHITE_NOISE_COUNTS, axis)
-        self._local_sd = _per_axis(LOCAL_NOISE_COUNTS, axis)
-        self._tau = _per_axis(LOCAL_NOISE_TAU_S, axis)
-        self._omega = 2 * np.pi * _per_axis(LOCAL_NOISE_HZ, axis)
-        self._gain = (np.zeros(channels) if draw.field_gain is None
-                      else np.asarray(draw.field_gain, dtype=float))
+        self._white = np.asarray(WHITE_NOISE_COUNTS, dtype=float)
+        self._local_sd = np.asarray(LOCAL_NOISE_COUNTS, dtype=float)
+        self._tau = np.asarray(LOCAL_NOISE_TAU_S, dtype=float)
+        self._omega = 2 * np.pi * np.asarray(LOCAL_NOISE_HZ, dtype=float)
+        self._gain = (np.zeros(self._shape) if draw.field_gain is None
+                      else np.asarray(draw.field_gain, dtype=float).reshape(self._shape))
         self._t: float | None = None
-        self._local = np.zeros(channels, dtype=complex)
+        self._local = np.zeros(self._shape, dtype=complex)
         self._field = 0j
 
     def sample(self, t_s: float) -> np.ndarray:
         """Noise in counts, shape (C,), at time ``t_s`` (s; later than the last sample)."""
-        n = len(self._white)
-        z = self._rng.normal(0.0, 1.0, 3 * n + 2)
-        local_kick = z[n:2 * n] + 1j * z[2 * n:3 * n]
+        m = self._shape[0] * _AXES
+        z = self._rng.standard_normal(3 * m + 2)
+        white = z[:m].reshape(self._shape)
+        # Each process is the real part of a rotating complex Ornstein-Uhlenbeck process
+        # with unit variance per part: over dt it decays by exp(-dt/tau), turns by
+        # omega * dt, and takes a kick of sqrt(1 - decay^2) standard complex normal. Its
+        # real part then has unit variance and autocorrelation exp(-|dt|/tau) cos(omega dt).
+        # (Pairs of independent normals read as complex numbers: no copy.)
+        local_kick = z[m:3 * m].view(np.complex128).reshape(self._shape)
         field_kick = complex(z[-2], z[-1])
         if self._t is None:
             self._local, self._field = local_kick, field_kick
         else:
             dt = max(t_s - self._t, 0.0)
-            self._local = _advance(self._local, local_kick, dt, self._tau, self._omega)
-            self._field = complex(_advance(np.array([self._field]), np.array([field_kick]), dt,
-                                           np.array([FIELD_TAU_S]),
-                                           np.array([2 * np.pi * FIELD_HZ]))[0])
+            decay = np.exp(-dt / self._tau)
+            self._local = (self._local * (decay * np.exp(1j * self._omega * dt))
+                           + np.sqrt(1.0 - decay * decay) * local_kick)
+            fdecay = math.exp(-dt / FIELD_TAU_S)
+            self._field = (self._field * fdecay * cmath.exp(2j * math.pi * FIELD_HZ * dt)
+                           + math.sqrt(1.0 - fdecay * fdecay) * field_kick)
         self._t = t_s
-        return (self._white * z[:n] + self._local_sd * self._local.real
-                + self._gain * self._field.real)
-
-
-def _advance(state: np.ndarray, kick: np.ndarray, dt: float, tau: np.ndarray,
-             omega: np.ndarray) -> np.ndarray:
-    """Exact step of a rotating complex OU process whose real part has unit variance and
-    autocorrelation ``exp(-|dt|/tau) cos(omega dt)``; ``kick`` is standard complex normal
-    (unit variance per part)."""
-    decay = np.exp(-dt / tau)
-    return state * decay * np.exp(1j * omega * dt) + np.sqrt(1.0 - decay * decay) * kick
+        out = (self._white * white + self._local_sd * self._local.real
+               + self._gain * self._field.real)
+        return out.reshape(-1)
 
 
 class Skin:
