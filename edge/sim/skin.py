@@ -61,10 +61,11 @@ SKIN_SPREAD_M = 1.5e-3
 
 # What the pads do unloaded. Every figure is per axis (x, y, z), in raw counts, measured on the
 # real XR1944 recordings in tests/fixtures/xela/real-xr1944/ (two pads on a Franka gripper,
-# ~60 frames/s; the first second of each of three recordings, while the arm stands still:
-# whether the gripper already held the object then is not recorded; rows repeated by the
-# recorder dropped) by tests/sim/test_pad_noise.py, which prints the fixture's figures next to
-# the simulated pads' (pytest -s). "Fixture" below is the range over its 6 pad-recordings.
+# ~60 frames/s; the first second of each of three recordings, while the arm only starts to
+# move off (17 mm in that second) and the pad means stay within 10 counts; whether the
+# gripper already held the object is not recorded; rows repeated by the recorder dropped) by
+# tests/sim/test_pad_noise.py, which prints the fixture's figures next to the simulated pads'
+# (pytest -s). "Fixture" below is the range over its 6 pad-recordings.
 #
 # Idle level of a pad: fixture pad means 15.75-15.96k / 16.38-16.45k / 37.66-38.64k (other
 # uSkin models idle near 32.8k / 33.2k / 37k; the runtime tares, so only headroom depends on it).

@@ -4,8 +4,9 @@ The same statistics are computed on the fixture's idle second and on simulated u
 sampled at the fixture's own frame times, then compared within stated bands; ``pytest -s``
 prints both. These are the figures behind the constants in :mod:`edge.sim.skin`.
 
-Statistics, per axis, per pad, over the first IDLE_S seconds (the arm still), rows that
-repeat the previous one exactly dropped (the recorder took the same message twice):
+Statistics, per axis, per pad, over the first IDLE_S seconds (before the pads change: the
+arm only starts to move off), rows that repeat the previous one exactly dropped (the
+recorder took the same message twice):
 
 - ``noise``: per-sample noise, std of first differences / sqrt 2, median over the 16 taxels;
 - ``std``: std about the mean over the idle second, median over taxels;
