@@ -74,12 +74,22 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
     from edge.sim.robot import SimRobot
 
     cfg = load_config(args.config)
+    replay = None
+    if args.replay is not None:
+        from edge.sim.xela_replay import load_replay
+
+        # Before anything starts: a bad file is refused with the file and the problem.
+        replay = load_replay(args.replay)
 
     async def serve() -> None:
         robot = SimRobot(args.object, cfg.sim.seed, xela_port=args.xela_port,
-                         rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg)
+                         rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg,
+                         replay=replay, replay_loop=not args.replay_once)
         async with robot:
             print(f"xela_server emulator: {robot.xela.url}", flush=True)
+            if replay is not None:
+                print(f"  replaying {replay.describe()}, "
+                      f"{'once' if args.replay_once else 'looping'}", flush=True)
             print(f"Dynamixel bus (pty):  {robot.dxl.port}", flush=True)
             print(f"control + camera:     {robot.control_url}", flush=True)
             if args.write_config:
@@ -251,6 +261,14 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
     serve.add_argument("--write-config", default=None,
                        help="write the config with this robot's addresses here")
+    serve.add_argument("--replay", default=None, metavar="FILE",
+                       help="the pads send this real recording (a XELA CSV directory such as "
+                            "tests/fixtures/xela/real-xr1944/data_sample_2022-02-22-15-15-00, "
+                            "or a .press.npz) at its recorded timing, from the start again "
+                            "after the end; the arm and gripper are still emulated")
+    serve.add_argument("--replay-once", action="store_true",
+                       help="after the recording's last frame send nothing more (the "
+                            "connection stays open: the stream goes stale)")
     serve.set_defaults(func=_cmd_sim_serve)
 
     cons = simsub.add_parser(

@@ -6,7 +6,7 @@ import pytest
 
 from edge.core import preprocess, recording
 from edge.core.errors import EdgeError
-from edge.sim import catalogue
+from edge.sim import catalogue, skin
 from edge.sim.virtual import Transport
 from edge.tools.record import record_press
 
@@ -109,12 +109,13 @@ def test_raw_counts_look_like_the_real_sensor():
     rec = press("wood_cube").recording
     assert rec.frames.dtype == np.uint16 and rec.frames.shape[1] == 96
     idle = rec.frames[:20].astype(float)
-    xy = idle.reshape(20, 32, 3)[..., :2]
-    z = idle.reshape(20, 32, 3)[..., 2]
-    assert abs(xy.mean() - 32768) < 1500 and abs(z.mean() - 37000) < 1500
+    # Idle levels and noise of the real XR1944 pads (tests/sim/test_pad_noise.py compares
+    # them in detail with real recordings).
+    level = idle.reshape(20, 32, 3).mean(axis=(0, 1))
+    assert np.all(np.abs(level - np.array(skin.IDLE_LEVEL_COUNTS)) < 1500), level
     noise = idle.std(axis=0).mean()
-    print(f"idle noise {noise:.2f} counts")
-    assert 1.0 < noise < 4.0
+    print(f"idle levels {level.round()} counts, noise {noise:.2f} counts")
+    assert 1.0 < noise < 8.0
     assert np.all(np.diff(rec.seq) == 1)
     period = np.median(np.diff(rec.recv_time))
     assert period == pytest.approx(1 / 125, rel=0.05)
