@@ -109,11 +109,16 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
 
 def _cmd_collect(args: argparse.Namespace) -> int:
     import asyncio
+    from dataclasses import replace
 
     from edge.core.config import load_config
     from edge.tools.collect import collect
 
-    files = asyncio.run(collect(load_config(args.config), args.label, args.presses, args.out,
+    cfg = load_config(args.config)
+    if args.x_th is not None:
+        cfg = replace(cfg, press=replace(cfg.press, x_th=args.x_th))
+        cfg.press.validate("press (--x-th)")
+    files = asyncio.run(collect(cfg, args.label, args.presses, args.out,
                                 prompt=None if args.no_prompt else input))
     print(f"wrote {len(files)} presses of {args.label} to {args.out}")
     return 0
@@ -197,6 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--label", required=True)
     col.add_argument("--presses", type=int, default=10)
     col.add_argument("--out", required=True)
+    col.add_argument("--x-th", type=float, default=None,
+                     help="press threshold for this object (e.g. 0.003 for a fragile one); "
+                          "default: the configuration's [press] x_th")
     col.add_argument("--no-prompt", action="store_true",
                      help="do not wait for Enter between presses")
     col.set_defaults(func=_cmd_collect)

@@ -29,8 +29,8 @@ import pytest
 
 from edge.sim import catalogue, skin
 from edge.sim.contact import ObjectInstance
-from edge.sim.press import PressParams, simulate_press
 from edge.sim.xela_replay import load_replay
+from edge.tools.record import record_press
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "xela" / "real-xr1944"
 EPISODES = sorted(FIXTURE.glob("data_sample_*"))
@@ -209,7 +209,7 @@ def test_press_deviations_next_to_the_real_recording():
     real = np.abs(frames - idle).reshape(len(frames), -1, 3).max(axis=(0, 1))
     sim = []
     for i, cls in enumerate(catalogue.DATASETS["reference"]):
-        r = simulate_press(cls, np.random.default_rng(i), PressParams()).recording
+        r = record_press(cls.name, np.random.default_rng(i)).recording
         sim.append(np.abs(r.frames - r.tare).reshape(len(r.frames), -1, 3).max(axis=(0, 1)))
     sim = np.array(sim)
     print(f"\nmax |change| per axis x, y, z: fixture 15-15-00 {real.round()}; simulated "

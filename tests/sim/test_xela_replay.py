@@ -156,9 +156,9 @@ def test_other_files_are_refused(tmp_path):
 
 
 def test_a_press_recording_replays_at_its_receive_times(tmp_path):
-    from edge.sim.press import simulate_press
+    from tests.support.presses import recording_of
 
-    rec = simulate_press("konjac", 3).recording
+    rec = recording_of("konjac", 3)
     path = recording.save(rec, tmp_path / f"konjac{recording.SUFFIX}")
     rep = load_replay(path)
     np.testing.assert_array_equal(rep.frames, rec.frames)
