@@ -98,7 +98,7 @@ def sim_stack(config: str | Path = "configs/sim.toml", first_object: str = "stai
         env["VTZERO_STATE_DIR"] = str(state)
         sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config",
                                 str(config), "--write-config", str(run_cfg), "--object",
-                                first_object], env=env)
+                                first_object], env=env, stdout=subprocess.DEVNULL)
         daemon = None
         try:
             wait_for(run_cfg.exists, START_TIMEOUT_S, "emulated robot", sim)
