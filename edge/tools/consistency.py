@@ -39,6 +39,7 @@ OBJECTS = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash",
            "boiled_kabocha_squash", "macaron", "resin_replica_macaron", "canele",
            "resin_replica_canele")
 RECOGNIZE_TIMEOUT_S = 60.0
+DAEMON_TRIES = 3
 PRESS_FILE = "press.press.npz"
 # Targets of the one-press issue: the daemon's presses sit about as close to the dataset's
 # as those do to each other, and are re-identified about as often.
@@ -126,18 +127,28 @@ def daemon_recordings(objects: Sequence[str], presses: int, config: str | Path,
         for name in objects:
             out[name] = []
             for i in range(presses):
-                stack.place(name)  # a new draw of the object, as a person puts it back
-                ep = http_json("POST", f"{stack.api}/v1/recognize",
-                               {"candidates": list(objects), "wait": True,
-                                "timeout_s": RECOGNIZE_TIMEOUT_S},
-                               timeout=RECOGNIZE_TIMEOUT_S + 5)
-                if "http_status" in ep or ep.get("status") == "failed":
-                    raise EdgeError(f"daemon press {i + 1} of {name} failed: "
-                                    f"{ep.get('error') or ep}")
+                ep = _daemon_press(stack, name, objects)
+                if ep is None:
+                    raise EdgeError(f"daemon press {i + 1} of {name} failed "
+                                    f"{DAEMON_TRIES} times in a row")
                 path = EpisodeStore(stack.state / "episodes").file(ep["id"], PRESS_FILE)
                 out[name].append(recording.load(path))
             progress(f"daemon: {presses} presses of {name}")
     return out
+
+
+def _daemon_press(stack, name: str, objects: Sequence[str]) -> dict | None:
+    """One recognition of ``name`` (a new draw of it, as a person puts it back); a press
+    that fails (a stream stalled by a loaded host) is tried again, up to ``DAEMON_TRIES``."""
+    for _ in range(DAEMON_TRIES):
+        stack.place(name)
+        ep = http_json("POST", f"{stack.api}/v1/recognize",
+                       {"candidates": list(objects), "wait": True,
+                        "timeout_s": RECOGNIZE_TIMEOUT_S}, timeout=RECOGNIZE_TIMEOUT_S + 5)
+        if "http_status" not in ep and ep.get("status") != "failed":
+            return ep
+        log.warning("daemon press of %s failed: %s", name, ep.get("error") or ep)
+    return None
 
 
 def _dataset_press(job: tuple[str, int, int, int]) -> recording.Recording:
