@@ -110,10 +110,12 @@ class DynamixelGripper:
                               gripper_raw(self._closed_width_m, self._reverse))
 
     async def stop_now(self, squeeze_raw: int) -> GripperStop:
-        goal = await self._bus.stop_past_present(self._id, self.closing_sign * squeeze_raw)
+        # One WRITE: the goal is extrapolated from the gripper's last state read (the press
+        # reads it every 20 ms while closing); without a fresh one the bus reads first.
+        record = await self._bus.stop_ahead(self._id, self.closing_sign * squeeze_raw)
         # The bus stamps the stop when its packet leaves for the port, on the bus thread:
         # later than any time taken here before the await, earlier than one taken after.
-        return GripperStop(goal, self._bus.last_stop_t)
+        return GripperStop(record.goal, record.t_written)
 
     async def state(self) -> GripperState:
         bus_state = await self._bus.read_state()

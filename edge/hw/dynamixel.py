@@ -2,11 +2,20 @@
 
 The SDK is blocking and not thread-safe, so exactly one thread (``dxl-bus``) ever calls it.
 The asyncio side submits operations and awaits futures that the thread resolves with
-``loop.call_soon_threadsafe``; no SDK call ever runs on the event loop. Operations run one at a
-time in submission order, except stops: they go to an urgent queue the thread empties before
-taking anything else, so a stop waits at most for the one transaction already on the wire
-(the bus is half duplex: a transaction in flight cannot be interrupted without colliding with
-the replies).
+``loop.call_soon_threadsafe``; no SDK call ever runs on the event loop. The thread sleeps in
+``select()`` on an eventfd that every submission writes to. Operations run one at a time in
+submission order, except stops: they go to an urgent queue the thread empties before taking
+anything else, so a stop waits at most for the one transaction already on the wire (the bus
+is half duplex: a transaction in flight cannot be interrupted without colliding with the
+replies).
+
+The stop (:meth:`DynamixelBus.stop_ahead`) is one WRITE of Goal Position: the goal comes from
+the motor's last state read (position and velocity, stamped when the read went out),
+extrapolated to the moment of the write, plus the squeeze. Only a state too old, or one read
+before the motor's last goal, makes it read Present Position first (counted in
+:attr:`DynamixelBus.stop_fallbacks`). Handing a stop to the bus thread, the event loop waits
+(at most ``STOP_HANDOVER_MAX_S``) until the stop's packet is on the wire: the loop's thread
+sleeps, so the bus thread gets the GIL and, on a busy host, the loop's core at once.
 
 The SDK waits for status packets by spinning in pure Python, which holds the GIL and delays
 the event loop by up to the interpreter's switch interval (5 ms). :class:`BlockingPortHandler`
@@ -23,6 +32,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import math
 import os
 import select
 import threading
@@ -42,6 +52,7 @@ from edge.hw.control_table import (
     DRIVE_MODE_TIME_BASED_PROFILE,
     MODE_CURRENT_BASED_POSITION,
     MODE_POSITION,
+    RAW_PER_S_PER_VELOCITY_UNIT,
     XM430_W350,
     Register,
     describe_hardware_error,
@@ -66,6 +77,22 @@ LATE_REPLY_DRAIN_S = 0.05
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
 THREAD_JOIN_TIMEOUT_S = 2.0
+# The stop's goal is extrapolated from a state read no older than this. The press reads the
+# gripper every 20 ms while closing (edge.daemon.press.GRIPPER_TRACE_PERIOD_S); 50 ms rides
+# out one late or lost read. At a constant velocity the estimate is then off by less than
+# one count: 0.5 for Present Position's resolution, 0.4 for Present Velocity's (0.5 of its
+# 15.6 raw/s unit over 50 ms), inside the default 2-count squeeze. What a state cannot show
+# is a change of velocity after it was read: slowing down (contact, stall) only puts the goal
+# further in the closing direction (more squeeze, capped by Goal Current); speeding up
+# happens as a motion starts, hence STOP_STATE_SETTLE_S.
+STOP_STATE_MAX_AGE_S = 0.05
+# A state read sooner than this after the motor's last goal write may show it still
+# accelerating (a real XM430 takes a few ms to reach its profile velocity): not used.
+STOP_STATE_SETTLE_S = 0.01
+# How long the event loop waits, when it hands a stop over, for the stop's packet to be on
+# the wire (normally the hand-over plus any transaction already in flight: tens of
+# microseconds to a millisecond). Past it the loop goes on and the stop still goes out.
+STOP_HANDOVER_MAX_S = 0.003
 # Models the driver is written for; others get a warning (their tables may differ).
 XM430_MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}
 
@@ -205,16 +232,49 @@ class BusState:
     motors: Mapping[int, MotorState]
 
 
+@dataclass(frozen=True)
+class SeenState:
+    """A motor's position and velocity as last read; ``t`` is when the read's instruction
+    went out (the motor sampled no earlier: extrapolating from ``t`` never falls short)."""
+
+    t: float
+    position: int
+    velocity_raw_s: float
+
+
+@dataclass(frozen=True)
+class StopRecord:
+    """What one stop did, and when (the bus clock).
+
+    ``t_submit``: the stop handed to the bus (event loop); ``t_start``: the bus thread began
+    it; ``t_written``: its Goal Position packet was written to the port. ``in_flight_s``:
+    how long a transaction already on the wire at the hand-over still took. ``fast``: one
+    WRITE from a state ``state_age_s`` old; else ``fallback`` says why it read first.
+    """
+
+    goal: int
+    fast: bool
+    state_age_s: float | None
+    fallback: str | None
+    t_submit: float
+    t_start: float
+    t_written: float
+    in_flight_s: float
+
+
 class _Op:
     """One operation for the bus thread, and the future its caller awaits."""
 
-    __slots__ = ("abandoned", "fn", "future", "label", "loop", "must_run")
+    __slots__ = ("abandoned", "fn", "future", "label", "loop", "must_run", "on_wire")
 
     def __init__(self, label: str, fn: Callable[[], Any], loop: asyncio.AbstractEventLoop,
                  future: asyncio.Future[Any], must_run: bool) -> None:
         self.label, self.fn, self.loop, self.future = label, fn, loop, future
         self.must_run = must_run
         self.abandoned = False
+        # Set once the operation's first packet is written (or it ended): what a caller
+        # handing over a stop waits for.
+        self.on_wire = threading.Event()
 
     def on_done(self, future: asyncio.Future[Any]) -> None:
         # Runs on the loop: a caller that gave up on a queued read needs no bus time. A stop
@@ -265,19 +325,31 @@ class DynamixelBus:
         self._latency_timer_dir = latency_timer_dir
         self._ph = CheckedPacketHandler()
         self._port: sdk.PortHandler | None = None
-        self._cond = threading.Condition()
+        self._lock = threading.Lock()
         self._urgent: collections.deque[_Op] = collections.deque()
         self._normal: collections.deque[_Op] = collections.deque()
         self._accepting = False
         self._thread_exit = False
         self._thread: threading.Thread | None = None
+        # Written by every submission; the bus thread sleeps in select() on it.
+        self._wake_fd = -1
+        # The operation on the bus thread now, and when the last one ended (monotonic).
+        self._running: _Op | None = None
+        self._last_op_end = 0.0
         self._motors: dict[int, MotorInfo] = {}
         self._torque_on = False
         self._feed_task: asyncio.Task[None] | None = None
         self._last_traffic = 0.0
         self.last_state: BusState | None = None
-        # When the last stop's Goal Position packet was written (monotonic).
+        # When the last stop's Goal Position packet was written (monotonic), and what it did.
         self.last_stop_t = 0.0
+        self.last_stop: StopRecord | None = None
+        self.stops = 0
+        # Stops that had to read Present Position first (no state fresh enough to trust).
+        self.stop_fallbacks = 0
+        # Per motor: the state last read, and when its last Goal Position write completed.
+        self._seen: dict[int, SeenState] = {}
+        self._goal_t: dict[int, float] = {}
         # Why the bus is not fit to press, for /healthz: the last failed watchdog feed
         # (cleared by the next good one).
         self._feed_fault: str | None = None
@@ -313,6 +385,15 @@ class DynamixelBus:
         """``threading.get_ident()`` of the bus thread (the only one calling the SDK)."""
         return self._thread.ident if self._thread is not None else None
 
+    @property
+    def native_thread_id(self) -> int | None:
+        """The kernel's thread ID of the bus thread (for its scheduling policy and CPU)."""
+        return self._thread.native_id if self._thread is not None else None
+
+    def seen(self, motor_id: int) -> SeenState | None:
+        """The motor's position and velocity as last read (by any sync read), or None."""
+        return self._seen.get(motor_id)
+
     # ---------------------------------------------------------------- lifecycle
 
     async def __aenter__(self) -> DynamixelBus:
@@ -335,6 +416,7 @@ class DynamixelBus:
             raise DeviceError(f"Dynamixel bus on {self._config.port} is already connected")
         self._thread_exit = False
         self._accepting = True
+        self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
         self._thread = threading.Thread(target=self._run, name="dxl-bus", daemon=True)
         self._thread.start()
         try:
@@ -400,18 +482,66 @@ class DynamixelBus:
 
     async def stop_past_present(self, motor_id: int, offset_raw: int) -> int:
         """Ahead of everything queued: read Present Position, write Goal Position =
-        present + ``offset_raw``; returns the goal written.
+        present + ``offset_raw``; returns the goal written (the fallback of
+        :meth:`stop_ahead`)."""
+        record = await self._submit_stop(motor_id, offset_raw, None)
+        return record.goal
 
-        Reading on the spot, not a cached position, guarantees the goal is past where the
-        motor really is, so a stop never backs off the squeeze.
+    async def stop_ahead(self, motor_id: int, offset_raw: int,
+                         max_age_s: float = STOP_STATE_MAX_AGE_S) -> StopRecord:
+        """Ahead of everything queued, one WRITE of Goal Position = the motor's position
+        extrapolated to the moment of the write + ``offset_raw`` (the squeeze, signed in the
+        closing direction).
+
+        The position is the last one read (:meth:`seen`) moved on by its velocity. A state
+        older than ``max_age_s``, read before the motor's last goal write or within
+        ``STOP_STATE_SETTLE_S`` of it, or missing, is not trusted: then Present Position is
+        read first (:meth:`stop_past_present`), as many times as :attr:`stop_fallbacks`
+        says. Either way the goal lies past where the motor is, so a stop never backs off
+        the squeeze.
         """
-        def op() -> int:
-            goal = self._read(motor_id, PRESENT_POSITION) + offset_raw
-            self._write(motor_id, GOAL_POSITION, goal)
-            self.last_stop_t = getattr(self._port, "last_write_t", 0.0) or self._clock()
-            return goal
+        return await self._submit_stop(motor_id, offset_raw, max_age_s)
 
-        return await self._call("stop past present", op, urgent=True)
+    async def _submit_stop(self, motor_id: int, offset_raw: int,
+                           max_age_s: float | None) -> StopRecord:
+        t_submit = self._clock()
+        busy = self._running  # a transaction on the wire at the hand-over
+
+        def op() -> StopRecord:
+            t_start = self._clock()
+            in_flight = max(0.0, self._last_op_end - t_submit) if busy is not None else 0.0
+            goal, age, why = self._stop_goal(motor_id, offset_raw, max_age_s)
+            self._write(motor_id, GOAL_POSITION, goal)
+            t_written = getattr(self._port, "last_write_t", 0.0) or self._clock()
+            self.last_stop_t = t_written
+            self.stops += 1
+            if why is not None and max_age_s is not None:
+                self.stop_fallbacks += 1
+            record = StopRecord(goal, why is None, age, why, t_submit, t_start, t_written,
+                                in_flight)
+            self.last_stop = record
+            return record
+
+        return await self._call("stop", op, urgent=True)
+
+    def _stop_goal(self, motor_id: int, offset_raw: int,
+                   max_age_s: float | None) -> tuple[int, float | None, str | None]:
+        """(goal, age of the state used, why the state was not used) on the bus thread."""
+        now = self._clock()
+        seen = self._seen.get(motor_id)
+        goal_t = self._goal_t.get(motor_id, -math.inf)
+        if max_age_s is None:
+            why = "asked to read"
+        elif seen is None:
+            why = "no state read yet"
+        elif now - seen.t > max_age_s:
+            why = f"state {1e3 * (now - seen.t):.0f} ms old"
+        elif seen.t < goal_t + STOP_STATE_SETTLE_S:
+            why = "state read before the motor's last goal had settled"
+        else:
+            estimate = seen.position + seen.velocity_raw_s * (now - seen.t)
+            return round(estimate) + offset_raw, now - seen.t, None
+        return self._read(motor_id, PRESENT_POSITION) + offset_raw, None, why
 
     async def set_torque(self, enabled: bool) -> None:
         """Torque on (goals set to present positions first, then the Bus Watchdog armed and
@@ -443,11 +573,17 @@ class DynamixelBus:
         future: asyncio.Future[Any] = loop.create_future()
         op = _Op(label, fn, loop, future, must_run=urgent)
         future.add_done_callback(op.on_done)
-        with self._cond:
+        with self._lock:
             if not self._accepting:
                 raise DeviceError(f"Dynamixel bus on {self._config.port} is not connected")
             (self._urgent if urgent else self._normal).append(op)
-            self._cond.notify()
+        os.eventfd_write(self._wake_fd, 1)
+        if urgent:
+            # Sleeping here hands the bus thread the GIL (and, on a busy host, this core)
+            # at once; going on would leave it waiting until the loop next blocks, up to
+            # the interpreter's 5 ms switch interval under load. Bounded: a stop behind a
+            # transaction that hangs does not hold up the loop.
+            op.on_wire.wait(STOP_HANDOVER_MAX_S)
         return await future
 
     async def _feed_watchdog(self) -> None:
@@ -484,33 +620,45 @@ class DynamixelBus:
         thread = self._thread
         if thread is None:
             return
-        with self._cond:
+        with self._lock:
             self._accepting = False
             self._thread_exit = True
-            self._cond.notify()
+        os.eventfd_write(self._wake_fd, 1)
         await asyncio.to_thread(thread.join, THREAD_JOIN_TIMEOUT_S)
         if thread.is_alive():
             _log.error("Dynamixel bus thread did not stop within %.1f s", THREAD_JOIN_TIMEOUT_S)
+        else:
+            os.close(self._wake_fd)
+            self._wake_fd = -1
         self._thread = None
         self._torque_on = False
 
     # ---------------------------------------------------------------- the bus thread
 
+    def _next_op(self) -> _Op | None:
+        """The next operation (stops first), sleeping in select() until there is one; None
+        when the thread is to end."""
+        while True:
+            with self._lock:
+                if self._urgent:
+                    return self._urgent.popleft()
+                if self._normal:
+                    return self._normal.popleft()
+                if self._thread_exit:
+                    return None
+            # A submission after the check above has written the eventfd: select returns.
+            select.select([self._wake_fd], [], [])
+            with contextlib.suppress(BlockingIOError):
+                os.eventfd_read(self._wake_fd)
+
     def _run(self) -> None:
         try:
-            while True:
-                with self._cond:
-                    while not (self._urgent or self._normal or self._thread_exit):
-                        self._cond.wait()
-                    if self._urgent:
-                        op = self._urgent.popleft()
-                    elif self._normal:
-                        op = self._normal.popleft()
-                    else:
-                        break
+            while (op := self._next_op()) is not None:
                 if op.abandoned:
+                    op.on_wire.set()
                     continue
                 value, exc = None, None
+                self._running = op
                 try:
                     value = op.fn()
                 except EdgeError as e:
@@ -521,7 +669,10 @@ class DynamixelBus:
                 except Exception as e:
                     _log.exception("unexpected error in bus operation %s", op.label)
                     exc = e
-                self._last_traffic = self._clock()
+                finally:
+                    self._running = None
+                    op.on_wire.set()
+                self._last_op_end = self._last_traffic = self._clock()
                 op.settle(value, exc)
         finally:
             self._close_port()
@@ -606,6 +757,9 @@ class DynamixelBus:
             else:
                 result, error = write(self._port, motor_id, reg.address,
                                       reg.to_unsigned(value))
+        if reg is GOAL_POSITION:
+            # A new goal changes the motion: states read before it say nothing about it now.
+            self._goal_t[motor_id] = self._clock()
         self._check(motor_id, f"write {reg.name} = {value}", result, error)
 
     def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
@@ -613,6 +767,9 @@ class DynamixelBus:
         for motor_id, value in values.items():
             param += [motor_id, *reg.encode(value)]
         result = self._ph.syncWriteTxOnly(self._port, reg.address, reg.size, param, len(param))
+        if reg is GOAL_POSITION:
+            now = self._clock()
+            self._goal_t.update(dict.fromkeys(values, now))
         if result != sdk.COMM_SUCCESS:
             first = next(iter(values), None)
             raise MotorError(f"motors {sorted(values)}: sync write {reg.name}: "
@@ -633,6 +790,7 @@ class DynamixelBus:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
         # its motor and the error byte (e.g. a hardware alert) is checked, which
         # GroupSyncRead.rxPacket drops.
+        t_sent = self._clock()  # the motors sample after this: see SeenState
         result = self._ph.syncReadTx(self._port, _STATE_START, _STATE_LENGTH, list(self._ids),
                                      len(self._ids), False)
         if result != sdk.COMM_SUCCESS:
@@ -650,9 +808,15 @@ class DynamixelBus:
             )
         state = BusState(self._clock(), motors)
         self.last_state = state
+        for motor_id, m in motors.items():
+            self._seen[motor_id] = SeenState(t_sent, m.position,
+                                             m.velocity * RAW_PER_S_PER_VELOCITY_UNIT)
         return state
 
     def _written(self, t: float, head: bytes) -> None:
+        op = self._running
+        if op is not None:
+            op.on_wire.set()
         if self.on_write is not None:
             self.on_write(t, head)
 

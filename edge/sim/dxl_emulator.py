@@ -34,6 +34,13 @@ dynamics (goals are stored, nothing moves), Baud Rate changes are stored but ign
 Torque Enable = 1 sets Goal Position to the present position (the driver writes it before
 torque on anyway, so it never depends on this).
 
+The stop check: a Goal Position write that reaches a motor in current-based position mode
+while it is closing (its profile heads in the closing direction) and sets a goal short of
+the one it was closing to is a stop. For each, the emulator records in ``stop_checks`` how
+far the goal lies past the motor's true position at the instant the packet arrived, in the
+closing direction, and counts in ``stops_behind`` every stop whose goal lay behind it: a
+stop that backed off the squeeze.
+
 Fault switches: ``set_missing`` (a motor that does not answer at all), ``corrupt_crc`` (replies
 with a wrong CRC), ``set_hardware_error`` (Hardware Error Status bits, the alert bit in every
 status packet and torque off, as a real shutdown does).
@@ -180,6 +187,18 @@ class Instruction:
     instruction: int
     params: bytes
     crc_ok: bool
+
+
+@dataclass(frozen=True)
+class StopCheck:
+    """One stop as the emulator took it: ``ahead_raw`` is how far the goal lay past the
+    true position in the closing direction when the packet arrived (< 0: behind it)."""
+
+    t: float
+    motor_id: int
+    goal: int
+    true_position: float
+    ahead_raw: float
 
 
 @dataclass(frozen=True)
@@ -350,6 +369,8 @@ class DxlEmulator:
         self._lock = threading.RLock()
         self._sim_t = clock()
         self.received: collections.deque[Received] = collections.deque(maxlen=10_000)
+        self.stop_checks: collections.deque[StopCheck] = collections.deque(maxlen=10_000)
+        self.stops_behind = 0
         self.port = ""
         self._master = self._slave = self._wake_r = self._wake_w = -1
         self._thread: threading.Thread | None = None
@@ -625,6 +646,8 @@ class DxlEmulator:
         elif name == "Goal Position":
             if m.torque_on and m.mem[11] in (MODE_POSITION, MODE_EXTENDED_POSITION,
                                              MODE_CURRENT_BASED_POSITION):
+                if m.mem[11] == MODE_CURRENT_BASED_POSITION:
+                    self._check_stop(m, value, t)
                 self._start_profile(m, value, t)
         elif name == "Bus Watchdog":
             m.watchdog_last = t
@@ -634,6 +657,21 @@ class DxlEmulator:
             self._motors.pop(m.id, None)
             m.id = value
             self._motors[value] = m
+
+    def _check_stop(self, m: _Motor, goal: int, t: float) -> None:
+        """Record a stop (see the module docstring); ``m.pos`` is the position now."""
+        profile, closing = m.profile, m.closing_sign
+        if profile is None or (profile.goal - m.pos) * closing <= 0:
+            return  # not closing
+        if (goal - profile.goal) * closing >= 0:
+            return  # closing on, or further
+        ahead = (goal - m.pos) * closing
+        self.stop_checks.append(StopCheck(t, m.id, goal, m.pos, ahead))
+        if ahead < 0:
+            self.stops_behind += 1
+            _log.warning("emulated motor %d: stop goal %d lies %.2f counts behind its true "
+                         "position %.2f: the stop backed off the squeeze", m.id, goal, -ahead,
+                         m.pos)
 
     # ---------------------------------------------------------------- instructions
 

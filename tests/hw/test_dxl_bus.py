@@ -20,8 +20,13 @@ import pytest_asyncio
 from edge.core.config import BusConfig
 from edge.core.errors import DeviceError, MotorError
 from edge.hw.arm import DynamixelGripper, gripper_raw
-from edge.hw.dynamixel import LATENCY_TIMER_UDEV_RULE, BlockingPortHandler, DynamixelBus
-from edge.sim.dxl_emulator import INST_SYNC_READ, INST_WRITE, DxlEmulator
+from edge.hw.dynamixel import (
+    LATENCY_TIMER_UDEV_RULE,
+    STOP_STATE_MAX_AGE_S,
+    BlockingPortHandler,
+    DynamixelBus,
+)
+from edge.sim.dxl_emulator import INST_READ, INST_SYNC_READ, INST_WRITE, DxlEmulator
 from tests.support.waits import wait_until
 
 IDS = (11, 12, 13, 14, 15)
@@ -479,3 +484,34 @@ async def test_event_loop_stays_on_time_while_the_bus_waits(emu):
     assert p99 < 0.015
     assert cpu < 0.6  # waiting costs no core...
     assert s_cpu > 2 * cpu  # ...where the stock spin does
+
+
+@pytest.mark.asyncio
+async def test_stop_is_one_write_from_a_fresh_state_else_it_reads_first(emu, bus):
+    await bus.set_torque(True)  # writes every goal: states read before it are not used
+    gripper = DynamixelGripper(bus)
+
+    async def stop_instructions(max_age_s: float = STOP_STATE_MAX_AGE_S) -> list[int]:
+        mark = len(emu.received)
+        if max_age_s == STOP_STATE_MAX_AGE_S:
+            await gripper.stop_now(2)
+        else:
+            await bus.stop_ahead(15, -2, max_age_s)
+        return [r.instruction for r in list(emu.received)[mark:] if r.motor_id == 15]
+
+    assert await stop_instructions() == [INST_READ, INST_WRITE]
+    assert bus.stop_fallbacks == 1 and not bus.last_stop.fast
+    await asyncio.sleep(0.02)  # past STOP_STATE_SETTLE_S after that goal
+    await bus.read_state()
+    assert await stop_instructions() == [INST_WRITE]
+    record = bus.last_stop
+    assert record.fast and record.state_age_s < STOP_STATE_MAX_AGE_S
+    assert record.goal == bus.seen(15).position - 2  # at rest: present, 2 counts closed
+    assert record.t_submit <= record.t_start <= record.t_written
+    await asyncio.sleep(0.02)
+    await bus.read_state()
+    await asyncio.sleep(0.005)
+    # (The watchdog feed reads every 25 ms here: a shorter bound stands for an old state.)
+    assert await stop_instructions(0.001) == [INST_READ, INST_WRITE]  # too old to trust
+    assert bus.stop_fallbacks == 2 and bus.stops == 3
+    print(f"\nfallback reasons: {bus.last_stop.fallback}")

@@ -475,3 +475,35 @@ def test_start_stop_leaks_no_thread_or_fd():
             handler.closePort()
     assert threading.active_count() == before_threads
     assert _open_fds() == before_fds
+
+
+def test_every_stop_is_checked_against_the_true_position():
+    # A stop is a goal short of the one the gripper is closing to, written while it closes;
+    # the emulator measures where it lands against the true position at arrival.
+    clock = ManualClock()
+    emu = _start(clock=clock)
+    port = _open(emu)
+    try:
+        _ok(PH.write1ByteTxRx(port, 15, 11, 5))  # current-based position
+        _ok(PH.write4ByteTxRx(port, 15, 112, 32))  # about 500 raw/s
+        _ok(PH.write1ByteTxRx(port, 15, 64, 1))
+        _write_goal(port, 15, 1000)  # closing (decreasing raw), from 2048
+        clock.t += 0.5
+        true = emu.true_position(15)
+        assert 1000 < true < 2048
+        _write_goal(port, 15, round(true) - 2)  # a stop 2 counts past it: kept
+        assert emu.stops_behind == 0
+        (check,) = emu.stop_checks
+        assert check.motor_id == 15 and check.ahead_raw == pytest.approx(2, abs=0.5)
+        _write_goal(port, 15, 1000)  # closing again
+        clock.t += 0.1
+        true = emu.true_position(15)
+        _write_goal(port, 15, round(true) + 3)  # a stop behind it: it backs off
+        assert emu.stops_behind == 1
+        assert emu.stop_checks[-1].ahead_raw == pytest.approx(-3, abs=0.5)
+        _write_goal(port, 15, 500)  # not a stop: closing further
+        _write_goal(port, 11, 100)  # nor a joint's goal (position mode)
+        assert len(emu.stop_checks) == 2
+    finally:
+        port.closePort()
+        emu.stop()
