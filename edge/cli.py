@@ -173,7 +173,15 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
 
     beside = Path(sys.executable).with_name("vt-edge")
     exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
-    unit = systemd.unit_text(exe, str(Path(args.config).resolve()), args.user)
+    config = Path(args.config).resolve()
+    priority = None
+    if config.exists():
+        # The unit lets the daemon do what its configuration asks (real-time scheduling).
+        from edge.core.config import load_config
+
+        runtime = load_config(config).runtime
+        priority = runtime.realtime_priority if runtime.realtime else None
+    unit = systemd.unit_text(exe, str(config), args.user, realtime_priority=priority)
     if not args.install:
         print(unit, end="")
         return 0

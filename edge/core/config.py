@@ -238,6 +238,12 @@ class RuntimeConfig:
     # Record the live tactile stream and events to MCAP segments here ("": off).
     record_mcap_dir: str = ""
     record_mcap_segment_s: float = 600.0
+    # Real-time scheduling of the event loop and the bus thread (edge/daemon/realtime.py):
+    # SCHED_FIFO at realtime_priority on CPU realtime_cpu (-1: the last one the daemon may
+    # use). Needs root, CAP_SYS_NICE or LimitRTPRIO=; a restart applies it.
+    realtime: bool = False
+    realtime_priority: int = 20
+    realtime_cpu: int = -1
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
@@ -245,6 +251,10 @@ class RuntimeConfig:
             _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
         _require(self.record_mcap_segment_s >= 1, path, "record_mcap_segment_s",
                  self.record_mcap_segment_s, "must be >= 1 s")
+        _require(1 <= self.realtime_priority <= 99, path, "realtime_priority",
+                 self.realtime_priority, "must be a SCHED_FIFO priority, 1..99")
+        _require(self.realtime_cpu >= -1, path, "realtime_cpu", self.realtime_cpu,
+                 "must be a CPU number, or -1 for the last one the daemon may use")
 
 
 def _default_poses() -> dict[str, tuple[int, ...]]:

@@ -316,7 +316,10 @@ def _reloadable(running: Config, new: Config) -> Config:
         api=replace(running.api, default_candidates=new.api.default_candidates),
         bus=replace(running.bus, gripper_goal_current=new.bus.gripper_goal_current),
         runtime=replace(new.runtime, state_dir=running.runtime.state_dir,
-                        move_time_s=running.runtime.move_time_s))
+                        move_time_s=running.runtime.move_time_s,
+                        realtime=running.runtime.realtime,
+                        realtime_priority=running.runtime.realtime_priority,
+                        realtime_cpu=running.runtime.realtime_cpu))
 
 
 async def _unless_cancelled_twice(coro: Any) -> None:

@@ -9,8 +9,10 @@ import os
 import resource
 import selectors
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,7 @@ from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.devices import close_devices, enable_torque, open_devices
 from edge.daemon.lifecycle import Devices, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
+from edge.daemon.realtime import Realtime, leave_reserved_cpu
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -49,7 +52,12 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
         resource.setrlimit(resource.RLIMIT_NOFILE, (FD_SETSIZE, hard))
         log.info("open files limited to %d (was %s): the event loop uses select(2) for "
                  "microsecond timers", FD_SETSIZE, soft)
-    return asyncio.SelectorEventLoop(selectors.SelectSelector())
+    loop = asyncio.SelectorEventLoop(selectors.SelectSelector())
+    # Its threads start from the loop's thread and would inherit its CPU when that is held
+    # for real-time scheduling ([runtime] realtime): they leave it.
+    loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="asyncio",
+                                                 initializer=leave_reserved_cpu))
+    return loop
 
 
 def state_dir(cfg: Config) -> Path:
@@ -96,6 +104,8 @@ class Daemon:
     devices: Devices
     store: EpisodeStore
     compute: ComputeWorker
+    # Real-time scheduling of the loop and bus threads; enabled at start when configured.
+    realtime: Realtime
 
 
 @contextlib.asynccontextmanager
@@ -153,8 +163,25 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
         runtime.started_at = started
         api.attach(runtime)
+        realtime = make_realtime(cfg, devices)
+        stack.callback(realtime.disable)
+        if cfg.runtime.realtime:
+            realtime.enable()  # where refused, it says why and the daemon runs as before
         await enable_torque(devices)
-        yield Daemon(cfg, runtime, api, devices, store, compute)
+        yield Daemon(cfg, runtime, api, devices, store, compute, realtime)
+
+
+def make_realtime(cfg: Config, devices: Devices) -> Realtime:
+    """Real-time scheduling for the threads the stop goes through: this one (the event
+    loop's) and the bus thread."""
+    loop_thread = threading.get_native_id()
+
+    def threads() -> list[int]:
+        bus = devices.bus
+        bus_thread = bus.native_thread_id if bus is not None else None
+        return [loop_thread, *([bus_thread] if bus_thread else [])]
+
+    return Realtime(cfg.runtime.realtime_priority, cfg.runtime.realtime_cpu, threads)
 
 
 async def _close_vlm(current: Callable[[], Any]) -> None:

@@ -74,10 +74,33 @@ def watchdog_period_s() -> float | None:
         return None
 
 
-def unit_text(exec_start: str, config: str, user: str = "vtzero") -> str:
+# What a unit adds when the configuration asks for real-time scheduling ([runtime]
+# realtime, edge/daemon/realtime.py): the right to SCHED_FIFO up to the priority, and the two
+# system calls that set it, which the hardening's @resources filter otherwise refuses.
+_REALTIME_DENIED = "RestrictRealtime=yes\n"
+_REALTIME_ALLOWED = """RestrictRealtime=no
+# [runtime] realtime = true: the event loop and the bus thread ask for SCHED_FIFO and a CPU.
+LimitRTPRIO={priority}
+"""
+_SYSCALLS_DENIED = "SystemCallFilter=~@privileged @resources"
+_SYSCALLS_REALTIME = "SystemCallFilter=sched_setscheduler sched_setaffinity\n"
+
+
+def unit_text(exec_start: str, config: str, user: str = "vtzero",
+              realtime_priority: int | None = None) -> str:
+    """The unit for ``vt-edge run --config CONFIG``; with ``realtime_priority``, allowed to
+    run its loop and bus threads at that SCHED_FIFO priority."""
     template = resources.files("edge.daemon").joinpath("vtzero-edge.service").read_text()
-    return (template.replace("@EXEC_START@", exec_start).replace("@CONFIG@", config)
+    text = (template.replace("@EXEC_START@", exec_start).replace("@CONFIG@", config)
             .replace("@USER@", user))
+    if realtime_priority is not None:
+        text = text.replace(_REALTIME_DENIED,
+                            _REALTIME_ALLOWED.format(priority=realtime_priority))
+        lines = text.splitlines(keepends=True)
+        at = next(i for i, line in enumerate(lines) if line.startswith(_SYSCALLS_DENIED))
+        lines.insert(at + 1, _SYSCALLS_REALTIME)
+        text = "".join(lines)
+    return text
 
 
 def install(unit: str, dest_dir: Path = Path("/etc/systemd/system")) -> Path:

@@ -64,3 +64,30 @@ def test_sd_notify_datagrams(tmp_path):
     notifier.close()
     server.close()
     assert not Notifier("").enabled and not Notifier("").ready()
+
+
+def test_realtime_unit_lets_the_daemon_ask_for_fifo(tmp_path):
+    config = tmp_path / "robot.toml"
+    config.write_text("[runtime]\nrealtime = true\nrealtime_priority = 30\n")
+    out = subprocess.run([sys.executable, "-m", "edge", "install-service", "--config",
+                          str(config)], capture_output=True, text=True, check=True)
+    text = out.stdout
+    assert "RestrictRealtime=no" in text and "RestrictRealtime=yes" not in text
+    assert "LimitRTPRIO=30" in text
+    deny = text.index("SystemCallFilter=~@privileged @resources")
+    assert text.index("SystemCallFilter=sched_setscheduler sched_setaffinity") > deny
+    # Without it the unit is the hardened default.
+    assert "LimitRTPRIO" not in unit_text("/usr/bin/vt-edge", str(config))
+    if shutil.which("systemd-analyze") is None:
+        return
+    path = tmp_path / "vtzero-edge.service"
+    path.write_text(text)
+    verify = subprocess.run(["systemd-analyze", "verify", str(path)], capture_output=True,
+                            text=True)
+    assert verify.returncode == 0, verify.stderr
+    security = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(path)],
+                              capture_output=True, text=True)
+    match = re.search(r"Overall exposure level for \S+: ([\d.]+) (\w+)", security.stdout)
+    assert match, security.stdout[-500:] + security.stderr
+    print(f"systemd-analyze security, real-time unit: {match.group(1)} {match.group(2)}")
+    assert float(match.group(1)) <= 2.0
