@@ -34,6 +34,13 @@ log = logging.getLogger(__name__)
 
 # Extra stream kept on each side of the model's window in the stored recording.
 RECORD_MARGIN_S = 0.2
+# While the threshold is armed the gripper is read (one sync read of every motor, the
+# recording's gripper trace) right after every second tactile frame has been checked: the
+# read is over long before the next frame, so the stop, which only a frame triggers, finds
+# the bus free, and it extrapolates from a state at most two frames old (the stop's goal
+# comes from it: DynamixelBus.stop_ahead). Without frames, it reads every
+# GRIPPER_TRACE_PERIOD_S.
+GRIPPER_TRACE_FRAMES = 2
 GRIPPER_TRACE_PERIOD_S = 0.02
 # A stream this long without a fresh frame means the press must not start.
 FRESH_FRAME_S = 0.1
@@ -49,6 +56,7 @@ class PressOutcome:
     message: str = ""
     t_cross: float | None = None  # receive time of the first frame over x_th
     t_stop: float | None = None  # when the stop write went out
+    t_check: float | None = None  # when the check of the frame over x_th began
     stop_latency_s: float | None = None
     peak_level: float = 0.0
     level_at_cross: float = 0.0
@@ -91,6 +99,9 @@ class _Armed:
         self.peak = 0.0
         # The stop at the threshold could not be sent: the press aborts and opens.
         self.stop_error: BaseException | None = None
+        # Frames checked, and the gripper trace's cue to read (see GRIPPER_TRACE_FRAMES).
+        self.checked = 0
+        self.trace_due = asyncio.Event()
 
 
 class PressController:
@@ -133,6 +144,7 @@ class PressController:
         armed = self._armed
         if armed is None:
             return
+        t_check = self.clock()
         level = float(np.linalg.norm(raw - armed.tare)) / preprocess.UNITS_SCALE
         if level > armed.peak:
             armed.peak = level
@@ -145,6 +157,7 @@ class PressController:
                 t_sent = stop.t_sent
                 if self._outcome is not None:
                     self._outcome.t_stop = t_sent
+                    self._outcome.t_check = t_check
                     self._outcome.stop_latency_s = t_sent - recv_time
                 stopped = True
             except DeviceError as exc:
@@ -156,6 +169,10 @@ class PressController:
                 (armed.crossed if stopped else armed.abort).set()
         elif level > armed.abort_level:
             armed.abort.set()
+        # After the check, never before it: the read must not delay a stop.
+        armed.checked += 1
+        if armed.checked % GRIPPER_TRACE_FRAMES == 0:
+            armed.trace_due.set()
 
     # The sensor task calls this with every arriving frame: the threshold checked on each
     # (the fastest reaction the stream allows), with no extra call on the per-frame path. A
@@ -225,7 +242,7 @@ class PressController:
             armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
             self._armed = armed
             self._enter(outcome, "closing")
-            trace_task = asyncio.create_task(self._trace(outcome), name="gripper-trace")
+            trace_task = asyncio.create_task(self._trace(outcome, armed), name="gripper-trace")
             goal_ma = self._current_cap_ma()
             # Both fingers move: each closes at half the gap speed.
             await self.gripper.close(press.close_speed_mps / 2, goal_ma)
@@ -374,13 +391,16 @@ class PressController:
                         await self.recover()
         return last
 
-    async def _trace(self, outcome: PressOutcome) -> None:
+    async def _trace(self, outcome: PressOutcome, armed: _Armed) -> None:
         while True:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(GRIPPER_TRACE_PERIOD_S):
+                    await armed.trace_due.wait()
+            armed.trace_due.clear()
             try:
                 outcome.gripper_trace.append(await self.gripper.state())
             except DeviceError as exc:
                 log.debug("gripper trace read failed: %s", exc)
-            await asyncio.sleep(GRIPPER_TRACE_PERIOD_S)
 
 
 # The states a press can be stopped at by an abort request before the threshold is armed.

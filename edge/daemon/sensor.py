@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from edge.core.errors import SensorError, StaleSensorError
-from edge.hw.contracts import TactileSource
+from edge.hw.contracts import TactileFrame, TactileSource
 
 if TYPE_CHECKING:
     from edge.daemon.press import PressController
@@ -149,7 +149,10 @@ class SensorTask:
     controller, which checks the threshold on it (and sends the stop) before the next frame
     is read; reconnects after a failure and tells the controller while the stream is stale.
 
-    ``controller`` may be replaced between presses (a benchmark compares controllers).
+    A source that can run a step in its own task before queueing a frame (``on_frame``: the
+    XELA client) gets the threshold check there: the stop leaves without the frame's hop
+    through the source's queue to this task. Other sources (fakes, replays) are checked
+    here. ``controller`` may be replaced between presses (a benchmark compares controllers).
     """
 
     def __init__(self, source: TactileSource, ring: FrameRing, controller: PressController,
@@ -164,13 +167,33 @@ class SensorTask:
     async def run(self) -> None:
         """Until cancelled: a bug or a dead stream on the sensor path must not take the
         daemon (and the arm) down."""
+        inline = hasattr(self.source, "on_frame")
+        if inline:
+            self.source.on_frame = self._check  # type: ignore[attr-defined]
+        try:
+            await self._run(inline)
+        finally:
+            if inline:
+                self.source.on_frame = None  # type: ignore[attr-defined]
+
+    async def _check(self, frame: TactileFrame) -> None:
+        """The threshold check on the source's own task (see the class docstring)."""
+        controller = self.controller
+        try:
+            await controller.on_frame(frame.raw, frame.recv_time)
+        except Exception as exc:
+            log.exception("threshold check failed on frame %d", frame.seq)
+            controller.sensor_stale(exc)
+
+    async def _run(self, inline: bool) -> None:
         while True:
             try:
                 async for frame in self.source.frames():
                     self.ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
                     self.frames += 1
                     controller = self.controller
-                    await controller.on_frame(frame.raw, frame.recv_time)
+                    if not inline:
+                        await controller.on_frame(frame.raw, frame.recv_time)
                     if controller.sensor_is_stale:
                         controller.sensor_fresh()
                         log.info("tactile stream fresh again")

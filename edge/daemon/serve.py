@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import os
 import resource
@@ -168,6 +169,9 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         if cfg.runtime.realtime:
             realtime.enable()  # where refused, it says why and the daemon runs as before
         await enable_torque(devices)
+        # Everything started so far lives as long as the daemon: out of the collector's
+        # way, so that its full collections (which stop the loop) walk only what came after.
+        gc.freeze()
         yield Daemon(cfg, runtime, api, devices, store, compute, realtime)
 
 

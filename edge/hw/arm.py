@@ -111,11 +111,13 @@ class DynamixelGripper:
 
     async def stop_now(self, squeeze_raw: int) -> GripperStop:
         # One WRITE: the goal is extrapolated from the gripper's last state read (the press
-        # reads it every 20 ms while closing); without a fresh one the bus reads first.
+        # reads it after every second frame while closing); without a fresh one the bus
+        # reads first.
         record = await self._bus.stop_ahead(self._id, self.closing_sign * squeeze_raw)
-        # The bus stamps the stop when its packet leaves for the port, on the bus thread:
-        # later than any time taken here before the await, earlier than one taken after.
-        return GripperStop(record.goal, record.t_written)
+        # The bus stamps the stop when its packet leaves for the port (the write call), on
+        # the bus thread: later than any time taken here before the await, earlier than one
+        # taken after.
+        return GripperStop(record.goal, record.t_write_call)
 
     async def state(self) -> GripperState:
         bus_state = await self._bus.read_state()

@@ -78,13 +78,14 @@ LATE_REPLY_DRAIN_S = 0.05
 _READ_DEADLINE_SLACK_S = 0.0002
 THREAD_JOIN_TIMEOUT_S = 2.0
 # The stop's goal is extrapolated from a state read no older than this. The press reads the
-# gripper every 20 ms while closing (edge.daemon.press.GRIPPER_TRACE_PERIOD_S); 50 ms rides
-# out one late or lost read. At a constant velocity the estimate is then off by less than
-# one count: 0.5 for Present Position's resolution, 0.4 for Present Velocity's (0.5 of its
-# 15.6 raw/s unit over 50 ms), inside the default 2-count squeeze. What a state cannot show
-# is a change of velocity after it was read: slowing down (contact, stall) only puts the goal
-# further in the closing direction (more squeeze, capped by Goal Current); speeding up
-# happens as a motion starts, hence STOP_STATE_SETTLE_S.
+# gripper after every second tactile frame while closing (16 ms at 125 Hz, 20 ms at
+# 100 Hz: edge.daemon.press.GRIPPER_TRACE_FRAMES); 50 ms rides out one late or lost read.
+# At a constant velocity the estimate is then off by less than one count: 0.5 for Present
+# Position's resolution, 0.4 for Present Velocity's (0.5 of its 15.6 raw/s unit over 50 ms),
+# inside the default 2-count squeeze. What a state cannot show is a change of velocity
+# after it was read: slowing down (contact, stall) only puts the goal further in the
+# closing direction (more squeeze, capped by Goal Current); speeding up happens as a motion
+# starts, hence STOP_STATE_SETTLE_S.
 STOP_STATE_MAX_AGE_S = 0.05
 # A state read sooner than this after the motor's last goal write may show it still
 # accelerating (a real XM430 takes a few ms to reach its profile velocity): not used.
@@ -136,13 +137,17 @@ class BlockingPortHandler(sdk.PortHandler):
     def __init__(self, port_name: str) -> None:
         super().__init__(port_name)
         self.latency_timer_ms = SDK_LATENCY_TIMER_MS
-        # Monotonic time the last packet left for the port (the stop latency ends here).
+        # Monotonic time of the last write call (the packet goes to the kernel from here:
+        # the stop latency ends here), and when that call returned (later by the system
+        # call, and by any wait of this thread for a CPU or the GIL after it).
+        self.write_call_t = 0.0
         self.last_write_t = 0.0
         # Called on the bus thread after each write with (its time, the packet's first 8
         # bytes: header, ID, length, instruction): a benchmark's probe.
         self.on_write: Callable[[float, bytes], None] | None = None
 
     def writePort(self, packet) -> int:
+        self.write_call_t = time.monotonic()
         written = super().writePort(packet)
         self.last_write_t = time.monotonic()
         if self.on_write is not None:
@@ -247,7 +252,8 @@ class StopRecord:
     """What one stop did, and when (the bus clock).
 
     ``t_submit``: the stop handed to the bus (event loop); ``t_start``: the bus thread began
-    it; ``t_written``: its Goal Position packet was written to the port. ``in_flight_s``:
+    it; ``t_write_call``: its Goal Position packet's write call (the packet goes to the
+    kernel from here: the stop's time); ``t_written``: that call returned. ``in_flight_s``:
     how long a transaction already on the wire at the hand-over still took. ``fast``: one
     WRITE from a state ``state_age_s`` old; else ``fallback`` says why it read first.
     """
@@ -258,6 +264,7 @@ class StopRecord:
     fallback: str | None
     t_submit: float
     t_start: float
+    t_write_call: float
     t_written: float
     in_flight_s: float
 
@@ -341,7 +348,8 @@ class DynamixelBus:
         self._feed_task: asyncio.Task[None] | None = None
         self._last_traffic = 0.0
         self.last_state: BusState | None = None
-        # When the last stop's Goal Position packet was written (monotonic), and what it did.
+        # When the last stop's Goal Position packet went to the port (its write call,
+        # monotonic), and what the stop did.
         self.last_stop_t = 0.0
         self.last_stop: StopRecord | None = None
         self.stops = 0
@@ -513,12 +521,13 @@ class DynamixelBus:
             goal, age, why = self._stop_goal(motor_id, offset_raw, max_age_s)
             self._write(motor_id, GOAL_POSITION, goal)
             t_written = getattr(self._port, "last_write_t", 0.0) or self._clock()
-            self.last_stop_t = t_written
+            t_call = getattr(self._port, "write_call_t", 0.0) or t_written
+            self.last_stop_t = t_call
             self.stops += 1
             if why is not None and max_age_s is not None:
                 self.stop_fallbacks += 1
-            record = StopRecord(goal, why is None, age, why, t_submit, t_start, t_written,
-                                in_flight)
+            record = StopRecord(goal, why is None, age, why, t_submit, t_start, t_call,
+                                t_written, in_flight)
             self.last_stop = record
             return record
 

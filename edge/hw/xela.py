@@ -16,7 +16,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Self
 
@@ -42,6 +42,8 @@ _HEX_WORD = re.compile(r"[0-9A-Fa-f]{1,4}")
 # Dropped from inside hex words: what a wrapped or indented capture puts there. Anything else
 # (another control character, a stray letter) still makes the word "not a 16-bit hex word".
 _DROP_WHITESPACE = str.maketrans("", "", " \t\r\n")
+# strict=False: see _load. One decoder for every frame (json.loads would build one a call).
+_DECODER = json.JSONDecoder(strict=False)
 
 
 
@@ -175,7 +177,9 @@ def _load(msg: str | bytes | Mapping[str, Any]) -> Mapping[str, Any]:
         # strict=False: frames captured from XELA's tools can carry raw newlines, carriage
         # returns and tabs inside the long `data` string (a logger wrapping the line), which
         # strict JSON refuses; XELA's own replay server sanitises them before parsing too.
-        obj = json.loads(msg, strict=False)
+        if not isinstance(msg, str):  # as json.loads takes bytes
+            msg = msg.decode(json.detect_encoding(msg), "surrogatepass")
+        obj = _DECODER.decode(msg)
     except (ValueError, RecursionError) as exc:
         # UnicodeDecodeError is a ValueError; RecursionError comes from absurd nesting.
         raise SensorError(f"XELA frame is not JSON ({exc}): {msg[:60]!r}") from None
@@ -247,9 +251,12 @@ class XelaClient:
 
     A background task owns the connection: it skips the Welcome frame, drops repeated
     frames (counted), timestamps fresh ones with ``time.monotonic()`` and queues them; it
-    reconnects with capped exponential backoff. Malformed frames are skipped and counted in
-    ``stats.skipped`` (a stream of them reads as stale); a layout that does not match the
-    configuration stops the client and ``frames()`` raises :class:`SensorLayoutError`.
+    reconnects with capped exponential backoff. ``on_frame``, when set, is awaited with each
+    fresh frame in that task before the frame is queued: a consumer's time-critical step
+    (the threshold check and the stop) without the hop through the queue to its own task.
+    Malformed frames are skipped and counted in ``stats.skipped`` (a stream of them reads as
+    stale); a layout that does not match the configuration stops the client and
+    ``frames()`` raises :class:`SensorLayoutError`.
     """
 
     def __init__(self, config: SensorConfig) -> None:
@@ -266,6 +273,12 @@ class XelaClient:
         self._closed = False
         self._stale_reported = False
         self._model_warned = False
+        # Called with (seq, receive time, time parsed) for each fresh frame: a benchmark's
+        # probe (the parse's share of the stop latency); None in production.
+        self.on_parsed: Callable[[int, float, float], None] | None = None
+        # Awaited with each fresh frame before it is queued (see the class docstring); it
+        # must not raise.
+        self.on_frame: Callable[[TactileFrame], Awaitable[None]] | None = None
 
     @property
     def connected(self) -> bool:
@@ -438,9 +451,13 @@ class XelaClient:
                     return delivered
                 recv_time = time.monotonic()
                 if msg.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
-                    if self._handle(msg.data, recv_time):
+                    frame = self._handle(msg.data, recv_time)
+                    if frame is not None:
                         delivered = True
                         progress = loop.time()
+                        if self.on_frame is not None:
+                            await self.on_frame(frame)
+                        self._put(frame)
                 elif msg.type in (
                     aiohttp.WSMsgType.CLOSE,
                     aiohttp.WSMsgType.CLOSING,
@@ -458,8 +475,8 @@ class XelaClient:
         finally:
             await ws.close()
 
-    def _handle(self, data: str | bytes, recv_time: float) -> bool:
-        """Parse, count and queue one message; True when it was a fresh frame."""
+    def _handle(self, data: str | bytes, recv_time: float) -> TactileFrame | None:
+        """Parse and count one message; the frame when it is a fresh one."""
         cfg = self._cfg
         try:
             frame = parse_frame(data, cfg.pads, cfg.taxels_per_pad, expected_model=cfg.model)
@@ -471,10 +488,10 @@ class XelaClient:
                 log.warning(
                     "skipping malformed XELA frame (%d so far): %s", self.stats.skipped, exc
                 )
-            return False
+            return None
         if frame is None:
             log.debug("XELA server welcome skipped")
-            return False
+            return None
         if self.server_layout is None:
             self.server_layout = frame.describe()
             log.info("XELA server sends %s", self.server_layout)
@@ -486,10 +503,11 @@ class XelaClient:
                 cfg.model,
             )
         if not self.stats.observe(frame.seq, frame.time):
-            return False
+            return None
         if self._stale_reported:
             self._stale_reported = False
             log.info("XELA stream fresh again (frame %d)", frame.seq)
         self._last_fresh = recv_time
-        self._put(TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models))
-        return True
+        if self.on_parsed is not None:
+            self.on_parsed(frame.seq, recv_time, time.monotonic())
+        return TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models)

@@ -507,7 +507,7 @@ async def test_stop_is_one_write_from_a_fresh_state_else_it_reads_first(emu, bus
     record = bus.last_stop
     assert record.fast and record.state_age_s < STOP_STATE_MAX_AGE_S
     assert record.goal == bus.seen(15).position - 2  # at rest: present, 2 counts closed
-    assert record.t_submit <= record.t_start <= record.t_written
+    assert record.t_submit <= record.t_start <= record.t_write_call <= record.t_written
     await asyncio.sleep(0.02)
     await bus.read_state()
     await asyncio.sleep(0.005)

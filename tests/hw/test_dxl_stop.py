@@ -4,9 +4,9 @@
 ``DynamixelBus.stop_ahead`` -> the bus thread -> the SDK -> the pty) against the real
 emulator, whose contact physics is the simulator's (``SimWorld``). Each press starts with the
 fingers a little short of the object (placed there behind the bus's back, so no press waits
-for a long approach), closes at the configured speed while a task reads the gripper every
-20 ms as the press controller's trace does, and stops on the first simulated tactile frame
-over ``x_th``. The emulator checks every stop: its goal must lie past the motor's true
+for a long approach), closes at the configured speed while a task reads the gripper after
+every second frame as the press controller's trace does, and stops on the first simulated
+tactile frame over ``x_th``. The emulator checks every stop: its goal must lie past the motor's true
 position when the packet arrives. Figures are printed (``-s``).
 """
 
@@ -22,7 +22,7 @@ import pytest
 
 from edge.core.config import BusConfig, Config
 from edge.core.preprocess import UNITS_SCALE
-from edge.daemon.press import GRIPPER_TRACE_PERIOD_S
+from edge.daemon.press import GRIPPER_TRACE_FRAMES
 from edge.hw.arm import DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
@@ -85,10 +85,11 @@ async def test_200_stops_never_back_off_the_squeeze():
                 await bus.read_state()  # a state from before closing: never extrapolated
                 await gripper.close(press.close_speed_mps / 2,
                                     cfg.bus.gripper_goal_current * 2.69)
-                trace = asyncio.create_task(_trace(gripper))
+                due = asyncio.Event()
+                trace = asyncio.create_task(_trace(gripper, due))
                 try:
                     stop, hit = await _close_until_over(world, gripper, tare, x_th,
-                                                        press.stop_squeeze_raw)
+                                                        press.stop_squeeze_raw, due)
                 finally:
                     trace.cancel()
                     with contextlib.suppress(asyncio.CancelledError):
@@ -105,12 +106,12 @@ async def test_200_stops_never_back_off_the_squeeze():
     ahead = np.array([c.ahead_raw for c in checks])
     fast = [r for r in records if r.fast]
     ages = np.array([r.state_age_s for r in fast]) * 1e3
-    latency = np.array([r.t_written - r.t_submit for r in records]) * 1e3
+    latency = np.array([r.t_write_call - r.t_submit for r in records]) * 1e3
     parts = {k: np.array(v) * 1e3 for k, v in {
         "in flight": [r.in_flight_s for r in records],
         "hand-over": [r.t_start - r.t_submit - r.in_flight_s for r in records],
-        "write": [r.t_written - r.t_start for r in fast]}.items()}
-    late = np.array([c.t - r.t_written for c, r in zip(checks, records, strict=True)]) * 1e3
+        "write": [r.t_write_call - r.t_start for r in fast]}.items()}
+    late = np.array([c.t - r.t_write_call for c, r in zip(checks, records, strict=True)]) * 1e3
     worst = np.argsort(ahead)[:3]
     print("\nclosest stops: " + "; ".join(
         f"{ahead[i]:.2f} counts past, packet read by the emulator {late[i]:.2f} ms after it "
@@ -134,24 +135,30 @@ async def test_200_stops_never_back_off_the_squeeze():
     assert crossed >= PRESSES * 0.9
 
 
-async def _trace(gripper: DynamixelGripper) -> None:
-    """What the press controller's trace does while closing: read the gripper every 20 ms."""
+async def _trace(gripper: DynamixelGripper, due: asyncio.Event) -> None:
+    """What the press controller's trace does while closing: read the gripper when cued."""
     while True:
+        await due.wait()
+        due.clear()
         await gripper.state()
-        await asyncio.sleep(GRIPPER_TRACE_PERIOD_S)
 
 
 async def _close_until_over(world: SimWorld, gripper: DynamixelGripper, tare: np.ndarray,
-                            x_th: float, squeeze: int):
+                            x_th: float, squeeze: int, due: asyncio.Event):
     """Frames at 125 Hz until the norm crosses ``x_th`` (or the timeout), then the stop;
-    the stop and whether the threshold was crossed."""
+    the stop and whether the threshold was crossed. The trace is cued after every
+    GRIPPER_TRACE_FRAMES frames checked, as the press controller does."""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + PRESS_TIMEOUT_S
     t_next = loop.time()
+    checked = 0
     while loop.time() < deadline:
         t_next += FRAME_PERIOD_S
         await asyncio.sleep(max(0.0, t_next - loop.time()))
         raw = world.frame(time.monotonic())
         if np.linalg.norm(raw - tare) / UNITS_SCALE > x_th:
             return await gripper.stop_now(squeeze), True
+        checked += 1
+        if checked % GRIPPER_TRACE_FRAMES == 0:
+            due.set()
     return await gripper.stop_now(squeeze), False
