@@ -21,9 +21,10 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 # The runtime's figures (vt-edge bench, no torch), then the torch and training ones added to
-# the same bench/results.json and results.md (vt-train bench).
+# the same bench/results.json and results.md (vt-train bench); results.md compares each
+# figure with the results the run replaces.
 bench: $(STAMP)
-	$(PY) -m edge bench --out bench
+	$(PY) -m edge bench --out bench --baseline bench/results.json
 	$(PY) -m train bench --merge-into bench/results.json
 
 lint: $(STAMP)

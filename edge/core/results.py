@@ -10,6 +10,8 @@ adds the training side's (torch, training) to it; ``make bench`` runs the two. T
 - one key per figure (:mod:`edge.core.figures`), each with ``host_cores_busy`` during its
   phase;
 - ``sections``: titled markdown text the phases add (how to read their figures);
+- ``run.baseline`` (optional): an earlier run's figures (p50, p99), rendered as a "Before
+  and after" table;
 - ``notes``: what the phases noticed, then one line per missed target with why.
 
 ``results.md`` is rendered from ``results.json`` alone, so either side can write both;
@@ -149,6 +151,21 @@ class Results:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{path}: not a bench results file ({exc})") from None
 
+    def set_baseline(self, path: str | Path) -> bool:
+        """Keep the figures of an earlier ``results.json`` to compare with; False (said on
+        stderr) if there is none to read."""
+        try:
+            data = json.loads(Path(path).read_text())
+            figures = {k: {"p50": v["p50"], "p99": v["p99"], "unit": v["unit"]}
+                       for k, v in data.items() if is_figure(v)}
+            self.run["baseline"] = {
+                "path": str(path), "commit": data["host"].get("git_commit"),
+                "started_at": data["run"].get("started_at"), "figures": figures}
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            progress(f"no baseline to compare with: {path}: {exc}")
+            return False
+        return True
+
     def add_command(self, command: str, settings_key: str, settings: dict[str, Any]) -> None:
         """Record that ``command`` (with ``settings``) adds its phases to this file."""
         self.run["command"] = f"{self.run.get('command', '')} && {command}".lstrip(" &")
@@ -221,6 +238,27 @@ def _cell(value: Any, unit: str) -> str:
     return f"{value:.3g}" if abs(value) < 100 else f"{value:.0f}"
 
 
+def _before_after(baseline: Mapping[str, Any] | None,
+                  figs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The "Before and after" section: each figure of both runs, p50 and p99."""
+    if not baseline:
+        return []
+    before = baseline.get("figures", {})
+    lines = ["", "## Before and after", "",
+             f"Against `{baseline.get('path')}`: commit {baseline.get('commit')}, "
+             f"{baseline.get('started_at')} (p50 and p99, before -> now).", "",
+             "| figure | p50 before | p50 now | p99 before | p99 now | unit |",
+             "| --- | ---: | ---: | ---: | ---: | --- |"]
+    for key, f in figs.items():
+        b = before.get(key)
+        if b is None:
+            continue
+        unit = f["unit"]
+        lines.append(f"| `{key}` | {_cell(b['p50'], unit)} | {_cell(f['p50'], unit)} | "
+                     f"{_cell(b['p99'], unit)} | {_cell(f['p99'], unit)} | {unit} |")
+    return lines
+
+
 def markdown(results: Mapping[str, Any]) -> str:
     """``results.md``: from a ``results.json`` alone."""
     host, run = results["host"], results["run"]
@@ -248,6 +286,7 @@ def markdown(results: Mapping[str, Any]) -> str:
         lines.append(f"| `{key}` | {_cell(f['p50'], f['unit'])} | {_cell(f['p99'], f['unit'])} "
                      f"| {_cell(f['max'], f['unit'])} | {f['n']} | {f['unit']} | "
                      f"{target_text(f['target'])} | {met} |")
+    lines += _before_after(run.get("baseline"), figs)
     for title, text in results.get("sections", {}).items():
         lines += ["", f"## {title}", "", text.rstrip("\n")]
     lines += ["", "## What each figure is", ""]

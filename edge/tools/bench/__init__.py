@@ -16,6 +16,8 @@ printed on stderr as it runs:
 The training side adds its phases to the same files (``vt-train bench --merge-into
 OUT/results.json``: the encoder in torch eager against onnxruntime, and training); ``make
 bench`` runs both. How the figures read, and why a target is missed: :mod:`.report`.
+``--baseline FILE`` (``make bench``: the results it replaces) adds a "Before and after"
+table of every figure both runs have.
 
 Timing is on ``time.monotonic`` (CLOCK_MONOTONIC), shared by every process on the host. This
 package never imports torch or ``train``.
@@ -40,10 +42,13 @@ PHASES = ("runtime", "daemon", "encode", "retrieval")
 
 def run_bench(args: argparse.Namespace) -> int:
     s = QUICK if getattr(args, "quick", False) else FULL
-    return bench(Path(getattr(args, "out", "bench")), s)
+    baseline = getattr(args, "baseline", None)
+    return bench(Path(getattr(args, "out", "bench")), s,
+                 baseline=Path(baseline) if baseline else None)
 
 
-def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES) -> int:
+def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES,
+          baseline: Path | None = None) -> int:
     # Imported here, not above: the helper processes (python -m edge.tools.bench.load) and
     # the compute worker (for the encoder load, load.encode_for) import this package and
     # need none of the phases.
@@ -53,6 +58,9 @@ def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES) -> int:
 
     results = Results.start("vt-edge bench" + (" --quick" if s.quick else ""), s.quick,
                             asdict(s))
+    if baseline is not None:
+        # Read before this run replaces it (make bench compares with the results it replaces).
+        results.set_baseline(baseline)
     with tempfile.TemporaryDirectory(prefix="vtzero-bench-") as tmp_name:
         tmp = Path(tmp_name)
         measure = {

@@ -14,6 +14,12 @@ daemon's event loop: ``python -m edge.tools.bench.load ROLE`` with ROLE
   page, both event streams (``/v1/tactile`` at 30 Hz, ``/v1/events``), ``/healthz`` each
   second, the last episodes every 5 s and each new episode's trace and photo; prints the
   frames and requests it got on SIGTERM.
+- ``floor``: the floor of the stop latency, the minimal loop a new user would write: an
+  asyncio client (aiohttp, as the daemon's) receives the same ``xela_server`` frames,
+  parses each (``json.loads``, the words into numpy), takes the norm against the first frame
+  and writes a 16-byte WRITE Goal Position packet to a pseudo-terminal from the loop
+  thread; every frame counts as crossing, so each is a sample of receive -> the write call
+  (and -> the call returned). Prints every sample on SIGTERM.
 
 Each prints one JSON line on stdout once it serves (its addresses), then runs until SIGTERM;
 :class:`Helper` starts one and reads that line. ``time.monotonic`` is CLOCK_MONOTONIC, shared
@@ -347,6 +353,64 @@ async def _page(args: argparse.Namespace) -> None:
     await _until_signal({"page": args.url}, on_stop)
 
 
+# The floor's stop packet: WRITE Goal Position (116) = 2048 to motor 15, 16 bytes with its CRC
+# (edge.sim.dxl_emulator.encode_packet builds the same).
+FLOOR_PACKET = bytes.fromhex("fffffd000f09000374000008000096c9")
+
+
+def _floor_words(sensor: dict[str, Any]) -> np.ndarray:
+    values = sensor.get("integer")
+    if values is None:
+        values = sensor["data"]
+    if isinstance(values, str):
+        return np.frombuffer(bytes.fromhex(values.replace(",", "")), dtype=">u2")
+    return np.asarray(values)
+
+
+async def _floor(args: argparse.Namespace) -> None:
+    import tty
+
+    import aiohttp
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    loop = asyncio.get_running_loop()
+    # The pty's other end is drained after each write, as the emulated motors drain theirs.
+    loop.add_reader(master, lambda: os.read(master, 4096))
+    samples: list[tuple[float, float, float]] = []
+
+    async def run() -> None:
+        tare = None
+        async with aiohttp.ClientSession() as http, http.ws_connect(args.url) as ws:
+            while True:
+                msg = await ws.receive()
+                t0 = time.monotonic()
+                if msg.type != aiohttp.WSMsgType.TEXT:
+                    return
+                frame = json.loads(msg.data)
+                if frame.get("message") == "Welcome":
+                    continue
+                raw = np.concatenate([_floor_words(frame[k]) for k in ("1", "2")])
+                raw = raw.astype(np.float64)
+                if tare is None:
+                    tare = raw
+                if np.linalg.norm(raw - tare) / 65536.0 >= 0.0:  # every frame "crosses"
+                    t_call = time.monotonic()
+                    os.write(slave, FLOOR_PACKET)
+                    samples.append((t0, t_call - t0, time.monotonic() - t0))
+
+    task = asyncio.create_task(run())
+
+    async def on_stop() -> None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        print(json.dumps({"samples": samples}), flush=True)
+
+    await _until_signal({"floor": args.url}, on_stop)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m edge.tools.bench.load", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -363,10 +427,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hz", type=float, default=10.0)
     p = sub.add_parser("page")
     p.add_argument("--url", required=True)
+    p = sub.add_parser("floor")
+    p.add_argument("--url", required=True, help="the xela_server's WebSocket URL")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr,
                         format="bench-" + args.role + " %(levelname)s %(name)s: %(message)s")
-    role = {"robot": _robot, "vlm": _vlm, "poll": _poll, "page": _page}[args.role]
+    role = {"robot": _robot, "vlm": _vlm, "poll": _poll, "page": _page,
+            "floor": _floor}[args.role]
     asyncio.run(role(args))
     return 0
 

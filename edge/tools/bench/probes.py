@@ -1,21 +1,23 @@
 """What the bench reads from the running daemon, through its public hooks only: every packet
-the bus thread writes (the bus's ``on_write``), every sampler tick (``Sampler.on_tick`` and
-its ``stats``), and the frame ring (``Runtime.ring``) for the first frame over ``x_th``."""
+the bus thread writes (the bus's ``on_write``), when each frame was parsed (the XELA client's
+``on_parsed``), each stop's timing (the bus's ``last_stop``), every sampler tick
+(``Sampler.on_tick`` and its ``stats``), and the frame ring (``Runtime.ring``) for the first
+frame over ``x_th``."""
 
 from __future__ import annotations
 
 import collections
 import time
-from collections.abc import Sequence
-from dataclasses import asdict
-from typing import Any
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 
 from edge.core import preprocess
 from edge.daemon.press import PressOutcome
 
-READ_INSTRUCTION = 0x02
+# Frames whose parse time is kept (about 2 minutes at 125 Hz).
+PARSE_TIMES = 1 << 14
 
 
 def first_crossing(ring: Any, outcome: PressOutcome,
@@ -38,25 +40,67 @@ def first_crossing(ring: Any, outcome: PressOutcome,
 
 def instrument_port(bus: Any) -> collections.deque[tuple[float, bytes]]:
     """The time and header of every packet the bus thread writes (the bus's ``on_write``
-    hook).
-
-    The stop is READ Present Position, then WRITE Goal Position (its write time is the stop
-    latency's end); the READ's write time splits the latency into the software part (loop,
-    hand-off to the bus thread, a transaction already on the wire) and the bus round trip.
-    """
+    hook)."""
     writes: collections.deque[tuple[float, bytes]] = collections.deque(maxlen=8192)
     bus.on_write = lambda t, head: writes.append((t, head))
     return writes
 
 
-def stop_read_time(writes: Sequence[tuple[float, bytes]], t_stop: float,
-                   motor_id: int) -> float | None:
-    """Write time of the last READ to ``motor_id`` before the stop's WRITE at ``t_stop``."""
-    for t, head in reversed(list(writes)):
-        if t < t_stop and len(head) >= 8 and head[4] == motor_id \
-                and head[7] == READ_INSTRUCTION:
-            return t
-    return None
+class ParseTimes:
+    """When each frame was parsed, by sequence number (the XELA client's ``on_parsed``)."""
+
+    def __init__(self, capacity: int = PARSE_TIMES) -> None:
+        self.seq = np.full(capacity, -1, dtype=np.int64)
+        self.t = np.zeros(capacity)
+
+    def record(self, seq: int, recv_time: float, t_parsed: float) -> None:
+        i = seq % len(self.seq)
+        self.seq[i], self.t[i] = seq, t_parsed
+
+    def get(self, seq: int) -> float | None:
+        i = seq % len(self.seq)
+        return float(self.t[i]) if self.seq[i] == seq else None
+
+
+def instrument_parse(tactile: Any) -> ParseTimes:
+    times = ParseTimes()
+    tactile.on_parsed = times.record
+    return times
+
+
+@dataclass(frozen=True)
+class StopParts:
+    """One production stop, frame received -> stop packet written, in its parts (ms):
+    ``parse`` (the frame's JSON into counts, in the XELA client), ``queue`` (to the sensor
+    task), ``check`` (the norm, the threshold, down to the hand-over), ``handover`` (to the
+    bus thread running the stop), ``in_flight`` (the rest of a transaction already on the
+    wire), ``write`` (the goal and its packet, to the write call). They add up to the stop
+    latency. ``write_return`` follows it: the write call returning to the bus thread (the
+    system call, and any wait for a CPU or the GIL after it)."""
+
+    NAMES: ClassVar[tuple[str, ...]] = ("parse", "queue", "check", "handover", "in_flight",
+                                        "write", "write_return")
+    parse: float | None
+    queue: float | None
+    check: float
+    handover: float
+    in_flight: float
+    write: float
+    write_return: float
+
+
+def stop_parts(stop: Any, t_recv: float, t_check: float, t_parsed: float | None) -> StopParts:
+    """The parts of ``stop`` (the bus's ``StopRecord``) for the frame received at ``t_recv``
+    whose check began at ``t_check``."""
+    ms = 1e3
+    return StopParts(
+        parse=None if t_parsed is None else ms * (t_parsed - t_recv),
+        queue=None if t_parsed is None else ms * (t_check - t_parsed),
+        check=ms * (stop.t_submit - t_check),
+        handover=ms * (stop.t_start - stop.t_submit - stop.in_flight_s),
+        in_flight=ms * stop.in_flight_s,
+        write=ms * (stop.t_write_call - stop.t_start),
+        write_return=ms * (stop.t_written - stop.t_write_call))
 
 
 class SamplerWindow:

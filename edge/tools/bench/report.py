@@ -12,9 +12,11 @@ from edge.tools.bench.settings import CONTROLLERS, OBJECTS
 # the torch and training figures after them).
 FIGURES = (
     "sampler_period_error_ms", "sampler_period_error_ms_no_load",
-    "stop_latency_ms", "stop_latency_ms_tick125",
+    "sampler_period_error_ms_realtime",
+    "stop_latency_ms", "stop_floor_ms", "stop_latency_ratio_floor", "stop_latency_ms_realtime",
+    "stop_latency_ms_tick125",
     "stop_latency_ms_loop100", "stop_latency_ratio_loop100", "stop_latency_ratio_tick125",
-    "stop_latency_ms_no_load",
+    "stop_latency_ms_no_load", "stop_floor_ms_no_load", "stop_latency_ratio_floor_no_load",
     "sampler_period_error_ms_two_pages", "stop_latency_ms_two_pages", "operator_page_feed_fps",
     *(f"force_overshoot_n_{o}_{c}" for o in OBJECTS for c in CONTROLLERS),
     "overhead_ms", "overhead_ms_under_load",
@@ -40,8 +42,23 @@ def load_text(load: dict[str, Any]) -> str:
 
 READING = "\n".join([
     "- Stop latency is measured from the same frame for every controller: the first "
-    "frame whose norm crosses x_th, found afterwards in the frame ring; the end is the "
-    "stop's WRITE packet at the port. A ticked controller checks only the latest "
+    "frame whose norm crosses x_th (its receive time), found afterwards in the frame ring; "
+    "the end is the write call of the stop's one WRITE packet (the packet goes to the "
+    "kernel from there; the call returning can wait for a CPU or the GIL after the packet "
+    "is out, write_return_ms). The production stop is split into parse_ms (the frame's "
+    "JSON into counts, checked), queue_ms (to the threshold check), check_ms (the norm, "
+    "the threshold, down to the hand-over), handover_ms (to the bus thread running the "
+    "stop), in_flight_ms (the rest of a transaction already on the wire; in_flight_stops "
+    "counts them) and write_ms (the goal and its packet, to the write call); they add up "
+    "to the latency. fallback_stops: stops that had to read Present Position first.",
+    "- stop_floor_ms is the same path written the shortest way, measured on the same "
+    "frames, host and load in a process of its own: an aiohttp client that parses each "
+    "frame with json and numpy, takes the norm and writes a 16-byte packet to a pty from "
+    "its loop thread (receive -> the write call; every frame is a sample). It validates "
+    "nothing, keeps no ring, stamps nothing and owns no bus.",
+    "- The *_realtime figures: the same load, with the loop and bus threads SCHED_FIFO on "
+    "a CPU of their own (Daemon.realtime, the [runtime] realtime option).",
+    "- A ticked controller checks only the latest "
     "frame at each tick, so it can miss a crossing that falls back before the tick "
     "(missed_first_crossing). from_server_send_ms is the same stop timed from the "
     "XELA server's frame time (wall clock, same host): it also counts the time the "
@@ -73,12 +90,31 @@ WHY: dict[str, str] = {
         "(CPUSchedulingPolicy=fifo). A late tick never shifts the recorded data: the crop is "
         "placed from receive timestamps."),
     "stop_latency_ms": (
-        "The median is near the unloaded figure (stop_latency_ms_no_load); the tail is the "
-        "loop held up as for the sampler: in the slow presses the time goes before the "
-        "stop's READ reaches the port (to_bus_ms: the frame waiting for the loop, the stop "
-        "waiting for the bus thread), not on the bus. To close it: as for the sampler. On "
-        "the real arm add a USB round trip: the stop reads Present Position before writing "
-        "the goal (at least the adapter's 1 ms latency timer)."),
+        "The stop is one WRITE; its parts are in the figure. Under the load the slow "
+        "stops are the bus thread waiting for a core after the hand-over (handover_ms) and "
+        "a transaction already on the wire that the emulated robot, starved by the load, "
+        "answers late (in_flight_ms): not the path itself. With the loop and bus threads at "
+        "real-time priority on a CPU of their own the hand-over stays short "
+        "(stop_latency_ms_realtime). What is left in the tail there is the emulated bus."),
+    "stop_latency_ms_realtime": (
+        "With real-time scheduling the parts of the path stay short even in the tail; the "
+        "slow stops wait for a transaction already on the wire (in_flight_ms), which the "
+        "emulated robot, a process of the loaded host, answers late. On the real arm that "
+        "transaction is the gripper trace's read, which ends before the next frame."),
+    "stop_latency_ratio_floor": (
+        "The floor does a third of the work: vtzero's parse alone (json plus the checks "
+        "that refuse a malformed or repeated frame, parse_ms) costs about what the floor's "
+        "whole path does; then the frame goes to the check (queue_ms, check_ms), the stop "
+        "is handed to the bus thread that owns the port (handover_ms: the SDK is blocking "
+        "and not thread-safe, so it never runs on the loop) and the SDK builds the packet "
+        "in Python (write_ms). The parts are in stop_latency_ms."),
+    "sampler_period_error_ms_realtime": (
+        "At real-time priority on a CPU of its own the loop thread no longer waits for a "
+        "core, so the missed ticks left are the loop itself held up: it still shares the "
+        "interpreter's lock with the daemon's other threads (the compute pool's, which move "
+        "the load's megabyte images, run on the other, busy core), and a holder preempted "
+        "there keeps it. Which one held it in the long gaps (max_gap_ms) is not measured. "
+        "p99 is the figure to compare with sampler_period_error_ms."),
     "stop_latency_ratio_loop100": (
         "The load's stalls inflate the per-frame median far more, relatively, than the "
         "100 Hz loop's, whose own wait for its next tick is 0-10 ms (5 ms on average); "

@@ -9,7 +9,14 @@ presses first with no extra load (the software overhead, trigger to VLM request)
 load: the VLM client sends large camera stills to the slow VLM, the encoder runs over and
 over in the daemon's compute process (where its own presses are encoded and its images
 prepared), the API is polled. Under it, presses alternate between the three controllers of
-:mod:`edge.tools.bench.controllers`. The sampler's lateness is recorded throughout.
+:mod:`edge.tools.bench.controllers`; then, still under it, production presses with the
+loop and bus threads at real-time priority on a CPU of their own (``Daemon.realtime``).
+The sampler's lateness is recorded throughout.
+
+The floor of the stop latency runs beside it all, in a process of its own: the minimal loop
+a new user would write (``load`` role ``floor``) on the same frames, host and load; each
+phase's figure takes its samples from the phase's time window. Each production stop is
+split into its parts (:class:`StopParts`).
 
 Every press is triggered over the HTTP API; the bench reads the daemon only through its
 public hooks (:mod:`edge.tools.bench.probes`) and swaps controllers with
@@ -30,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.figures import figure, ratio_figure, stats, target
+from edge.core.figures import figure, finish, ratio_figure, stats, target
 from edge.core.progress import Progress
 from edge.core.results import PhaseResult, progress
 from edge.tools.bench.controllers import RecordingController, TickedController
@@ -38,9 +45,11 @@ from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
 from edge.tools.bench.probes import (
     SamplerWindow,
+    StopParts,
     first_crossing,
+    instrument_parse,
     instrument_port,
-    stop_read_time,
+    stop_parts,
 )
 from edge.tools.bench.report import READING, load_text
 from edge.tools.bench.settings import (
@@ -62,6 +71,13 @@ PRESS_ATTEMPTS = 3
 PRESS_TIMEOUT_S = 60.0
 # Operator pages kept open during the pages phase.
 PAGES = 2
+# Targets of the stop (issue: the stop at the floor): p99 under the load, and the median
+# at most this many times the floor's.
+STOP_P99_MS = 1.0
+FLOOR_RATIO_P50 = 2.0
+FLOOR_TEXT = ("the floor: a minimal asyncio client (aiohttp) receiving the same xela_server "
+              "frames, parsing each (json, numpy), taking the norm and writing a 16-byte "
+              "packet to a pty from the loop thread; receive -> the write call, every frame")
 
 
 @dataclass
@@ -76,7 +92,9 @@ class PressRecord:
     t_stop: float | None = None
     stop_latency_ms: float | None = None
     controller_latency_ms: float | None = None  # as the controller itself logged it
-    to_bus_ms: float | None = None  # first frame over x_th -> the stop's READ packet written
+    parts: StopParts | None = None  # the production stop split into its parts
+    fast: bool | None = None  # one WRITE (False: it read Present Position first)
+    realtime: bool = False  # loop and bus threads at real-time priority
     from_send_ms: float | None = None  # the server sent that frame -> stop written
     force_at_cross_n: float | None = None
     peak_force_n: float | None = None
@@ -104,6 +122,11 @@ class RuntimeBench:
         self.quiet_stats: dict[str, Any] = {}
         self.pages_stats: dict[str, Any] = {}
         self.page_stats: list[dict[str, Any]] = []
+        self.rt_stats: dict[str, Any] = {}
+        self.rt_applied = False
+        # Each phase's time window (monotonic), to take the floor's samples from.
+        self.windows: dict[str, tuple[float, float]] = {}
+        self.floor_samples: list[tuple[float, float, float]] = []
         self.compute: Any = None  # the ComputeWorker, while run() runs
 
     def config(self):
@@ -136,6 +159,9 @@ class RuntimeBench:
             if worker is not None:
                 self.pids["compute worker"] = worker
             self.port_writes = instrument_port(daemon.devices.bus)
+            self.parsed = instrument_parse(daemon.devices.tactile)
+            self.bus = daemon.devices.bus
+            self.realtime = daemon.realtime
             self.runtime = runtime
             rng = np.random.default_rng(0)
             self.controllers: dict[str, RecordingController] = {
@@ -150,12 +176,19 @@ class RuntimeBench:
             try:
                 await asyncio.wait_for(runtime.ready.wait(), 30)
                 self.api_url = f"http://127.0.0.1:{daemon.api.port}"
-                async with aiohttp.ClientSession() as http:
-                    self.http = http
-                    await self._quiet_phase()
-                    await self._pages_phase()
-                    await self._loaded_phase(cfg, runtime.model)
-                    await self._vlm_arrivals()
+                floor = await asyncio.to_thread(Helper, "floor", "--url",
+                                                self.robot["xela_url"])
+                try:
+                    async with aiohttp.ClientSession() as http:
+                        self.http = http
+                        await self._quiet_phase()
+                        await self._pages_phase()
+                        await self._loaded_phase(cfg, runtime.model)
+                        await self._vlm_arrivals()
+                finally:
+                    out = await asyncio.to_thread(floor.stop)
+                    with contextlib.suppress(ValueError, IndexError, KeyError):
+                        self.floor_samples = json.loads(out.strip().splitlines()[-1])["samples"]
             finally:
                 runtime.stop()
                 with contextlib.suppress(Exception):
@@ -183,7 +216,7 @@ class RuntimeBench:
         async with http.get(f"{self.robot['control_url']}/object") as r:
             world = await r.json()
         rec = PressRecord(phase, name, obj, marker, outcome.result, t_trigger,
-                          message=outcome.message)
+                          message=outcome.message, realtime=self.realtime.active)
         states = dict(outcome.states)
         if "above" in states and "idle" in states:
             rec.press_s = states["idle"] - states["above"]
@@ -200,10 +233,16 @@ class RuntimeBench:
             # it sent the frame; the time the frame waited in the socket for the loop counts.
             wall_minus_mono = time.time() - time.monotonic()
             rec.from_send_ms = 1e3 * (outcome.t_stop + wall_minus_mono - sent_wall)
-            t_read = stop_read_time(self.port_writes, outcome.t_stop,
-                                    runtime.cfg.bus.gripper_id)
-            if t_read is not None and t_read >= t_first:
-                rec.to_bus_ms = 1e3 * (t_read - t_first)
+            stop = self.bus.last_stop
+            if stop is not None and stop.t_write_call == outcome.t_stop:
+                rec.fast = stop.fast
+                # The parts of a stop made on the first frame over x_th (a ticked
+                # controller's frame waited for its tick: not a part of the path).
+                stopped_on = outcome.t_stop - (outcome.stop_latency_s or 0.0)
+                if (name == "per_frame" and outcome.t_check is not None
+                        and abs(stopped_on - t_first) < 1e-6):
+                    rec.parts = stop_parts(stop, t_first, outcome.t_check,
+                                           self.parsed.get(seq))
             async with http.get(f"{self.robot['bench_url']}/force",
                                 params={"seq": str(seq)}) as r:
                 if r.status == 200:
@@ -227,6 +266,7 @@ class RuntimeBench:
     async def _quiet_phase(self) -> None:
         progress(f"runtime: {self.s.quiet_presses} presses with no extra load (overhead)")
         window = SamplerWindow(self.runtime.sampler)
+        t0 = time.monotonic()
         try:
             with Progress("bench quiet", self.s.quiet_presses, "presses") as bar:
                 for i in range(self.s.quiet_presses):
@@ -235,6 +275,7 @@ class RuntimeBench:
                                   f"press {_fmt(rec.press_s)} s")
         finally:
             self.quiet_stats = window.close()
+            self.windows["quiet"] = (t0, time.monotonic())
 
     async def _pages_phase(self) -> None:
         """The quiet presses again, with two operator pages open (each its own process, as
@@ -294,10 +335,12 @@ class RuntimeBench:
 
         poller = await asyncio.to_thread(Helper, "poll", "--url", self.api_url,
                                          "--hz", str(s.poll_hz)) if s.poll_hz > 0 else None
-        window = SamplerWindow(runtime.sampler)
+        window: SamplerWindow | None = SamplerWindow(runtime.sampler)
         pids = dict(self.pids, **({"poller": poller.proc.pid} if poller else {}))
         cpu0 = cpu_snapshot(pids)
         t0 = time.monotonic()
+        cpu: dict[str, float] = {}
+        sampled: dict[str, Any] = {}
         tasks = [asyncio.create_task(vlm_load(), name=f"bench-vlm-load-{i}")
                  for i in range(s.load_vlm_clients)]
         tasks.append(asyncio.create_task(encode_load(), name="bench-encode-load"))
@@ -316,11 +359,17 @@ class RuntimeBench:
             if left > 0:
                 progress(f"  load continues {left:.0f} s more (sampler window)")
                 await asyncio.sleep(left)
-        finally:
             cpu = cpu_times_since(cpu0)
-            stop.set()
             duration = time.monotonic() - t0
-            sampled = window.close()
+            sampled, window = window.close(), None
+            self.windows["load"] = (t0, time.monotonic())
+            await self._realtime_presses()
+        finally:
+            if window is not None:
+                cpu = cpu_times_since(cpu0)
+                duration = time.monotonic() - t0
+                sampled = window.close()
+            stop.set()
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -337,6 +386,47 @@ class RuntimeBench:
                  f"({counters['vlm_errors']} failed), {counters['encodes']} encodes, "
                  f"{polled.get('requests', '?')} API polls ({polled.get('errors', '?')} "
                  "failed)")
+
+    async def _realtime_presses(self) -> None:
+        """Production presses under the same load with the loop and bus threads at
+        real-time priority on a CPU of their own (the daemon's [runtime] realtime)."""
+        s = self.s
+        rt = self.realtime
+        self.rt_applied = rt.enable()
+        state = (f"SCHED_FIFO {rt.priority} on CPU {rt.held_cpu}" if self.rt_applied
+                 else "REFUSED by this host: the presses run without it")
+        progress(f"runtime: {s.rt_presses} presses under the load, real-time scheduling "
+                 f"{state}")
+        if not self.rt_applied:
+            self.notes.append("real-time scheduling was refused on this host (see the log): "
+                              "the *_realtime figures ran without it")
+        window = SamplerWindow(self.runtime.sampler)
+        cpu0 = cpu_snapshot({})
+        t0 = time.monotonic()
+        try:
+            with Progress("bench real-time", s.rt_presses, "presses") as bar:
+                for i in range(s.rt_presses):
+                    rec = await self._press_ok("load_rt", "per_frame", OBJECTS[i % len(OBJECTS)])
+                    bar.update(1, f"{rec.object}: {rec.result}, stop latency "
+                                  f"{_fmt(rec.stop_latency_ms)} ms")
+            left = s.rt_min_s - (time.monotonic() - t0)
+            if left > 0:
+                progress(f"  real-time window continues {left:.0f} s more (sampler window)")
+                await asyncio.sleep(left)
+        finally:
+            cpu = cpu_times_since(cpu0)
+            rt.disable()
+            self.rt_stats = window.close()
+            self.rt_stats["loop_thread"] = {k: v for k, v in cpu.items()
+                                            if k.startswith("loop_thread")}
+            self.windows["load_rt"] = (t0, time.monotonic())
+
+    def _floor_in(self, window: str) -> list[tuple[float, float]]:
+        """The floor's latencies (ms) of the frames received within a phase's window: to
+        the write call, and to its return."""
+        t0, t1 = self.windows.get(window, (0.0, 0.0))
+        return [(1e3 * call, 1e3 * ret) for t, call, ret in self.floor_samples
+                if t0 <= t <= t1]
 
     async def _vlm_arrivals(self) -> None:
         """Match each press's VLM request (by its marker candidate) to its arrival time."""
@@ -387,10 +477,10 @@ class RuntimeBench:
                      and r.stop_latency_ms - r.controller_latency_ms > 0.5]
             lat[name] = figs[key] = figure(
                 [r.stop_latency_ms for r in recs], "ms",
-                target(("p99", "<=", 2.0)) if name == "per_frame" else None,
+                target(("p99", "<=", STOP_P99_MS)) if name == "per_frame" else None,
                 controller=CONTROLLER_TEXT[name], failed_presses=len(failed),
                 aborted_after_stop=len(aborted), missed_first_crossing=len(later),
-                to_bus_ms=stats([r.to_bus_ms for r in recs]),
+                **_stop_detail(recs),
                 from_server_send_ms=stats([r.from_send_ms for r in recs]),
                 what="first frame over x_th received -> stop packet written to the port, "
                      "under load")
@@ -410,9 +500,40 @@ class RuntimeBench:
         quiet = [r for r in self.records if r.phase == "quiet"]
         figs["stop_latency_ms_no_load"] = figure(
             [r.stop_latency_ms for r in quiet], "ms", None, controller=CONTROLLER_TEXT["per_frame"],
-            to_bus_ms=stats([r.to_bus_ms for r in quiet]),
+            **_stop_detail(quiet),
             from_server_send_ms=stats([r.from_send_ms for r in quiet]),
             what="as stop_latency_ms, with no extra load (the overhead presses)")
+        floor = {name: self._floor_in(name) for name in ("quiet", "load", "load_rt")}
+        figs["stop_floor_ms"] = figure(
+            [lat for lat, _ in floor["load"]], "ms", None,
+            to_write_return_ms=stats([ret for _, ret in floor["load"]]),
+            what=FLOOR_TEXT + ", under the same load, over the phase of stop_latency_ms")
+        figs["stop_floor_ms_no_load"] = figure(
+            [lat for lat, _ in floor["quiet"]], "ms", None,
+            to_write_return_ms=stats([ret for _, ret in floor["quiet"]]),
+            what=FLOOR_TEXT + ", over the presses with no extra load")
+        figs["stop_latency_ratio_floor"] = ratio_figure(
+            lat["per_frame"], figs["stop_floor_ms"], target(("p50", "<=", FLOOR_RATIO_P50)),
+            what="stop_latency_ms / stop_floor_ms (statistic by statistic): vtzero's stop "
+                 "against the minimal loop, same frames, host and load")
+        figs["stop_latency_ratio_floor_no_load"] = ratio_figure(
+            figs["stop_latency_ms_no_load"], figs["stop_floor_ms_no_load"],
+            what="stop_latency_ms_no_load / stop_floor_ms_no_load")
+        rt = [r for r in self.records if r.phase == "load_rt"]
+        applied = "applied" if self.rt_applied else "REFUSED by the host (ran without it)"
+        rt_sampler = _sampler_figure(
+            self.rt_stats, "as sampler_period_error_ms (the same load), with the loop and bus "
+            f"threads at real-time priority on a CPU of their own ({applied}); loop_thread: "
+            "its CPU, run-queue wait (cores) and preemptions per second over the window")
+        rt_sampler["loop_thread"] = self.rt_stats.get("loop_thread")
+        figs["sampler_period_error_ms_realtime"] = finish(
+            rt_sampler, target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)))
+        figs["stop_latency_ms_realtime"] = figure(
+            [r.stop_latency_ms for r in rt], "ms", target(("p99", "<=", STOP_P99_MS)),
+            controller=CONTROLLER_TEXT["per_frame"], **_stop_detail(rt),
+            floor_ms=stats([lat for lat, _ in floor["load_rt"]]),
+            what="as stop_latency_ms (the same load), with the loop and bus threads at "
+                 f"real-time priority on a CPU of their own ({applied})")
         figs["sampler_period_error_ms_two_pages"] = _sampler_figure(
             self.pages_stats, f"as sampler_period_error_ms_no_load, with {PAGES} operator "
             "pages open")
@@ -450,6 +571,16 @@ class RuntimeBench:
                      "('above' entered -> 'idle' entered)" +
                      (", no extra load" if phase == "quiet" else ", under the load"))
         return figs
+
+
+def _stop_detail(recs: list[PressRecord]) -> dict[str, Any]:
+    """The parts of the production stops among ``recs``, and how many read first."""
+    parts = [r.parts for r in recs if r.parts is not None]
+    detail: dict[str, Any] = {
+        f"{name}_ms": stats([getattr(p, name) for p in parts]) for name in StopParts.NAMES}
+    detail["in_flight_stops"] = sum(p.in_flight > 0 for p in parts)
+    detail["fallback_stops"] = sum(r.fast is False for r in recs)
+    return detail
 
 
 def _sampler_figure(window: dict[str, Any], what: str) -> dict[str, Any]:

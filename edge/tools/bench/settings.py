@@ -26,6 +26,8 @@ class Settings:
     load_min_s: float  # the loaded phase lasts at least this long (sampler figure)
     presses: int  # loaded presses per controller (alternating the two objects)
     quiet_presses: int  # presses with no extra load (the overhead figure)
+    rt_presses: int  # production presses under the load with real-time scheduling on
+    rt_min_s: float  # ... over at least this long (its sampler figure)
     move_time_s: float  # arm moves between poses (time-based profile)
     vlm_latency_s: float  # the fake VLM's answer delay
     load_vlm_clients: int  # concurrent askers sending the large still
@@ -42,10 +44,12 @@ class Settings:
     retrieval_classes: int
 
 
-FULL = Settings(quick=False, load_min_s=60.0, presses=30, quiet_presses=8, move_time_s=0.2,
+FULL = Settings(quick=False, load_min_s=60.0, presses=30, quiet_presses=8, rt_presses=20,
+                rt_min_s=60.0, move_time_s=0.2,
                 vlm_latency_s=1.0, load_vlm_clients=2, image_px=(3000, 2000),
                 encode_load_s=0.02, encode_duty=1.0, poll_hz=20.0, daemon_runs=3, rss_samples=6,
                 encode_n=2000, retrieval_queries=200, brute_queries_1m=20,
                 retrieval_refs=1_000_000, retrieval_classes=1000)
-QUICK = replace(FULL, quick=True, load_min_s=5.0, presses=3, quiet_presses=2, daemon_runs=1,
+QUICK = replace(FULL, quick=True, load_min_s=5.0, presses=3, quiet_presses=2, rt_presses=2,
+                rt_min_s=3.0, daemon_runs=1,
                 rss_samples=3, encode_n=300, retrieval_queries=50, brute_queries_1m=5)
