@@ -159,7 +159,7 @@ class Runtime:
                 "version": __version__}
 
     def metrics_text(self) -> str:
-        return self.metrics.render(self.sampler.stats, self.sensor)
+        return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus)
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""

@@ -46,9 +46,9 @@ class Metrics:
     def observe_vlm(self, latency_s: float) -> None:
         self.vlm_latency.observe(latency_s)
 
-    def render(self, st: Any, sensor: Any) -> str:
-        """Prometheus text: these counters, the sampler's stats ``st`` and the sensor
-        task's frame and stale counts."""
+    def render(self, st: Any, sensor: Any, bus: Any = None) -> str:
+        """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
+        frame and stale counts and, with a Dynamixel ``bus``, its stops."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
@@ -84,4 +84,14 @@ class Metrics:
             "# TYPE vtzero_loop_lag_max_seconds gauge",
             f"vtzero_loop_lag_max_seconds {st.max_late_s:.6f}",
         ]
+        if bus is not None and hasattr(bus, "stop_fallbacks"):
+            lines += [
+                "# HELP vtzero_stops_total Stops sent to the gripper.",
+                "# TYPE vtzero_stops_total counter",
+                f"vtzero_stops_total {bus.stops}",
+                "# HELP vtzero_stop_fallbacks_total Stops that read Present Position first "
+                "(no gripper state fresh enough to write from).",
+                "# TYPE vtzero_stop_fallbacks_total counter",
+                f"vtzero_stop_fallbacks_total {bus.stop_fallbacks}",
+            ]
         return "\n".join(lines) + "\n"
