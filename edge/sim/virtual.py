@@ -134,7 +134,7 @@ class LoopbackPort(BlockingPortHandler):
 
     def writePort(self, packet: Any) -> int:
         data = bytes(packet)
-        self.last_write_t = self._clock()
+        self.last_write_t = self.write_call_t = self._clock()
         if self.on_write is not None:
             self.on_write(self.last_write_t, data[:8])
         self._rx += self._emulator.transact(data)
@@ -176,7 +176,7 @@ class VirtualBus(DynamixelBus):
             self._busy_until = due
         await asyncio.sleep(due - now)
         value = fn()
-        self._last_traffic = self._clock()
+        self._last_op_end = self._last_traffic = self._clock()
         return value
 
     async def _shutdown_thread(self) -> None:
