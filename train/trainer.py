@@ -58,7 +58,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
         d = dict(d)
-        d["model"] = ModelConfig(**d.get("model", {}))
+        d["model"] = ModelConfig.from_dict(d.get("model", {}))
         return cls(**d)
 
 
