@@ -54,8 +54,13 @@ class PromptTemplate:
         return self.mode != "tactile_only"
 
     @property
+    def slots(self) -> frozenset[str]:
+        """The slot names the template uses."""
+        return frozenset(string.Template(self.text).get_identifiers())
+
+    @property
     def uses_description(self) -> bool:
-        return DESCRIPTION_SLOT in string.Template(self.text).get_identifiers()
+        return DESCRIPTION_SLOT in self.slots
 
     def render(self, description: str, candidates: Sequence[str]) -> str:
         """The prompt with ``description`` and ``candidates`` filled in."""
