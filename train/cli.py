@@ -47,7 +47,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     data = training_data(args.recordings, _splits(args))
     config = TrainConfig(
-        model=ModelConfig(variant=args.variant, revive_dead=not args.no_revive),
+        model=ModelConfig(variant=args.variant, revive_dead=not args.no_revive,
+                          decoder=args.decoder),
         seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
         threads=args.threads)
     result = train(data, config, args.out, Progress(enabled=not args.quiet))
@@ -132,6 +133,7 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
         if args.conditions else eval_vlm.DEFAULT_CONDITIONS
     beta = Path(args.beta) if args.beta else None
+    zeros = Path(args.zeros) if args.zeros else None
     reference = Path(args.reference) if args.reference else None
     if not args.conditions and "beta_top3" in conditions and not (
             beta and beta.exists() and reference and reference.exists()):
@@ -142,8 +144,8 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     cfg = eval_vlm.EvalVLMConfig(
         vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
-        beta=beta, images=Path(args.images) if args.images else None, limit=args.limit,
-        concurrency=args.concurrency)
+        beta=beta, zeros=zeros, images=Path(args.images) if args.images else None,
+        limit=args.limit, concurrency=args.concurrency)
     if not args.verbose:  # one INFO line per answer from the client is too much here
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     if args.dry_run:
@@ -166,7 +168,8 @@ def _cmd_release(args: argparse.Namespace) -> int:
                         seed=args.seed,
                         presses=args.presses, unseen_presses=args.unseen_presses,
                         max_epochs=args.max_epochs, patience=args.patience,
-                        beta=not args.no_beta, workers=args.workers)
+                        beta=not args.no_beta, zeros=not args.no_zeros,
+                        workers=args.workers)
     manifest = release(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     print(f"released {cfg.out}: kiri mochi AUC {m['kiri_mochi_auc']}, LOO 1-NN "
@@ -211,6 +214,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--splits", help="class splits (default: the recordings' dataset.json)")
     p.add_argument("--out", required=True, help="directory for checkpoint.pt and train.jsonl")
     p.add_argument("--variant", choices=["vq", "beta"], default="vq")
+    p.add_argument("--decoder", choices=["teacher", "zeros"], default="teacher",
+                   help="teacher: the paper's decoder (z_q and X, teacher-forced; default); "
+                   "zeros: z_q alone, zero inputs (the comparison variant)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)
@@ -273,8 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="reference recordings (the beta-VAE's database)")
     p.add_argument("--beta", default="runs/release/beta/checkpoint.pt",
                    help="beta-VAE checkpoint")
+    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt",
+                   help="checkpoint of the VQ-VAE with the zero-input decoder")
     p.add_argument("--conditions", help="comma-separated, from: vision_only, vq_top3, "
-                   "vq_top1, beta_top3, tactile_only (default: the first four)")
+                   "vq_top1, beta_top3, vq_zeros_top3, vq_top3_adjectives, tactile_only "
+                   "(default: the first four)")
     p.add_argument("--images", help="photos for real data: <press name>.jpg or <label>.jpg "
                    "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the simulated camera)")
     p.add_argument("--limit", type=int, help="at most N presses per set (round-robin over "
@@ -297,6 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)
     p.add_argument("--no-beta", action="store_true", help="skip the beta-VAE comparison")
+    p.add_argument("--no-zeros", action="store_true",
+                   help="skip the zero-input decoder comparison")
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)
