@@ -17,7 +17,8 @@ from edge.core.errors import EvalVLMError
 from edge.core.model import load_model
 from edge.core.prompt import load_template
 from edge.sim.camera import render
-from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_touch
+from edge.sim.fake_vlm import FakeVLM, Reply
+from edge.sim.standin_vlm import StandIn
 from train import eval_vlm
 from train.eval_vlm import AnswerCache, EvalVLMConfig
 
@@ -60,7 +61,7 @@ def test_round_robin_order_and_limit(work):
 @pytest.mark.asyncio
 async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         report = await eval_vlm.run(settings(released, work, out, fake.base_url),
                                     progress=False)
     res = report["results"]["cube"]
@@ -112,7 +113,7 @@ async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work
 @pytest.mark.asyncio
 async def test_resume_after_a_stop_asks_nothing_twice(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         cfg = settings(released, work, out, fake.base_url, concurrency=1)
         fake.script(*[Reply()] * 5, Reply.error(400, "refused"))  # 400 is never retried
         with pytest.raises(EvalVLMError, match="run the same command again"):
@@ -135,7 +136,7 @@ async def test_cancelled_run_keeps_whole_lines_and_continues(released, work, tmp
     def choose(req):
         if len(fake.chat_requests) >= 9:  # 8 sent before, at most 3 of them still open
             busy.set()
-        return choose_by_touch(req)
+        return StandIn()(req)
 
     async with FakeVLM(model=MODEL, choose=choose, latency_s=0.02) as fake:
         cfg = settings(released, work, out, fake.base_url,
@@ -157,7 +158,7 @@ async def test_cancelled_run_keeps_whole_lines_and_continues(released, work, tmp
 @pytest.mark.asyncio
 async def test_invalid_answers_are_counted_not_mapped(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         cfg = settings(released, work, out, fake.base_url, concurrency=1,
                        conditions=("vision_only",))
         # The first question: a non-candidate twice (the answer and the corrective retry).
@@ -224,7 +225,7 @@ def test_cli_with_key_photos_limit_and_dry_run(released, work, tmp_path, capsys,
     key = "sk-test-0123456789"
     monkeypatch.setenv("VTZERO_VLM_API_KEY", key)
     out = tmp_path / "ev"
-    with fake_in_thread(model=MODEL, api_key=key, choose=choose_by_touch) as fake:
+    with fake_in_thread(model=MODEL, api_key=key, choose=StandIn()) as fake:
         args = ["eval-vlm", "--url", fake.base_url, "--model", MODEL,
                 "--model-dir", str(released), "--unseen", str(rec / "cube"),
                 "--reference", str(rec / "reference"), "--beta", str(tmp_path / "none.pt"),
