@@ -4,10 +4,8 @@ invalid answers, the shipped prompts, the CLI. Tiny sets (Cube, 2 presses per cl
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import io
 import json
-import threading
 
 import pytest
 from PIL import Image
@@ -19,6 +17,7 @@ from edge.core.prompt import load_template
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.standin_vlm import StandIn
+from tests.support.vlm_thread import fake_in_thread
 from train import eval_vlm
 from train.eval_vlm import AnswerCache, EvalVLMConfig
 
@@ -187,23 +186,6 @@ def test_answer_cache_drops_a_torn_last_line(tmp_path):
     assert list(again.load()) == ["a"]
     again.append({"key": "c", "answer": {"status": "ok", "label": "y"}})
     assert [json.loads(line)["key"] for line in path.read_text().splitlines()] == ["a", "c"]
-
-
-@contextlib.contextmanager
-def fake_in_thread(**kwargs):
-    """The fake on its own loop in a thread, for the synchronous CLI."""
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, daemon=True)
-    thread.start()
-    fake = FakeVLM(**kwargs)
-    asyncio.run_coroutine_threadsafe(fake.start(), loop).result(10)
-    try:
-        yield fake
-    finally:
-        asyncio.run_coroutine_threadsafe(fake.stop(), loop).result(10)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10)
-        loop.close()
 
 
 def png(colour: tuple[int, int, int]) -> bytes:
