@@ -39,11 +39,13 @@ import argparse
 import asyncio
 import contextlib
 import functools
+import hashlib
 import io
 import logging
 import signal
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -66,6 +68,16 @@ SAME_LOOK_TOLERANCE = 1.5
 MATCH_LIMIT = 1.5
 # Weight of the i-th nearest reference in the touch sentence (0-based): nearest weighs most.
 RANK_WEIGHT_DECAY = 1.0
+
+
+@functools.cache
+def knowledge_digest() -> str:
+    """A digest of what the stand-in knows and how it decides (this module and its common
+    sense table): answers cached under another digest are another model's answers."""
+    here = Path(__file__).resolve().parent
+    data = b"".join((here / name).read_bytes() for name in ("standin_vlm.py",
+                                                              "common_sense.py"))
+    return hashlib.sha256(data).hexdigest()
 
 
 @dataclass(frozen=True)
