@@ -286,6 +286,29 @@ def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
     return out
 
 
+def _decoder_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """A paragraph setting the paper's decoder (``vq``) beside the zero-input one
+    (``vq_zeros``), retrieval in z, from this report's own numbers."""
+    by = {(r["variant"], r["space"]): r for r in rows}
+    paper, zeros = by.get(("vq", "z")), by.get(("vq_zeros", "z"))
+    if paper is None or zeros is None:
+        return []
+    keys = (("loo_1nn", "LOO 1-NN"), ("loo_top3", "LOO top-3"),
+            ("mean_auc_real_vs_replica", "mean AUC real/replica"),
+            ("mean_auc_raw_vs_boiled", "mean AUC raw/boiled"))
+    better = [name for key, name in keys
+              if paper[key] is not None and zeros[key] is not None and zeros[key] > paper[key]]
+    parts = ", ".join(f"{name} {_fmt(paper[key])} against {_fmt(zeros[key])}"
+                      for key, name in keys)
+    verdict = (f"The zero-input decoder does better on {', '.join(better)}"
+               if better else "The zero-input decoder does better on none of them")
+    return ["", "## Decoders", "",
+            f"The paper's decoder (`vq`: z_q and X, teacher-forced) against the zero-input one "
+            f"(`vq_zeros`), retrieval in z: {parts}. {verdict}. The paper's decoder is the "
+            "shipped default; what each gives the VLM is in Table I "
+            "(`table1/table1.md`, rows `vq_zeros_top3`)."]
+
+
 def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
@@ -330,6 +353,7 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
         lines.append(f"| {a} vs {b} | "
                      + " | ".join(_fmt(r["pair_auc"][name]) for r in rows)
                      + f" | {sep:.2f} |")
+    lines += _decoder_comparison(rows)
     lines += ["",
               "LOO: leave one reference press out (its five references), nearest remaining "
               "reference (5-NN: majority of the 5 nearest references). "

@@ -371,7 +371,7 @@ def plot(r: Mapping[str, Any], path: Path) -> None:
     ax.set_title(r["title"], fontsize=8)
     ax.legend(fontsize=6, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=DPI, metadata={"Software": None})
+    eval_vlm.save_png(fig, path, DPI)
     plt.close(fig)
 
 

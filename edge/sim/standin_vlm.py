@@ -27,7 +27,7 @@ descriptions change.
 Two profiles, chosen by the request's ``model`` (one endpoint serves both, as a real server
 serves two models): ``simulated-vlm`` weighs touch with sight (margin 0.05), and
 ``simulated-vlm-vision-led``, which, like the paper's LLaVA, hardly uses the touch text: it
-keeps its sight's answer unless touch points elsewhere by more than 0.5 on the 0..1 scale.
+keeps its sight's answer unless touch points elsewhere by more than 0.8 on the 0..1 scale.
 
 Serve it: ``vt-edge sim vlm --port 8011`` (or ``python -m edge.sim.standin_vlm``); it prints
 and logs "simulated VLM" on every line, and answers the strict JSON the robot asks for.
@@ -92,7 +92,7 @@ class Profile:
 
 DEFAULT = Profile("simulated-vlm", f"{TITLE} (weighs sight and touch)", 0.05)
 VISION_LED = Profile("simulated-vlm-vision-led",
-                     f"{TITLE}, vision-led (hardly uses touch, like the paper's LLaVA)", 0.5)
+                     f"{TITLE}, vision-led (hardly uses touch, like the paper's LLaVA)", 0.8)
 PROFILES: dict[str, Profile] = {p.model: p for p in (DEFAULT, VISION_LED)}
 
 

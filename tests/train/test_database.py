@@ -41,10 +41,9 @@ def test_topk_returns_k_distinct_classes_nearest_first(seed, n, classes, k):
 
 
 def test_describe_and_z_q_space():
-    classes = [ClassInfo("wood_cube", "a cube of hard wood that does not give at all", "train"),
-               ClassInfo("stainless_cube", "a cube of smooth steel, rigid and unyielding",
-                         "train"),
-               ClassInfo("sponge_cube", "a squashy sponge", "train")]
+    classes = [ClassInfo("wood_cube", "wood cube", "train"),
+               ClassInfo("stainless_cube", "stainless steel cube", "train"),
+               ClassInfo("sponge_cube", "kitchen sponge cut into a cube", "train")]
     z = np.array([[0, 0], [0.1, 0], [1, 1], [5, 5]], dtype=np.float32)
     book = np.array([[0, 0], [1, 1], [5, 5]], dtype=np.float32)
     code = np.array([0, 0, 1, 2])
@@ -52,9 +51,7 @@ def test_describe_and_z_q_space():
                            ["a", "b", "c", "d"], book)
     assert [lab for lab, _ in db.topk(np.array([0.09, 0.0]), 2)] == \
         ["stainless_cube", "wood_cube"]
-    assert db.describe(["wood_cube", "stainless_cube"]) == (
-        "a cube of hard wood that does not give at all, "
-        "a cube of smooth steel, rigid and unyielding")
+    assert db.describe(["wood_cube", "stainless_cube"]) == "wood cube, stainless steel cube"
     with pytest.raises(ModelError, match="not in the reference database"):
         db.describe(["nothing"])
     zq = ReferenceDatabase(classes, z, book[code], code, np.array([0, 1, 1, 2]),

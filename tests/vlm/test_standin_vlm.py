@@ -151,7 +151,8 @@ def test_the_vision_led_profile_hardly_uses_touch():
     assert answer(MIDDLE_TOUCH, "raw_kabocha_squash", profile=VISION_LED) == \
         "raw_kabocha_squash"
     assert answer(HARD_TOUCH, "macaron", FOOD, VISION_LED) == "macaron"
-    # Only touch that is extreme and far from its sight's answer gets through.
+    # Only touch that is extreme and far from its sight's answer (by more than 0.8 of the
+    # 0..1 give scale) gets through: cotton and marshmallow (0.98) against raw mochi (0.05).
     assert answer("cotton ball, marshmallow", "raw_kiri_mochi", profile=VISION_LED) == \
         "boiled_kiri_mochi"
 
