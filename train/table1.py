@@ -215,6 +215,7 @@ def markdown(s: Mapping[str, Any]) -> str:
         for row in m["rows"]:
             lines.append(f"| `{m['model']}` | {row['title']} | " + " | ".join(
                 str(row["sets"][name]["invalid_answer"]) for name in SETS) + " |")
+    lines += _decoders(s)
     prompts = s["models"][0]["prompts"] if s["models"] else {}
     lines += ["", "Answers are a strict JSON enum of the candidates; the paper's GPT-4V and "
               "LLaVA answered in free text. The paper's objects were real, ours are "
@@ -222,6 +223,25 @@ def markdown(s: Mapping[str, Any]) -> str:
                   f"`{mode}` sha256 {p['sha256'][:12]}" for mode, p in prompts.items())
               + ". Confusion matrices: `table1.json` and `confusion_<model>_<set>.png`.", ""]
     return "\n".join(lines)
+
+
+def _decoders(s: Mapping[str, Any]) -> list[str]:
+    """One generated line per model setting the paper's decoder beside the zero-input one."""
+    out = []
+    for m in s["models"]:
+        rows = {r["condition"]: r for r in m["rows"]}
+        if "vq_top3" not in rows or "vq_zeros_top3" not in rows:
+            continue
+        pairs = ", ".join(
+            f"{DATASET_TITLES[name]} {_cell(rows['vq_top3']['sets'][name])} against "
+            f"{_cell(rows['vq_zeros_top3']['sets'][name])}" for name in SETS
+            if rows["vq_top3"]["sets"][name]["n"])
+        out.append(f"- `{m['model']}`, top-3, the paper's decoder against the zero-input "
+                   f"one: {pairs}.")
+    if not out:
+        return []
+    return ["", "Decoders (the shipped model has the paper's; retrieval figures in "
+            "`../eval.md`, section Decoders):", "", *out]
 
 
 def write_report(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, Any]]]

@@ -130,6 +130,7 @@ def test_fig6_draws_trains_caches_and_resumes(released, work, tmp_path):
     n_answers = lines(cache)
     again = asyncio.run(fig6.run(cfg, progress=False))
     assert again["timings"]["trainings_run"] == 0 and lines(cache) == n_answers
+    assert again["timings"]["trainings"] == 4  # their training times kept from the cache
     assert again["sizes"] == report["sizes"]
     # Another epoch budget is another training: only those draws train again.
     more = fig6.Fig6Config(**{**cfg.__dict__, "max_epochs": 2, "sizes": (3,)})
