@@ -3,9 +3,9 @@
 The paper's claim is that a VLM infers how an object feels from the names of the objects it
 feels like ("similar to otedama, kiwi piece": soft) through the common sense it learnt from
 people's words. The simulated VLM (:mod:`edge.sim.standin_vlm`) needs that common sense too,
-and this table is all of it: for a few hundred words' worth of everyday objects, how much a
-person expects each to give under a gentle push of two fingers, from 0 (does not give at all:
-metal, glass, wood, resin) to 1 (gives completely: cotton wool, marshmallow).
+and this table is all of it: for 91 everyday object names, materials and words of feel, how
+much a person expects each to give under a gentle push of two fingers, from 0 (does not give
+at all: metal, glass, wood, resin) to 1 (gives completely: cotton wool, marshmallow).
 
 The values are written from everyday experience of the *names* and reviewed by hand; they are
 deliberately not derived from the simulator (``edge/sim/catalogue.py``'s moduli and relaxation

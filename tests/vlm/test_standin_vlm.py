@@ -233,3 +233,8 @@ def test_standalone_it_says_simulated_vlm_on_every_line():
             assert proc.wait(timeout=10) == 0
     lines = [line for line in (first + rest).splitlines() if line.strip()]
     assert lines and all("simulated VLM" in line for line in lines), lines
+
+
+def test_common_sense_table_is_the_size_its_docstring_says():
+    assert f"for {len(common_sense.GIVE)} everyday" in common_sense.__doc__
+    assert all(0.0 <= g <= 1.0 for g in common_sense.GIVE.values())
