@@ -6,7 +6,6 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
-from dataclasses import replace
 
 from edge import __version__
 from edge.core.errors import EdgeError
@@ -17,31 +16,29 @@ log = logging.getLogger(__name__)
 
 
 def _cmd_sim_record(args: argparse.Namespace) -> int:
+    from edge.core.config import load_config
     from edge.core.progress import Progress
     from edge.sim.catalogue import DATASETS
-    from edge.sim.press import PressParams
-    from edge.sim.record import record_dataset
+    from edge.tools.record import record_dataset
 
-    params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
+    cfg = load_config(args.config)
     total = len(DATASETS[args.dataset]) * args.presses
     with Progress(f"record {args.dataset}", total, "presses", enabled=not args.quiet) as bar:
-        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed,
-                               params=params, workers=args.workers,
+        index = record_dataset(args.dataset, args.presses, args.out, seed=args.seed, cfg=cfg,
+                               x_th=args.x_th, workers=args.workers,
                                progress=lambda done, _total: bar.set(done))
     n = len(index["classes"]) * args.presses
     print(f"wrote {n} presses of {len(index['classes'])} classes ({args.dataset}) to {args.out}")
-    if index["no_contact"]:
-        print(f"warning: no contact in {len(index['no_contact'])} presses: "
-              + ", ".join(index["no_contact"][:10]))
+    if index["retried"]:
+        print(f"note: {len(index['retried'])} presses needed a second try: "
+              + ", ".join(index["retried"][:10]))
     return 0
 
 
 def _cmd_sim_press(args: argparse.Namespace) -> int:
-    from edge.sim.press import PressParams
-    from edge.sim.summary import print_press_table
+    from edge.tools.press_table import print_press_table
 
-    params = replace(PressParams(), x_th=args.x_th, reaction_latency_s=args.latency_ms / 1e3)
-    print_press_table(args.objects, seed=args.seed, params=params)
+    print_press_table(args.objects, seed=args.seed, x_th=args.x_th)
     return 0
 
 
@@ -52,6 +49,17 @@ def _cmd_sim_vlm(args: argparse.Namespace) -> int:
 
     asyncio.run(serve(args.host, args.port, lambda line: print(line, flush=True)))
     return 0
+
+
+def _cmd_sim_consistency(args: argparse.Namespace) -> int:
+    from edge.tools.consistency import run_consistency
+
+    command = "vt-edge sim consistency " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else (
+        "vt-edge sim consistency")
+    report = run_consistency(args.objects, args.presses, args.dataset_presses, args.seed,
+                             args.models, args.config, args.out, command=command.strip())
+    print(report.markdown(command.strip()))
+    return 0 if report.passed else 1
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -75,12 +83,22 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
     from edge.sim.robot import SimRobot
 
     cfg = load_config(args.config)
+    replay = None
+    if args.replay is not None:
+        from edge.sim.xela_replay import load_replay
+
+        # Before anything starts: a bad file is refused with the file and the problem.
+        replay = load_replay(args.replay)
 
     async def serve() -> None:
         robot = SimRobot(args.object, cfg.sim.seed, xela_port=args.xela_port,
-                         rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg)
+                         rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg,
+                         replay=replay, replay_loop=not args.replay_once)
         async with robot:
             print(f"xela_server emulator: {robot.xela.url}", flush=True)
+            if replay is not None:
+                print(f"  replaying {replay.describe()}, "
+                      f"{'once' if args.replay_once else 'looping'}", flush=True)
             print(f"Dynamixel bus (pty):  {robot.dxl.port}", flush=True)
             print(f"control + camera:     {robot.control_url}", flush=True)
             if args.write_config:
@@ -100,11 +118,16 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
 
 def _cmd_collect(args: argparse.Namespace) -> int:
     import asyncio
+    from dataclasses import replace
 
     from edge.core.config import load_config
     from edge.tools.collect import collect
 
-    files = asyncio.run(collect(load_config(args.config), args.label, args.presses, args.out,
+    cfg = load_config(args.config)
+    if args.x_th is not None:
+        cfg = replace(cfg, press=replace(cfg.press, x_th=args.x_th))
+        cfg.press.validate("press (--x-th)")
+    files = asyncio.run(collect(cfg, args.label, args.presses, args.out,
                                 prompt=None if args.no_prompt else input))
     print(f"wrote {len(files)} presses of {args.label} to {args.out}")
     return 0
@@ -188,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--label", required=True)
     col.add_argument("--presses", type=int, default=10)
     col.add_argument("--out", required=True)
+    col.add_argument("--x-th", type=float, default=None,
+                     help="press threshold for this object (e.g. 0.003 for a fragile one); "
+                          "default: the configuration's [press] x_th")
     col.add_argument("--no-prompt", action="store_true",
                      help="do not wait for Enter between presses")
     col.set_defaults(func=_cmd_collect)
@@ -237,8 +263,11 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, help="output directory")
     rec.add_argument("--seed", type=int, default=0)
     rec.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
-    rec.add_argument("--x-th", type=float, default=0.004, help="stop threshold")
-    rec.add_argument("--latency-ms", type=float, default=2.0, help="controller reaction")
+    rec.add_argument("--config", default="configs/sim.toml",
+                     help="the emulated robot's configuration (press settings)")
+    rec.add_argument("--x-th", type=float, default=None,
+                     help="stop threshold for every class (default: [press] x_th, the "
+                          "catalogue's per-class threshold for fragile classes)")
     rec.add_argument("-q", "--quiet", action="store_true")
     rec.set_defaults(func=_cmd_sim_record)
 
@@ -249,13 +278,33 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
     serve.add_argument("--write-config", default=None,
                        help="write the config with this robot's addresses here")
+    serve.add_argument("--replay", default=None, metavar="FILE",
+                       help="the pads send this real recording (a XELA CSV directory such as "
+                            "tests/fixtures/xela/real-xr1944/data_sample_2022-02-22-15-15-00, "
+                            "or a .press.npz) at its recorded timing, from the start again "
+                            "after the end; the arm and gripper are still emulated")
+    serve.add_argument("--replay-once", action="store_true",
+                       help="after the recording's last frame send nothing more (the "
+                            "connection stays open: the stream goes stale)")
     serve.set_defaults(func=_cmd_sim_serve)
+
+    cons = simsub.add_parser(
+        "consistency", help="the daemon's presses on the emulated robot against the dataset "
+        "recorder's, encoded by the shipped model (exit 1 if the targets are missed)")
+    cons.add_argument("--objects", nargs="+", default=None, help="default: the 8 of the report")
+    cons.add_argument("--presses", type=int, default=5, help="daemon presses per object")
+    cons.add_argument("--dataset-presses", type=int, default=10)
+    cons.add_argument("--seed", type=int, default=0)
+    cons.add_argument("--models", default="models")
+    cons.add_argument("--config", default="configs/sim.toml")
+    cons.add_argument("--out", default=None, help="write consistency.md/.json here")
+    cons.set_defaults(func=_cmd_sim_consistency)
 
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")
     press.add_argument("--seed", type=int, default=0)
-    press.add_argument("--x-th", type=float, default=0.004)
-    press.add_argument("--latency-ms", type=float, default=2.0)
+    press.add_argument("--x-th", type=float, default=None,
+                       help="stop threshold (default: the configuration's or the class's)")
     press.set_defaults(func=_cmd_sim_press)
 
     vlm = simsub.add_parser("vlm", help="serve the simulated VLM (an OpenAI-compatible "

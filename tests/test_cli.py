@@ -4,7 +4,7 @@ import sys
 from edge.core import recording
 from edge.daemon.episode import Episode, Status
 from edge.daemon.store import new_id
-from edge.sim.record import DATASET_INDEX
+from edge.tools.record import DATASET_INDEX
 
 
 def run(*args, **kw):

@@ -1,8 +1,9 @@
 """The layout is the architecture: imports run one way.
 
 edge.core <- edge.hw <- edge.daemon <- edge.tools (and the CLI); edge.sim and train may use
-the core (the simulator also the hardware contracts and tables, train the simulator to
-record datasets); nothing in edge imports train, and the daemon never loads the simulator.
+the core (the simulator also the hardware contracts and tables, train the simulator and the
+dataset recorder, which presses with the daemon's own press controller); nothing in edge
+imports train, and the daemon never loads the simulator.
 """
 
 from __future__ import annotations
@@ -22,11 +23,15 @@ ALLOWED = {
     "edge.hw": {"edge", "edge.core", "edge.hw"},
     "edge.daemon": {"edge", "edge.core", "edge.hw", "edge.daemon"},
     "edge.sim": {"edge", "edge.core", "edge.hw", "edge.sim"},
-    "edge.tools": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools"},
-    "edge.cli": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools"},
+    "edge.tools": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools",
+                   "edge.tools.record"},
+    "edge.cli": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools",
+                 "edge.tools.record"},
     "edge.__main__": {"edge", "edge.cli"},
     "edge": {"edge"},
-    "train": {"edge", "edge.core", "edge.sim", "train"},
+    "edge.tools.record": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim",
+                          "edge.tools"},
+    "train": {"edge", "edge.core", "edge.sim", "edge.tools.record", "train"},
 }
 
 

@@ -140,7 +140,7 @@ def train_phase(s: Settings, tmp: Path, models: Path) -> PhaseResult:
     """The shipped encoder's training configuration on freshly recorded presses."""
     if version("torch") is None:
         return PhaseResult({}, ["torch is not installed: no training figure"])
-    from edge.sim.record import record_dataset
+    from edge.tools.record import record_dataset
     from train.data import training_data
     from train.trainer import Progress, TrainConfig, train
 

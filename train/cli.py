@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 def _cmd_record(args: argparse.Namespace) -> int:
     from edge.core.progress import Progress
     from edge.sim.catalogue import DATASETS
-    from edge.sim.record import record_dataset
+    from edge.tools.record import record_dataset
 
     total = len(DATASETS[args.dataset]) * args.presses
     with Progress(f"record {args.dataset}", total, "presses") as bar:

@@ -63,7 +63,7 @@ from edge.core.progress import PLAIN_EVERY_S
 from edge.core.progress import Progress as Bar
 from edge.core.prompt import PromptTemplate, load_template
 from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
-from edge.sim.record import DATASET_INDEX
+from edge.tools.record import DATASET_INDEX
 from train.data import PressSet, load_presses
 
 log = logging.getLogger(__name__)

@@ -28,7 +28,7 @@ from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
 from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.prompt import MODES, PromptTemplate
 from edge.sim.catalogue import DATASETS
-from edge.sim.record import DATASET_INDEX, record_dataset
+from edge.tools.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
 from train.export import OPSET, PARITY_BOUND, check_parity, codebook_of, export_onnx, parity
@@ -213,7 +213,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                         "train_classes": list(data.splits.train),
                         "val_classes": list(data.splits.val),
                         "train_samples": len(data.train), "val_samples": len(data.val),
-                        "press_params": ref_index["press_params"]},
+                        "recorder": ref_index["recorder"], "press": ref_index["press"],
+                        "transport": ref_index["transport"]},
             "vq": {"config": vq.config.to_dict(), "result": vq.summary()},
             "vq_zeros": {"config": zeros.config.to_dict(), "result": zeros.summary()}
             if zeros else None,

@@ -154,6 +154,8 @@ class Runtime:
                 "store_error": store_error,
                 "state": self.press.state, "episode": self.recognizer.current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
+                # Which model answers: changes when a reload took a new model or database.
+                "model_digest": self.model.digest,
                 "version": __version__}
 
     def metrics_text(self) -> str:

@@ -11,7 +11,6 @@ check on an arm that really runs reversed.
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Mapping
 
 from edge.core.errors import DeviceTimeoutError
@@ -88,12 +87,12 @@ class DynamixelGripper:
         await self._bus.write(self._id, "Goal Current", cap)
         await self._bus.write(self._id, "Profile Velocity", _velocity_units(self._open_speed_mps))
         await self._bus.write(self._id, "Goal Position", goal)
-        deadline = time.monotonic() + self._timeout_s
+        deadline = asyncio.get_running_loop().time() + self._timeout_s
         while True:
             state = await self._bus.read_state()
             if abs(state.motors[self._id].position - goal) <= self._tolerance_raw:
                 return
-            if time.monotonic() > deadline:
+            if asyncio.get_running_loop().time() > deadline:
                 raise DeviceTimeoutError(
                     f"gripper (motor {self._id}) not open within {self._timeout_s} s: at "
                     f"{state.motors[self._id].position}, goal {goal}")
@@ -169,14 +168,14 @@ class DynamixelArm:
         await self._bus.sync_write("Profile Velocity",
                                    dict.fromkeys(self._joint_ids, self._move_time_ms))
         await self._bus.write_goal_positions(goals)
-        deadline = time.monotonic() + timeout_s
+        deadline = asyncio.get_running_loop().time() + timeout_s
         while True:
             state = await self._bus.read_state()
             off = {i: state.motors[i].position for i in self._joint_ids
                    if abs(state.motors[i].position - goals[i]) > self._tolerance_raw}
             if not off:
                 return
-            if time.monotonic() > deadline:
+            if asyncio.get_running_loop().time() > deadline:
                 detail = ", ".join(f"joint {i} at {p} (goal {goals[i]})" for i, p in off.items())
                 raise DeviceTimeoutError(f"arm did not reach pose {pose!r} within "
                                          f"{timeout_s} s: {detail}")

@@ -199,7 +199,7 @@ class MotorState:
 
 @dataclass(frozen=True)
 class BusState:
-    """One sync read of all motors; ``t`` is ``time.monotonic()`` when it completed."""
+    """One sync read of all motors; ``t`` is the bus clock (monotonic) when it completed."""
 
     t: float
     motors: Mapping[int, MotorState]
@@ -252,8 +252,11 @@ class DynamixelBus:
         *,
         port_handler_factory: Callable[[str], sdk.PortHandler] = BlockingPortHandler,
         latency_timer_dir: Path = LATENCY_TIMER_DIR,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._config = config
+        # The clock of every time the bus reports (states, the stop); the event loop's.
+        self._clock = clock
         # Called on the bus thread after each packet written to the port with (monotonic
         # time, first 8 bytes of the packet); for measurements (see BlockingPortHandler).
         self.on_write: Callable[[float, bytes], None] | None = None
@@ -405,7 +408,7 @@ class DynamixelBus:
         def op() -> int:
             goal = self._read(motor_id, PRESENT_POSITION) + offset_raw
             self._write(motor_id, GOAL_POSITION, goal)
-            self.last_stop_t = getattr(self._port, "last_write_t", 0.0) or time.monotonic()
+            self.last_stop_t = getattr(self._port, "last_write_t", 0.0) or self._clock()
             return goal
 
         return await self._call("stop past present", op, urgent=True)
@@ -454,7 +457,7 @@ class DynamixelBus:
         failing = False
         while True:
             await asyncio.sleep(interval_s)
-            if time.monotonic() - self._last_traffic < interval_s:
+            if self._clock() - self._last_traffic < interval_s:
                 continue
             try:
                 await self.read_state()
@@ -518,7 +521,7 @@ class DynamixelBus:
                 except Exception as e:
                     _log.exception("unexpected error in bus operation %s", op.label)
                     exc = e
-                self._last_traffic = time.monotonic()
+                self._last_traffic = self._clock()
                 op.settle(value, exc)
         finally:
             self._close_port()
@@ -645,7 +648,7 @@ class DynamixelBus:
                 velocity=_field(PRESENT_VELOCITY, data),
                 current=_field(PRESENT_CURRENT, data),
             )
-        state = BusState(time.monotonic(), motors)
+        state = BusState(self._clock(), motors)
         self.last_state = state
         return state
 

@@ -76,12 +76,17 @@ class Contact:
         self.inst = inst
         self.k_skin = k_skin
         obj = inst.cls
-        self._g = np.array([g for g, _ in obj.prony], dtype=float)
-        self._tau = np.array([t for _, t in obj.prony], dtype=float)
-        self._g_inf = 1.0 - float(self._g.sum())
+        # Plain floats, not arrays: a Prony series has one or two terms, and this runs at
+        # 2 kHz in the emulators and the recorder, where numpy's per-call cost dominates.
+        self._g = tuple(g for g, _ in obj.prony)
+        self._tau = tuple(t for _, t in obj.prony)
+        self._g_total = sum(self._g)
+        self._g_inf = 1.0 - self._g_total
         if self._g_inf <= 0.0:
             raise ValueError(f"{obj.name}: Prony fractions must sum below 1")
-        self._h = np.zeros_like(self._g)  # Prony internal forces
+        self._h = [0.0] * len(self._g)  # Prony internal forces
+        self._decay_dt = -1.0
+        self._decay: tuple[float, ...] = ()
         self.delta = 0.0  # object indentation per finger (elastic + plastic)
         self.delta_p = 0.0  # permanent set
         self.force = 0.0  # per-finger normal force, N
@@ -96,12 +101,12 @@ class Contact:
         y = self.inst.cls.yield_n
         return fe if y is None else min(fe, y)
 
-    def _object_force(self, delta: float, h_decayed: np.ndarray, c_dt: float,
+    def _object_force(self, delta: float, h_sum: float, c_dt: float,
                       prev_delta: float) -> tuple[float, float]:
-        """Object force at indentation ``delta`` after this step, and its derivative."""
+        """Object force at indentation ``delta`` after this step, and its derivative;
+        ``h_sum`` is the decayed Prony forces less their share of the last elastic force."""
         fe = self._elastic(delta)
-        f = (self._g_inf * fe + float(np.sum(h_decayed + self._g * (fe - self._fe)))
-             + c_dt * (delta - prev_delta))
+        f = self._g_inf * fe + h_sum + self._g_total * fe + c_dt * (delta - prev_delta)
         de = max(delta - self.delta_p, 1e-12)
         n = self.inst.n
         y = self.inst.cls.yield_n
@@ -113,18 +118,24 @@ class Contact:
         d = 0.5 * (self.inst.width_m - gap_m)
         self.approach = d
         obj = self.inst.cls
-        h_decayed = self._h * np.exp(-dt / self._tau) if self._g.size else self._h
+        if dt != self._decay_dt:
+            self._decay_dt = dt
+            self._decay = tuple(math.exp(-dt / tau) for tau in self._tau)
+        h_decayed = [h * a for h, a in zip(self._h, self._decay, strict=True)]
         c_dt = obj.damping_ns_per_m / dt
         prev = self.delta
-        if d <= self.delta_p and prev == self.delta_p and not np.any(np.abs(h_decayed) > 1e-9):
+        if d <= self.delta_p and prev == self.delta_p and all(abs(h) <= 1e-9
+                                                              for h in h_decayed):
             # Fully relaxed and clear of the fingers: nothing to solve.
             self._h = h_decayed
             self._fe = 0.0
             self.force = 0.0
             return 0.0
+        # sum(h_decayed + g * (fe - fe_last)) = h_sum + g_total * fe.
+        h_sum = sum(h_decayed) - self._g_total * self._fe
 
         def obj_force(x: float) -> tuple[float, float]:
-            return self._object_force(x, h_decayed, c_dt, prev)
+            return self._object_force(x, h_sum, c_dt, prev)
 
         if d > self.delta_p and obj_force(d)[0] > 0.0:
             # In contact: the skin and the object share the approach.
@@ -150,7 +161,7 @@ class Contact:
             # Plastic flow: the elastic part stays at yield, the rest becomes permanent.
             de_yield = (y / self.inst.k) ** (1.0 / self.inst.n)
             self.delta_p = max(self.delta_p, delta - de_yield)
-        self._h = h_decayed + self._g * (fe - self._fe)
+        self._h = [h + g * (fe - self._fe) for h, g in zip(h_decayed, self._g, strict=True)]
         self._fe = fe
         self.delta = delta
         self.force = max(force, 0.0)

@@ -21,11 +21,12 @@ motion model stepped on a fixed simulated step (1 ms) of ``time.monotonic``:
   instruction packet longer than its period stops the motion, the register reads -1 and goal
   writes (Goal PWM/Current/Velocity/Position) answer the Data Range error until 0 is written.
 
-Physics hook: ``load(motor_id, position_raw) -> mA`` gives the external load current opposing
-the closing direction (decreasing position with the default Drive Mode, increasing position
-with Drive Mode bit 0 set; positive = resists closing). Present Current reports it (capped at
-Goal Current in current-based position mode, at Current Limit otherwise), with the motor's
-sign convention: a motor pushing toward decreasing position draws negative current.
+Physics hook: ``load(motor_id, position_raw, t) -> mA`` gives the external load current at the
+motion model's time ``t``, opposing the closing direction (decreasing position with the default
+Drive Mode, increasing position with Drive Mode bit 0 set; positive = resists closing). Present
+Current reports it (capped at Goal Current in current-based position mode, at Current Limit
+otherwise), with the motor's sign convention: a motor pushing toward decreasing position draws
+negative current.
 ``true_position(motor_id)`` reads the true position (raw, float) from any thread.
 
 Modelling gaps: no wire time (10 us/byte at 1 Mbps), no velocity/PWM/current operating-mode
@@ -73,7 +74,7 @@ from edge.hw.control_table import (
 
 _log = logging.getLogger(__name__)
 
-LoadFn = Callable[[int, float], float]
+LoadFn = Callable[[int, float, float], float]
 
 BROADCAST_ID = 0xFE
 HEADER = b"\xff\xff\xfd\x00"
@@ -404,6 +405,24 @@ class DxlEmulator:
             self._advance(self._clock())
             return self._motors[motor_id].pos
 
+    def transact(self, data: bytes) -> bytes:
+        """The in-process transport of the dataset recorder's virtual bus: execute the
+        instruction packets in ``data`` at the clock's present time and return their status
+        packets at once (the recorder models the wire's timing itself). Not while the pty
+        thread serves."""
+        if self._thread is not None:
+            raise RuntimeError("transact() is for an emulator without its pty thread")
+        now = self._clock()
+        buf = bytearray(data)
+        out = bytearray()
+        with self._lock:
+            self._advance(now)
+            while (ins := parse_packet(buf)) is not None:
+                self.received.append(Received(now, ins.motor_id, ins.instruction, ins.params))
+                for _motor, packet in self._handle(ins, now):
+                    out += packet
+        return bytes(out)
+
     def get_register(self, motor_id: int, name: str) -> int:
         """A register as the motor would answer it now (bypasses the bus)."""
         with self._lock:
@@ -481,7 +500,7 @@ class DxlEmulator:
         desired = profile.position(t)
         if (m.mem[11] == MODE_CURRENT_BASED_POSITION and self._load is not None
                 and (desired - m.pos) * m.closing_sign > 0):
-            load = self._call_load(m)
+            load = self._call_load(m, t)
             cap_ma = abs(m.get("Goal Current")) * CURRENT_MA_PER_UNIT
             if load >= cap_ma:
                 # Stalled on the object: the profile waits, the motor pushes at the cap.
@@ -496,11 +515,11 @@ class DxlEmulator:
             m.profile = None
             m.vel = 0.0
 
-    def _call_load(self, m: _Motor) -> float:
+    def _call_load(self, m: _Motor, t: float) -> float:
         if self._load is None:
             return 0.0
         try:
-            load = float(self._load(m.id, m.pos))
+            load = float(self._load(m.id, m.pos, t))
         except Exception:
             if not m.load_failed:
                 _log.exception("load hook failed for motor %d; using 0 mA", m.id)
@@ -525,7 +544,7 @@ class DxlEmulator:
         """Copy the physical state into the Present registers before a read."""
         profile = m.profile
         if m.torque_on and self._load is not None:
-            load = self._call_load(m)
+            load = self._call_load(m, self._sim_t)
             # The motor's current cannot exceed its cap: Goal Current in current-based
             # position mode (a stall overshoots the cap by at most one step of load), the
             # Current Limit otherwise.

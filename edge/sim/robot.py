@@ -1,7 +1,8 @@
 """The whole emulated robot: the world, the ``xela_server`` emulator on loopback and the
 Dynamixel bus emulator on a pseudo-terminal, plus a small control endpoint (place an object,
 take a picture). The runtime connects to it with the real drivers; only the device addresses
-in its configuration differ from the real robot's.
+in its configuration differ from the real robot's. With a ``replay``, the XELA emulator serves
+that real recording instead of the physics' frames (the arm and gripper are still emulated).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.world import SimWorld, raw_from_width
+from edge.sim.xela_replay import Replay
 from edge.sim.xela_server import XelaServerEmulator
 
 log = logging.getLogger(__name__)
@@ -25,7 +27,8 @@ class SimRobot:
     def __init__(self, object_name: str = "stainless_cube", seed: int = 0, *,
                  xela_port: int = 0, control_port: int = 0, rate_hz: float = 125.0,
                  dialect: str = "1.8", reply_latency_s: float = 0.0,
-                 initial_width_m: float | None = None, cfg: Config | None = None) -> None:
+                 initial_width_m: float | None = None, cfg: Config | None = None,
+                 replay: Replay | None = None, replay_loop: bool = True) -> None:
         get(object_name)
         bus = (cfg or Config()).bus
         self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id)
@@ -36,8 +39,11 @@ class SimRobot:
         positions[bus.gripper_id] = raw_from_width(width)
         self.dxl = DxlEmulator((*bus.joint_ids, bus.gripper_id), load=self.world.load,
                                reply_latency_s=reply_latency_s, initial_positions=positions)
+        gripper_id = bus.gripper_id
+        self.world.sync = lambda: self.dxl.true_position(gripper_id)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
-                                       dialect=dialect)  # type: ignore[arg-type]
+                                       dialect=dialect,  # type: ignore[arg-type]
+                                       replay=replay, loop=replay_loop)
         self._control_port = control_port
         self._runner: web.AppRunner | None = None
         self.control_url = ""

@@ -3,13 +3,15 @@
 The Dynamixel emulator's motion loop reports the gripper position through :meth:`load`
 (which advances the contact physics and returns the load current the motor feels); the
 XELA emulator reads raw frames through :meth:`frame`. Both run in different threads, so the
-state is guarded by a lock. Time is the host's monotonic clock.
+state is guarded by a lock. Time is the host's monotonic clock, or the virtual clock of the
+dataset recorder (``clock``).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -42,15 +44,34 @@ def gap_from_raw(raw: float) -> float:
     return max(2.0 * (width_from_raw(raw) - CLOSED_WIDTH_M), 0.0)
 
 
+# The random stream of a robot's pads, apart from the world's own draws.
+_PADS_STREAM = 0x7AD5
+
+
+def robot_pads(seed: int) -> SkinDraw:
+    """The pads of the simulated robot of ``seed``: the daemon's emulated robot
+    (``[sim] seed``) and the dataset recorder of the same seed press with the same pads, as
+    references collected on a robot are recognised by that robot."""
+    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])))
+
+
 class SimWorld:
     """Holds the object, advances the contact physics and renders tactile frames."""
 
-    def __init__(self, object_name: str, seed: int = 0, gripper_id: int = 15) -> None:
+    def __init__(self, object_name: str, seed: int | np.random.Generator = 0,
+                 gripper_id: int = 15, *, skin_draw: SkinDraw | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
-        self._skin_draw = SkinDraw.draw(self._rng)
+        if skin_draw is None:
+            skin_draw = robot_pads(seed) if isinstance(seed, int) else SkinDraw.draw(self._rng)
+        self._skin_draw = skin_draw
         self.gripper_id = gripper_id
-        self._t0 = time.monotonic()
+        # Brings the gripper's motion up to now before the pads are read (the motor model
+        # steps on its own thread, in batches): set by whoever owns the motors. Called
+        # without the world's lock, which the motors' load hook takes.
+        self.sync: Callable[[], object] = lambda: None
+        self._t0 = clock()
         self._t = self._t0
         self._gap = 0.07
         # The contact force behind the last rendered frame (what the pads felt), for benches.
@@ -62,30 +83,39 @@ class SimWorld:
         inst = ObjectInstance.draw(get(object_name), self._rng)
         with self._lock:
             self.object_name = object_name
+            self.instance = inst
             self._contact = Contact(inst)
             self._skin = Skin(inst, self._rng, self._skin_draw)
             self.peak_force_n = 0.0
+            # When the object first pushed on the pads (the world's clock), for benches.
+            self.t_contact: float | None = None
 
     def _advance(self, t: float) -> None:
         # Called with the lock held: step the physics up to t at a fixed step.
         while self._t + PHYSICS_DT_S <= t:
             self._contact.step(self._gap, PHYSICS_DT_S)
             self._t += PHYSICS_DT_S
-            self.peak_force_n = max(self.peak_force_n, self._contact.force)
+            force = self._contact.force
+            if force > self.peak_force_n:
+                self.peak_force_n = force
+                if self.t_contact is None:
+                    self.t_contact = self._t
         if self._t < t - 1.0:
             self._t = t  # a long pause (process stopped): do not replay it step by step
 
-    def load(self, motor_id: int, position_raw: float) -> float:
-        """The Dynamixel emulator's hook: load current in mA resisting the gripper closing."""
+    def load(self, motor_id: int, position_raw: float, t: float) -> float:
+        """The Dynamixel emulator's hook: load current in mA resisting the gripper closing,
+        at the motion model's time ``t`` (the physics first catches up to it)."""
         if motor_id != self.gripper_id:
             return 0.0
         with self._lock:
-            self._advance(time.monotonic())
+            self._advance(t)
             self._gap = gap_from_raw(position_raw)
             return self._contact.force / FORCE_PER_MA_N
 
     def frame(self, t: float) -> np.ndarray:
         """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
+        self.sync()
         with self._lock:
             self._advance(t)
             self.frame_force_n = self._contact.force

@@ -2,11 +2,14 @@
 
 Each client gets the Welcome frame, then one JSON text frame per tick, in the 1.7 dialect
 (``data`` hex string, ``calibrated: null``), 1.7.7 (``data`` as a list of ints) or 1.8 (adds
-``integer``, ``temp`` in kelvin, ``ups``). A :class:`FrameSource` gives the raw counts. Faults
-can be switched at run time to test the client: silence, a frozen frame, dropped
-connections, garbage.
+``integer``, ``temp`` in kelvin, ``ups``). A :class:`FrameSource` gives the raw counts, or a
+real recording is replayed (:mod:`edge.sim.xela_replay`): its frames at their recorded
+times, starting when the first client connects (so it gets the whole recording), from the
+first again after the last (``loop``) or then nothing more, the connection left open, as a
+server whose sensors went quiet. Faults can be switched at run time to test
+the client: silence, a frozen frame, dropped connections, garbage.
 
-Run one by hand: ``python -m edge.sim.xela_server --port 5000``.
+Run one by hand: ``python -m edge.sim.xela_server --port 5000 [--replay FILE]``.
 """
 
 from __future__ import annotations
@@ -23,6 +26,9 @@ from typing import Literal, Protocol, Self
 import numpy as np
 from aiohttp import WSCloseCode, web
 
+from edge.sim.skin import PadNoise, SkinDraw
+from edge.sim.xela_replay import Replay, load_replay
+
 log = logging.getLogger(__name__)
 
 Dialect = Literal["1.7", "1.7.7", "1.8"]
@@ -31,6 +37,9 @@ DEFAULT_PORT = 5000
 _CLIENT_QUEUE_FRAMES = 128
 # Grace for clients to answer our close frame when the emulator stops.
 _CLOSE_TIMEOUT_S = 0.5
+# A replay this far behind its schedule (a stalled loop) starts its clock again from now
+# rather than sending the missed frames in one burst; a shorter delay sends them late.
+_REPLAY_MAX_LAG_S = 0.25
 
 
 class FrameSource(Protocol):
@@ -40,18 +49,23 @@ class FrameSource(Protocol):
 
 
 class IdleSource:
-    """An unloaded sensor: x, y near 32768, z near 37000, fixed offsets, ~2 counts noise."""
+    """Unloaded XR1944-like pads: the simulator's pad model (:mod:`edge.sim.skin`: idle
+    offsets per taxel, noise, cross-talk and drift as real pads show them) with no load."""
 
-    def __init__(self, channels: int = 96, *, seed: int = 0, noise_counts: float = 2.0) -> None:
-        self._rng = np.random.default_rng(seed)
-        base = np.tile(np.array([32768.0, 32768.0, 37000.0]), channels // 3)
-        # Every real taxel idles at its own value: that is why the runtime tares.
-        self._base = base + self._rng.uniform(-100.0, 100.0, channels)
-        self._noise = noise_counts
+    def __init__(self, channels: int = 96, *, seed: int = 0, taxels: int = 16) -> None:
+        if channels % (taxels * 3):
+            raise ValueError(f"{channels} channels is not a whole number of {taxels}-taxel pads")
+        rng = np.random.default_rng(seed)
+        self._draw = SkinDraw.draw(rng, pads=channels // (taxels * 3), taxels=taxels)
+        self._noise = PadNoise(self._draw, rng)
+        self._t0: float | None = None
 
     def frame(self, t: float) -> np.ndarray:
-        noisy = self._base + self._rng.normal(0.0, self._noise, self._base.shape)
-        return np.clip(np.rint(noisy), 0, 0xFFFF).astype(np.uint16)
+        if self._t0 is None:
+            self._t0 = t
+        since = t - self._t0
+        values = self._draw.offsets + self._draw.drift(since) + self._noise.sample(since)
+        return np.clip(np.rint(values), 0, 0xFFFF).astype(np.uint16)
 
 
 class Fault(enum.Enum):
@@ -128,10 +142,16 @@ class XelaServerEmulator:
         taxels: int = 16,
         model: str = "XR1944",
         dialect: Dialect = "1.8",
+        replay: Replay | None = None,
+        loop: bool = True,
     ) -> None:
         if not 0 < rate_hz <= 2000:
             raise ValueError(f"rate_hz must be in (0, 2000], got {rate_hz!r}")
-        self._source = source or IdleSource(sensors * taxels * 3)
+        if replay is not None:
+            # The recording's layout and timing replace the ones given.
+            sensors, taxels = replay.sensors, replay.taxels
+        self._source = source or IdleSource(sensors * taxels * 3, taxels=taxels)
+        self._replay, self._loop = replay, loop
         self._host, self._port = host, port
         self._period_s = 1.0 / rate_hz
         self._sensors, self._taxels, self._model = sensors, taxels, model
@@ -139,6 +159,8 @@ class XelaServerEmulator:
         self.fault = Fault.NONE
         self.frames_sent = 0  # data frames produced (each goes to every client)
         self.late_ticks = 0  # ticks skipped because the loop woke more than a period late
+        self.replay_laps = 0  # times a replay went through all its frames
+        self._first_client = asyncio.Event()
         self._seq = 0
         self._last_text: str | None = None
         self._garbage_index = 0
@@ -170,15 +192,26 @@ class XelaServerEmulator:
         site = web.TCPSite(self._runner, self._host, self._port)
         await site.start()
         self._port = self._runner.addresses[0][1]
-        self._ticker = asyncio.create_task(self._tick_loop(), name=f"xela-emulator:{self._port}")
-        log.info(
-            "XELA emulator on %s at %.0f Hz, %d x %s, dialect %s",
-            self.url,
-            1 / self._period_s,
-            self._sensors,
-            self._model,
-            self._dialect,
-        )
+        if self._replay is not None:
+            ticks = self._replay_loop()
+            log.info(
+                "XELA emulator on %s replaying %s, %s, dialect %s",
+                self.url,
+                self._replay.describe(),
+                "looping" if self._loop else "once",
+                self._dialect,
+            )
+        else:
+            ticks = self._tick_loop()
+            log.info(
+                "XELA emulator on %s at %.0f Hz, %d x %s, dialect %s",
+                self.url,
+                1 / self._period_s,
+                self._sensors,
+                self._model,
+                self._dialect,
+            )
+        self._ticker = asyncio.create_task(ticks, name=f"xela-emulator:{self._port}")
 
     async def stop(self) -> None:
         """Stop ticking, close every connection, free the port. Idempotent."""
@@ -227,6 +260,7 @@ class XelaServerEmulator:
         queue: asyncio.Queue[str] = asyncio.Queue(maxsize=_CLIENT_QUEUE_FRAMES)
         queue.put_nowait(welcome_frame(self._sensors))
         self._clients[ws] = (request, queue)
+        self._first_client.set()
         sender = asyncio.create_task(self._send_loop(ws, queue), name="xela-emulator-send")
         log.info("XELA emulator: client %s connected", request.remote)
         try:
@@ -267,14 +301,52 @@ class XelaServerEmulator:
             except Exception:
                 log.exception("XELA emulator: frame source failed; no more frames")
                 raise
-            if text is None:
-                continue
-            for _, queue in self._clients.values():
-                if queue.full():
-                    queue.get_nowait()
-                queue.put_nowait(text)
+            self._broadcast(text)
 
-    def _next_text(self, t: float) -> str | None:
+    async def _replay_loop(self) -> None:
+        """The replay's frames at their recorded times (loop time) from the first client's
+        connection, lap after lap."""
+        assert self._replay is not None
+        frames, times = self._replay.frames, self._replay.times_s
+        # One lap: the recording plus one typical interval before its first frame again.
+        lap_s = self._replay.duration_s + self._replay.period_s
+        loop = asyncio.get_running_loop()
+        await self._first_client.wait()
+        start = loop.time()
+        i = 0
+        while True:
+            if i == len(frames):
+                self.replay_laps += 1
+                if not self._loop:
+                    log.info(
+                        "XELA emulator: replay of %d frames ended; sending nothing more "
+                        "(connections stay open)",
+                        len(frames),
+                    )
+                    return
+                i, start = 0, start + lap_s
+            deadline = start + times[i]
+            now = loop.time()
+            if now > deadline + _REPLAY_MAX_LAG_S:
+                # A stalled loop: go on from here at the recorded pace, no burst.
+                self.late_ticks += 1
+                start += now - deadline
+                deadline = now
+            await asyncio.sleep(deadline - now)
+            self._broadcast(self._next_text(time.monotonic(), frames[i]))
+            i += 1
+
+    def _broadcast(self, text: str | None) -> None:
+        if text is None:
+            return
+        for _, queue in self._clients.values():
+            if queue.full():
+                queue.get_nowait()
+            queue.put_nowait(text)
+
+    def _next_text(self, t: float, raw: np.ndarray | None = None) -> str | None:
+        """The next frame's text: ``raw`` (a replay's frame) or the source's at ``t``, or
+        what the switched fault sends instead."""
         fault = self.fault
         if fault is Fault.SILENT:
             return None
@@ -283,7 +355,8 @@ class XelaServerEmulator:
         if fault is Fault.GARBAGE:
             self._garbage_index += 1
             return GARBAGE_FRAMES[self._garbage_index % len(GARBAGE_FRAMES)]
-        raw = np.asarray(self._source.frame(t))
+        if raw is None:
+            raw = np.asarray(self._source.frame(t))
         expected = self._sensors * self._taxels * 3
         if raw.shape != (expected,) or raw.dtype != np.uint16:
             raise ValueError(
@@ -304,14 +377,34 @@ class XelaServerEmulator:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Emulate xela_server (idle XR1944 pads).")
+    parser = argparse.ArgumentParser(
+        description="Emulate xela_server (idle XR1944 pads, or a real recording replayed)."
+    )
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT)
     parser.add_argument("--rate", type=float, default=125.0, help="frames per second")
     parser.add_argument("--sensors", type=int, default=2)
     parser.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
+    parser.add_argument(
+        "--replay",
+        default=None,
+        metavar="FILE",
+        help="serve this recording's frames at their recorded times "
+        "(XELA CSV directory or .press.npz)",
+    )
+    parser.add_argument(
+        "--replay-once",
+        action="store_true",
+        help="stop sending after the last frame instead of starting over",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    replay = None
+    if args.replay is not None:
+        try:
+            replay = load_replay(args.replay)
+        except ValueError as exc:
+            parser.exit(2, f"xela_server emulator: {exc}\n")
 
     async def serve() -> None:
         async with XelaServerEmulator(
@@ -320,6 +413,8 @@ def main(argv: list[str] | None = None) -> None:
             rate_hz=args.rate,
             sensors=args.sensors,
             dialect=args.dialect,
+            replay=replay,
+            loop=not args.replay_once,
         ):
             await asyncio.Event().wait()
 

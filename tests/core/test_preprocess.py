@@ -4,7 +4,7 @@ import pytest
 from edge.core import preprocess, recording
 from edge.core.errors import PreprocessError
 from edge.core.preprocess import DEFAULT_WINDOW as W
-from edge.sim.press import simulate_press
+from tests.support.presses import recording_of
 
 
 def test_window_sizes_are_the_papers():
@@ -14,7 +14,7 @@ def test_window_sizes_are_the_papers():
 
 
 def test_crop_and_subsample_shapes():
-    rec = simulate_press("stainless_cube", np.random.default_rng(0)).recording
+    rec = recording_of("stainless_cube", 0)
     units = preprocess.recording_units(rec)
     window = preprocess.crop(rec.recv_time, units, rec.t_stop)
     assert window.shape == (125, 96)
@@ -60,7 +60,7 @@ def test_smoothing_is_gaussian_sigma_3():
 
 
 def test_preprocessing_round_trips_through_the_file_bit_exactly(tmp_path):
-    rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(3)).recording
+    rec = recording_of("boiled_kiri_mochi", 3)
     path = recording.save(rec, tmp_path / "p.press.npz")
     back = recording.load(path)
     for a, b in zip(preprocess.recording_pairs(rec), preprocess.recording_pairs(back), strict=True):

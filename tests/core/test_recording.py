@@ -7,12 +7,12 @@ import pytest
 
 from edge.core import recording
 from edge.core.errors import EdgeError, RecordingError
-from edge.sim.press import simulate_press
+from tests.support.presses import recording_of
 
 
 @pytest.fixture(scope="module")
 def rec():
-    return simulate_press("otedama", np.random.default_rng(2)).recording
+    return recording_of("otedama", 2)
 
 
 def test_round_trip(tmp_path, rec):

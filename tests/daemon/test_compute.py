@@ -16,8 +16,8 @@ from edge.core.errors import ComputeError, ImageError, ModelError
 from edge.core.images import check_image
 from edge.core.model import load_model, model_ref
 from edge.daemon.compute import ComputeWorker, analyse_press
-from edge.sim.press import simulate_press
 from tests.support.daemon import ROOT
+from tests.support.presses import recording_of
 from tests.vlm.helpers import image_bytes
 
 pytestmark = pytest.mark.asyncio
@@ -30,7 +30,7 @@ def model():
 
 
 async def test_analysis_in_the_worker_equals_the_model_in_process(model):
-    rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
+    rec = recording_of("boiled_kiri_mochi", 5)
     photo = image_bytes(1600, 1200)
     async with ComputeWorker() as worker:
         result = await worker.run(analyse_press, model_ref(MODELS), rec, photo, (512, 200_000))
@@ -60,7 +60,7 @@ async def test_the_crop_is_the_window_the_model_states(tmp_path):
     ref = model_ref(models)
     spec = preprocess.WindowSpec(before_s=0.5, after_s=0.5)
     assert ref.window == spec
-    rec = simulate_press("boiled_kiri_mochi", np.random.default_rng(5)).recording
+    rec = recording_of("boiled_kiri_mochi", 5)
     result = analyse_press(ref, rec)
     units = preprocess.recording_units(rec)
     with np.load(io.BytesIO(result.model_io_npz)) as arrays:
@@ -79,7 +79,7 @@ async def test_errors_raised_in_the_worker_arrive_as_raised(model):
 
 
 async def test_a_crashed_worker_fails_one_call_and_is_replaced(model):
-    rec = simulate_press("stainless_cube", np.random.default_rng(1)).recording
+    rec = recording_of("stainless_cube", 1)
     async with ComputeWorker() as worker:
         first = worker.pid()
         with pytest.raises(ComputeError, match="died during _exit"):
@@ -93,7 +93,7 @@ async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model
     copy = tmp_path / "models"
     shutil.copytree(MODELS, copy)
     loaded = model_ref(copy)
-    rec = simulate_press("stainless_cube", np.random.default_rng(2)).recording
+    rec = recording_of("stainless_cube", 2)
     async with ComputeWorker() as worker:
         manifest = copy / "manifest.json"
         manifest.write_text(manifest.read_text().replace('"schema_version"',

@@ -7,7 +7,6 @@ import asyncio
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import numpy as np
 import pytest
 
 from edge.core.config import Config
@@ -27,9 +26,9 @@ from edge.daemon.press import PressOutcome
 from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import Window
 from edge.daemon.store import EpisodeStore
-from edge.sim.press import simulate_press
 from tests.support.daemon import ROOT
 from tests.support.fakes import FakeCamera
+from tests.support.presses import recording_of
 from tests.vlm.helpers import image_bytes
 
 pytestmark = pytest.mark.asyncio
@@ -39,7 +38,7 @@ MODEL = model_ref(ROOT / "models")
 
 def pressed(seed: int = 3) -> PressOutcome:
     """A real press of a macaron (from the simulator) as the controller reports it."""
-    rec = simulate_press("macaron", np.random.default_rng(seed)).recording
+    rec = recording_of("macaron", seed)
     return PressOutcome(result="ok", t_cross=rec.t_stop - 0.001, t_stop=rec.t_stop,
                         stop_latency_s=0.001, tare=rec.tare,
                         window=Window(rec.frames, rec.recv_time, rec.sensor_time, rec.seq))

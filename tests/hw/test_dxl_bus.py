@@ -334,7 +334,7 @@ async def test_gripper_stalls_on_the_object_and_stop_keeps_the_squeeze():
     contact_raw = gripper_raw(0.005)  # a 5 mm wide object
     stiffness_ma_per_raw = 20.0
 
-    def load(motor_id: int, position_raw: float) -> float:
+    def load(motor_id: int, position_raw: float, t: float) -> float:
         if motor_id != 15:
             return 0.0
         return max(0.0, (contact_raw - position_raw) * stiffness_ma_per_raw)

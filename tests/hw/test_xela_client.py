@@ -98,7 +98,8 @@ async def test_stream_at_125hz_loses_no_frame(
     first = frames[0]
     assert first.raw.shape == (96,) and first.raw.dtype == np.uint16
     assert first.models == ("XR1944", "XR1944")
-    assert 30000 < first.raw[0] < 35000 and 35000 < first.raw[2] < 39000  # idle x and z
+    # Idle x and z of the emulated pads, near the real XR1944's (edge/sim/skin.py).
+    assert 14000 < first.raw[0] < 18000 and 35000 < first.raw[2] < 41000
     assert client.server_layout == "2 sensors: 1 = XR1944 x 16 taxels, 2 = XR1944 x 16 taxels"
 
 

@@ -345,7 +345,7 @@ def test_gripper_stalls_on_the_load_and_reports_it(clocked):
     stiffness_ma_per_raw = 10.0
     clock = ManualClock()
 
-    def load(motor_id: int, position_raw: float) -> float:
+    def load(motor_id: int, position_raw: float, t: float) -> float:
         if motor_id != 15:
             return 0.0
         return max(0.0, (contact_raw - position_raw) * stiffness_ma_per_raw)

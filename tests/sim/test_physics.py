@@ -1,19 +1,20 @@
-"""The press physics reproduces the paper's press and plausible material behaviour."""
-
-from dataclasses import replace
+"""The press physics, pressed by the robot's own press controller on the virtual robot,
+reproduces the paper's press and plausible material behaviour."""
 
 import numpy as np
 import pytest
 
 from edge.core import preprocess, recording
-from edge.sim import catalogue
-from edge.sim.press import PressParams, simulate_press
+from edge.core.errors import EdgeError
+from edge.sim import catalogue, skin
+from edge.sim.virtual import Transport
+from edge.tools.record import record_press
 
 FRAME_S = 1 / 125
 
 
 def press(name, seed=0, **kw):
-    return simulate_press(name, np.random.default_rng(seed), replace(PressParams(), **kw))
+    return record_press(name, np.random.default_rng(seed), **kw)
 
 
 def test_catalogue_has_the_papers_sets():
@@ -39,21 +40,28 @@ def test_unknown_object_is_named():
         catalogue.get("brick")
 
 
+def test_gelatins_are_pressed_gentler_as_in_the_paper():
+    gelatins = [c for c in catalogue.DATASETS["reference"] if c.name.startswith("gelatin")]
+    assert gelatins and all(c.x_th == 0.003 for c in gelatins)
+    rec = press("gelatin_hard").recording
+    assert rec.threshold == 0.003
+    assert press("wood_cube").recording.threshold == 0.004
+
+
 def test_steel_crosses_within_samples_gelatin_takes_far_longer():
     steel = press("stainless_cube")
     gel = press("gelatin_soft")
-    steel_ms = (steel.t_cross - steel.t_contact) * 1e3
-    gel_ms = (gel.t_cross - gel.t_contact) * 1e3
+    steel_ms = (steel.outcome.t_cross - steel.t_contact) * 1e3
+    gel_ms = (gel.outcome.t_cross - gel.t_contact) * 1e3
     print(f"contact -> x_th: steel {steel_ms:.1f} ms, gelatin {gel_ms:.1f} ms")
-    assert steel.contact and gel.contact
     assert steel_ms <= 3 * FRAME_S * 1e3 + 2  # within a few samples of contact
     assert gel_ms > 20 * steel_ms
 
 
-def _hold_ratio(result):
-    rec = result.recording
+def _hold_ratio(pressed):
+    rec = pressed.recording
     level = preprocess.norm(preprocess.recording_units(rec))
-    hold = (rec.recv_time >= result.t_stop + 0.02) & (rec.recv_time < result.t_stop + 0.2)
+    hold = (rec.recv_time >= rec.t_stop + 0.02) & (rec.recv_time < rec.t_stop + 0.2)
     return float(level[hold][-1] / level[hold][0])
 
 
@@ -62,13 +70,16 @@ def test_hold_relaxes_viscoelastic_objects_not_steel(soft):
     steel = _hold_ratio(press("stainless_cube"))
     relaxed = _hold_ratio(press(soft))
     print(f"norm end/start of hold: steel {steel:.3f}, {soft} {relaxed:.3f}")
+    # Steel holds (the stop's squeeze even adds a little); a viscoelastic object relaxes.
     assert steel > 0.97
-    assert relaxed < 0.95
+    assert relaxed < 0.95 * steel
 
 
-def test_slow_reaction_overshoots_the_force():
-    fast = press("stainless_cube", reaction_latency_s=0.001)
-    slow = press("stainless_cube", reaction_latency_s=0.020)
+def test_slow_stop_overshoots_the_force():
+    fast = press("stainless_cube", transport=Transport(stop_latency_p50_s=0.001,
+                                                       stop_latency_p99_s=0.0011))
+    slow = press("stainless_cube", transport=Transport(stop_latency_p50_s=0.020,
+                                                       stop_latency_p99_s=0.022))
     print(f"overshoot: 1 ms {fast.overshoot_n:.2f} N, 20 ms {slow.overshoot_n:.2f} N")
     assert slow.overshoot_n > 2.5 * fast.overshoot_n
     assert slow.overshoot_n - fast.overshoot_n > 2.0  # newtons
@@ -80,7 +91,7 @@ def test_plausible_material_contrasts():
         rates = []
         for seed in range(3):
             r = press(name, seed)
-            rates.append(1.0 / (r.t_cross - r.t_contact + FRAME_S))
+            rates.append(1.0 / (r.outcome.t_cross - r.t_contact + FRAME_S))
         return float(np.mean(rates))
 
     def peak(name):
@@ -98,12 +109,13 @@ def test_raw_counts_look_like_the_real_sensor():
     rec = press("wood_cube").recording
     assert rec.frames.dtype == np.uint16 and rec.frames.shape[1] == 96
     idle = rec.frames[:20].astype(float)
-    xy = idle.reshape(20, 32, 3)[..., :2]
-    z = idle.reshape(20, 32, 3)[..., 2]
-    assert abs(xy.mean() - 32768) < 1500 and abs(z.mean() - 37000) < 1500
+    # Idle levels and noise of the real XR1944 pads (tests/sim/test_pad_noise.py compares
+    # them in detail with real recordings).
+    level = idle.reshape(20, 32, 3).mean(axis=(0, 1))
+    assert np.all(np.abs(level - np.array(skin.IDLE_LEVEL_COUNTS)) < 1500), level
     noise = idle.std(axis=0).mean()
-    print(f"idle noise {noise:.2f} counts")
-    assert 1.0 < noise < 4.0
+    print(f"idle levels {level.round()} counts, noise {noise:.2f} counts")
+    assert 1.0 < noise < 8.0
     assert np.all(np.diff(rec.seq) == 1)
     period = np.median(np.diff(rec.recv_time))
     assert period == pytest.approx(1 / 125, rel=0.05)
@@ -117,8 +129,19 @@ def test_press_is_deterministic_for_a_seed():
     assert a != c
 
 
-def test_fully_closing_without_crossing_reports_no_contact():
-    # A threshold no object can reach at the gripper's force cap.
-    result = press("cotton_ball", x_th=0.9)
-    assert not result.contact
-    assert result.recording.extra["contact"] is False
+def test_a_threshold_no_press_reaches_ends_in_a_clear_error():
+    # A threshold no object can reach at the gripper's force cap: every try closes fully.
+    with pytest.raises(EdgeError, match=r"cotton_ball: 3 presses gave no recording \(no_contact"):
+        press("cotton_ball", x_th=0.9)
+
+
+def test_a_dataset_is_byte_identical_for_a_seed_whatever_the_workers(tmp_path):
+    from edge.tools.record import record_dataset
+
+    record_dataset("cube", 2, tmp_path / "one", seed=3, workers=1)
+    record_dataset("cube", 2, tmp_path / "two", seed=3, workers=2)
+    one = sorted((tmp_path / "one").rglob("*.press.npz"))
+    two = sorted((tmp_path / "two").rglob("*.press.npz"))
+    assert len(one) == len(two) == 8
+    for a, b in zip(one, two, strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.sim.record import record_dataset
+from edge.tools.record import record_dataset
 
 PRESSES = 2
 SEED = 0

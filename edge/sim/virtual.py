@@ -1,0 +1,280 @@
+"""The emulated robot on a virtual clock: what the dataset recorder presses with.
+
+The robot's own drivers run unchanged on it: :class:`edge.hw.arm.DynamixelGripper` and
+``DynamixelArm`` over a :class:`VirtualBus`, which is the real
+:class:`edge.hw.dynamixel.DynamixelBus` (the real ``dynamixel_sdk`` packet handler, every op
+function, the stop, the watchdog feed) with two parts replaced: its port is an in-process
+loopback to the same :class:`~edge.sim.dxl_emulator.DxlEmulator` the daemon talks to over a
+pty, and its bus thread is gone (an op runs on the loop when its modelled transaction time
+has passed). The tactile source renders the same :class:`~edge.sim.world.SimWorld` the XELA
+emulator serves, on the same 125 Hz grid.
+
+Everything runs on :class:`VirtualClockLoop`, an asyncio loop whose clock jumps to the next
+timer instead of waiting: a press that takes ten seconds on the robot takes a fraction of one
+here, and the same seed gives the same bytes.
+
+What is left different from the daemon on the emulated robot is only transport timing, which
+:class:`Transport` models with figures measured on the emulated robot (see each field).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import selectors
+from collections.abc import AsyncIterator, Callable, Mapping
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, Self
+
+import numpy as np
+
+from edge.core.config import Config
+from edge.core.errors import DeviceError
+from edge.hw.arm import DynamixelArm, DynamixelGripper
+from edge.hw.contracts import StreamStats, TactileFrame
+from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
+from edge.sim.dxl_emulator import DxlEmulator
+from edge.sim.skin import SkinDraw
+from edge.sim.world import SimWorld, raw_from_width
+
+log = logging.getLogger(__name__)
+
+# xela_server's clock is Unix time; only its advance matters to the client.
+SENSOR_EPOCH_S = 1.77e9
+SENSOR_MODEL = "XR1944"
+
+
+class VirtualClockStall(RuntimeError):
+    """The virtual loop has nothing scheduled and nothing can wake it: it would wait forever."""
+
+
+class _VirtualSelector(selectors.DefaultSelector):
+    """Polls the real file descriptors (the loop's self-pipe) without blocking; where the loop
+    would block until its next timer, the virtual clock jumps there instead."""
+
+    def __init__(self, loop: VirtualClockLoop) -> None:
+        super().__init__()
+        self._loop = loop
+
+    def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        ready = super().select(0)
+        if ready or timeout == 0:
+            return ready
+        if timeout is None:
+            raise VirtualClockStall("the virtual clock has no timer to jump to: every task "
+                                    "waits on something that cannot happen")
+        self._loop.advance(timeout)
+        return []
+
+
+class VirtualClockLoop(asyncio.SelectorEventLoop):
+    """An asyncio loop on a virtual clock that starts at ``start`` (seconds) and advances
+    only when every task waits on a timer. Run it with ``asyncio.Runner(loop_factory=...)``;
+    no threads (``to_thread``) or real I/O waits belong on it."""
+
+    def __init__(self, start: float = 0.0) -> None:
+        self._virtual_now = float(start)
+        super().__init__(selector=_VirtualSelector(self))
+
+    def time(self) -> float:
+        return self._virtual_now
+
+    def advance(self, seconds: float) -> None:
+        self._virtual_now += max(seconds, 0.0)
+
+
+@dataclass(frozen=True)
+class Transport:
+    """Transport timing of the emulated robot, which the virtual clock would otherwise make
+    zero. Measured on this project's emulated robot (``vt-edge bench``, 'stop latency' and
+    'bus' rows; ``vt-edge sim consistency`` reports the daemon's own figures beside the
+    dataset's)."""
+
+    # Frame that crosses x_th -> stop packet at the port: log-normal through these two points.
+    stop_latency_p50_s: float = 0.0013
+    stop_latency_p99_s: float = 0.0024
+    # One bus transaction (instruction out, status back) on the pty.
+    transaction_s: float = 0.0004
+    # xela_server's tick lateness past its 8 ms grid (half-normal sd), then the WebSocket hop
+    # to the client (fixed part plus an exponential tail).
+    frame_lateness_sd_s: float = 0.0003
+    frame_delivery_s: float = 0.0003
+    frame_delivery_tail_s: float = 0.0001
+
+    def stop_latency_s(self, rng: np.random.Generator) -> float:
+        sigma = math.log(self.stop_latency_p99_s / self.stop_latency_p50_s) / 2.326
+        return float(self.stop_latency_p50_s * math.exp(sigma * rng.standard_normal()))
+
+
+class LoopbackPort(BlockingPortHandler):
+    """A ``PortHandler`` whose wire is :meth:`DxlEmulator.transact`: the status packets of an
+    instruction are there to read as soon as it is written."""
+
+    def __init__(self, port_name: str, emulator: DxlEmulator, clock: Callable[[], float]) -> None:
+        super().__init__(port_name)
+        self._emulator = emulator
+        self._clock = clock
+        self._rx = bytearray()
+
+    def setupPort(self, cflag_baud: int) -> bool:
+        self.is_open = True
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
+
+    def closePort(self) -> None:
+        self.is_open = False
+
+    def clearPort(self) -> None:
+        self._rx.clear()
+
+    def getBytesAvailable(self) -> int:
+        return len(self._rx)
+
+    def writePort(self, packet: Any) -> int:
+        data = bytes(packet)
+        self.last_write_t = self._clock()
+        if self.on_write is not None:
+            self.on_write(self.last_write_t, data[:8])
+        self._rx += self._emulator.transact(data)
+        return len(data)
+
+    def readPort(self, length: int) -> bytes:
+        out = bytes(self._rx[:length])
+        del self._rx[:length]
+        return out
+
+
+class VirtualBus(DynamixelBus):
+    """The real bus driver with the loopback port and no thread: an op runs on the loop once
+    the bus is free and its transaction time has passed; the stop jumps the queue and takes a
+    drawn stop latency."""
+
+    def __init__(self, config: Any, emulator: DxlEmulator, clock: Callable[[], float],
+                 transport: Transport, rng: np.random.Generator) -> None:
+        super().__init__(config, port_handler_factory=lambda name: LoopbackPort(
+            name, emulator, clock), clock=clock)
+        self._transport = transport
+        self._rng = rng
+        self._busy_until = 0.0
+
+    async def connect(self) -> Mapping[int, MotorInfo]:
+        self._accepting = True
+        self._motors = await self._call("connect", self._connect_sync)
+        return self._motors
+
+    async def _call(self, label: str, fn: Callable[[], Any], *, urgent: bool = False) -> Any:
+        if not self._accepting:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is not connected")
+        now = self._clock()
+        if urgent:
+            # The measured stop latency already holds the wait for a transaction in flight.
+            due = now + self._transport.stop_latency_s(self._rng)
+        else:
+            due = max(now, self._busy_until) + self._transport.transaction_s
+            self._busy_until = due
+        await asyncio.sleep(due - now)
+        value = fn()
+        self._last_traffic = self._clock()
+        return value
+
+    async def _shutdown_thread(self) -> None:
+        await self._stop_feed()
+        self._accepting = False
+        self._torque_on = False
+
+
+class VirtualTactileSource:
+    """The XELA stream of ``world`` on the virtual clock: a frame rendered on every tick of
+    the 125 Hz grid (late by the server's jitter), received after the WebSocket hop."""
+
+    def __init__(self, world: SimWorld, rate_hz: float, transport: Transport,
+                 rng: np.random.Generator, pads: int = 2) -> None:
+        self.stats = StreamStats()
+        self._world = world
+        self._period_s = 1.0 / rate_hz
+        self._transport = transport
+        self._rng = rng
+        self._models = (SENSOR_MODEL,) * pads
+        self._seq = int(rng.integers(1000, 100_000))
+        self._closed = False
+        self._last_recv = -math.inf
+        self._stale_timeout_s = 0.1
+        # The contact force behind each delivered frame, by receive time (for benches).
+        self.force_at: dict[float, float] = {}
+
+    async def start(self) -> None:
+        self._closed = False
+
+    async def close(self) -> None:
+        self._closed = True
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, exc_type: type[BaseException] | None,
+                        exc: BaseException | None, tb: TracebackType | None) -> None:
+        await self.close()
+
+    def is_fresh(self) -> bool:
+        loop = asyncio.get_running_loop()
+        return loop.time() - self._last_recv < self._stale_timeout_s
+
+    async def frames(self) -> AsyncIterator[TactileFrame]:
+        loop = asyncio.get_running_loop()
+        t = self._transport
+        tick = loop.time() + self._rng.uniform(0.0, self._period_s)
+        while not self._closed:
+            made = tick + abs(self._rng.normal(0.0, t.frame_lateness_sd_s))
+            await asyncio.sleep(made - loop.time())
+            raw = self._world.frame(made)
+            raw.flags.writeable = False
+            arrive = made + t.frame_delivery_s + self._rng.exponential(t.frame_delivery_tail_s)
+            await asyncio.sleep(arrive - loop.time())
+            self._seq += 1
+            self.stats.observe(self._seq, SENSOR_EPOCH_S + made)
+            self._last_recv = loop.time()
+            self.force_at[self._last_recv] = self._world.frame_force_n
+            yield TactileFrame(self._seq, SENSOR_EPOCH_S + made, self._last_recv, raw,
+                               self._models)
+            tick += self._period_s
+
+
+class VirtualRobot:
+    """World, motors, bus, drivers and tactile stream of one press on the virtual clock.
+
+    Use inside a :class:`VirtualClockLoop`: ``async with VirtualRobot(cfg, name, rng) as r``
+    connects the bus (torque off, as the daemon's start does); the arm stands at ``above``
+    and the gripper at its open width, where a previous press left them.
+    """
+
+    def __init__(self, cfg: Config, object_name: str, rng: np.random.Generator, *,
+                 skin_draw: SkinDraw | None = None, transport: Transport = Transport()) -> None:
+        loop = asyncio.get_running_loop()
+        clock = loop.time
+        bus_cfg = cfg.bus
+        self.world = SimWorld(object_name, rng, gripper_id=bus_cfg.gripper_id,
+                              skin_draw=skin_draw, clock=clock)
+        positions = {mid: float(v) for mid, v in
+                     zip(bus_cfg.joint_ids, cfg.poses["above"], strict=True)}
+        positions[bus_cfg.gripper_id] = raw_from_width(cfg.press.open_width_m)
+        self.dxl = DxlEmulator((*bus_cfg.joint_ids, bus_cfg.gripper_id), load=self.world.load,
+                               initial_positions=positions, clock=clock)
+        self.bus = VirtualBus(bus_cfg, self.dxl, clock, transport, rng)
+        self.gripper = DynamixelGripper(self.bus)
+        self.arm = DynamixelArm(self.bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
+        gripper_id = bus_cfg.gripper_id
+        self.world.sync = lambda: self.dxl.true_position(gripper_id)
+        self.tactile = VirtualTactileSource(self.world, cfg.sim.sensor_rate_hz, transport, rng,
+                                            pads=cfg.sensor.channels // 48)
+
+    async def __aenter__(self) -> Self:
+        await self.bus.connect()
+        await self.tactile.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.tactile.close()
+        await self.bus.close()
