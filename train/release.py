@@ -68,12 +68,17 @@ class ReleaseConfig:
 
 
 def _same_classes(meta: dict[str, Any], dataset: str) -> bool:
-    """Whether a recorded ``dataset.json`` lists the catalogue's classes as they are now
-    (labels, splits, descriptions): a renamed or re-described class means recording again."""
-    now = [{"label": c.name, "split": c.split, "description": c.description}
-           for c in DATASETS[dataset]]
-    return [{key: c.get(key) for key in ("label", "split", "description")}
-            for c in meta.get("classes", [])] == now
+    """Whether a recorded ``dataset.json`` was made by the robot's press controller (the
+    recorder names itself) for the catalogue's classes as they are now (labels, splits,
+    descriptions, per-class thresholds): anything else means recording again."""
+    if not meta.get("recorder"):
+        return False  # an older recorder's data: another press protocol
+    have = meta.get("classes", [])
+    if [(c.get("label"), c.get("split"), c.get("description")) for c in have] != [
+            (o.name, o.split, o.description) for o in DATASETS[dataset]]:
+        return False
+    return all(o.x_th is None or c.get("x_th") == o.x_th
+               for c, o in zip(have, DATASETS[dataset], strict=True))
 
 
 def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: int | None
