@@ -42,6 +42,15 @@ def _cmd_sim_press(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sim_vlm(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.sim.standin_vlm import serve
+
+    asyncio.run(serve(args.host, args.port, lambda line: print(line, flush=True)))
+    return 0
+
+
 def _cmd_sim_consistency(args: argparse.Namespace) -> int:
     from edge.tools.consistency import run_consistency
 
@@ -307,6 +316,12 @@ def build_parser() -> argparse.ArgumentParser:
     press.add_argument("--x-th", type=float, default=None,
                        help="stop threshold (default: the configuration's or the class's)")
     press.set_defaults(func=_cmd_sim_press)
+
+    vlm = simsub.add_parser("vlm", help="serve the simulated VLM (an OpenAI-compatible "
+                            "stand-in that knows only object names and pictures)")
+    vlm.add_argument("--host", default="127.0.0.1")
+    vlm.add_argument("--port", type=int, default=8011, help="0: any free port")
+    vlm.set_defaults(func=_cmd_sim_vlm)
     return parser
 
 

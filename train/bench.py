@@ -70,7 +70,7 @@ def torch_encoder_from_onnx(path: Path, manifest: dict[str, Any]):
 
     proto = onnx.load(str(path))
     init = {t.name: numpy_helper.to_array(t).copy() for t in proto.graph.initializer}
-    cfg = ModelConfig(**manifest["training"]["vq"]["config"]["model"])
+    cfg = ModelConfig.from_dict(manifest["training"]["vq"]["config"]["model"])
     model = TactileAutoencoder(cfg).eval()
     h = cfg.hidden
 

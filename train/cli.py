@@ -8,6 +8,7 @@ The shipped ``models/`` comes from one command::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 from collections.abc import Sequence
@@ -47,7 +48,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     data = training_data(args.recordings, _splits(args))
     config = TrainConfig(
-        model=ModelConfig(variant=args.variant, revive_dead=not args.no_revive),
+        model=ModelConfig(variant=args.variant, revive_dead=not args.no_revive,
+                          decoder=args.decoder),
         seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
         threads=args.threads)
     result = train(data, config, args.out, Progress(enabled=not args.quiet))
@@ -118,20 +120,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
-    import dataclasses
 
-    from edge.core.config import VLMConfig, load_config
     from train import eval_vlm
 
-    vlm = load_config(args.config).vlm if args.config else VLMConfig()
-    overrides: dict = {k: v for k, v in (("base_url", args.url), ("model", args.model))
-                       if v is not None}
-    if args.prompt_dir:
-        overrides["prompt_dir"] = Path(args.prompt_dir)
-    vlm = dataclasses.replace(vlm, **overrides)
+    vlm = _vlm_settings(args)
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
         if args.conditions else eval_vlm.DEFAULT_CONDITIONS
     beta = Path(args.beta) if args.beta else None
+    zeros = Path(args.zeros) if args.zeros else None
     reference = Path(args.reference) if args.reference else None
     if not args.conditions and "beta_top3" in conditions and not (
             beta and beta.exists() and reference and reference.exists()):
@@ -142,8 +138,8 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     cfg = eval_vlm.EvalVLMConfig(
         vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
-        beta=beta, images=Path(args.images) if args.images else None, limit=args.limit,
-        concurrency=args.concurrency)
+        beta=beta, zeros=zeros, images=Path(args.images) if args.images else None,
+        limit=args.limit, concurrency=args.concurrency)
     if not args.verbose:  # one INFO line per answer from the client is too much here
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     if args.dry_run:
@@ -157,6 +153,62 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     return 0
 
 
+def _vlm_settings(args: argparse.Namespace):
+    from edge.core.config import VLMConfig, load_config
+
+    vlm = load_config(args.config).vlm if args.config else VLMConfig()
+    overrides: dict = {k: v for k, v in (("base_url", args.url), ("model", args.model))
+                       if v is not None}
+    if args.prompt_dir:
+        overrides["prompt_dir"] = Path(args.prompt_dir)
+    return dataclasses.replace(vlm, **overrides)
+
+
+def _cmd_table1(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from train import table1
+
+    first = _vlm_settings(args)
+    second = None
+    if args.second_model:
+        second = dataclasses.replace(first, model=args.second_model,
+                                     **({"base_url": args.second_url} if args.second_url
+                                        else {}))
+    cfg = table1.Table1Config(
+        first=first, second=second, out=Path(args.out), work=Path(args.work),
+        unseen=tuple(Path(d) for d in args.unseen), model_dir=Path(args.model_dir),
+        reference=Path(args.reference), beta=Path(args.beta), zeros=Path(args.zeros),
+        images=Path(args.images) if args.images else None, limit=args.limit,
+        concurrency=args.concurrency, extras=not args.no_extras)
+    table1.validate(cfg)
+    if not args.verbose:
+        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
+    asyncio.run(table1.run(cfg, progress=not args.quiet))
+    print((cfg.out / table1.REPORT_MD).read_text())
+    return 0
+
+
+def _cmd_fig6(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from train import fig6
+
+    cfg = fig6.Fig6Config(
+        vlm=_vlm_settings(args), out=Path(args.out), work=Path(args.work),
+        reference=Path(args.reference), unseen=tuple(Path(d) for d in args.unseen),
+        model_dir=Path(args.model_dir),
+        sizes=tuple(int(n) for n in args.sizes.split(",") if n.strip()), draws=args.draws,
+        seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
+        decoder=args.decoder, images=Path(args.images) if args.images else None,
+        limit=args.limit, concurrency=args.concurrency)
+    if not args.verbose:
+        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
+    asyncio.run(fig6.run(cfg, progress=not args.quiet))
+    print((cfg.out / fig6.REPORT_MD).read_text())
+    return 0
+
+
 def _cmd_release(args: argparse.Namespace) -> int:
     from train.release import ReleaseConfig, release
     from train.trainer import Progress
@@ -166,7 +218,8 @@ def _cmd_release(args: argparse.Namespace) -> int:
                         seed=args.seed,
                         presses=args.presses, unseen_presses=args.unseen_presses,
                         max_epochs=args.max_epochs, patience=args.patience,
-                        beta=not args.no_beta, workers=args.workers)
+                        beta=not args.no_beta, zeros=not args.no_zeros,
+                        workers=args.workers)
     manifest = release(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     print(f"released {cfg.out}: kiri mochi AUC {m['kiri_mochi_auc']}, LOO 1-NN "
@@ -211,6 +264,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--splits", help="class splits (default: the recordings' dataset.json)")
     p.add_argument("--out", required=True, help="directory for checkpoint.pt and train.jsonl")
     p.add_argument("--variant", choices=["vq", "beta"], default="vq")
+    p.add_argument("--decoder", choices=["teacher", "zeros"], default="teacher",
+                   help="teacher: the paper's decoder (z_q and X, teacher-forced; default); "
+                   "zeros: z_q alone, zero inputs (the comparison variant)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)
@@ -273,8 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="reference recordings (the beta-VAE's database)")
     p.add_argument("--beta", default="runs/release/beta/checkpoint.pt",
                    help="beta-VAE checkpoint")
+    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt",
+                   help="checkpoint of the VQ-VAE with the zero-input decoder")
     p.add_argument("--conditions", help="comma-separated, from: vision_only, vq_top3, "
-                   "vq_top1, beta_top3, tactile_only (default: the first four)")
+                   "vq_top1, beta_top3, vq_zeros_top3, vq_top3_adjectives, tactile_only "
+                   "(default: the first four)")
     p.add_argument("--images", help="photos for real data: <press name>.jpg or <label>.jpg "
                    "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the simulated camera)")
     p.add_argument("--limit", type=int, help="at most N presses per set (round-robin over "
@@ -285,6 +344,71 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the questions and one prompt per condition; ask nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=_cmd_eval_vlm)
+
+    p = sub.add_parser(
+        "table1", help="the paper's Table I (two models) against an endpoint or the "
+        "simulated VLM", description="Vision only, VQ-VAE top-3, top-1 and the beta-VAE "
+        "(and, when their checkpoints exist, the zero-input decoder and the tactile-adjective "
+        "ablation) on FoodReplica and Cube for two models, beside the paper's GPT-4V and "
+        "LLaVA numbers. Without --url the simulated VLM answers (simulated-vlm and "
+        "simulated-vlm-vision-led). Answers are cached per model under --work: run it again "
+        "to continue.")
+    p.add_argument("--url", help="endpoint up to /v1 (default: the simulated VLM)")
+    p.add_argument("--model", help="the first model (the paper's GPT-4V rows)")
+    p.add_argument("--second-model", help="the second model (the paper's LLaVA rows)")
+    p.add_argument("--second-url", help="the second model's endpoint (default --url)")
+    p.add_argument("--config", help="a vt-edge TOML config whose [vlm] section gives the "
+                   "defaults (key file, timeouts, seed)")
+    p.add_argument("--prompt-dir", help="prompt templates (default: models/prompts)")
+    p.add_argument("--model-dir", default="models")
+    p.add_argument("--unseen", nargs="+", default=[
+        "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
+    p.add_argument("--reference", default="runs/release/recordings/reference")
+    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt")
+    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt")
+    p.add_argument("--no-extras", action="store_true",
+                   help="only the paper's rows (no zero-input decoder or ablation rows)")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--limit", type=int, help="at most N presses per set")
+    p.add_argument("--concurrency", type=int, default=4)
+    p.add_argument("--work", default="runs/table1", help="answer caches, one per model")
+    p.add_argument("--out", default="runs/table1", help="table1.md, table1.json, PNGs "
+                   "(the shipped stand-in results: models/eval/table1)")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_table1)
+
+    p = sub.add_parser(
+        "fig6", help="the paper's Fig. 6: accuracy against the number of reference classes",
+        description="For each |Y_ref| (default 0, 6, 13, 20, 27) and draw (default 5): draw "
+        "the classes, retrain the encoder on them, build a database without the validation "
+        "classes, ask the VLM (vision + tactile, top-3) about every unseen press; mean and "
+        "std per size as a table and a plot. Trainings and answers are cached under --work: "
+        "run it again to continue. Without --url the simulated VLM answers.")
+    p.add_argument("--url", help="endpoint up to /v1 (default: the simulated VLM)")
+    p.add_argument("--model", help="the VLM model name")
+    p.add_argument("--config", help="a vt-edge TOML config whose [vlm] section gives the "
+                   "defaults")
+    p.add_argument("--prompt-dir", help="prompt templates (default: models/prompts)")
+    p.add_argument("--model-dir", default="models",
+                   help="the shipped model (its decoder and window are copied)")
+    p.add_argument("--reference", default="runs/release/recordings/reference")
+    p.add_argument("--unseen", nargs="+", default=[
+        "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
+    p.add_argument("--sizes", default="0,6,13,20,27", help="|Y_ref| values, comma-separated")
+    p.add_argument("--draws", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-epochs", type=int, default=100)
+    p.add_argument("--patience", type=int, default=10)
+    p.add_argument("--decoder", choices=["teacher", "zeros"],
+                   help="default: the shipped model's")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--limit", type=int, help="at most N presses per set")
+    p.add_argument("--concurrency", type=int, default=4)
+    p.add_argument("--work", default="runs/fig6", help="trainings and answer cache")
+    p.add_argument("--out", default="runs/fig6", help="fig6.md, fig6.json, fig6.png "
+                   "(the shipped stand-in results: models/eval/fig6)")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_fig6)
 
     p = sub.add_parser("release", help="regenerate models/ from the simulated reference set")
     p.add_argument("--out", default="models")
@@ -297,6 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)
     p.add_argument("--no-beta", action="store_true", help="skip the beta-VAE comparison")
+    p.add_argument("--no-zeros", action="store_true",
+                   help="skip the zero-input decoder comparison")
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)

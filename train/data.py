@@ -224,7 +224,13 @@ def training_data(directory: str | Path, splits: Splits | None = None,
                   floor_fraction: float = STD_FLOOR_FRACTION) -> TrainingData:
     """The training and validation samples of a recorded reference set."""
     splits = splits or Splits.of_dataset(directory)
-    presses = load_presses(directory, splits.classes)
+    return training_data_of(load_presses(directory, splits.classes), splits, floor_fraction)
+
+
+def training_data_of(presses: PressSet, splits: Splits,
+                     floor_fraction: float = STD_FLOOR_FRACTION) -> TrainingData:
+    """The training and validation samples of ``splits``'s classes among ``presses``
+    (loaded once, e.g. for many trainings on different class draws)."""
     train_p = presses.select(splits.train)
     norm = Normaliser.fit(train_p.x, floor_fraction)
     train = samples(train_p, norm)

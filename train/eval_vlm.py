@@ -13,7 +13,10 @@ and its replica look the same), or a photo from a user's directory for real data
 Conditions (``CONDITIONS``): ``vision_only`` (the vision_only template: no tactile
 sentence), ``vq_top3`` (the proposed method), ``vq_top1`` (only the nearest class's
 description), ``beta_top3`` (the beta-VAE's embeddings and its own reference database, built
-from the reference recordings), and, not in the default set, ``tactile_only``.
+from the reference recordings: every offset of every press, like the shipped one), and, not
+in the default set, ``vq_zeros_top3`` (the VQ-VAE with the zero-input decoder, from its
+checkpoint, the same way), ``vq_top3_adjectives`` (the method with the references described
+in hand-written tactile adjectives, :mod:`train.ablation`) and ``tactile_only``.
 
 Every answer is appended to ``answers.jsonl`` in the output directory as soon as it arrives
 (one ``write`` of one line, ``O_APPEND``, fsync), keyed by condition, dataset, press, VLM
@@ -35,10 +38,12 @@ import asyncio
 import dataclasses
 import functools
 import hashlib
+import io
 import json
 import logging
 import os
 import re
+import textwrap
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -80,8 +85,11 @@ class Condition:
     name: str
     title: str
     mode: str  # the prompt template: vision_only / vision_tactile / tactile_only
-    variant: str | None  # the tactile encoder: vq / beta, None without a tactile sentence
+    variant: str | None  # the tactile encoder: vq / beta / vq_zeros, None: no tactile sentence
     k: int  # distinct reference classes in the description (0: none)
+    # Where the descriptions come from: the database (object names, the method) or the
+    # ablation's hand-written tactile adjectives.
+    descriptions: str = "names"
 
 
 CONDITIONS: dict[str, Condition] = {c.name: c for c in (
@@ -89,10 +97,16 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in (
     Condition("vq_top3", "Vision + tactile (VQ-VAE, top-3)", "vision_tactile", "vq", 3),
     Condition("vq_top1", "Vision + tactile (VQ-VAE, top-1)", "vision_tactile", "vq", 1),
     Condition("beta_top3", "Vision + tactile (beta-VAE, top-3)", "vision_tactile", "beta", 3),
+    Condition("vq_zeros_top3", "Vision + tactile (VQ-VAE with the zero-input decoder, top-3)",
+              "vision_tactile", "vq_zeros", 3),
+    Condition("vq_top3_adjectives", "Vision + tactile (VQ-VAE, top-3), descriptions in "
+              "tactile adjectives (ablation)", "vision_tactile", "vq", 3, "adjectives"),
     Condition("tactile_only", "Tactile only (VQ-VAE, top-3, no image)", "tactile_only", "vq",
               3),
 )}
 DEFAULT_CONDITIONS = ("vision_only", "vq_top3", "vq_top1", "beta_top3")
+# Conditions whose encoder comes from a training checkpoint, not the shipped model.
+CHECKPOINT_VARIANTS = ("beta", "vq_zeros")
 
 # The paper's Table I (GPT-4V), percent, for the side-by-side table.
 PAPER = {"vision_only": {"foodreplica": 53.6, "cube": 50.0},
@@ -109,8 +123,9 @@ class EvalVLMConfig:
     unseen: tuple[Path, ...]
     model_dir: Path = Path("models")
     conditions: tuple[str, ...] = DEFAULT_CONDITIONS
-    reference: Path | None = None  # reference recordings (the beta-VAE database)
+    reference: Path | None = None  # reference recordings (the checkpoint variants' database)
     beta: Path | None = None  # beta-VAE checkpoint
+    zeros: Path | None = None  # the zero-input decoder's VQ-VAE checkpoint
     images: Path | None = None  # photos for real data; None = the simulated camera
     limit: int | None = None  # presses per dataset
     concurrency: int = DEFAULT_CONCURRENCY
@@ -129,6 +144,10 @@ class EvalVLMConfig:
             raise EvalVLMError("a condition is listed twice")
         if "beta_top3" in self.conditions and (self.beta is None or self.reference is None):
             raise EvalVLMError("beta_top3 needs --beta CHECKPOINT and --reference RECORDINGS")
+        if "vq_zeros_top3" in self.conditions and (self.zeros is None
+                                                   or self.reference is None):
+            raise EvalVLMError("vq_zeros_top3 needs --zeros CHECKPOINT and --reference "
+                               "RECORDINGS")
         if not self.unseen:
             raise EvalVLMError("no unseen recordings given")
         if self.limit is not None and self.limit < 1:
@@ -216,24 +235,60 @@ def vq_tactile(model: Any) -> Tactile:
     return Tactile("vq", lambda x: np.asarray(model.encode(x)[0]), model.database)
 
 
-def beta_tactile(checkpoint: Path, reference: Path, spec: Any, k: int = 3) -> Tactile:
-    """The beta-VAE: torch embeddings (posterior mean) and a database of the reference
-    presses embedded by it (same classes and descriptions as the shipped one)."""
-    from train import database
-    from train.data import Splits
-    from train.trainer import embed, load_checkpoint
+def checkpoint_tactile(variant: str, checkpoint: Path, reference: Path, spec: Any,
+                       k: int = 3) -> Tactile:
+    """A model from its training checkpoint (the beta-VAE, or the VQ-VAE with the zero-input
+    decoder): torch embeddings (z; the beta-VAE's posterior mean) and a database of every
+    offset of every reference press embedded by it (same classes and descriptions as the
+    shipped one)."""
+    from train.trainer import load_checkpoint
 
     model, norm, _ = load_checkpoint(checkpoint)
-    if model.cfg.variant != "beta":
-        raise ModelError(f"{checkpoint}: a {model.cfg.variant} checkpoint, not the beta-VAE")
+    got = model.cfg.variant if model.cfg.variant == "beta" else f"vq_{model.cfg.decoder}"
+    if got != variant:
+        raise ModelError(f"{checkpoint}: a {got} checkpoint, not {variant}")
+    return torch_tactile(variant, model, norm, load_reference(reference, spec), k)
+
+
+def load_reference(reference: Path, spec: Any = None):
+    """The reference presses of a recordings directory (its ``dataset.json`` splits), with
+    their splits."""
+    from train.data import Splits
+
     splits = Splits.of_dataset(reference)
-    presses = load_presses(reference, splits.classes, spec).select(splits.classes)
+    kwargs = {} if spec is None else {"spec": spec}
+    presses = load_presses(reference, splits.classes, **kwargs).select(splits.classes)
+    return presses, splits
+
+
+def torch_tactile(variant: str, model: Any, norm: Any, reference: tuple[PressSet, Any],
+                  k: int = 3) -> Tactile:
+    """A torch model and a database of ``reference`` (presses, splits) embedded by it."""
+    from train import database
+    from train.trainer import embed
+
+    presses, splits = reference
 
     def embed_z(x: np.ndarray) -> np.ndarray:
         return embed(model, norm, x)[0]
 
-    db = database.from_embeddings(presses, splits, embed_z(presses.inputs(0)), None, k=k)
-    return Tactile("beta", embed_z, db)
+    codebook = None
+    if model.quantiser is not None:
+        codebook = model.quantiser.codebook.detach().numpy().copy()
+    db = database.from_embeddings(presses, splits, embed_z(database.reference_inputs(presses)),
+                                  codebook, k=k)
+    return Tactile(variant, embed_z, db)
+
+
+def describe(condition: Condition, db: ReferenceDatabase, labels: Sequence[str]) -> str:
+    """The touch sentence of ``labels`` under ``condition``: the database's descriptions
+    (object names), or for the ablation the hand-written tactile adjectives."""
+    if condition.descriptions == "adjectives":
+        from train.ablation import TACTILE_ADJECTIVES
+
+        return ", ".join(TACTILE_ADJECTIVES.get(label) or db.description(label)
+                         for label in labels)
+    return db.describe(labels)
 
 
 def sha256_hex(data: bytes) -> str:
@@ -360,35 +415,60 @@ def prepare(cfg: EvalVLMConfig, endpoint: bool = True) -> Plan:
     cfg.validate(endpoint)
     conditions = tuple(CONDITIONS[name] for name in cfg.conditions)
     model = load_model(cfg.model_dir)
-    sets = tuple(load_test_set(d, cfg.limit, model.window) for d in cfg.unseen)
-    names = [s.name for s in sets]
-    if len(set(names)) != len(names):
-        raise EvalVLMError(f"two unseen sets share a name: {', '.join(names)}")
+    sets = load_sets(cfg.unseen, cfg.limit, model.window)
     tactile: dict[str, Tactile] = {}
     if any(c.variant == "vq" for c in conditions):
         tactile["vq"] = vq_tactile(model)
-    if any(c.variant == "beta" for c in conditions):
-        assert cfg.beta is not None and cfg.reference is not None
-        tactile["beta"] = beta_tactile(cfg.beta, cfg.reference, model.window)
-        _check_same_references(model.database, tactile["beta"].database)
+    checkpoints = {"beta": cfg.beta, "vq_zeros": cfg.zeros}
+    for variant in CHECKPOINT_VARIANTS:
+        if any(c.variant == variant for c in conditions):
+            path = checkpoints[variant]
+            assert path is not None and cfg.reference is not None
+            tactile[variant] = checkpoint_tactile(variant, path, cfg.reference, model.window)
+            _check_same_references(model.database, tactile[variant].database)
     templates = {c.mode: load_template(c.mode, cfg.vlm.prompt_dir) for c in conditions}
     images = ImageSource(cfg.images, cfg.vlm)
-    with_image = any(templates[c.mode].uses_image for c in conditions)
-    k = max(c.k for c in conditions)
+    jobs = build_jobs(sets, [(c, tactile.get(c.variant or "")) for c in conditions],
+                      templates, images, cfg.vlm.model)
+    return Plan(cfg, sets, conditions, templates, tuple(jobs), images.name)
+
+
+def load_sets(unseen: Sequence[Path], limit: int | None, spec: Any) -> tuple[UnseenSet, ...]:
+    sets = tuple(load_test_set(d, limit, spec) for d in unseen)
+    names = [s.name for s in sets]
+    if len(set(names)) != len(names):
+        raise EvalVLMError(f"two unseen sets share a name: {', '.join(names)}")
+    return sets
+
+
+def build_jobs(sets: Sequence[UnseenSet],
+               conditions: Sequence[tuple[Condition, Tactile | None]],
+               templates: Mapping[str, PromptTemplate], images: ImageSource,
+               model: str) -> list[Job]:
+    """One question per press of every set and (condition, tactile source), in plan order
+    (set, press, condition)."""
+    with_image = any(templates[c.mode].uses_image for c, _ in conditions)
     jobs: list[Job] = []
     for ts in sets:
         x = ts.presses.inputs(0)  # the one input the robot computes
-        retrieved = {variant: t.topk(x, k) for variant, t in tactile.items()}
+        retrieved: dict[int, list[list[tuple[str, float]]]] = {}
+        for cond, source in conditions:
+            if cond.variant is not None:
+                if source is None:
+                    raise EvalVLMError(f"{cond.name}: no tactile model given")
+                if id(source) not in retrieved:
+                    k = max(c.k for c, s in conditions if s is source)
+                    retrieved[id(source)] = source.topk(x, k)
         for i, (press, label) in enumerate(zip(ts.press_ids, ts.presses.labels, strict=True)):
             image = images.get(ts.name, press, label) if with_image else None
-            for cond in conditions:
+            for cond, source in conditions:
                 template = templates[cond.mode]
                 topk: tuple[tuple[str, float], ...] = ()
                 description = ""
                 if cond.variant is not None:
-                    topk = tuple(retrieved[cond.variant][i][:cond.k])
-                    description = tactile[cond.variant].database.describe(
-                        lab for lab, _ in topk)
+                    assert source is not None
+                    topk = tuple(retrieved[id(source)][i][:cond.k])
+                    description = describe(cond, source.database, [lab for lab, _ in topk])
                 sent = image if template.uses_image else None
                 assert not template.uses_image or sent is not None
                 jobs.append(Job(
@@ -396,15 +476,15 @@ def prepare(cfg: EvalVLMConfig, endpoint: bool = True) -> Plan:
                     candidates=ts.candidates, topk=topk, description=description,
                     prompt=template.render(description, ts.candidates), image=sent,
                     image_sha256=sha256_hex(sent) if sent is not None else None,
-                    model=cfg.vlm.model))
-    return Plan(cfg, sets, conditions, templates, tuple(jobs), images.name)
+                    model=model))
+    return jobs
 
 
-def _check_same_references(vq: ReferenceDatabase, beta: ReferenceDatabase) -> None:
-    if sorted(vq.source.tolist()) != sorted(beta.source.tolist()) or vq.labels != beta.labels:
-        log.warning("the beta-VAE database (from --reference) holds other presses or classes "
-                    "than the shipped VQ database: the VQ vs beta-VAE comparison is not like "
-                    "for like")
+def _check_same_references(vq: ReferenceDatabase, other: ReferenceDatabase) -> None:
+    if sorted(vq.source.tolist()) != sorted(other.source.tolist()) or vq.labels != other.labels:
+        log.warning("the database built from --reference holds other presses or classes "
+                    "than the shipped VQ database: the comparison with the shipped model is "
+                    "not like for like")
 
 
 # --------------------------------------------------------------------------------------
@@ -511,9 +591,11 @@ async def ask_all(plan: Plan, cache: AnswerCache, *,
     request) stops the run; the answers already cached stay for the next run."""
     cfg = plan.config
     cached = cache.records or cache.load()
-    todo = [job for job in plan.jobs if job.key not in cached]
-    progress = progress or EvalProgress(len(plan.jobs), len(plan.jobs) - len(todo),
-                                        enabled=False)
+    # One question per key: two jobs with the same key (the same prompt and photo) share
+    # their answer at temperature 0.
+    todo = list({job.key: job for job in plan.jobs if job.key not in cached}.values())
+    unique = len({job.key for job in plan.jobs})
+    progress = progress or EvalProgress(unique, unique - len(todo), enabled=False)
     if not todo:
         progress.update(final=True)
         return 0
@@ -558,8 +640,9 @@ async def ask_all(plan: Plan, cache: AnswerCache, *,
     except BaseExceptionGroup as group:
         first = _first_error(group)
         if isinstance(first, EvalVLMError):
-            missing = len(plan.jobs) - sum(j.key in cache.records for j in plan.jobs)
-            raise EvalVLMError(f"stopped: {first}; {missing} of {len(plan.jobs)} answers "
+            keys = {j.key for j in plan.jobs}
+            missing = len(keys - set(cache.records))
+            raise EvalVLMError(f"stopped: {first}; {missing} of {len(keys)} answers "
                                f"still missing (cached in {cache.path}: run the same "
                                "command again to continue)") from first.__cause__
         raise
@@ -682,7 +765,9 @@ def markdown(report: Mapping[str, Any]) -> str:
         for c in paper_rows:
             lines.append(f"| {c['title']} | " + " | ".join(
                 f"{PAPER[c['name']][s]:.1f} %" for s in paper_sets) + " |")
-    lines += ["", "Prompt templates: " + ", ".join(
+    lines += ["", "Answers are a strict JSON enum of the candidates (a label is always a "
+              "candidate, or `invalid_answer`); the paper's GPT-4V and LLaVA answered in free "
+              "text.", "", "Prompt templates: " + ", ".join(
         f"`{mode}` sha256 {p['sha256'][:12]}" for mode, p in report["prompts"].items())
         + ". Confusion matrices: `eval_vlm.json`, `confusion_<set>.png`.", ""]
     return "\n".join(lines)
@@ -718,12 +803,37 @@ def confusion_png(report: Mapping[str, Any], dataset: str, path: Path) -> None:
                             color="white" if v > m.max() / 2 else "black")
         ax.set_xlabel("answer", fontsize=7)
         ax.set_ylabel("true class", fontsize=7)
-        ax.set_title(f"{cond['title']}\n{_pct(r)}, {r['invalid_answer']} invalid",
+        ax.set_title(f"{textwrap.fill(cond['title'], 40)}\n{_pct(r)}, "
+                     f"{r['invalid_answer']} invalid",
                      fontsize=8)
-    fig.suptitle(f"{DATASET_TITLES.get(dataset, dataset)}: VLM {report['model']}", fontsize=9)
+    simulated = " (simulated VLM, no real model)" if str(report["model"]).startswith(
+        "simulated-vlm") else ""
+    fig.suptitle(f"{DATASET_TITLES.get(dataset, dataset)}: VLM {report['model']}{simulated}",
+                 fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.97))  # room for the title
-    fig.savefig(path, dpi=DPI, metadata={"Software": None})
+    save_png(fig, path)
     plt.close(fig)
+
+
+# Colours kept in a saved figure: a confusion matrix of 22 classes x 6 conditions is 300 kB
+# in full colour and under a third of that in this many, with no visible difference.
+PNG_COLOURS = 64
+
+
+def save_png(fig: Any, path: Path, dpi: int = DPI) -> None:
+    """A figure as a palette PNG, written atomically (the reports ship in models/)."""
+    from PIL import Image
+
+    from edge.core.atomic import atomic_write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": None})
+    buf.seek(0)
+    with Image.open(buf) as img:
+        small = img.convert("RGB").quantize(PNG_COLOURS, method=Image.Quantize.MEDIANCUT)
+        out = io.BytesIO()
+        small.save(out, format="PNG", optimize=True)
+    atomic_write_bytes(path, out.getvalue())
 
 
 def write_report(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
@@ -743,10 +853,11 @@ async def run(cfg: EvalVLMConfig, *, progress: bool = True, stream: TextIO | Non
     plan = await asyncio.to_thread(prepare, cfg)
     cache = AnswerCache(cfg.out / ANSWERS_FILE)
     await asyncio.to_thread(cache.load)
-    cached = sum(job.key in cache.records for job in plan.jobs)
+    keys = {job.key for job in plan.jobs}
+    cached = len(keys & set(cache.records))
     log.info("%d questions (%d sets x %d conditions); %d already answered in %s",
-             len(plan.jobs), len(plan.sets), len(plan.conditions), cached, cache.path)
-    bar = EvalProgress(len(plan.jobs), cached, stream, enabled=progress)
+             len(keys), len(plan.sets), len(plan.conditions), cached, cache.path)
+    bar = EvalProgress(len(keys), cached, stream, enabled=progress)
     await ask_all(plan, cache, clients=clients, progress=bar)
     return await asyncio.to_thread(write_report, plan, cache.records)
 

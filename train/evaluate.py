@@ -1,14 +1,18 @@
 """Tactile retrieval quality: what the encoder and database give the VLM.
 
-Everything is measured on recognition-time inputs (offset 0 of each press) and, for every
-model variant and embedding space compared, with the same retrieval code the robot runs
-(:class:`edge.core.model.ReferenceDatabase`). Rows of the comparison: VQ-VAE with retrieval on z,
-VQ-VAE on z_q, beta-VAE on z (its posterior mean). Metrics:
+Queries are recognition-time inputs (offset 0 of each press, the one input the robot
+computes); the databases hold every offset of every reference press (5 per press, as shipped),
+and retrieval runs through the robot's own code (:class:`edge.core.model.ReferenceDatabase`).
+Rows of the comparison, one per model variant and embedding space: the VQ-VAE with the
+paper's decoder (``vq``: z_q and X, teacher-forced) on z and on z_q, the VQ-VAE with the
+zero-input decoder (``vq_zeros``) on z and z_q, and the beta-VAE (``beta``) on z (its
+posterior mean). Metrics:
 
-- ``loo_1nn`` / ``loo_5nn``: on the reference presses, leave one press out, classify by its
-  nearest other press (majority of 5). ``loo_top3``: the true class is among the first 3
-  distinct classes of the other presses. Equal distances (z_q puts many presses on the same
-  code) are broken by a seeded random order, never by class order.
+- ``loo_1nn`` / ``loo_5nn``: on the reference presses, leave one press out (all five of its
+  references), classify its offset-0 query by the nearest remaining reference (majority of
+  the 5 nearest). ``loo_top3``: the true class is among the first 3 distinct classes.
+  Equal distances (z_q puts many references on the same code) are broken by a seeded random
+  order, never by class order.
 - ``top3_consistency``: on the unseen classes (FoodReplica, Cube), the share of pairs of
   presses of the same class whose top-3 reference classes are the same set (order ignored);
   ``top1_consistency`` the same for the nearest class; ``top3_overlap`` the mean share of
@@ -54,13 +58,20 @@ FILES = ("eval.json", "eval.md", "retrieval.json", "confusion.png", "embedding_p
          "traces.png")
 TRACE_CLASSES = ("stainless_cube", "sponge_cube", "raw_kiri_mochi", "boiled_kiri_mochi")
 DPI = 80
+QUERY_OFFSET = 0
+VARIANT_TITLES = {
+    "vq": "VQ-VAE, the paper's decoder (z_q and X, teacher-forced)",
+    "vq_zeros": "VQ-VAE, zero-input decoder (z_q alone)",
+    "beta": "beta-VAE (paper's decoder), posterior mean",
+}
 
 
 @dataclass(frozen=True)
 class Row:
     variant: str
     space: Space
-    z_ref: np.ndarray  # reference embeddings in this space
+    z_ref: np.ndarray  # reference queries (offset 0 of each press) in this space
+    z_all: np.ndarray  # every reference (press, offset), press-major, in this space
     z_unseen: np.ndarray  # unseen embeddings in this space (pair AUCs)
     queries: np.ndarray  # what the robot hands topk: the continuous z
     db: ReferenceDatabase
@@ -111,29 +122,40 @@ def pair_auc(za: np.ndarray, zb: np.ndarray) -> dict[str, float]:
             "n": [len(za), len(zb)]}
 
 
-def _distances(z: np.ndarray) -> np.ndarray:
-    d = np.sqrt(np.maximum(((z[:, None, :] - z[None, :, :]) ** 2).sum(-1), 0.0))
-    np.fill_diagonal(d, np.inf)
-    return d
+def _distances(q: np.ndarray, refs: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(((q[:, None, :] - refs[None, :, :]) ** 2).sum(-1), 0.0))
 
 
-def loo_knn(z: np.ndarray, labels: Sequence[str], seed: int = 0) -> dict[str, Any]:
-    """Leave-one-press-out k-NN on the reference presses."""
+def loo_knn(z: np.ndarray, labels: Sequence[str], seed: int = 0,
+            refs: np.ndarray | None = None, per_press: int = 1) -> dict[str, Any]:
+    """Leave-one-press-out k-NN on the reference presses.
+
+    ``z`` (P, D): one query per press. ``refs`` (P * per_press, D), press-major: the
+    references (default: the queries themselves); the ``per_press`` references of the
+    query's own press are left out.
+    """
     labels_arr = np.asarray(labels)
     classes = list(dict.fromkeys(labels))
-    d = _distances(z)
-    tiebreak = np.random.default_rng(seed).permutation(len(z))
+    refs = z if refs is None else refs
+    if len(refs) != len(z) * per_press:
+        raise ValueError(f"{len(refs)} references for {len(z)} presses x {per_press}")
+    ref_labels = np.repeat(labels_arr, per_press)
+    d = _distances(z, refs)
+    own = np.repeat(np.arange(len(z)), per_press)
+    d[own[None, :] == np.arange(len(z))[:, None]] = np.inf
+    tiebreak = np.random.default_rng(seed).permutation(len(refs))
     order = np.lexsort((np.broadcast_to(tiebreak, d.shape), d), axis=1)
-    pred1 = labels_arr[order[:, 0]]
+    kept = len(refs) - per_press  # the left-out press sorts last (infinite distance)
+    pred1 = ref_labels[order[:, 0]]
     pred5 = []
     top3 = []
     for i in range(len(z)):
-        near = labels_arr[order[i, :5]]
+        near = ref_labels[order[i, :5]]
         votes = {c: 0 for c in dict.fromkeys(near)}
         for c in near:
             votes[c] += 1
         pred5.append(max(votes, key=lambda c: votes[c]))  # ties: the nearest class wins
-        distinct = list(dict.fromkeys(labels_arr[order[i, :-1]]))[:3]
+        distinct = list(dict.fromkeys(ref_labels[order[i, :kept]]))[:3]
         top3.append(labels_arr[i] in distinct)
     idx = {c: j for j, c in enumerate(classes)}
     confusion = np.zeros((len(classes), len(classes)), dtype=np.int64)
@@ -181,25 +203,33 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    x_ref, x_uns = reference.inputs(0), unseen.inputs(0)
+    offsets = database.DB_OFFSETS
+    per_press = len(offsets)
+    at_query = offsets.index(QUERY_OFFSET)
+    x_all, x_uns = database.reference_inputs(reference, offsets), unseen.inputs(QUERY_OFFSET)
     rows: list[Row] = []
     for variant, (embedder, codebook) in embedders.items():
-        z_ref, zq_ref = embedder(x_ref)
+        z_all, zq_all = embedder(x_all)
         z_uns, zq_uns = embedder(x_uns)
-        spaces: list[Space] = ["z"] if zq_ref is None else ["z", "z_q"]
+        spaces: list[Space] = ["z"] if zq_all is None else ["z", "z_q"]
         for space in spaces:
-            db = database.from_embeddings(reference, splits, z_ref, codebook, space=space)
-            rows.append(Row(variant, space, z_ref if space == "z" else zq_ref,
+            db = database.from_embeddings(reference, splits, z_all, codebook, space=space,
+                                          offsets=offsets)
+            in_space = z_all if space == "z" else zq_all
+            assert in_space is not None
+            rows.append(Row(variant, space, in_space[at_query::per_press], in_space,
                             z_uns if space == "z" else zq_uns, z_uns, db))
     pairs = pairs_of(unseen.labels)
     uns_labels = np.asarray(unseen.labels)
     report: dict[str, Any] = {"k": k, "reference_presses": len(reference),
                               "reference_classes": len(reference.classes),
+                              "references": len(reference) * per_press,
                               "unseen_presses": len(unseen), "unseen_classes": unseen.classes,
-                              "offsets": [0], "rows": []}
+                              "database_offsets": list(offsets),
+                              "query_offset": QUERY_OFFSET, "rows": []}
     primary_row = None
     for row in rows:
-        knn = loo_knn(row.z_ref, reference.labels, seed)
+        knn = loo_knn(row.z_ref, reference.labels, seed, refs=row.z_all, per_press=per_press)
         # Queries go through the database exactly as on the robot: z in (a z_q database
         # quantises it itself).
         retrieved = [row.db.topk(q, k) for q in row.queries]
@@ -256,6 +286,29 @@ def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
     return out
 
 
+def _decoder_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """A paragraph setting the paper's decoder (``vq``) beside the zero-input one
+    (``vq_zeros``), retrieval in z, from this report's own numbers."""
+    by = {(r["variant"], r["space"]): r for r in rows}
+    paper, zeros = by.get(("vq", "z")), by.get(("vq_zeros", "z"))
+    if paper is None or zeros is None:
+        return []
+    keys = (("loo_1nn", "LOO 1-NN"), ("loo_top3", "LOO top-3"),
+            ("mean_auc_real_vs_replica", "mean AUC real/replica"),
+            ("mean_auc_raw_vs_boiled", "mean AUC raw/boiled"))
+    better = [name for key, name in keys
+              if paper[key] is not None and zeros[key] is not None and zeros[key] > paper[key]]
+    parts = ", ".join(f"{name} {_fmt(paper[key])} against {_fmt(zeros[key])}"
+                      for key, name in keys)
+    verdict = (f"The zero-input decoder does better on {', '.join(better)}"
+               if better else "The zero-input decoder does better on none of them")
+    return ["", "## Decoders", "",
+            f"The paper's decoder (`vq`: z_q and X, teacher-forced) against the zero-input one "
+            f"(`vq_zeros`), retrieval in z: {parts}. {verdict}. The paper's decoder is the "
+            "shipped default; what each gives the VLM is in Table I "
+            "(`table1/table1.md`, rows `vq_zeros_top3`)."]
+
+
 def _fmt(v: float | None) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
@@ -266,9 +319,15 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
         "# Tactile retrieval evaluation",
         "",
         f"Reference: {report['reference_presses']} presses of {report['reference_classes']} "
-        f"classes; unseen: {report['unseen_presses']} presses of "
-        f"{len(report['unseen_classes'])} classes; offset 0 (recognition-time input); "
-        f"top-k with k = {report['k']}.",
+        f"classes, {report['references']} references (offsets "
+        f"{', '.join(map(str, report['database_offsets']))} of every press); unseen: "
+        f"{report['unseen_presses']} presses of {len(report['unseen_classes'])} classes; "
+        f"queries at offset {report['query_offset']} (the recognition-time input); top-k "
+        f"with k = {report['k']}.",
+        "",
+        "Variants: " + "; ".join(f"`{name}`: {title}" for name, title in
+                                 VARIANT_TITLES.items()
+                                 if any(r["variant"] == name for r in report["rows"])) + ".",
         "",
         "| variant | space | LOO 1-NN | LOO 5-NN | LOO top-3 | 1-NN val classes | "
         "top-3 consistency | top-3 overlap | top-1 consistency | AUC real/replica (mean) | "
@@ -294,8 +353,10 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
         lines.append(f"| {a} vs {b} | "
                      + " | ".join(_fmt(r["pair_auc"][name]) for r in rows)
                      + f" | {sep:.2f} |")
+    lines += _decoder_comparison(rows)
     lines += ["",
-              "LOO: leave one reference press out, nearest other press (5-NN: majority). "
+              "LOO: leave one reference press out (its five references), nearest remaining "
+              "reference (5-NN: majority of the 5 nearest references). "
               "Consistency: share of same-class unseen press pairs whose top-3 classes are "
               "the same set (overlap: mean share of classes the two top-3 sets have in "
               "common). AUC: 0.5 is chance; below 0.5 means the leave-one-out centroids "

@@ -9,10 +9,15 @@ gradient; loss ``MSE(sg[z], z_q) + 0.25 * MSE(z, sg[z_q])``. Codes no sample cho
 epoch are counted (``dead``) and, if ``revive_dead``, moved onto encoder outputs of random
 training samples at the end of the epoch (a seeded draw).
 
-Decoder: Linear(4 -> 32) + tanh gives the initial hidden state of both layers of a 2-layer GRU
-(hidden 32) whose inputs are zeros; a Linear(32 -> 96) per step reconstructs the normalised
-X_bar. Feeding zeros keeps the whole description of the press in the 4 numbers of the
-bottleneck, as the paper intends.
+Decoder (``decoder="teacher"``, the paper's and the default): Linear(4 -> 32) of z_q is the
+initial hidden state of both layers of a 2-layer GRU (hidden 32), and the GRU reads the input
+sequence X, teacher-forced ("with this initial hidden state z_q and X"): at step t it is given
+X[t-1] (zeros at t = 0), never X[t] itself, which it could simply copy to the smoothed X_bar[t]
+without using z at all. A Linear(32 -> 96) per step reconstructs the normalised X_bar.
+
+Variant ``decoder="zeros"`` (this project's earlier decoder, kept for the comparison): the
+initial state is tanh(Linear(z)) and the GRU's inputs are zeros, so the whole press has to
+pass through the 4 numbers of the bottleneck.
 
 Loss = MSE(X_hat, X_bar) + codebook + commitment (VQ) or + beta_kl * KL / (T * C) (beta-VAE:
 the KL summed over latent dims, scaled like a per-element likelihood).
@@ -30,6 +35,8 @@ from torch import nn
 from torch.nn import functional as F
 
 Variant = Literal["vq", "beta"]
+DecoderKind = Literal["teacher", "zeros"]
+DECODERS: tuple[str, ...] = ("teacher", "zeros")
 
 
 @dataclass(frozen=True)
@@ -44,10 +51,19 @@ class ModelConfig:
     commitment: float = 0.25
     beta_kl: float = 4.0
     revive_dead: bool = True
+    decoder: DecoderKind = "teacher"
 
     def __post_init__(self) -> None:
         if self.variant not in ("vq", "beta"):
             raise ValueError(f"variant must be 'vq' or 'beta', got {self.variant!r}")
+        if self.decoder not in DECODERS:
+            raise ValueError(f"decoder must be one of {', '.join(DECODERS)}, got "
+                             f"{self.decoder!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        """A saved configuration; one saved before the decoder had a choice used zeros."""
+        return cls(**({"decoder": "zeros"} | dict(d)))
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -95,16 +111,26 @@ class VectorQuantiser(nn.Module):
 
 
 class Decoder(nn.Module):
+    """z (B, latent) and the normalised input X (B, T, C) -> X_hat (B, T, C)."""
+
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
+        self.kind = cfg.decoder
         self.layers, self.steps = cfg.layers, cfg.steps
         self.init = nn.Linear(cfg.latent, cfg.hidden)
-        self.gru = nn.GRU(1, cfg.hidden, num_layers=cfg.layers, batch_first=True)
+        inputs = cfg.channels if cfg.decoder == "teacher" else 1
+        self.gru = nn.GRU(inputs, cfg.hidden, num_layers=cfg.layers, batch_first=True)
         self.out = nn.Linear(cfg.hidden, cfg.channels)
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        h0 = torch.tanh(self.init(z)).unsqueeze(0).repeat(self.layers, 1, 1).contiguous()
-        inputs = z.new_zeros(z.shape[0], self.steps, 1)
+    def forward(self, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        h = self.init(z)
+        if self.kind == "teacher":
+            # Step t sees X[t-1]: shifted right by one, a zero frame first.
+            inputs = torch.cat([x.new_zeros(x.shape[0], 1, x.shape[2]), x[:, :-1]], dim=1)
+        else:
+            h = torch.tanh(h)
+            inputs = z.new_zeros(z.shape[0], self.steps, 1)
+        h0 = h.unsqueeze(0).repeat(self.layers, 1, 1).contiguous()
         y, _ = self.gru(inputs, h0)
         return self.out(y)
 
@@ -140,7 +166,7 @@ class TactileAutoencoder(nn.Module):
         if self.quantiser is not None:
             z = h
             z_st, code, losses = self.quantiser(z)
-            x_hat = self.decoder(z_st)
+            x_hat = self.decoder(z_st, x)
             losses["recon"] = F.mse_loss(x_hat, x_bar)
             losses["loss"] = losses["recon"] + losses["codebook"] \
                 + cfg.commitment * losses["commit"]
@@ -150,7 +176,7 @@ class TactileAutoencoder(nn.Module):
             sample = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar)
         else:
             sample = mu
-        x_hat = self.decoder(sample)
+        x_hat = self.decoder(sample, x)
         kl = 0.5 * (mu.pow(2) + logvar.exp() - 1.0 - logvar).sum(-1).mean()
         recon = F.mse_loss(x_hat, x_bar)
         scale = cfg.steps * cfg.channels

@@ -1,14 +1,18 @@
 """``vt-train release``: regenerate the shipped ``models/`` from the simulated reference set.
 
 One deterministic pipeline for a seed: record (reference, FoodReplica, Cube; reused when the
-work directory already holds the same recording) -> train the VQ-VAE and the beta-VAE ->
-export the VQ encoder to ONNX (parity-checked) -> build the database with the ONNX encoder ->
-evaluate -> copy into ``out`` -> write ``manifest.json`` last. ``out/prompts/`` belongs to
-the prompt templates: never written here, only hashed into the manifest as found.
+work directory already holds the same recording of the same catalogue classes) -> train the
+VQ-VAE (the paper's decoder), the VQ-VAE with the zero-input decoder and the beta-VAE (both
+for the comparison) -> export the VQ encoder to ONNX (parity-checked) -> build the database
+with the ONNX encoder (every offset of every reference press) -> evaluate -> copy into
+``out`` -> write ``manifest.json`` last. ``out/prompts/`` belongs to the prompt templates:
+never written here, only hashed into the manifest as found (``files``, and ``prompts`` with
+each template's slots).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import shutil
@@ -22,6 +26,8 @@ import numpy as np
 from edge.core.atomic import atomic_write_bytes
 from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
 from edge.core.preprocess import DEFAULT_WINDOW
+from edge.core.prompt import MODES, PromptTemplate
+from edge.sim.catalogue import DATASETS
 from edge.tools.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
@@ -47,6 +53,7 @@ class ReleaseConfig:
     patience: int = 25
     threads: int = 1
     beta: bool = True  # also train the beta-VAE for the comparison table
+    zeros: bool = True  # also train the VQ-VAE with the zero-input decoder (comparison)
     workers: int | None = None  # recorder processes
 
     def command(self) -> str:
@@ -55,7 +62,23 @@ class ReleaseConfig:
                  f"--max-epochs {self.max_epochs}", f"--patience {self.patience}"]
         if not self.beta:
             parts.append("--no-beta")
+        if not self.zeros:
+            parts.append("--no-zeros")
         return " ".join(parts)
+
+
+def _same_classes(meta: dict[str, Any], dataset: str) -> bool:
+    """Whether a recorded ``dataset.json`` was made by the robot's press controller (the
+    recorder names itself) for the catalogue's classes as they are now (labels, splits,
+    descriptions, per-class thresholds): anything else means recording again."""
+    if not meta.get("recorder"):
+        return False  # an older recorder's data: another press protocol
+    have = meta.get("classes", [])
+    if [(c.get("label"), c.get("split"), c.get("description")) for c in have] != [
+            (o.name, o.split, o.description) for o in DATASETS[dataset]]:
+        return False
+    return all(o.x_th is None or c.get("x_th") == o.x_th
+               for c, o in zip(have, DATASETS[dataset], strict=True))
 
 
 def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: int | None
@@ -65,7 +88,7 @@ def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: i
     if index.exists():
         meta = json.loads(index.read_text())
         if (meta.get("dataset"), meta.get("presses_per_class"), meta.get("seed")) == (
-                dataset, presses, seed):
+                dataset, presses, seed) and _same_classes(meta, dataset):
             log.info("reusing %s recordings in %s", dataset, directory)
             return True
         shutil.rmtree(directory)
@@ -89,6 +112,22 @@ def encode_timing(onnx_bytes: bytes, x: np.ndarray, repeats: int = 200) -> dict[
             "encode_ms_p90": 1e3 * float(np.percentile(times, 90))}
 
 
+def prompt_hashes(model_dir: Path) -> dict[str, Any]:
+    """Each shipped prompt template's sha256 and slots (the manifest's ``prompts``), so an
+    evaluation names the exact wording it was asked with."""
+    out: dict[str, Any] = {}
+    for mode in MODES:
+        path = Path(model_dir) / "prompts" / f"{mode}.txt"
+        if not path.is_file():
+            continue
+        data = path.read_bytes()
+        template = PromptTemplate(mode, data.decode("utf-8"), str(path))
+        out[mode] = {"file": f"prompts/{mode}.txt",
+                     "sha256": hashlib.sha256(data).hexdigest(),
+                     "slots": sorted(template.slots)}
+    return out
+
+
 def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, Any]:
     started = time.perf_counter()
     work = Path(cfg.work)
@@ -105,6 +144,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
                        threads=cfg.threads)
     vq = train(data, base, work / "vq", progress)
+    zeros = train(data, replace(base, model=ModelConfig(decoder="zeros")), work / "vq_zeros",
+                  progress) if cfg.zeros else None
     beta = train(data, replace(base, model=ModelConfig(variant="beta")), work / "beta",
                  progress) if cfg.beta else None
 
@@ -126,6 +167,10 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     codebook = codebook_of(onnx_bytes)
     embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
         "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
+    if zeros is not None:
+        assert zeros.model.quantiser is not None
+        embedders["vq_zeros"] = ((lambda x: embed(zeros.model, zeros.norm, x)),
+                                 zeros.model.quantiser.codebook.detach().numpy().copy())
     if beta is not None:
         embedders["beta"] = ((lambda x: embed(beta.model, beta.norm, x)), None)
     report = evaluate.evaluate(embedders, data.presses, data.splits, unseen, stage / EVAL_DIR,
@@ -141,12 +186,15 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     metrics = evaluate.summary_metrics(report) | {
         "vq_epochs": vq.epochs, "vq_best_epoch": vq.best_epoch,
         "vq_best_val_loss": vq.best_val,
+        "vq_zeros_best_epoch": zeros.best_epoch if zeros else None,
+        "vq_zeros_best_val_loss": zeros.best_val if zeros else None,
         "beta_best_epoch": beta.best_epoch if beta else None,
         "beta_best_val_loss": beta.best_val if beta else None,
         "dead_codes_at_best": vq.summary()["dead_codes_at_best"],
         "codes_used_by_references": len(np.unique(db.code)),
     }
     timings |= {"record_s": t_rec, "recordings_reused": reused, "train_vq_s": vq.seconds,
+                "train_vq_zeros_s": zeros.seconds if zeros else None,
                 "train_beta_s": beta.seconds if beta else None,
                 "release_s": time.perf_counter() - started}
     sections = {
@@ -173,6 +221,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                         "recorder": ref_index["recorder"], "press": ref_index["press"],
                         "transport": ref_index["transport"]},
             "vq": {"config": vq.config.to_dict(), "result": vq.summary()},
+            "vq_zeros": {"config": zeros.config.to_dict(), "result": zeros.summary()}
+            if zeros else None,
             "beta": {"config": beta.config.to_dict(), "result": beta.summary()} if beta else None,
             "normalisation_floor": f"per-channel std floored at {STD_FLOOR_FRACTION} x the "
                                    "RMS of the channel stds",
@@ -181,6 +231,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                                   "cube_presses_per_class": cfg.unseen_presses},
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
+        "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,
         "versions": versions(),

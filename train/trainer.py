@@ -58,7 +58,7 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TrainConfig:
         d = dict(d)
-        d["model"] = ModelConfig(**d.get("model", {}))
+        d["model"] = ModelConfig.from_dict(d.get("model", {}))
         return cls(**d)
 
 
@@ -193,7 +193,8 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
     started = time.perf_counter()
     stopped = "max epochs"
     epoch = 0
-    progress.begin(f"train {cfg.variant}", config.max_epochs)
+    name = cfg.variant + ("" if cfg.decoder == "teacher" else f"_{cfg.decoder}")
+    progress.begin(f"train {name}", config.max_epochs)
     for epoch in range(1, config.max_epochs + 1):
         t0 = time.perf_counter()
         model.train()
@@ -256,7 +257,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
     progress.update(epoch, f"{stopped}: best val {best_val:.4f} at epoch {best_epoch}",
                     final=True)
     log.info("trained %s: %d epochs, best val %.4f at %d, %.1f s",
-             cfg.variant, epoch, best_val, best_epoch, seconds)
+             name, epoch, best_val, best_epoch, seconds)
     return TrainResult(model, data.norm, config, best_epoch, epoch, best_val, seconds,
                        stopped, history, classes)
 

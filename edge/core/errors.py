@@ -55,6 +55,10 @@ class ModelError(EdgeError, ValueError):
     """The encoder or reference database is missing, corrupt or inconsistent."""
 
 
+class DescriptionError(ModelError):
+    """A reference class's description says how the object feels instead of naming it."""
+
+
 class VLMError(EdgeError):
     """The vision-language model could not give a valid answer."""
 

@@ -10,7 +10,8 @@ numpy + onnxruntime only (never torch). A model directory holds:
   nearest codebook vector.
 - ``database.npz`` (numpy arrays, loaded with ``allow_pickle=False``) and ``database.json``
   (labels, their descriptions, the retrieval settings): the embeddings of every reference
-  press, grouped by class.
+  sample, grouped by class: every subsampling offset of every reference press (the paper's
+  50 per class: 10 presses x 5 offsets).
 - ``manifest.json``: the sha256 and size of every runtime file (the prompt templates
   included), the training configuration, metrics and versions. :func:`load_model` checks
   every listed file before using any of it and refuses a missing or altered one.
@@ -151,25 +152,30 @@ class ReferenceDatabase:
 
     Arrays (N references, D dims, K codes): ``z`` (N, D) and ``z_q`` (N, D) float32, ``code``
     (N,) int64, ``label_index`` (N,) int32 into ``classes``, ``source`` (N,) the press file
-    names, ``codebook`` (K, D) float32. ``space`` says which embedding retrieval compares:
-    ``z`` (continuous, the default) or ``z_q`` (the query is quantised to its nearest code
-    first).
+    names, ``offset`` (N,) int8 the subsampling offset each reference was cut at (one press
+    gives one reference per offset; a database written before offsets were stored reads as
+    offset 0 throughout), ``codebook`` (K, D) float32. ``space`` says which embedding
+    retrieval compares: ``z`` (continuous, the default) or ``z_q`` (the query is quantised
+    to its nearest code first).
     """
 
     def __init__(self, classes: Sequence[ClassInfo], z: np.ndarray, z_q: np.ndarray,
                  code: np.ndarray, label_index: np.ndarray, source: Sequence[str],
                  codebook: np.ndarray, space: Space = "z", k: int = DEFAULT_K,
-                 name: str = DATABASE_ARRAYS) -> None:
+                 name: str = DATABASE_ARRAYS, offset: np.ndarray | None = None) -> None:
         classes = tuple(classes)
         z = np.asarray(z, dtype=np.float32)
         n = z.shape[0] if z.ndim == 2 else -1
+        if offset is None:
+            offset = np.zeros(max(n, 0), dtype=np.int8)
         problems = []
         if z.ndim != 2 or n < 1:
             problems.append(f"z must be (N, D) with N >= 1, got {z.shape}")
         else:
             if np.shape(z_q) != z.shape:
                 problems.append(f"z_q shape {np.shape(z_q)} differs from z {z.shape}")
-            for key, arr in (("code", code), ("label_index", label_index), ("source", source)):
+            for key, arr in (("code", code), ("label_index", label_index), ("source", source),
+                             ("offset", offset)):
                 if np.shape(arr) != (n,):
                     problems.append(f"{key} has shape {np.shape(arr)}, expected ({n},)")
             if np.ndim(codebook) != 2 or np.shape(codebook)[1] != z.shape[1]:
@@ -209,6 +215,7 @@ class ReferenceDatabase:
         self.code = code[order]
         self.label_index = label_index[order]
         self.source = np.asarray(source, dtype=str)[order]
+        self.offset = np.asarray(offset, dtype=np.int8)[order]
         self.codebook = codebook
         self.space: Space = space
         self.k = k
@@ -278,13 +285,17 @@ class ReferenceDatabase:
     # ----- building and storage
 
     def with_class(self, info: ClassInfo, z: np.ndarray, code: np.ndarray,
-                   source: Sequence[str]) -> ReferenceDatabase:
-        """A new database with ``z`` (and their codes) added under ``info.label``.
+                   source: Sequence[str], offset: np.ndarray | None = None
+                   ) -> ReferenceDatabase:
+        """A new database with ``z`` (and their codes, sources and offsets) added under
+        ``info.label``.
 
         An existing label keeps its references, gains these, and takes the new description.
         """
         z = np.asarray(z, dtype=np.float32)
         code = np.asarray(code, dtype=np.int64)
+        if offset is None:
+            offset = np.zeros(len(z), dtype=np.int8)
         classes = list(self.classes)
         if info.label in self._labels:
             idx = self._labels.index(info.label)
@@ -299,10 +310,18 @@ class ReferenceDatabase:
             np.concatenate([self.code, code]),
             np.concatenate([self.label_index, np.full(len(z), idx, dtype=np.int32)]),
             [*self.source.tolist(), *source],
-            self.codebook, self.space, self.k)
+            self.codebook, self.space, self.k,
+            offset=np.concatenate([self.offset, np.asarray(offset, dtype=np.int8)]))
+
+    @property
+    def offsets(self) -> list[int]:
+        """The subsampling offsets the references were cut at."""
+        return sorted(int(o) for o in np.unique(self.offset))
 
     def index_json(self, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
         counts = np.bincount(self.label_index, minlength=len(self.classes))
+        presses = [len(set(self.source[self.label_index == i].tolist()))
+                   for i in range(len(self.classes))]
         return {
             "schema_version": DATABASE_SCHEMA,
             "space": self.space,
@@ -310,8 +329,10 @@ class ReferenceDatabase:
             "embedding_dim": self.dim,
             "codebook_size": int(self.codebook.shape[0]),
             "references": len(self),
+            "offsets": self.offsets,
             "classes": [{"label": c.label, "description": c.description, "split": c.split,
-                         "presses": int(n)} for c, n in zip(self.classes, counts, strict=True)],
+                         "presses": p, "references": int(n)}
+                        for c, n, p in zip(self.classes, counts, presses, strict=True)],
             **(extra or {}),
         }
 
@@ -322,7 +343,7 @@ class ReferenceDatabase:
         np.savez_compressed(
             buf, z=self.z, z_q=self.z_q, code=self.code, label_index=self.label_index,
             classes=np.array(self._labels, dtype=str), source=self.source,
-            codebook=self.codebook)
+            offset=self.offset, codebook=self.codebook)
         atomic_write_bytes(directory / DATABASE_ARRAYS, buf.getvalue())
         atomic_write_text(directory / DATABASE_INDEX,
                           json.dumps(self.index_json(extra), indent=2) + "\n")
@@ -352,6 +373,7 @@ class ReferenceDatabase:
                 if missing:
                     raise ModelError(f"{npz_name}: missing arrays {', '.join(missing)}")
                 a = {key: npz[key] for key in keys}
+                offset = npz["offset"] if "offset" in npz.files else None
         except ModelError:
             raise
         except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
@@ -359,7 +381,8 @@ class ReferenceDatabase:
         if a["classes"].tolist() != [c.label for c in classes]:
             raise ModelError(f"{npz_name} and {json_name} list different classes")
         return cls(classes, a["z"], a["z_q"], a["code"], a["label_index"],
-                   a["source"].tolist(), a["codebook"], space, k, name=npz_name)
+                   a["source"].tolist(), a["codebook"], space, k, name=npz_name,
+                   offset=offset)
 
     @classmethod
     def load(cls, directory: str | Path) -> ReferenceDatabase:

@@ -3,9 +3,12 @@ training, so what the model is trained on and what the robot feeds it cannot dri
 
 Tactile units are ``(raw - tare) / 65536`` per channel. The model sees a window of
 ``[t_stop - 0.4 s, t_stop + 0.6 s)`` on an ideal 125 Hz grid placed from frame timestamps
-(so a late sampler wake-up never shifts the data), subsampled to 25 Hz at an offset 0..4.
-The training target is the same window smoothed with a Gaussian (sigma 3 samples) and
-subsampled the same way.
+(so a late sampler wake-up never shifts the data), subsampled to 25 Hz at an offset 0..4:
+the model input ``X``, never smoothed. The training target ``X_bar`` is the observed 125 Hz
+stream smoothed with a Gaussian (sigma 3 samples) *before* the crop, then cropped and
+subsampled the same way: the stream is resampled on the same 125 Hz grid extended by the
+filter's reach on both sides, smoothed, and the window cut out of the middle, so its first and
+last samples average real neighbours instead of a padded edge.
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from scipy.ndimage import gaussian_filter1d
 from edge.core.errors import PreprocessError
 
 UNITS_SCALE = 65536.0
+# scipy's gaussian_filter1d reaches this many sigmas either side (its ``truncate``).
+GAUSSIAN_TRUNCATE = 4.0
 
 
 @dataclass(frozen=True)
@@ -44,9 +49,17 @@ class WindowSpec:
     def n_steps(self) -> int:
         return self.n_window // self.subsample
 
-    def grid(self, t_stop: float) -> np.ndarray:
-        """The ideal sample times of the window around ``t_stop``."""
-        return t_stop - self.before_s + np.arange(self.n_window) * self.period_s
+    @property
+    def smooth_margin(self) -> int:
+        """Samples the Gaussian reaches on each side: the stream the target needs beyond the
+        window (12 at sigma 3, 96 ms at 125 Hz)."""
+        return int(GAUSSIAN_TRUNCATE * self.sigma_samples + 0.5)
+
+    def grid(self, t_stop: float, margin: int = 0) -> np.ndarray:
+        """The ideal sample times of the window around ``t_stop``, with ``margin`` more
+        samples of the same grid on each side."""
+        steps = np.arange(-margin, self.n_window + margin)
+        return t_stop - self.before_s + steps * self.period_s
 
 
 DEFAULT_WINDOW = WindowSpec()
@@ -115,8 +128,29 @@ def subsample(window: np.ndarray, offset: int, spec: WindowSpec = DEFAULT_WINDOW
 
 
 def smooth(window: np.ndarray, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
-    """Gaussian smoothing along time: the reconstruction target before subsampling."""
-    return gaussian_filter1d(window, spec.sigma_samples, axis=0, mode="nearest")
+    """Gaussian smoothing along time (edges padded with their nearest sample)."""
+    return gaussian_filter1d(window, spec.sigma_samples, axis=0, mode="nearest",
+                             truncate=GAUSSIAN_TRUNCATE)
+
+
+def smoothed_crop(times: np.ndarray, units: np.ndarray, t_stop: float,
+                  spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
+    """The target's 125 Hz window: the stream on the window's grid extended by the filter's
+    reach (``spec.smooth_margin`` samples each side), smoothed, then cropped to the window.
+
+    The result equals smoothing an unbounded 125 Hz stream: no sample of the window is
+    filtered against a padded edge. The recording must reach that far (recordings keep
+    0.2 s beyond the window; the filter needs 0.096 s).
+    """
+    margin = spec.smooth_margin
+    try:
+        wide = resample(times, units, spec.grid(t_stop, margin))
+    except PreprocessError as exc:
+        raise PreprocessError(
+            f"{exc}; the smoothed target also needs {margin} samples "
+            f"({margin * spec.period_s * 1e3:.0f} ms) of stream beyond each end of the "
+            "window") from None
+    return smooth(wide, spec)[margin:margin + spec.n_window]
 
 
 def model_input(times: np.ndarray, units: np.ndarray, t_stop: float,
@@ -127,9 +161,10 @@ def model_input(times: np.ndarray, units: np.ndarray, t_stop: float,
 
 def training_pairs(times: np.ndarray, units: np.ndarray, t_stop: float,
                    spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
-    """All offsets of one press: inputs X and targets X_bar, each (subsample, n_steps, C)."""
+    """All offsets of one press: inputs X (the raw crop) and targets X_bar (smoothed before
+    the crop), each (subsample, n_steps, C)."""
     window = crop(times, units, t_stop, spec)
-    target = smooth(window, spec)
+    target = smoothed_crop(times, units, t_stop, spec)
     xs = np.stack([subsample(window, o, spec) for o in range(spec.subsample)])
     ts = np.stack([subsample(target, o, spec) for o in range(spec.subsample)])
     return xs.astype(np.float32), ts.astype(np.float32)

@@ -1,10 +1,11 @@
 """Prompt templates for the VLM (docs/method.md, 'Prompt').
 
 A template is a text file (``models/prompts/<mode>.txt``) read with :class:`string.Template`
-and two slots: ``${topk_refs}`` (the tactile description, e.g. "a cube of hard wood that does
-not give at all, a cube of smooth steel") and ``${test_time_classes}`` (the candidate labels,
-known only at run time). Loading refuses unknown slots, a missing slot and a stray ``$``, so a
-typo in a template fails at start-up, not as a silently odd prompt on the robot.
+and two slots: ``${topk_refs}`` (the tactile description: the names of the reference objects
+a press felt like, e.g. "wood cube, stainless steel cube, rubber eraser") and
+``${test_time_classes}`` (the candidate labels, known only at run time). Loading refuses
+unknown slots, a missing slot and a stray ``$``, so a typo in a template fails at start-up,
+not as a silently odd prompt on the robot.
 
 Candidates are rendered as JSON strings joined by ", " (``"raw_kiri_mochi",
 "boiled_kiri_mochi"``): each label exactly as given and unambiguous even if a label holds a
@@ -54,8 +55,13 @@ class PromptTemplate:
         return self.mode != "tactile_only"
 
     @property
+    def slots(self) -> frozenset[str]:
+        """The slot names the template uses."""
+        return frozenset(string.Template(self.text).get_identifiers())
+
+    @property
     def uses_description(self) -> bool:
-        return DESCRIPTION_SLOT in string.Template(self.text).get_identifiers()
+        return DESCRIPTION_SLOT in self.slots
 
     def render(self, description: str, candidates: Sequence[str]) -> str:
         """The prompt with ``description`` and ``candidates`` filled in."""

@@ -10,8 +10,9 @@ arrived) for assertions; ``on_request`` is called with each once it is answered.
 What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
 (a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
 trickle, a dropped connection, latency); when the queue is empty it answers the label that
-``choose`` picks (default: the first candidate; :func:`choose_by_touch` looks at the
-picture and reads the touch sentence, for the ``vt-train eval-vlm`` tests and demo).
+``choose`` picks (default: the first candidate). The simulated VLM
+(:mod:`edge.sim.standin_vlm`, a chooser that knows only what a VLM would know) is served by
+this same class.
 
     async with FakeVLM(model="fake") as fake:
         fake.script(Reply.error(503), Reply(label="wood_cube"))
@@ -28,14 +29,13 @@ import base64
 import binascii
 import collections
 import contextlib
-import functools
 import io
 import json
 import logging
 import re
 import signal
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -132,64 +132,6 @@ def choose_by_description(req: FakeRequest) -> str:
         return len(set(re.findall(r"[a-z]+", label.lower())) & words)
 
     return max(req.candidates, key=score)
-
-
-# Softer than this (Young's modulus) a reference class feels soft under the pad's skin.
-SOFT_BELOW_PA = 1e6
-# For descriptions that name no catalogue class: words that say how an object gives.
-SOFT_WORDS = frozenset({"soft", "softly", "squashy", "squashes", "spongy", "mushy", "wobbly",
-                        "airy", "doughy", "gives", "yields", "flows", "chewy", "moist"})
-HARD_WORDS = frozenset({"hard", "rigid", "unyielding", "crisp", "metal", "steel", "glass"})
-# Label prefixes of the stiffer member of a look-alike pair.
-HARD_PREFIXES = ("resin_replica_", "raw_")
-
-
-@functools.lru_cache(maxsize=512)
-def _picture(label: str) -> bytes | None:
-    from edge.sim.camera import render
-
-    try:
-        return render(label)
-    except KeyError:
-        return None
-
-
-@functools.lru_cache(maxsize=1)
-def _reference_feel() -> tuple[tuple[str, bool], ...]:
-    from edge.sim.catalogue import REFERENCE
-
-    return tuple((o.description, o.youngs_pa < SOFT_BELOW_PA) for o in REFERENCE)
-
-
-def feels_soft(description: str) -> bool:
-    """Whether a tactile sentence says soft: the majority of the reference classes it names
-    (by their catalogue stiffness), else soft words outnumbering hard ones."""
-    named = sorted((description.find(text), soft) for text, soft in _reference_feel()
-                   if text in description)
-    if named:
-        return 2 * sum(soft for _, soft in named) > len(named)
-    words = re.findall(r"[a-z]+", description.lower())
-    return sum(w in SOFT_WORDS for w in words) > sum(w in HARD_WORDS for w in words)
-
-
-def choose_by_touch(req: FakeRequest) -> str:
-    """A VLM that sees the simulated camera's picture and reads the touch sentence.
-
-    It keeps the candidates whose picture is the one sent (a food and its replica look
-    alike; no match: all candidates); with no tactile sentence it answers the first of them;
-    with one it answers the softer member of the pair (no ``resin_replica_``/``raw_``
-    prefix) when :func:`feels_soft`, else the harder member.
-    """
-    image = req.images[0] if req.images else None
-    alike = [c for c in req.candidates if image is not None and _picture(c) == image]
-    alike = alike or list(req.candidates)
-    if not req.description.strip():
-        return alike[0]
-    soft = feels_soft(req.description)
-    for label in alike:
-        if label.startswith(HARD_PREFIXES) != soft:
-            return label
-    return alike[0]
 
 
 def validate_chat_request(body: Any) -> tuple[str | None, dict[str, Any]]:
@@ -305,18 +247,25 @@ class FakeVLM:
         *,
         host: str = "127.0.0.1",
         port: int = 0,
-        model: str | None = "fake-vlm",
+        model: str | Sequence[str] | None = "fake-vlm",
         api_key: str | None = None,
         choose: Chooser = first_candidate,
         latency_s: float = 0.0,
         max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
         echo_key_in_errors: bool = False,
         on_request: Callable[[FakeRequest], None] | None = None,
+        title: str = "fake VLM",
+        fingerprint: str = "fake-vlm",
     ) -> None:
         self.host = host
         self.port = port
-        # None accepts any model name.
-        self.model = model
+        # None accepts any model name; several names are several models of one server.
+        self.models: tuple[str, ...] | None = (
+            None if model is None else (model,) if isinstance(model, str) else tuple(model))
+        self.model = None if self.models is None else self.models[0]
+        # What it calls itself in its log lines, and its answers' system_fingerprint.
+        self.title = title
+        self.fingerprint = fingerprint
         self.api_key = api_key
         self.choose = choose
         self.latency_s = latency_s
@@ -355,7 +304,7 @@ class FakeVLM:
         await self._runner.setup()
         await web.TCPSite(self._runner, self.host, self.port).start()
         self.port = self._runner.addresses[0][1]  # the bound port when port=0
-        log.info("fake VLM listening on %s", self.base_url)
+        log.info("%s listening on %s", self.title, self.base_url)
         return self
 
     async def stop(self) -> None:
@@ -373,7 +322,8 @@ class FakeVLM:
 
     async def _models(self, request: web.Request) -> web.Response:
         return web.json_response({"object": "list", "data": [
-            {"id": self.model or "fake-vlm", "object": "model", "owned_by": "vtzero"}]})
+            {"id": name, "object": "model", "owned_by": "vtzero"}
+            for name in (self.models or ("fake-vlm",))]})
 
     async def _chat(self, request: web.Request) -> web.StreamResponse:
         rec = FakeRequest(request.method, request.path, dict(request.headers), b"",
@@ -408,7 +358,7 @@ class FakeVLM:
         if err:
             return self._error(rec, 400, err, "invalid_request_error")
         assert isinstance(rec.body, dict)
-        if self.model is not None and rec.body["model"] != self.model:
+        if self.models is not None and rec.body["model"] not in self.models:
             return self._error(rec, 404, f"model {rec.body['model']!r} not found, try "
                                          "pulling it first", "model_not_found")
         reply = self._replies.popleft() if self._replies else Reply()
@@ -457,7 +407,7 @@ class FakeVLM:
         return {
             "id": f"chatcmpl-fake-{self._count}", "object": "chat.completion",
             "created": int(time.time()), "model": body.get("model", self.model),
-            "system_fingerprint": "fake-vlm",
+            "system_fingerprint": self.fingerprint,
             "choices": [{"index": 0, "finish_reason": "stop",
                          "message": {"role": "assistant", "content": content}}],
             "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": completion_tokens,
@@ -466,7 +416,7 @@ class FakeVLM:
 
     def _error(self, rec: FakeRequest, status: int, message: str, code: str) -> web.Response:
         rec.error, rec.status = message, status
-        log.debug("fake VLM refused a request: %d %s", status, message)
+        log.debug("%s refused a request: %d %s", self.title, status, message)
         return web.json_response(
             {"error": {"message": message, "type": "invalid_request_error", "code": code}},
             status=status)
@@ -476,8 +426,10 @@ async def _serve(args: argparse.Namespace) -> None:
     choose: Chooser = first_candidate
     if args.choose == "description":
         choose = choose_by_description
-    elif args.choose == "touch":
-        choose = choose_by_touch
+    elif args.choose == "standin":
+        from edge.sim.standin_vlm import StandIn
+
+        choose = StandIn()
     elif args.choose.startswith("label:"):
         fixed = args.choose.removeprefix("label:")
 
@@ -504,7 +456,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8011)
     parser.add_argument("--model", default="fake-vlm", help="model name to accept ('' = any)")
     parser.add_argument("--choose", default="first",
-                        help="first | description | touch | label:<name> (default first)")
+                        help="first | description | standin (the simulated VLM's choice) | "
+                        "label:<name> (default first)")
     parser.add_argument("--latency-s", type=float, default=0.0)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

@@ -3,6 +3,11 @@
 Three processes, as on a robot: ``vt-edge sim serve`` (the emulated arm and pads),
 ``vt-edge run`` (the daemon, unchanged but for device addresses), and this client, which
 places objects on the emulated table and asks the daemon's HTTP API to recognise them.
+
+The VLM: the endpoint in ``$VTZERO_VLM_URL`` (and ``$VTZERO_VLM_MODEL``) when set; else a
+fourth process, the simulated VLM (``python -m edge.sim.standin_vlm``: it knows only object
+names and pictures, never the simulator's physics), and every label it gives is printed as
+coming from it.
 """
 
 from __future__ import annotations
@@ -24,6 +29,8 @@ CUBE = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash", "boiled_kab
 FOOD = ("macaron", "resin_replica_macaron", "canele", "resin_replica_konjac")
 START_TIMEOUT_S = 60.0
 RECOGNIZE_TIMEOUT_S = 60.0
+STANDIN_MODEL = "simulated-vlm"  # edge.sim.standin_vlm.DEFAULT.model
+STANDIN_TAG = "simulated VLM"
 
 VLM_HELP = """\
 No VLM is configured, so no label is given (none is ever invented). Point the daemon at any
@@ -76,6 +83,31 @@ def _stop(proc: subprocess.Popen, name: str) -> int:
     return proc.returncode
 
 
+STANDIN_NOTE = """\
+The labels above come from the simulated VLM (edge/sim/standin_vlm.py), not a real model: it
+compares the photo with each candidate's picture and reads the touch sentence's object names
+through a small table of common sense (edge/sim/common_sense.py). For a real VLM:"""
+
+
+def _start_standin(tmp: Path, env: dict) -> tuple[subprocess.Popen, str]:
+    """The simulated VLM on a free loopback port; returns the process and its base URL."""
+    log_path = tmp / "simulated-vlm.log"
+    with log_path.open("w") as log_file:
+        proc = subprocess.Popen([sys.executable, "-m", "edge.sim.standin_vlm", "--port", "0"],
+                                stdout=log_file, stderr=subprocess.STDOUT, env=env)
+    url: list[str] = []
+
+    def ready() -> bool:
+        for line in log_path.read_text().splitlines():
+            if line.startswith("simulated VLM at "):
+                url.append(line.split()[3])
+                return True
+        return False
+
+    _wait_for(ready, START_TIMEOUT_S, "simulated VLM", proc)
+    return proc, url[0]
+
+
 def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
     press = ep.get("press", {})
     print(f"\n== {name}")
@@ -90,23 +122,37 @@ def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
     topk = ", ".join(f"{t['label']} ({t['distance']:.3f})" for t in ep.get("topk", []))
     print(f"   touch: top-3 {topk}")
     print(f"   sentence: \"{ep.get('description')}\"")
+    model = (ep.get("vlm") or {}).get("model") or ""
+    source = STANDIN_TAG if model == STANDIN_MODEL else f"VLM {model}"
     if ep.get("label"):
-        print(f"   VLM label: {ep['label']}  ({'right' if ep['label'] == name else 'wrong'})")
+        print(f"   label ({source}): {ep['label']}  "
+              f"({'right' if ep['label'] == name else 'wrong'})")
     else:
-        print(f"   VLM: {ep.get('status')}")
+        print(f"   {source}: {ep.get('status')}")
 
 
 def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE + FOOD) -> int:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.setdefault("VTZERO_LOG_LEVEL", "WARNING")
+    standin = not env.get("VTZERO_VLM_URL", "").strip()
     with tempfile.TemporaryDirectory(prefix="vtzero-demo-") as tmp:
         run_cfg = Path(tmp) / "sim-run.toml"
         env["VTZERO_STATE_DIR"] = str(Path(tmp) / "state")
+        vlm = None
+        if standin:
+            print("no VLM endpoint configured ($VTZERO_VLM_URL): starting the simulated VLM "
+                  "...", flush=True)
+            vlm, url = _start_standin(Path(tmp), env)
+            env["VTZERO_VLM_URL"], env["VTZERO_VLM_MODEL"] = url, STANDIN_MODEL
+        else:
+            print(f"VLM: {env['VTZERO_VLM_URL']} ({env.get('VTZERO_VLM_MODEL', '')})",
+                  flush=True)
         print("starting the emulated robot and the daemon ...", flush=True)
         sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config", config,
                                 "--write-config", str(run_cfg), "--object", objects[0]],
                                env=env)
         daemon = None
+        right = answered = 0
         try:
             _wait_for(run_cfg.exists, START_TIMEOUT_S, "emulated robot", sim)
             from edge.core.config import load_config
@@ -130,6 +176,9 @@ def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE +
                     print(f"\n== {name}: HTTP {ep['http_status']}: {ep.get('error')}")
                     continue
                 _print_episode(name, ep, peak)
+                if ep.get("label"):
+                    answered += 1
+                    right += ep["label"] == name
                 if ep.get("status") == "not_configured" and not shown_prompt:
                     prompt = (ep.get("vlm") or {}).get("prompt")
                     print("\n   The prompt it would send (with the photo):\n")
@@ -137,8 +186,15 @@ def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE +
                     shown_prompt = True
             if shown_prompt:
                 print("\n" + VLM_HELP)
+            if answered:
+                who = STANDIN_TAG if standin else env.get("VTZERO_VLM_MODEL", "the VLM")
+                print(f"\n{who}: {right} of {answered} labels right")
+            if standin:
+                print("\n" + STANDIN_NOTE + "\n" + VLM_HELP.split("\n", 2)[2])
         finally:
             if daemon is not None:
                 _stop(daemon, "daemon")
             _stop(sim, "emulated robot")
+            if vlm is not None:
+                _stop(vlm, "simulated VLM")
     return 0

@@ -66,3 +66,35 @@ def test_preprocessing_round_trips_through_the_file_bit_exactly(tmp_path):
     for a, b in zip(preprocess.recording_pairs(rec), preprocess.recording_pairs(back), strict=True):
         np.testing.assert_array_equal(a, b)
     assert back.meta() == rec.meta()
+
+
+def test_target_is_smoothed_before_the_crop_without_edge_effects():
+    # A stream with a step right at the window's first sample: smoothing the crop alone
+    # would see a flat padded edge there; smoothing the stream first sees the step.
+    t_stop = 10.0
+    times = W.grid(t_stop, margin=40)  # frames on the 125 Hz grid, 40 beyond each end
+    units = (np.arange(len(times)) < 40).astype(np.float32)[:, None]  # 1 before the window
+    target = preprocess.smoothed_crop(times, units, t_stop)
+    cropped_then_smoothed = preprocess.smooth(preprocess.crop(times, units, t_stop))
+    assert cropped_then_smoothed[0, 0] == 0.0  # the edge effect the paper's order avoids
+    # The window's first sample gets the kernel's weight on the 12 samples before it.
+    k = np.arange(-12, 13)
+    w = np.exp(-0.5 * (k / 3.0) ** 2)
+    assert target[0, 0] == pytest.approx(w[k < 0].sum() / w.sum(), rel=1e-5)
+    assert target[0, 0] == pytest.approx(0.434, abs=1e-3)
+    assert target[60, 0] == 0.0  # far from the step: untouched
+    # X is the raw crop; X_bar the smoothed stream, cropped and subsampled the same way.
+    xs, x_bar = preprocess.training_pairs(times, units, t_stop)
+    np.testing.assert_array_equal(xs[2], preprocess.crop(times, units, t_stop)[2::5])
+    np.testing.assert_array_equal(x_bar[2], target[2::5])
+
+
+def test_target_needs_the_filters_reach_beyond_the_window():
+    t_stop = 10.0
+    margin_s = (W.smooth_margin - 1) / 125.0  # one sample short on each side
+    times = np.arange(W.grid(t_stop)[0] - margin_s, W.grid(t_stop)[-1] + margin_s, 1 / 125.0)
+    units = np.zeros((len(times), 96), dtype=np.float32)
+    assert W.smooth_margin == 12
+    preprocess.crop(times, units, t_stop)  # the input itself is fine
+    with pytest.raises(PreprocessError, match=r"12 samples \(96 ms\) of stream beyond"):
+        preprocess.training_pairs(times, units, t_stop)

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.core.errors import ModelError, RecordingError
+from edge.core.errors import DescriptionError, EdgeError, ModelError, RecordingError
 from edge.core.model import ClassInfo, ReferenceDatabase, load_model, synthetic_database
 from train.database import add_class, build_into, topk_timing
 
@@ -41,10 +41,9 @@ def test_topk_returns_k_distinct_classes_nearest_first(seed, n, classes, k):
 
 
 def test_describe_and_z_q_space():
-    classes = [ClassInfo("wood_cube", "a cube of hard wood that does not give at all", "train"),
-               ClassInfo("stainless_cube", "a cube of smooth steel, rigid and unyielding",
-                         "train"),
-               ClassInfo("sponge_cube", "a squashy sponge", "train")]
+    classes = [ClassInfo("wood_cube", "wood cube", "train"),
+               ClassInfo("stainless_cube", "stainless steel cube", "train"),
+               ClassInfo("sponge_cube", "kitchen sponge cut into a cube", "train")]
     z = np.array([[0, 0], [0.1, 0], [1, 1], [5, 5]], dtype=np.float32)
     book = np.array([[0, 0], [1, 1], [5, 5]], dtype=np.float32)
     code = np.array([0, 0, 1, 2])
@@ -52,9 +51,7 @@ def test_describe_and_z_q_space():
                            ["a", "b", "c", "d"], book)
     assert [lab for lab, _ in db.topk(np.array([0.09, 0.0]), 2)] == \
         ["stainless_cube", "wood_cube"]
-    assert db.describe(["wood_cube", "stainless_cube"]) == (
-        "a cube of hard wood that does not give at all, "
-        "a cube of smooth steel, rigid and unyielding")
+    assert db.describe(["wood_cube", "stainless_cube"]) == "wood cube, stainless steel cube"
     with pytest.raises(ModelError, match="not in the reference database"):
         db.describe(["nothing"])
     zq = ReferenceDatabase(classes, z, book[code], code, np.array([0, 1, 1, 2]),
@@ -77,14 +74,18 @@ def test_db_add_extends_the_database_and_manifest(model_copy, cube_dir):
     model_dir = model_copy
     before = load_model(model_dir)
     db = add_class(model_dir, cube_dir / "boiled_kiri_mochi", "boiled_kiri_mochi",
-                   "a soft, sticky rice cake that flows under the fingers")
+                   "boiled kiri mochi (a Japanese rice cake)")
     assert db.labels[-1] == "boiled_kiri_mochi"
     after = load_model(model_dir)  # the manifest was re-hashed: it loads
-    assert len(after.database) == len(before.database) + 2
+    # Every offset of every press: 2 presses x 5 offsets.
+    assert len(after.database) == len(before.database) + 2 * 5
+    added = after.database.label_index == len(after.database.classes) - 1
+    assert sorted(after.database.offset[added].tolist()) == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4]
     z, _ = after.encode(np.zeros((25, 96), dtype=np.float32))
     assert len(after.topk(z, 40)) == 33
     index = json.loads((model_dir / "database.json").read_text())
     assert index["classes"][-1]["split"] == "added"
+    assert index["classes"][-1]["presses"] == 2 and index["classes"][-1]["references"] == 10
     assert json.loads((model_dir / "manifest.json").read_text())["database"]["added"] == [
         "boiled_kiri_mochi"]
     # The added presses are retrievable: each one's nearest class is itself.
@@ -93,6 +94,20 @@ def test_db_add_extends_the_database_and_manifest(model_copy, cube_dir):
     x = load_presses(cube_dir / "boiled_kiri_mochi").inputs(0)
     zs, _ = after.encode(x)
     assert all(after.topk(zi, 1)[0][0] == "boiled_kiri_mochi" for zi in zs)
+
+
+@pytest.mark.parametrize("description", [
+    "a soft, sticky rice cake that flows under the fingers",
+    "rice cake, firm", "a springy dumpling", "Hard candy", "mochi that feels like clay"])
+def test_db_add_refuses_a_description_that_says_how_it_feels(model_copy, cube_dir,
+                                                              description):
+    before = (model_copy / "database.json").read_bytes()
+    with pytest.raises(DescriptionError) as err:
+        add_class(model_copy, cube_dir / "boiled_kiri_mochi", "boiled_kiri_mochi", description)
+    message = str(err.value)
+    assert "names the object only" in message and "Remove those words" in message
+    assert isinstance(err.value, EdgeError) and isinstance(err.value, ValueError)
+    assert (model_copy / "database.json").read_bytes() == before  # nothing written
 
 
 def test_db_add_refuses_mixed_recordings(model_copy, cube_dir):
@@ -106,8 +121,47 @@ def test_db_build_into_a_model_directory(released, reference_dir, tmp_path):
     model_dir.mkdir()
     shutil.copy(released / "encoder.onnx", model_dir)
     db = build_into(model_dir, reference_dir, space="z_q")
-    assert db.space == "z_q" and len(db) == 64
+    assert db.space == "z_q" and len(db) == 32 * 2 * 5  # classes x presses x offsets
     model = load_model(model_dir)
     assert model.database.space == "z_q"
     shipped = load_model(released).database
     np.testing.assert_array_equal(db.z, shipped.z)
+
+
+def test_database_holds_every_offset_of_every_press(released, reference_dir):
+    """The paper's TactileReference: 5 subsampled sequences per press, all in the database,
+    each encoded exactly as the robot encodes its offset-0 input."""
+    from train.data import Splits, load_presses
+
+    db = load_model(released).database
+    splits = Splits.of_dataset(reference_dir)
+    assert len(db) == len(splits.classes) * 2 * 5 and db.offsets == [0, 1, 2, 3, 4]
+    index = json.loads((released / "database.json").read_text())
+    assert index["offsets"] == [0, 1, 2, 3, 4] and index["references"] == len(db)
+    assert all(c["presses"] == 2 and c["references"] == 10 for c in index["classes"])
+    model = load_model(released)
+    presses = load_presses(reference_dir, ["yokan"])
+    first = sorted(presses.paths)[0]
+    mine = np.flatnonzero(db.source == first.rsplit("/", 1)[1])
+    assert sorted(db.offset[mine].tolist()) == [0, 1, 2, 3, 4]
+    i = presses.paths.index(first)
+    for o in range(5):
+        z, _ = model.encode(presses.x[i, o])
+        row = mine[db.offset[mine] == o][0]
+        np.testing.assert_allclose(db.z[row], z, rtol=1e-6, atol=1e-6)
+
+
+def test_a_database_without_offsets_reads_as_offset_zero(tmp_path):
+    db = synthetic_database(10, 3)
+    assert db.offsets == [0]
+    db.save(tmp_path)
+    import io
+    import zipfile
+    data = (tmp_path / "database.npz").read_bytes()
+    with np.load(io.BytesIO(data)) as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "offset"}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    assert "offset.npy" not in zipfile.ZipFile(io.BytesIO(buf.getvalue())).namelist()
+    old = ReferenceDatabase.from_bytes(buf.getvalue(), (tmp_path / "database.json").read_bytes())
+    assert old.offsets == [0] and len(old) == 10

@@ -4,10 +4,8 @@ invalid answers, the shipped prompts, the CLI. Tiny sets (Cube, 2 presses per cl
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import io
 import json
-import threading
 
 import pytest
 from PIL import Image
@@ -17,7 +15,9 @@ from edge.core.errors import EvalVLMError
 from edge.core.model import load_model
 from edge.core.prompt import load_template
 from edge.sim.camera import render
-from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_touch
+from edge.sim.fake_vlm import FakeVLM, Reply
+from edge.sim.standin_vlm import StandIn
+from tests.support.vlm_thread import fake_in_thread
 from train import eval_vlm
 from train.eval_vlm import AnswerCache, EvalVLMConfig
 
@@ -60,7 +60,7 @@ def test_round_robin_order_and_limit(work):
 @pytest.mark.asyncio
 async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         report = await eval_vlm.run(settings(released, work, out, fake.base_url),
                                     progress=False)
     res = report["results"]["cube"]
@@ -112,7 +112,7 @@ async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work
 @pytest.mark.asyncio
 async def test_resume_after_a_stop_asks_nothing_twice(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         cfg = settings(released, work, out, fake.base_url, concurrency=1)
         fake.script(*[Reply()] * 5, Reply.error(400, "refused"))  # 400 is never retried
         with pytest.raises(EvalVLMError, match="run the same command again"):
@@ -135,7 +135,7 @@ async def test_cancelled_run_keeps_whole_lines_and_continues(released, work, tmp
     def choose(req):
         if len(fake.chat_requests) >= 9:  # 8 sent before, at most 3 of them still open
             busy.set()
-        return choose_by_touch(req)
+        return StandIn()(req)
 
     async with FakeVLM(model=MODEL, choose=choose, latency_s=0.02) as fake:
         cfg = settings(released, work, out, fake.base_url,
@@ -157,7 +157,7 @@ async def test_cancelled_run_keeps_whole_lines_and_continues(released, work, tmp
 @pytest.mark.asyncio
 async def test_invalid_answers_are_counted_not_mapped(released, work, tmp_path):
     out = tmp_path / "ev"
-    async with FakeVLM(model=MODEL, choose=choose_by_touch) as fake:
+    async with FakeVLM(model=MODEL, choose=StandIn()) as fake:
         cfg = settings(released, work, out, fake.base_url, concurrency=1,
                        conditions=("vision_only",))
         # The first question: a non-candidate twice (the answer and the corrective retry).
@@ -188,23 +188,6 @@ def test_answer_cache_drops_a_torn_last_line(tmp_path):
     assert [json.loads(line)["key"] for line in path.read_text().splitlines()] == ["a", "c"]
 
 
-@contextlib.contextmanager
-def fake_in_thread(**kwargs):
-    """The fake on its own loop in a thread, for the synchronous CLI."""
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_forever, daemon=True)
-    thread.start()
-    fake = FakeVLM(**kwargs)
-    asyncio.run_coroutine_threadsafe(fake.start(), loop).result(10)
-    try:
-        yield fake
-    finally:
-        asyncio.run_coroutine_threadsafe(fake.stop(), loop).result(10)
-        loop.call_soon_threadsafe(loop.stop)
-        thread.join(10)
-        loop.close()
-
-
 def png(colour: tuple[int, int, int]) -> bytes:
     buf = io.BytesIO()
     Image.new("RGB", (64, 48), colour).save(buf, "PNG")
@@ -224,7 +207,7 @@ def test_cli_with_key_photos_limit_and_dry_run(released, work, tmp_path, capsys,
     key = "sk-test-0123456789"
     monkeypatch.setenv("VTZERO_VLM_API_KEY", key)
     out = tmp_path / "ev"
-    with fake_in_thread(model=MODEL, api_key=key, choose=choose_by_touch) as fake:
+    with fake_in_thread(model=MODEL, api_key=key, choose=StandIn()) as fake:
         args = ["eval-vlm", "--url", fake.base_url, "--model", MODEL,
                 "--model-dir", str(released), "--unseen", str(rec / "cube"),
                 "--reference", str(rec / "reference"), "--beta", str(tmp_path / "none.pt"),

@@ -31,13 +31,19 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert set(manifest["files"]) == {"encoder.onnx", "database.npz", "database.json"}
     m = manifest["metrics"]
     assert 0.0 <= m["kiri_mochi_auc"] <= 1.0
-    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "beta/z"}
+    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "vq_zeros/z", "vq_zeros/z_q", "beta/z"}
+    assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
+    assert manifest["training"]["vq_zeros"]["config"]["model"]["decoder"] == "zeros"
+    assert manifest["database"]["references"] == 32 * PRESSES * 5
+    assert manifest["database"]["offsets"] == [0, 1, 2, 3, 4]
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     assert {"torch", "onnxruntime", "vtzero"} <= set(manifest["versions"])
     report = json.loads((released / "eval" / "eval.json").read_text())
-    assert len(report["rows"]) == 3
+    assert len(report["rows"]) == 5
+    assert report["references"] == 32 * PRESSES * 5 and report["query_offset"] == 0
     md = (released / "eval" / "eval.md").read_text()
-    assert "| vq | z |" in md
+    assert "| vq | z |" in md and "| vq_zeros | z |" in md
+    assert "`vq`: VQ-VAE, the paper's decoder" in md
     for block in md.split("\n\n"):  # every Markdown table has as many cells as its header
         rows = [line for line in block.splitlines() if line.startswith("|")]
         assert len({line.count("|") for line in rows}) <= 1, block
@@ -75,6 +81,33 @@ def test_cli_eval_and_db_add(released, model_copy, work, tmp_path, capsys):
     model_dir = model_copy
     assert main(["db", "add", "--model", str(model_dir), "--recordings",
                  str(rec / "cube" / "raw_kiri_mochi"), "--label", "dried_mochi",
-                 "--description", "a hard dried rice cake"]) == 0
+                 "--description", "a hard dried rice cake"]) == 2
+    assert "says how the object feels (hard)" in capsys.readouterr().err
+    assert main(["db", "add", "--model", str(model_dir), "--recordings",
+                 str(rec / "cube" / "raw_kiri_mochi"), "--label", "dried_mochi",
+                 "--description", "dried kiri mochi (a Japanese rice cake)"]) == 0
     assert main(["db", "add", "--model", str(tmp_path / "nowhere"), "--recordings",
                  str(rec / "cube"), "--label", "x", "--description", "y"]) == 2
+
+
+def test_loo_leaves_out_every_reference_of_the_press():
+    # Two classes, two presses each, five references per press: the query's own five
+    # references sit on it (distance 0) and must never be its neighbours.
+    rng = np.random.default_rng(0)
+    centres = np.array([[0.0, 0.0], [10.0, 0.0]])
+    labels = ["a", "a", "b", "b"]
+    queries = np.array([centres[0], centres[0] + 4.0, centres[1], centres[1]])
+    refs = np.repeat(queries, 5, axis=0) + rng.normal(0, 0.01, (20, 2))
+    knn = evaluate.loo_knn(queries, labels, refs=refs, per_press=5)
+    # Press 1 of "a" sits 4 from "a"'s other press and further from "b": right; if its own
+    # references counted, every press would be right trivially; here press 0 of "a" has
+    # press 1 (at 4 + noise) as nearest, also "a".
+    assert knn["loo_1nn"] == 1.0 and knn["loo_top3"] == 1.0
+    # Move press 1 of "a" next to "b": now it is wrong, whatever its own references say.
+    queries[1] = centres[1] + 0.5
+    refs = np.repeat(queries, 5, axis=0)
+    knn = evaluate.loo_knn(queries, labels, refs=refs, per_press=5)
+    assert knn["loo_1nn"] == 0.5  # press 0 of "a" and press 1 of "a" both go to "b"
+    import pytest
+    with pytest.raises(ValueError, match="19 references for 4 presses x 5"):
+        evaluate.loo_knn(queries, labels, refs=refs[:19], per_press=5)

@@ -68,3 +68,49 @@ def test_checkpoint_is_written_atomically(data, tmp_path, trained):
     path = tmp_path / "c.pt"
     save_checkpoint(path, trained.model, data.norm, trained.config, trained.classes, 1, 0.5)
     assert path.exists() and not list(tmp_path.glob(".*tmp"))
+
+
+def test_papers_decoder_reads_z_and_the_shifted_input():
+    torch.manual_seed(0)
+    model = TactileAutoencoder(ModelConfig()).eval()
+    dec = model.decoder
+    assert dec.kind == "teacher" and dec.gru.input_size == 96 and dec.init.in_features == 4
+    z = torch.randn(2, 4)
+    x = torch.randn(2, 25, 96)
+    y = dec(z, x)
+    assert y.shape == (2, 25, 96)
+    # Teacher forcing, shifted: step t sees X[:t]; changing X[t] moves only later steps.
+    x2 = x.clone()
+    x2[:, 10] += 1.0
+    y2 = dec(z, x2)
+    assert torch.equal(y[:, :11], y2[:, :11]) and not torch.allclose(y[:, 11:], y2[:, 11:])
+    # z matters: another z, another reconstruction.
+    assert not torch.allclose(dec(z, x), dec(z + 1.0, x))
+    # The initial hidden state is Linear(z) itself, in both layers (no tanh).
+    with torch.no_grad():
+        dec.init.weight.fill_(0.0)
+        dec.init.bias.fill_(3.0)  # tanh would squash it to < 1
+        h0 = dec.init(z).unsqueeze(0).repeat(2, 1, 1)
+        expect, _ = dec.gru(torch.cat([torch.zeros(2, 1, 96), x[:, :-1]], 1), h0)
+        assert torch.allclose(dec(z, x), dec.out(expect))
+
+
+def test_zero_input_decoder_is_a_named_variant_and_old_checkpoints_load(data, tmp_path):
+    cfg = ModelConfig(decoder="zeros")
+    model = TactileAutoencoder(cfg).eval()
+    assert model.decoder.gru.input_size == 1
+    z = torch.randn(2, 4)
+    # Its output does not depend on X at all.
+    assert torch.equal(model.decoder(z, torch.randn(2, 25, 96)),
+                       model.decoder(z, torch.randn(2, 25, 96)))
+    # A configuration saved before the choice existed is the zero-input decoder.
+    assert ModelConfig.from_dict({"variant": "vq"}).decoder == "zeros"
+    assert TrainConfig.from_dict({"model": {"variant": "beta"}}).model.decoder == "zeros"
+    result = train(data, TrainConfig(model=cfg, max_epochs=1, patience=5), tmp_path,
+                   Progress(enabled=False))
+    back, _, meta = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert meta["train_config"].model.decoder == "zeros"
+    assert back.decoder.gru.input_size == 1 and result.epochs == 1
+    import pytest
+    with pytest.raises(ValueError, match="decoder must be one of teacher, zeros"):
+        ModelConfig(decoder="lstm")

@@ -12,7 +12,7 @@ from edge.core.vlm import VLMConfig
 MODEL = "fake-vlm"
 CANDIDATES = ["raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash",
               "boiled_kabocha_squash"]
-DESCRIPTION = "a cube of hard wood that does not give at all, a cube of smooth steel"
+DESCRIPTION = "wood cube, stainless steel cube"
 
 
 def image_bytes(width: int = 320, height: int = 240, fmt: str = "JPEG", *,

@@ -43,6 +43,28 @@ def test_vision_only_is_the_same_template_without_the_tactile_sentences():
     assert removed and all(TACTILE_WORDS.search(line) for line in removed)
 
 
+# What a prompt must not tell the VLM: the structure of the test sets (that look-alikes are
+# replicas, or raw and cooked foods, and that they differ in hardness).
+TEST_SET_HINTS = re.compile(r"replica|resin|\braw\b|cook|boil|real food|look(s)? alike|"
+                            r"hard|soft|fake|imitation", re.I)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_shipped_templates_say_nothing_about_the_test_sets(mode):
+    text = load_template(mode).text
+    assert not TEST_SET_HINTS.search(text), TEST_SET_HINTS.search(text)
+
+
+def test_the_method_template_has_exactly_the_papers_two_slots():
+    template = load_template("vision_tactile")
+    assert template.slots == {"topk_refs", "test_time_classes"}
+    assert template.text.count("${topk_refs}") == 1
+    assert template.text.count("${test_time_classes}") == 1
+    # It asks to weigh the photo and the touch together.
+    assert re.search(r"photo.*touch.*together", template.text)
+    assert load_template("vision_only").slots == {"test_time_classes"}
+
+
 def test_tactile_only_does_not_mention_a_photo_as_present():
     text = load_template("tactile_only").text
     assert "no photo" in text and "photo shows" not in text
