@@ -5,9 +5,13 @@ Off by default (``[runtime] realtime = false``). On, both run ``SCHED_FIFO`` at
 ``realtime_priority`` on one CPU (``realtime_cpu``; -1: the last CPU the daemon may use), so a
 busy host (the compute worker, a browser, other services) neither delays their wake-ups nor
 moves them between cores: a FIFO thread preempts every ordinary one the moment it is
-runnable. The daemon's other threads are moved off that CPU, and threads its executor starts
-later leave it too (:func:`leave_reserved_cpu`). ``SCHED_RESET_ON_FORK``: a process or thread
-started from these two does not inherit the priority.
+runnable. The daemon's other threads keep every CPU, that one included, for when the two
+sleep (most of the time): they share the interpreter's lock with the loop, and one that
+holds it must get a core at once to let it go. Confined to the other, busier CPUs they did
+not: under the bench's load the sampler missed 7 and 2 ticks in 75 s that way (longest gaps
+45 and 24 ms), 1 and 0 this way (15 and 12 ms). Threads the loop starts later would inherit
+its one CPU; the executor's give it back (:func:`unpin_thread`). ``SCHED_RESET_ON_FORK``: a
+process or thread started from these two does not inherit the priority.
 
 It needs the right to: root, ``CAP_SYS_NICE``, or an ``RLIMIT_RTPRIO`` of at least the
 priority (``vt-edge install-service`` writes ``LimitRTPRIO=`` and lets the unit make the
@@ -29,22 +33,18 @@ log = logging.getLogger(__name__)
 # SCHED_FIFO priorities a process may ask for (sched_get_priority_max is 99 on Linux).
 PRIORITY_MIN, PRIORITY_MAX = 1, 99
 
-# The CPU the real-time threads hold while they do, and the CPUs left to the rest: read by
-# leave_reserved_cpu in threads the daemon starts meanwhile.
-_reserved: tuple[int, frozenset[int]] | None = None
+# While the real-time threads hold their CPU: every CPU the daemon may use, for threads
+# started meanwhile (unpin_thread).
+_all_cpus: frozenset[int] | None = None
 
 
-def leave_reserved_cpu() -> None:
-    """In a thread just started (the daemon's executor's initializer): keep off the CPU the
-    real-time threads hold, if they hold one (a new thread inherits its creator's CPU)."""
-    reserved = _reserved
-    if reserved is not None:
+def unpin_thread() -> None:
+    """In a thread just started (the daemon's executor's initializer): every CPU the daemon
+    may use, not only the one it inherited from the real-time loop thread that started it."""
+    cpus = _all_cpus
+    if cpus is not None:
         with contextlib.suppress(OSError):
-            os.sched_setaffinity(0, reserved[1])
-
-
-def _threads() -> set[int]:
-    return {int(name) for name in os.listdir("/proc/self/task")}
+            os.sched_setaffinity(0, cpus)
 
 
 class Realtime:
@@ -55,10 +55,8 @@ class Realtime:
         self.priority = priority
         self.cpu = cpu
         self._threads = threads
-        # What enable() changed, to put back: (tid, policy, priority, CPUs) of the real-time
-        # threads, (tid, CPUs) of the others.
+        # What enable() changed, to put back: (tid, policy, priority, CPUs).
         self._saved: list[tuple[int, int, int, set[int]]] = []
-        self._moved: list[tuple[int, set[int]]] = []
         self.held_cpu: int | None = None
 
     @property
@@ -67,7 +65,7 @@ class Realtime:
 
     def enable(self) -> bool:
         """Apply; False (and a warning saying why) where the host refuses it."""
-        global _reserved
+        global _all_cpus
         if self.active:
             return True
         allowed = os.sched_getaffinity(0)
@@ -92,30 +90,22 @@ class Realtime:
                         "LimitRTPRIO=, which `vt-edge install-service` writes when the "
                         "configuration sets realtime = true)", exc, self.priority)
             return False
-        others = frozenset(allowed - {cpu}) or frozenset(allowed)
-        for tid in _threads() - set(tids):
-            with contextlib.suppress(OSError):  # a thread that just ended
-                self._moved.append((tid, os.sched_getaffinity(tid)))
-                os.sched_setaffinity(tid, others)
-        _reserved = (cpu, others)
+        _all_cpus = frozenset(allowed)
         self.held_cpu = cpu
-        log.info("real-time scheduling: threads %s at SCHED_FIFO %d on CPU %d; the daemon's "
-                 "other threads on %s", tids, self.priority, cpu, sorted(others))
+        log.info("real-time scheduling: threads %s at SCHED_FIFO %d on CPU %d", tids,
+                 self.priority, cpu)
         return True
 
     def disable(self) -> None:
         """Back to how :meth:`enable` found the threads (those still running)."""
-        global _reserved
-        _reserved = None
+        global _all_cpus
+        _all_cpus = None
         self.held_cpu = None
         for tid, policy, priority, cpus in reversed(self._saved):
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(tid, policy, os.sched_param(priority))
                 os.sched_setaffinity(tid, cpus)
-        for tid, cpus in self._moved:
-            with contextlib.suppress(OSError):
-                os.sched_setaffinity(tid, cpus)
-        self._saved, self._moved = [], []
+        self._saved = []
 
 
 def policy_of(tid: int) -> tuple[str, int, set[int]]:

@@ -27,7 +27,7 @@ from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.devices import close_devices, enable_torque, open_devices
 from edge.daemon.lifecycle import Devices, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
-from edge.daemon.realtime import Realtime, leave_reserved_cpu
+from edge.daemon.realtime import Realtime, unpin_thread
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -54,10 +54,10 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
         log.info("open files limited to %d (was %s): the event loop uses select(2) for "
                  "microsecond timers", FD_SETSIZE, soft)
     loop = asyncio.SelectorEventLoop(selectors.SelectSelector())
-    # Its threads start from the loop's thread and would inherit its CPU when that is held
-    # for real-time scheduling ([runtime] realtime): they leave it.
+    # Its threads start from the loop's thread and would inherit its one CPU when that is
+    # held for real-time scheduling ([runtime] realtime): they get every CPU back.
     loop.set_default_executor(ThreadPoolExecutor(thread_name_prefix="asyncio",
-                                                 initializer=leave_reserved_cpu))
+                                                 initializer=unpin_thread))
     return loop
 
 

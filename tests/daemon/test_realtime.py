@@ -12,7 +12,7 @@ import pytest
 from edge.core.config import config_from_dict
 from edge.core.errors import ConfigError
 from edge.daemon import realtime
-from edge.daemon.realtime import Realtime, leave_reserved_cpu, policy_of
+from edge.daemon.realtime import Realtime, policy_of, unpin_thread
 
 
 class _Parked:
@@ -54,20 +54,22 @@ def test_fifo_on_one_cpu_and_back():
         assert cpu == last_cpu
         for tid in parked.tids:
             assert policy_of(tid) == ("fifo", 15, {cpu})
-        others = os.sched_getaffinity(0)  # this thread is one of the daemon's others
-        if len(before[0][2]) > 1:
-            assert cpu not in others
-        # A thread the executor starts later leaves the CPU too, though it inherits it.
-        with ThreadPoolExecutor(1, initializer=leave_reserved_cpu) as pool:
-            assert pool.submit(os.sched_getaffinity, 0).result() == others
-        print(f"\nthreads {parked.tids}: SCHED_FIFO 15 on CPU {cpu}; others on "
-              f"{sorted(others)}")
+        everywhere = os.sched_getaffinity(0)  # the daemon's other threads keep every CPU
+        assert cpu in everywhere
+        # A thread the executor starts from a pinned thread gets every CPU back.
+        with ThreadPoolExecutor(1, initializer=unpin_thread) as pool:
+            os.sched_setaffinity(0, {cpu})  # as the loop's thread, pinned, would start it
+            try:
+                assert pool.submit(os.sched_getaffinity, 0).result() == everywhere
+            finally:
+                os.sched_setaffinity(0, everywhere)
+        print(f"\nthreads {parked.tids}: SCHED_FIFO 15 on CPU {cpu}")
     finally:
         rt.disable()
         after = [policy_of(t) for t in parked.tids]
         parked.close()
     assert after == before
-    assert realtime._reserved is None
+    assert realtime._all_cpus is None
 
 
 def test_refused_leaves_everything_as_it_was(monkeypatch, caplog):

@@ -109,12 +109,13 @@ WHY: dict[str, str] = {
         "and not thread-safe, so it never runs on the loop) and the SDK builds the packet "
         "in Python (write_ms). The parts are in stop_latency_ms."),
     "sampler_period_error_ms_realtime": (
-        "At real-time priority on a CPU of its own the loop thread no longer waits for a "
-        "core, so the missed ticks left are the loop itself held up: it still shares the "
-        "interpreter's lock with the daemon's other threads (the compute pool's, which move "
-        "the load's megabyte images, run on the other, busy core), and a holder preempted "
-        "there keeps it. Which one held it in the long gaps (max_gap_ms) is not measured. "
-        "p99 is the figure to compare with sampler_period_error_ms."),
+        "At real-time priority on a CPU of its own the loop thread hardly waits for a core "
+        "any more (loop_thread: run-queue wait, preemptions), so the ticks it still misses "
+        "are the loop itself held up: it shares the interpreter's lock with the daemon's "
+        "other threads (the compute pool's move the load's megabyte images), and a holder "
+        "that is waiting for a core keeps it. Which one held it in the long gaps "
+        "(max_gap_ms) is not measured. p99 is the figure to compare with "
+        "sampler_period_error_ms."),
     "stop_latency_ratio_loop100": (
         "The load's stalls inflate the per-frame median far more, relatively, than the "
         "100 Hz loop's, whose own wait for its next tick is 0-10 ms (5 ms on average); "
