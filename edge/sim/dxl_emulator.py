@@ -192,13 +192,15 @@ class Instruction:
 @dataclass(frozen=True)
 class StopCheck:
     """One stop as the emulator took it: ``ahead_raw`` is how far the goal lay past the
-    true position in the closing direction when the packet arrived (< 0: behind it)."""
+    true position in the closing direction when the packet arrived (< 0: behind it), and
+    ``velocity_raw_s`` the motor's velocity then."""
 
     t: float
     motor_id: int
     goal: int
     true_position: float
     ahead_raw: float
+    velocity_raw_s: float
 
 
 @dataclass(frozen=True)
@@ -666,7 +668,7 @@ class DxlEmulator:
         if (goal - profile.goal) * closing >= 0:
             return  # closing on, or further
         ahead = (goal - m.pos) * closing
-        self.stop_checks.append(StopCheck(t, m.id, goal, m.pos, ahead))
+        self.stop_checks.append(StopCheck(t, m.id, goal, m.pos, ahead, m.vel))
         if ahead < 0:
             self.stops_behind += 1
             _log.warning("emulated motor %d: stop goal %d lies %.2f counts behind its true "
