@@ -1,0 +1,67 @@
+"""The simulated world behaves like the paper's, the only real observations there are
+(DESIGN section 1, a gentle push at x_th = 0.004), seen through the shipped encoder: by touch
+boiled kiri mochi's neighbours are soft references and raw kiri mochi's hard ones; raw and
+boiled kabocha are hard to tell apart; a real canele feels about as hard as its replica; the
+konjac and chocolate replicas feel alike."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from edge.core.model import load_model, model_ref
+from edge.daemon.compute import analyse_press
+from edge.sim.catalogue import DATASETS, get
+from edge.tools.record import record_press
+from tests.support.daemon import ROOT
+from train.evaluate import pair_auc
+
+PRESSES = 8
+SEED = 7
+# Reference classes by what the catalogue makes them: far softer or far stiffer than the
+# pad's skin (about 4e4 N/m per finger, a few MPa for these sizes).
+SOFT = {c.name for c in DATASETS["reference"] if c.youngs_pa < 1e6}
+HARD = {c.name for c in DATASETS["reference"] if c.youngs_pa > 1e8}
+
+
+@pytest.fixture(scope="module")
+def embed():
+    ref = model_ref(ROOT / "models")
+    cache: dict[str, np.ndarray] = {}
+
+    def z_of(name: str) -> np.ndarray:
+        if name not in cache:
+            get(name)
+            presses = [record_press(name, np.random.default_rng([SEED, i])).recording
+                       for i in range(PRESSES)]
+            cache[name] = np.array([analyse_press(ref, rec).z for rec in presses])
+        return cache[name]
+
+    return z_of
+
+
+@pytest.mark.parametrize(("a", "b", "low", "high"), [
+    ("raw_kiri_mochi", "boiled_kiri_mochi", 0.9, 1.0),
+    ("raw_kabocha_squash", "boiled_kabocha_squash", 0.0, 0.75),
+    ("canele", "resin_replica_canele", 0.0, 0.75),
+    ("resin_replica_konjac", "resin_replica_chocolate", 0.0, 0.75),
+])
+def test_pairs_separate_as_in_the_paper(embed, a, b, low, high):
+    auc = pair_auc(embed(a), embed(b))["auc"]
+    print(f"{a} vs {b}: AUC {auc:.2f} (band {low}..{high})")
+    assert low <= auc <= high
+
+
+def test_kiri_mochi_neighbours_by_touch(embed):
+    model = load_model(ROOT / "models")
+    def neighbours(name: str) -> list[str]:
+        votes: dict[str, int] = {}
+        for z in embed(name):
+            for label, _ in model.topk(z, 3):
+                votes[label] = votes.get(label, 0) + 1
+        return sorted(votes, key=votes.get, reverse=True)[:3]
+
+    boiled, raw = neighbours("boiled_kiri_mochi"), neighbours("raw_kiri_mochi")
+    print(f"boiled kiri mochi feels like {boiled}; raw like {raw}")
+    assert sum(n in SOFT for n in boiled) >= 2
+    assert sum(n in HARD for n in raw) >= 2
