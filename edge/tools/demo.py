@@ -12,18 +12,14 @@ coming from it.
 
 from __future__ import annotations
 
-import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 
 from edge.sim.catalogue import names
+from edge.tools.stack import Stack, http_json, sim_stack, stop, wait_for
 
 CUBE = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash", "boiled_kabocha_squash")
 FOOD = ("macaron", "resin_replica_macaron", "canele", "resin_replica_konjac")
@@ -40,47 +36,6 @@ OpenAI-compatible endpoint and run again:
   Ollama:  VTZERO_VLM_URL=http://localhost:11434/v1 VTZERO_VLM_MODEL=llama3.2-vision make run
   vLLM:    VTZERO_VLM_URL=http://localhost:8000/v1 VTZERO_VLM_MODEL=Qwen/Qwen2-VL-7B-Instruct \\
            make run"""
-
-
-def http_json(method: str, url: str, body: dict | None = None, timeout: float = 10.0) -> dict:
-    data = json.dumps(body).encode() if body is not None else None
-    req = urllib.request.Request(url, data=data, method=method,
-                                 headers={"Content-Type": "application/json"})
-    try:
-        with urllib.request.urlopen(req, timeout=timeout) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        try:
-            return {"http_status": exc.code, **json.loads(exc.read() or b"{}")}
-        except ValueError:  # an error page that is not JSON
-            return {"http_status": exc.code}
-
-
-def _wait_for(predicate, timeout_s: float, what: str, proc: subprocess.Popen) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"{what}: process exited with {proc.returncode}")
-        try:
-            if predicate():
-                return
-        except (OSError, ValueError):
-            pass
-        time.sleep(0.1)
-    raise RuntimeError(f"{what}: not ready within {timeout_s} s")
-
-
-def _stop(proc: subprocess.Popen, name: str) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    if proc.returncode not in (0, -signal.SIGTERM):
-        print(f"warning: {name} exited with {proc.returncode}", file=sys.stderr)
-    return proc.returncode
 
 
 STANDIN_NOTE = """\
@@ -104,7 +59,7 @@ def _start_standin(tmp: Path, env: dict) -> tuple[subprocess.Popen, str]:
                 return True
         return False
 
-    _wait_for(ready, START_TIMEOUT_S, "simulated VLM", proc)
+    wait_for(ready, START_TIMEOUT_S, "simulated VLM", proc)
     return proc, url[0]
 
 
@@ -136,65 +91,52 @@ def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE +
     env.setdefault("VTZERO_LOG_LEVEL", "WARNING")
     standin = not env.get("VTZERO_VLM_URL", "").strip()
     with tempfile.TemporaryDirectory(prefix="vtzero-demo-") as tmp:
-        run_cfg = Path(tmp) / "sim-run.toml"
-        env["VTZERO_STATE_DIR"] = str(Path(tmp) / "state")
         vlm = None
-        if standin:
-            print("no VLM endpoint configured ($VTZERO_VLM_URL): starting the simulated VLM "
-                  "...", flush=True)
-            vlm, url = _start_standin(Path(tmp), env)
-            env["VTZERO_VLM_URL"], env["VTZERO_VLM_MODEL"] = url, STANDIN_MODEL
-        else:
-            print(f"VLM: {env['VTZERO_VLM_URL']} ({env.get('VTZERO_VLM_MODEL', '')})",
-                  flush=True)
-        print("starting the emulated robot and the daemon ...", flush=True)
-        sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config", config,
-                                "--write-config", str(run_cfg), "--object", objects[0]],
-                               env=env)
-        daemon = None
-        right = answered = 0
         try:
-            _wait_for(run_cfg.exists, START_TIMEOUT_S, "emulated robot", sim)
-            from edge.core.config import load_config
-
-            cfg = load_config(run_cfg)
-            control = cfg.camera.url.rsplit("/", 1)[0]
-            api = f"http://{cfg.api.host}:{cfg.api.port}"
-            daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
-                                       str(run_cfg)], env=env)
-            _wait_for(lambda: http_json("GET", f"{api}/healthz").get("ok"), START_TIMEOUT_S,
-                      "daemon", daemon)
-            shown_prompt = False
-            for name in objects:
-                dataset = "cube" if name in names("cube") else "foodreplica"
-                http_json("POST", f"{control}/object", {"name": name})
-                ep = http_json("POST", f"{api}/v1/recognize",
-                           {"candidates": names(dataset), "wait": True,
-                            "timeout_s": RECOGNIZE_TIMEOUT_S}, timeout=RECOGNIZE_TIMEOUT_S + 5)
-                peak = http_json("GET", f"{control}/object").get("peak_force_n")
-                if "http_status" in ep:
-                    print(f"\n== {name}: HTTP {ep['http_status']}: {ep.get('error')}")
-                    continue
-                _print_episode(name, ep, peak)
-                if ep.get("label"):
-                    answered += 1
-                    right += ep["label"] == name
-                if ep.get("status") == "not_configured" and not shown_prompt:
-                    prompt = (ep.get("vlm") or {}).get("prompt")
-                    print("\n   The prompt it would send (with the photo):\n")
-                    print("   " + str(prompt).replace("\n", "\n   "))
-                    shown_prompt = True
-            if shown_prompt:
-                print("\n" + VLM_HELP)
-            if answered:
-                who = STANDIN_TAG if standin else env.get("VTZERO_VLM_MODEL", "the VLM")
-                print(f"\n{who}: {right} of {answered} labels right")
             if standin:
-                print("\n" + STANDIN_NOTE + "\n" + VLM_HELP.split("\n", 2)[2])
+                print("no VLM endpoint configured ($VTZERO_VLM_URL): starting the simulated "
+                      "VLM ...", flush=True)
+                vlm, url = _start_standin(Path(tmp), env)
+                env["VTZERO_VLM_URL"], env["VTZERO_VLM_MODEL"] = url, STANDIN_MODEL
+            else:
+                print(f"VLM: {env['VTZERO_VLM_URL']} ({env.get('VTZERO_VLM_MODEL', '')})",
+                      flush=True)
+            print("starting the emulated robot and the daemon ...", flush=True)
+            with sim_stack(config, objects[0], env) as stack:
+                _recognise_all(stack, objects, standin, env)
         finally:
-            if daemon is not None:
-                _stop(daemon, "daemon")
-            _stop(sim, "emulated robot")
             if vlm is not None:
-                _stop(vlm, "simulated VLM")
+                stop(vlm, "simulated VLM")
     return 0
+
+
+def _recognise_all(stack: Stack, objects: tuple[str, ...], standin: bool,
+                   env: dict[str, str]) -> None:
+    right = answered = 0
+    shown_prompt = False
+    for name in objects:
+        dataset = "cube" if name in names("cube") else "foodreplica"
+        stack.place(name)
+        ep = http_json("POST", f"{stack.api}/v1/recognize",
+                       {"candidates": names(dataset), "wait": True,
+                        "timeout_s": RECOGNIZE_TIMEOUT_S}, timeout=RECOGNIZE_TIMEOUT_S + 5)
+        peak = stack.world().get("peak_force_n")
+        if "http_status" in ep:
+            print(f"\n== {name}: HTTP {ep['http_status']}: {ep.get('error')}")
+            continue
+        _print_episode(name, ep, peak)
+        if ep.get("label"):
+            answered += 1
+            right += ep["label"] == name
+        if ep.get("status") == "not_configured" and not shown_prompt:
+            prompt = (ep.get("vlm") or {}).get("prompt")
+            print("\n   The prompt it would send (with the photo):\n")
+            print("   " + str(prompt).replace("\n", "\n   "))
+            shown_prompt = True
+    if shown_prompt:
+        print("\n" + VLM_HELP)
+    if answered:
+        who = STANDIN_TAG if standin else env.get("VTZERO_VLM_MODEL", "the VLM")
+        print(f"\n{who}: {right} of {answered} labels right")
+    if standin:
+        print("\n" + STANDIN_NOTE + "\n" + VLM_HELP.split("\n", 2)[2])

@@ -12,7 +12,8 @@ from pathlib import Path
 from edge.core import tomledit
 from edge.core.config import load_config
 from edge.daemon.store import EpisodeStore
-from edge.tools.demo import _wait_for, http_json
+from edge.tools.stack import http_json
+from edge.tools.stack import wait_for as _wait_for
 from tests.support.waits import free_port, wait_until_sync
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -20,7 +20,7 @@ from edge.core.proc import process_tree
 from edge.core.results import PhaseResult, progress
 from edge.tools.bench.host import torch_mappings, tree_memory_mb
 from edge.tools.bench.settings import CUBE, HELPER_START_S, OBJECTS, ROOT, SIM_CONFIG, Settings
-from edge.tools.demo import http_json
+from edge.tools.stack import http_json
 
 
 def _free_port() -> int:
