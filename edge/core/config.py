@@ -165,8 +165,6 @@ class SimConfig:
     seed: int = 0
     object: str = "stainless_cube"
     sensor_rate_hz: float = 125.0
-    # Time from the frame that crosses x_th to the stop taking effect at the motor.
-    reaction_latency_s: float = 0.002
 
     def validate(self, path: str) -> None:
         _require(
@@ -175,13 +173,6 @@ class SimConfig:
             "sensor_rate_hz",
             self.sensor_rate_hz,
             "must be in [1, 1000] Hz",
-        )
-        _require(
-            0 <= self.reaction_latency_s < 1,
-            path,
-            "reaction_latency_s",
-            self.reaction_latency_s,
-            "must be in [0, 1) s",
         )
 
 
