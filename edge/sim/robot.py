@@ -15,8 +15,7 @@ from aiohttp import web
 from edge.core.config import Config
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
-from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.world import SimWorld, raw_from_width
+from edge.sim.world import SimWorld, raw_from_width, robot_motors
 from edge.sim.xela_replay import Replay
 from edge.sim.xela_server import XelaServerEmulator
 
@@ -37,10 +36,8 @@ class SimRobot:
         # The gripper starts open, where the runtime opens it before a press.
         width = (cfg or Config()).press.open_width_m if initial_width_m is None else initial_width_m
         positions[bus.gripper_id] = raw_from_width(width)
-        self.dxl = DxlEmulator((*bus.joint_ids, bus.gripper_id), load=self.world.load,
-                               reply_latency_s=reply_latency_s, initial_positions=positions)
-        gripper_id = bus.gripper_id
-        self.world.sync = lambda: self.dxl.true_position(gripper_id)
+        self.dxl = robot_motors(self.world, bus.joint_ids, positions,
+                                reply_latency_s=reply_latency_s)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
                                        dialect=dialect,  # type: ignore[arg-type]
                                        replay=replay, loop=replay_loop)

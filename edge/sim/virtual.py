@@ -37,7 +37,7 @@ from edge.hw.contracts import StreamStats, TactileFrame
 from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import SkinDraw
-from edge.sim.world import SimWorld, raw_from_width
+from edge.sim.world import SimWorld, raw_from_width, robot_motors
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +190,8 @@ class VirtualTactileSource:
     the 125 Hz grid (late by the server's jitter), received after the WebSocket hop."""
 
     def __init__(self, world: SimWorld, rate_hz: float, transport: Transport,
-                 rng: np.random.Generator, pads: int = 2) -> None:
+                 rng: np.random.Generator, pads: int = 2, stale_timeout_s: float = 0.1
+                 ) -> None:
         self.stats = StreamStats()
         self._world = world
         self._period_s = 1.0 / rate_hz
@@ -200,7 +201,7 @@ class VirtualTactileSource:
         self._seq = int(rng.integers(1000, 100_000))
         self._closed = False
         self._last_recv = -math.inf
-        self._stale_timeout_s = 0.1
+        self._stale_timeout_s = stale_timeout_s
         # The contact force behind each delivered frame, by receive time (for benches).
         self.force_at: dict[float, float] = {}
 
@@ -260,15 +261,13 @@ class VirtualRobot:
         positions = {mid: float(v) for mid, v in
                      zip(bus_cfg.joint_ids, cfg.poses["above"], strict=True)}
         positions[bus_cfg.gripper_id] = raw_from_width(cfg.press.open_width_m)
-        self.dxl = DxlEmulator((*bus_cfg.joint_ids, bus_cfg.gripper_id), load=self.world.load,
-                               initial_positions=positions, clock=clock)
+        self.dxl = robot_motors(self.world, bus_cfg.joint_ids, positions, clock=clock)
         self.bus = VirtualBus(bus_cfg, self.dxl, clock, transport, rng)
         self.gripper = DynamixelGripper(self.bus)
         self.arm = DynamixelArm(self.bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
-        gripper_id = bus_cfg.gripper_id
-        self.world.sync = lambda: self.dxl.true_position(gripper_id)
         self.tactile = VirtualTactileSource(self.world, cfg.sim.sensor_rate_hz, transport, rng,
-                                            pads=cfg.sensor.channels // 48)
+                                            pads=cfg.sensor.channels // 48,
+                                            stale_timeout_s=cfg.sensor.stale_timeout_s)
 
     async def __aenter__(self) -> Self:
         await self.bus.connect()

@@ -12,11 +12,13 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from edge.sim.catalogue import get
 from edge.sim.contact import Contact, ObjectInstance
+from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import Skin, SkinDraw
 
 # Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
@@ -55,6 +57,18 @@ def robot_pads(seed: int) -> SkinDraw:
     return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])))
 
 
+def robot_motors(world: SimWorld, joint_ids: tuple[int, ...], positions: dict[int, float],
+                 **emulator_kw: Any) -> DxlEmulator:
+    """The arm's motors, coupled to ``world`` both ways: the gripper feels the object through
+    the world's load hook, and the world brings the gripper's motion up to a frame's time
+    before the pads are read. ``positions``: raw positions at power-up."""
+    gripper_id = world.gripper_id
+    dxl = DxlEmulator((*joint_ids, gripper_id), load=world.load, initial_positions=positions,
+                      **emulator_kw)
+    world.sync = lambda: dxl.true_position(gripper_id)
+    return dxl
+
+
 class SimWorld:
     """Holds the object, advances the contact physics and renders tactile frames."""
 
@@ -68,8 +82,8 @@ class SimWorld:
         self._skin_draw = skin_draw
         self.gripper_id = gripper_id
         # Brings the gripper's motion up to now before the pads are read (the motor model
-        # steps on its own thread, in batches): set by whoever owns the motors. Called
-        # without the world's lock, which the motors' load hook takes.
+        # steps on its own thread, in batches): set by robot_motors. Called without the
+        # world's lock, which the motors' load hook takes.
         self.sync: Callable[[], object] = lambda: None
         self._t0 = clock()
         self._t = self._t0
