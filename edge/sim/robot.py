@@ -15,7 +15,7 @@ from aiohttp import web
 from edge.core.config import Config
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
-from edge.sim.world import SimWorld, raw_from_width, robot_motors
+from edge.sim.world import SimWorld, raw_from_width, robot_motors, robot_pads
 from edge.sim.xela_replay import Replay
 from edge.sim.xela_server import XelaServerEmulator
 
@@ -30,7 +30,8 @@ class SimRobot:
                  replay: Replay | None = None, replay_loop: bool = True) -> None:
         get(object_name)
         bus = (cfg or Config()).bus
-        self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id)
+        pads = replace(robot_pads(seed), gain=(cfg or Config()).sim.pad_gain)
+        self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id, skin_draw=pads)
         poses = (cfg or Config()).poses
         positions = {mid: float(v) for mid, v in zip(bus.joint_ids, poses["rest"], strict=True)}
         # The gripper starts open, where the runtime opens it before a press.

@@ -121,6 +121,9 @@ class SkinDraw:
     offsets: np.ndarray  # (C,) counts at idle
     drift_per_s: np.ndarray  # (C,) counts per second at t = 0; it levels off (DRIFT_TAU_S)
     field_gain: np.ndarray | None = None  # (C,) counts per unit of the shared disturbance
+    # Sensitivity to load relative to the XR1944 model above (GAIN_*_COUNTS_PER_N): another
+    # pad, or another sensor, reads the same force on another scale with the same idle noise.
+    gain: float = 1.0
 
     @classmethod
     def draw(cls, rng: np.random.Generator, pads: int = PADS,
@@ -257,7 +260,7 @@ class Skin:
         out[..., 0:2] *= GAIN_XY_COUNTS_PER_N
         out[..., 2] *= GAIN_Z_COUNTS_PER_N
         out[..., 0:2] += XTALK_Z_TO_XY * out[..., 2:3]
-        return out.reshape(-1)
+        return self.draw.gain * out.reshape(-1)
 
     def frame(self, t_s: float, force_n: float, contact_radius_m: float) -> np.ndarray:
         """Raw uint16 counts at press time ``t_s`` (seconds since the press began)."""

@@ -1,0 +1,123 @@
+"""`vt-edge calibrate threshold` on the emulated robot.
+
+The two-gain test runs the procedure on the virtual-clock robot (edge/sim/virtual.py: the
+real DynamixelBus, gripper and arm drivers over a loopback to the same motor emulator, the
+same simulated world and pads), as the dataset recorder does: idle, probe and the presses
+that check the result take ~1 s instead of ~40 s of wall time. The command itself is run as
+`vt-edge` is, through edge.cli, against the real-time emulated robot (Dynamixel over a pty,
+xela_server over a loopback WebSocket).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import shutil
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edge import cli
+from edge.core import tomledit
+from edge.core.config import load_config
+from edge.core.errors import EdgeError
+from edge.daemon.lifecycle import Devices
+from edge.sim.robot import SimRobot
+from edge.sim.virtual import VirtualClockLoop, VirtualRobot
+from edge.sim.world import robot_pads
+from edge.tools import calibrate
+from edge.tools.record import record_press, sim_config
+
+ROOT = Path(__file__).resolve().parents[2]
+REFERENCE = "sponge_cube"
+PRESSES = 3
+
+
+def _calibrate_virtual(config: Path, out: Path, gain: float, obj: str = REFERENCE,
+                       seed: int = 1) -> calibrate.Proposal:
+    cfg = load_config(config)
+    skin = replace(robot_pads(cfg.sim.seed), gain=gain)
+
+    async def run() -> calibrate.Proposal:
+        async with VirtualRobot(cfg, obj, np.random.default_rng(seed), skin_draw=skin) as r:
+            await r.bus.set_torque(True)
+            devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
+            proposal = await calibrate.calibrate_threshold(
+                cfg, config, out, prompt=None, confirm=None, devices=devices)
+            # Every way out leaves the gripper open.
+            assert (await r.gripper.state()).width_m > cfg.press.open_width_m - 0.001
+            return proposal
+
+    with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
+        return runner.run(run())
+
+
+def test_two_pad_gains_give_proportional_thresholds_that_stop_at_the_same_force(tmp_path):
+    results = {}
+    for gain in (1.0, 2.0):
+        config = tmp_path / f"gain{gain}.toml"
+        shutil.copy(ROOT / "configs" / "sim.toml", config)
+        t0 = time.perf_counter()
+        proposal = _calibrate_virtual(config, tmp_path / f"out{gain}", gain)
+        wall = time.perf_counter() - t0
+        assert load_config(config).press.x_th == proposal.x_th
+        assert (tmp_path / f"out{gain}" / "threshold.png").read_bytes()[:4] == b"\x89PNG"
+        skin = replace(robot_pads(0), gain=gain)
+        presses = [record_press(REFERENCE, np.random.default_rng(100 + i), cfg=sim_config(),
+                                skin=skin, x_th=proposal.x_th) for i in range(PRESSES)]
+        at_cross = float(np.mean([p.force_at_cross_n for p in presses]))
+        peak = float(np.mean([p.peak_force_n for p in presses]))
+        results[gain] = (proposal, at_cross, peak)
+        print(f"gain {gain}: x_th {proposal.x_th:.5f}, fragile {proposal.fragile:.5f}, "
+              f"force at the crossing {at_cross:.3f} N, peak {peak:.3f} N "
+              f"(calibration {wall:.2f} s wall)")
+    (p1, cross1, peak1), (p2, cross2, peak2) = results[1.0], results[2.0]
+    # The default gentle force reproduces today's threshold on the emulated XR1944.
+    assert p1.x_th == pytest.approx(0.004, rel=0.15)
+    assert p2.x_th / p1.x_th == pytest.approx(2.0, rel=0.1)
+    assert p1.fragile == pytest.approx(calibrate.FRAGILE_RATIO * p1.x_th, abs=1e-5)
+    assert cross2 == pytest.approx(cross1, rel=0.15)
+    assert peak2 == pytest.approx(peak1, rel=0.15)
+
+
+def test_an_object_too_stiff_to_resolve_is_refused_and_the_config_kept(tmp_path):
+    config = tmp_path / "sim.toml"
+    shutil.copy(ROOT / "configs" / "sim.toml", config)
+    before = config.read_text()
+    with pytest.raises(EdgeError, match="too stiff"):
+        _calibrate_virtual(config, tmp_path / "out", 1.0, obj="rubber_cube")
+    assert config.read_text() == before
+
+
+@pytest.mark.asyncio
+async def test_the_command_writes_x_th_into_the_config_keeping_its_comments(tmp_path):
+    cfg = sim_config()
+    config = tmp_path / "robot.toml"
+    async with SimRobot(REFERENCE, seed=cfg.sim.seed, cfg=cfg) as robot:
+        tomledit.update(ROOT / "configs" / "sim.toml", config, {
+            "sensor": {"url": robot.xela.url, "stale_timeout_s": 0.25},
+            "bus": {"port": robot.dxl.port}, "runtime": {"move_time_s": 0.2}})
+        text = config.read_text()
+        assert "# The simulated objects are 16-34 mm wide" in text
+        t0 = time.perf_counter()
+        rc = await asyncio.to_thread(cli.main, [
+            "calibrate", "threshold", "--config", str(config), "--out", str(tmp_path / "cal"),
+            "--idle-s", "1.5", "--no-prompt", "--yes"])
+        wall = time.perf_counter() - t0
+        width = robot.world.gap_m
+    assert rc == 0
+    saved = config.read_text()
+    written = load_config(config).press.x_th
+    print(f"x_th written: {written} ({wall:.1f} s on the real-time emulated robot); "
+          f"finger gap after: {1e3 * width:.1f} mm")
+    # Only x_th changed: every comment and every other line as it was.
+    changed = [(a, b) for a, b in zip(text.splitlines(), saved.splitlines(), strict=True)
+               if a != b]
+    assert len(changed) == 1 and changed[0][1].startswith("x_th = ")
+    assert written == pytest.approx(0.004, rel=0.2) and written != 0.004
+    assert (tmp_path / "cal" / "threshold.png").stat().st_size > 1000
+    # The gripper was opened before the command returned (the pads released the object).
+    assert width > 0.030
