@@ -87,8 +87,6 @@ MIN_CURVE_FRAMES = 10
 # Norm and current are averaged over this many frames (40 ms at 125 Hz) before the force
 # target is looked up: Present Current moves in 2.69 mA steps and jitters.
 SMOOTH_FRAMES = 5
-# A stream without a frame for this long ends the procedure (the gripper opens).
-STREAM_STALE_S = 0.5
 STREAM_START_TIMEOUT_S = 5.0
 # Frames kept: the probe and idle take well under a minute at 125 Hz.
 RING_FRAMES = 16_000
@@ -135,10 +133,13 @@ class Proposal:
 
 class _Stream:
     """Every frame of the tactile source into a ring, reconnecting as the sensor task
-    does; :meth:`fresh` raises when nothing arrived for ``STREAM_STALE_S``."""
+    does; :meth:`fresh` raises when nothing arrived for ``stale_s`` (the probe then ends and
+    the gripper opens)."""
 
-    def __init__(self, source, channels: int, clock: Callable[[], float]) -> None:
+    def __init__(self, source, channels: int, clock: Callable[[], float],
+                 stale_s: float) -> None:
         self.source = source
+        self.stale_s = stale_s
         self.ring = FrameRing(channels, RING_FRAMES)
         self.newtons: dict[int, np.ndarray] = {}  # by frame count, where sent
         self.clock = clock
@@ -162,7 +163,7 @@ class _Stream:
         if isinstance(self.error, SensorLayoutError):
             raise self.error
         age = self.clock() - self.ring.latest_time()
-        if age > STREAM_STALE_S:
+        if age > self.stale_s:
             why = f": {self.error}" if self.error is not None else ""
             raise StaleSensorError(f"no tactile frame for {age:.2f} s{why}; check that "
                                    "xela_server runs and the pads are connected")
@@ -262,6 +263,9 @@ async def probe(stream: _Stream, devices: Devices, cfg: Config, idle: IdleNoise,
         if clock() - t_start > PROBE_TIMEOUT_S:
             raise EdgeError(f"the probe closed for {PROBE_TIMEOUT_S:.0f} s without reaching "
                             "its end force: a stiffer reference object, or a higher --max-ma")
+    # Stop where it stands and hold as a press holds before the caller opens.
+    await gripper.stop_now(0)
+    await asyncio.sleep(cfg.press.dt_stopping_s)
     assert free_ma is not None and t_contact is not None
     t, raw, forces = stream.since(t_start)
     gt = np.array([s.t for s in states])
@@ -381,7 +385,7 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
     if hasattr(devices.tactile, "newtons"):
         devices.tactile.newtons = True  # the XELA client: keep `calibrated` where sent
     clock = asyncio.get_running_loop().time
-    stream = _Stream(devices.tactile, cfg.sensor.channels, clock)
+    stream = _Stream(devices.tactile, cfg.sensor.channels, clock, cfg.sensor.stale_timeout_s)
     reader = asyncio.create_task(stream.run(), name="calibrate-sensor")
     # The press's own opening: capped at Goal Current, retried, the watchdog cleared.
     press = PressController(cfg, devices.gripper, devices.arm, stream.ring,

@@ -58,7 +58,7 @@ def plot_curve(trace: ProbeTrace, proposal: Proposal, idle: IdleNoise, path: str
         draw.text((left - 8, gy), f"{f * n_max:.4f}", fill=NORM_COLOUR, font=font, anchor="rm")
         draw.text((right + 8, gy), f"{c_lo + f * (c_hi - c_lo):.0f}", fill=CURRENT_COLOUR,
                   font=font, anchor="lm")
-    draw.text(((left + right) / 2, SIZE[1] - 20), "gripper closing distance (mm of width)",
+    draw.text(((left + right) / 2, SIZE[1] - 20), "closing distance (mm of gripper width)",
               fill="black", font=font, anchor="mm")
     draw.text((left, top - 30), "tactile norm (units)", fill=NORM_COLOUR, font=font)
     draw.text((right, top - 30), "squeeze above free closing (mA)", fill=CURRENT_COLOUR,

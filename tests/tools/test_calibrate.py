@@ -55,6 +55,16 @@ def _calibrate_virtual(config: Path, out: Path, gain: float, obj: str = REFERENC
         return runner.run(run())
 
 
+def _press(gain: float, x_th: float) -> tuple[float, float]:
+    """Mean force (N per finger) at the threshold crossing and at its peak over ``PRESSES``
+    presses of the reference through the daemon's press controller."""
+    skin = replace(robot_pads(0), gain=gain)
+    presses = [record_press(REFERENCE, np.random.default_rng(100 + i), cfg=sim_config(),
+                            skin=skin, x_th=x_th) for i in range(PRESSES)]
+    return (float(np.mean([p.force_at_cross_n for p in presses])),
+            float(np.mean([p.peak_force_n for p in presses])))
+
+
 def test_two_pad_gains_give_proportional_thresholds_that_stop_at_the_same_force(tmp_path):
     results = {}
     for gain in (1.0, 2.0):
@@ -65,16 +75,18 @@ def test_two_pad_gains_give_proportional_thresholds_that_stop_at_the_same_force(
         wall = time.perf_counter() - t0
         assert load_config(config).press.x_th == proposal.x_th
         assert (tmp_path / f"out{gain}" / "threshold.png").read_bytes()[:4] == b"\x89PNG"
-        skin = replace(robot_pads(0), gain=gain)
-        presses = [record_press(REFERENCE, np.random.default_rng(100 + i), cfg=sim_config(),
-                                skin=skin, x_th=proposal.x_th) for i in range(PRESSES)]
-        at_cross = float(np.mean([p.force_at_cross_n for p in presses]))
-        peak = float(np.mean([p.peak_force_n for p in presses]))
+        at_cross, peak = _press(gain, proposal.x_th)
         results[gain] = (proposal, at_cross, peak)
         print(f"gain {gain}: x_th {proposal.x_th:.5f}, fragile {proposal.fragile:.5f}, "
-              f"force at the crossing {at_cross:.3f} N, peak {peak:.3f} N "
+              f"force at the crossing {at_cross:.4f} N, peak {peak:.4f} N "
               f"(calibration {wall:.2f} s wall)")
     (p1, cross1, peak1), (p2, cross2, peak2) = results[1.0], results[2.0]
+    # Without calibration the same x_th stops the same object at another force on the
+    # more sensitive pads: what the procedure corrects.
+    uncal_cross, uncal_peak = _press(2.0, p1.x_th)
+    print(f"gain 2.0 at the gain-1.0 x_th {p1.x_th:.5f}: force at the crossing "
+          f"{uncal_cross:.4f} N, peak {uncal_peak:.4f} N")
+    assert uncal_cross < 0.75 * cross1
     # The default gentle force reproduces today's threshold on the emulated XR1944.
     assert p1.x_th == pytest.approx(0.004, rel=0.15)
     assert p2.x_th / p1.x_th == pytest.approx(2.0, rel=0.1)
