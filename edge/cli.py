@@ -93,7 +93,8 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
     async def serve() -> None:
         robot = SimRobot(args.object, cfg.sim.seed, xela_port=args.xela_port,
                          rate_hz=cfg.sim.sensor_rate_hz, dialect=args.dialect, cfg=cfg,
-                         replay=replay, replay_loop=not args.replay_once)
+                         replay=replay, replay_loop=not args.replay_once,
+                         calibrated=args.calibrated)
         async with robot:
             print(f"xela_server emulator: {robot.xela.url}", flush=True)
             if replay is not None:
@@ -343,6 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--replay-once", action="store_true",
                        help="after the recording's last frame send nothing more (the "
                             "connection stays open: the stream goes stale)")
+    serve.add_argument("--calibrated", action="store_true",
+                       help="send each taxel's force as `calibrated` newtons, as xela_server "
+                            "does for the models XELA calibrates (the XR1944 is not)")
     serve.set_defaults(func=_cmd_sim_serve)
 
     cons = simsub.add_parser(

@@ -27,7 +27,8 @@ class SimRobot:
                  xela_port: int = 0, control_port: int = 0, rate_hz: float = 125.0,
                  dialect: str = "1.8", reply_latency_s: float = 0.0,
                  initial_width_m: float | None = None, cfg: Config | None = None,
-                 replay: Replay | None = None, replay_loop: bool = True) -> None:
+                 replay: Replay | None = None, replay_loop: bool = True,
+                 calibrated: bool = False) -> None:
         get(object_name)
         bus = (cfg or Config()).bus
         pads = replace(robot_pads(seed), gain=(cfg or Config()).sim.pad_gain)
@@ -41,7 +42,8 @@ class SimRobot:
                                 reply_latency_s=reply_latency_s)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
                                        dialect=dialect,  # type: ignore[arg-type]
-                                       replay=replay, loop=replay_loop)
+                                       replay=replay, loop=replay_loop,
+                                       calibrated=calibrated)
         self._control_port = control_port
         self._runner: web.AppRunner | None = None
         self.control_url = ""

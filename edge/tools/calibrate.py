@@ -88,8 +88,14 @@ MIN_CURVE_FRAMES = 10
 # target is looked up: Present Current moves in 2.69 mA steps and jitters.
 SMOOTH_FRAMES = 5
 STREAM_START_TIMEOUT_S = 5.0
+# Before anything moves, --force-n needs `calibrated` newtons in one of this many frames.
+NEWTONS_CHECK_FRAMES = 25
 # Frames kept: the probe and idle take well under a minute at 125 Hz.
 RING_FRAMES = 16_000
+
+
+_NO_NEWTONS = ("--force-n needs xela_server's `calibrated` newtons, which these pads do not "
+               "send (the XR1944 is uncalibrated): state the force with --force-ma")
 
 
 @dataclass(frozen=True)
@@ -168,9 +174,9 @@ class _Stream:
             raise StaleSensorError(f"no tactile frame for {age:.2f} s{why}; check that "
                                    "xela_server runs and the pads are connected")
 
-    async def wait_first(self) -> None:
+    async def wait_frames(self, n: int) -> None:
         deadline = self.clock() + STREAM_START_TIMEOUT_S
-        while self.ring.count == 0:
+        while self.ring.count < n:
             if self.clock() > deadline or isinstance(self.error, SensorLayoutError):
                 self.fresh()
             await asyncio.sleep(0.05)
@@ -320,8 +326,7 @@ def propose(trace: ProbeTrace, idle: IdleNoise, *, force_ma: float | None = None
     norm = _smooth(trace.norm)
     if force_n is not None:
         if trace.newtons is None:
-            raise EdgeError("--force-n needs xela_server's `calibrated` newtons, which these "
-                            "pads do not send (the XR1944 is uncalibrated): use --force-ma")
+            raise EdgeError(_NO_NEWTONS)
         force, target = _smooth(trace.newtons), f"{force_n:g} N per finger"
         level = force_n
     else:
@@ -394,7 +399,10 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
     try:
         if own:
             await enable_torque(devices)
-        await stream.wait_first()
+        # (frames the client parsed before it was asked for newtons may come first)
+        await stream.wait_frames(NEWTONS_CHECK_FRAMES)
+        if force_n is not None and not stream.newtons:
+            raise EdgeError(_NO_NEWTONS)
         await press.open_gripper()
         await devices.arm.move_to("above", timeout)
         if prompt is not None:
@@ -440,8 +448,9 @@ def _report(proposal: Proposal, trace: ProbeTrace, idle: IdleNoise, cfg: Config,
     floor_note = (f" (raised to the noise floor {idle.floor:.5f})" if proposal.clipped else "")
     print(f"proposed x_th = {proposal.x_th:.5f}{floor_note}: the norm at {proposal.target}, "
           f"{a['closing_mm']:.2f} mm into the closing")
+    newtons = f" ({f['newtons']:.2f} N per finger)" if "newtons" in f else ""
     print(f"fragile x_th = {proposal.fragile:.5f} ({FRAGILE_RATIO:g} x): crossed at "
-          f"{f['above_free_ma']:.1f} mA above free closing, {f['closing_mm']:.2f} mm")
+          f"{f['above_free_ma']:.1f} mA above free closing{newtons}, {f['closing_mm']:.2f} mm")
     png = out / "threshold.png"
     plot_curve(trace, proposal, idle, png)
     data = {"x_th": proposal.x_th, "fragile_x_th": proposal.fragile, "target": proposal.target,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import json
 import shutil
 import time
 from dataclasses import replace
@@ -25,6 +26,7 @@ from edge.core import tomledit
 from edge.core.config import load_config
 from edge.core.errors import EdgeError
 from edge.daemon.lifecycle import Devices
+from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
 from edge.sim.virtual import VirtualClockLoop, VirtualRobot
 from edge.sim.world import robot_pads
@@ -104,27 +106,33 @@ def test_an_object_too_stiff_to_resolve_is_refused_and_the_config_kept(tmp_path)
     assert config.read_text() == before
 
 
-@pytest.mark.asyncio
-async def test_the_command_writes_x_th_into_the_config_keeping_its_comments(tmp_path):
+async def _run_command(tmp_path: Path, *args: str, calibrated: bool = False
+                       ) -> tuple[int, str, str, float]:
+    """`vt-edge calibrate threshold ARGS` against the real-time emulated robot: (exit
+    status, config text before, after, the finger gap once the command returned)."""
     cfg = sim_config()
     config = tmp_path / "robot.toml"
-    async with SimRobot(REFERENCE, seed=cfg.sim.seed, cfg=cfg) as robot:
+    async with SimRobot(REFERENCE, seed=cfg.sim.seed, cfg=cfg, calibrated=calibrated) as robot:
         tomledit.update(ROOT / "configs" / "sim.toml", config, {
             "sensor": {"url": robot.xela.url, "stale_timeout_s": 0.25},
             "bus": {"port": robot.dxl.port}, "runtime": {"move_time_s": 0.2}})
-        text = config.read_text()
-        assert "# The simulated objects are 16-34 mm wide" in text
+        before = config.read_text()
         t0 = time.perf_counter()
         rc = await asyncio.to_thread(cli.main, [
             "calibrate", "threshold", "--config", str(config), "--out", str(tmp_path / "cal"),
-            "--idle-s", "1.5", "--no-prompt", "--yes"])
-        wall = time.perf_counter() - t0
-        width = robot.world.gap_m
+            "--idle-s", "1.5", "--no-prompt", "--yes", *args])
+        print(f"{time.perf_counter() - t0:.1f} s on the real-time emulated robot")
+        gap = robot.world.gap_m
+    return rc, before, config.read_text(), gap
+
+
+@pytest.mark.asyncio
+async def test_the_command_writes_x_th_into_the_config_keeping_its_comments(tmp_path):
+    rc, text, saved, gap = await _run_command(tmp_path)
     assert rc == 0
-    saved = config.read_text()
-    written = load_config(config).press.x_th
-    print(f"x_th written: {written} ({wall:.1f} s on the real-time emulated robot); "
-          f"finger gap after: {1e3 * width:.1f} mm")
+    assert "# The simulated objects are 16-34 mm wide" in text
+    written = load_config(tmp_path / "robot.toml").press.x_th
+    print(f"x_th written: {written}; finger gap after: {1e3 * gap:.1f} mm")
     # Only x_th changed: every comment and every other line as it was.
     changed = [(a, b) for a, b in zip(text.splitlines(), saved.splitlines(), strict=True)
                if a != b]
@@ -132,4 +140,35 @@ async def test_the_command_writes_x_th_into_the_config_keeping_its_comments(tmp_
     assert written == pytest.approx(0.004, rel=0.2) and written != 0.004
     assert (tmp_path / "cal" / "threshold.png").stat().st_size > 1000
     # The gripper was opened before the command returned (the pads released the object).
-    assert width > 0.030
+    assert gap > 0.030
+
+
+@pytest.mark.asyncio
+async def test_calibrated_newtons_set_the_gentle_force_in_newtons(tmp_path):
+    """Pads whose xela_server sends `calibrated` forces: --force-n 0.37 (per finger) gives
+    today's threshold, as 20 mA does on the emulated motor."""
+    rc, _, _, _ = await _run_command(tmp_path, "--force-n", "0.37", calibrated=True)
+    assert rc == 0
+    written = load_config(tmp_path / "robot.toml").press.x_th
+    data = json.loads((tmp_path / "cal" / "threshold.json").read_text())
+    print(f"x_th at 0.37 N: {written}; at the crossing {data['at_x_th']}")
+    assert data["at_x_th"]["newtons"] == pytest.approx(0.37, abs=0.02)
+    assert written == pytest.approx(0.004, rel=0.2)
+
+
+@pytest.mark.asyncio
+async def test_force_n_without_calibrated_newtons_is_refused_naming_the_option(tmp_path,
+                                                                              caplog):
+    rc, text, saved, gap = await _run_command(tmp_path, "--force-n", "0.37")
+    assert rc == 2 and saved == text and gap > 0.030
+    assert any("--force-n" in r.getMessage() and "--force-ma" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_the_client_reads_calibrated_newtons_only_when_asked():
+    frame = (ROOT / "tests" / "fixtures" / "xela" / "v1.8_uSPa46_two_sensors.json").read_text()
+    assert parse_frame(frame, 2, 24).newtons is None
+    newtons = parse_frame(frame, 2, 24, newtons=True).newtons
+    obj = json.loads(frame)
+    assert newtons is not None and newtons.shape == (144,)
+    assert newtons[0] == obj["1"]["calibrated"][0] and newtons[72] == obj["2"]["calibrated"][0]
