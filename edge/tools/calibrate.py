@@ -147,7 +147,9 @@ class _Stream:
         self.source = source
         self.stale_s = stale_s
         self.ring = FrameRing(channels, RING_FRAMES)
-        self.newtons: dict[int, np.ndarray] = {}  # by frame count, where sent
+        # `calibrated` newtons beside the ring's rows; NaN where a frame had none.
+        self.newtons = np.full((RING_FRAMES, channels), np.nan)
+        self.sent_newtons = False
         self.clock = clock
         self.error: BaseException | None = None
 
@@ -155,8 +157,12 @@ class _Stream:
         while True:
             try:
                 async for frame in self.source.frames():
-                    if frame.newtons is not None:
-                        self.newtons[self.ring.count] = frame.newtons
+                    row = self.ring.count % RING_FRAMES
+                    if frame.newtons is None:
+                        self.newtons[row] = np.nan
+                    else:
+                        self.newtons[row] = frame.newtons
+                        self.sent_newtons = True
                     self.ring.push(frame.raw, frame.recv_time, frame.sensor_time, frame.seq)
             except SensorLayoutError as exc:
                 self.error = exc
@@ -170,26 +176,28 @@ class _Stream:
             raise self.error
         age = self.clock() - self.ring.latest_time()
         if age > self.stale_s:
-            why = f": {self.error}" if self.error is not None else ""
-            raise StaleSensorError(f"no tactile frame for {age:.2f} s{why}; check that "
-                                   "xela_server runs and the pads are connected")
+            since = f"for {age:.2f} s" if self.ring.count else "yet"
+            why = f" ({self.error})" if self.error is not None else ""
+            raise StaleSensorError(f"no tactile frame {since}{why}: check that xela_server "
+                                   "runs and the pads are connected")
 
     async def wait_frames(self, n: int) -> None:
         deadline = self.clock() + STREAM_START_TIMEOUT_S
         while self.ring.count < n:
             if self.clock() > deadline or isinstance(self.error, SensorLayoutError):
                 self.fresh()
+                raise StaleSensorError(f"only {self.ring.count} tactile frames in "
+                                       f"{STREAM_START_TIMEOUT_S:g} s: the stream is too slow")
             await asyncio.sleep(0.05)
 
     def since(self, t0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Receive times, raw frames and (where every frame has them) newtons from ``t0``."""
         ring = self.ring
         counts = np.arange(ring.count - min(ring.count, ring.capacity), ring.count)
-        counts = counts[ring.recv_time[counts % ring.capacity] >= t0]
-        forces = [self.newtons.get(int(c)) for c in counts]
-        newtons = (np.stack(forces) if forces and all(f is not None for f in forces)
-                   else None)
         rows = counts % ring.capacity
+        rows = rows[ring.recv_time[rows] >= t0]
+        forces = self.newtons[rows]
+        newtons = forces if len(rows) and np.isfinite(forces).all() else None
         return ring.recv_time[rows].copy(), ring.raw[rows].copy(), newtons
 
 
@@ -254,10 +262,10 @@ async def probe(stream: _Stream, devices: Devices, cfg: Config, idle: IdleNoise,
             free_ma = float(np.median(free))
         if free_ma is not None:
             above = state.squeeze_ma - free_ma
-            newest = stream.newtons.get(stream.ring.count - 1)
+            newest = stream.newtons[stream.ring.latest_index]
             if stop_ma is not None and above >= stop_ma:
                 end = f"squeeze {above:.0f} mA above free closing"
-            elif stop_n is not None and newest is not None and tare_n is not None and (
+            elif stop_n is not None and tare_n is not None and np.isfinite(newest).all() and (
                     _per_finger_newtons(newest[None], cfg.sensor.pads)[0] - tare_n >= stop_n):
                 end = f"{stop_n:.2f} N per finger"
         if not end and state.squeeze_ma >= 0.9 * cap_ma:
@@ -401,7 +409,7 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
             await enable_torque(devices)
         # (frames the client parsed before it was asked for newtons may come first)
         await stream.wait_frames(NEWTONS_CHECK_FRAMES)
-        if force_n is not None and not stream.newtons:
+        if force_n is not None and not stream.sent_newtons:
             raise EdgeError(_NO_NEWTONS)
         await press.open_gripper()
         await devices.arm.move_to("above", timeout)

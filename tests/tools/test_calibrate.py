@@ -24,7 +24,7 @@ import pytest
 from edge import cli
 from edge.core import tomledit
 from edge.core.config import load_config
-from edge.core.errors import EdgeError
+from edge.core.errors import EdgeError, StaleSensorError
 from edge.daemon.lifecycle import Devices
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
@@ -39,19 +39,32 @@ PRESSES = 3
 
 
 def _calibrate_virtual(config: Path, out: Path, gain: float, obj: str = REFERENCE,
-                       seed: int = 1) -> calibrate.Proposal:
+                       seed: int = 1, silence_after_s: float | None = None
+                       ) -> calibrate.Proposal:
+    """The procedure on the virtual-clock robot; ``silence_after_s``: the tactile stream
+    stops that long after the gripper starts closing."""
     cfg = load_config(config)
     skin = replace(robot_pads(cfg.sim.seed), gain=gain)
 
     async def run() -> calibrate.Proposal:
         async with VirtualRobot(cfg, obj, np.random.default_rng(seed), skin_draw=skin) as r:
+            if silence_after_s is not None:
+                close = r.gripper.close
+
+                async def close_then_silence(*args: float) -> None:
+                    await close(*args)
+                    asyncio.get_running_loop().call_later(
+                        silence_after_s, lambda: setattr(r.tactile, "_closed", True))
+
+                r.gripper.close = close_then_silence  # type: ignore[method-assign]
             await r.bus.set_torque(True)
             devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
-            proposal = await calibrate.calibrate_threshold(
-                cfg, config, out, prompt=None, confirm=None, devices=devices)
-            # Every way out leaves the gripper open.
-            assert (await r.gripper.state()).width_m > cfg.press.open_width_m - 0.001
-            return proposal
+            try:
+                return await calibrate.calibrate_threshold(
+                    cfg, config, out, prompt=None, confirm=None, devices=devices)
+            finally:
+                # Every way out leaves the gripper open.
+                assert (await r.gripper.state()).width_m > cfg.press.open_width_m - 0.001
 
     with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
         return runner.run(run())
@@ -124,6 +137,16 @@ async def _run_command(tmp_path: Path, *args: str, calibrated: bool = False
         print(f"{time.perf_counter() - t0:.1f} s on the real-time emulated robot")
         gap = robot.world.gap_m
     return rc, before, config.read_text(), gap
+
+
+def test_a_stream_that_stops_during_the_probe_opens_the_gripper(tmp_path):
+    config = tmp_path / "sim.toml"
+    shutil.copy(ROOT / "configs" / "sim.toml", config)
+    before = config.read_text()
+    # (the helper asserts the gripper is open after every way out)
+    with pytest.raises(StaleSensorError, match="no tactile frame"):
+        _calibrate_virtual(config, tmp_path / "out", 1.0, silence_after_s=1.0)
+    assert config.read_text() == before
 
 
 @pytest.mark.asyncio
