@@ -24,7 +24,7 @@ import pytest
 from edge import cli
 from edge.core import tomledit
 from edge.core.config import load_config
-from edge.core.errors import EdgeError, StaleSensorError
+from edge.core.errors import ConfigError, EdgeError, StaleSensorError
 from edge.daemon.lifecycle import Devices
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
@@ -119,11 +119,13 @@ def test_an_object_too_stiff_to_resolve_is_refused_and_the_config_kept(tmp_path)
     assert config.read_text() == before
 
 
-async def _run_command(tmp_path: Path, *args: str, calibrated: bool = False
-                       ) -> tuple[int, str, str, float]:
-    """`vt-edge calibrate threshold ARGS` against the real-time emulated robot: (exit
-    status, config text before, after, the finger gap once the command returned)."""
+async def _run_command(tmp_path: Path, *args: str, calibrated: bool = False,
+                       pad_gain: float = 1.0) -> tuple[int, str, str, float]:
+    """`vt-edge calibrate threshold ARGS` against the real-time emulated robot (its pads of
+    ``[sim] pad_gain``): (exit status, config text before, after, the finger gap once the
+    command returned)."""
     cfg = sim_config()
+    cfg = replace(cfg, sim=replace(cfg.sim, pad_gain=pad_gain))
     config = tmp_path / "robot.toml"
     async with SimRobot(REFERENCE, seed=cfg.sim.seed, cfg=cfg, calibrated=calibrated) as robot:
         tomledit.update(ROOT / "configs" / "sim.toml", config, {
@@ -168,15 +170,48 @@ async def test_the_command_writes_x_th_into_the_config_keeping_its_comments(tmp_
 
 @pytest.mark.asyncio
 async def test_calibrated_newtons_set_the_gentle_force_in_newtons(tmp_path):
-    """Pads whose xela_server sends `calibrated` forces: --force-n 0.37 (per finger) gives
-    today's threshold, as 20 mA does on the emulated motor."""
-    rc, _, _, _ = await _run_command(tmp_path, "--force-n", "0.37", calibrated=True)
+    """Pads twice as sensitive as the XR1944 whose xela_server sends `calibrated` forces:
+    --force-n 0.37 (per finger, where 0.004 stops on the XR1944) gives twice today's
+    threshold."""
+    rc, _, _, _ = await _run_command(tmp_path, "--force-n", "0.37", calibrated=True,
+                                     pad_gain=2.0)
     assert rc == 0
     written = load_config(tmp_path / "robot.toml").press.x_th
     data = json.loads((tmp_path / "cal" / "threshold.json").read_text())
     print(f"x_th at 0.37 N: {written}; at the crossing {data['at_x_th']}")
     assert data["at_x_th"]["newtons"] == pytest.approx(0.37, abs=0.02)
-    assert written == pytest.approx(0.004, rel=0.2)
+    assert written == pytest.approx(0.008, rel=0.2)
+
+
+def test_answering_no_leaves_the_config_as_it_was(tmp_path):
+    config = tmp_path / "sim.toml"
+    shutil.copy(ROOT / "configs" / "sim.toml", config)
+    before = config.read_text()
+    asked = []
+    cfg = load_config(config)
+
+    async def run() -> None:
+        async with VirtualRobot(cfg, REFERENCE, np.random.default_rng(1)) as r:
+            await r.bus.set_torque(True)
+            devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
+            await calibrate.calibrate_threshold(
+                cfg, config, tmp_path / "out", prompt=None,
+                confirm=lambda q: asked.append(q) or "n", devices=devices)
+
+    with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
+        runner.run(run())
+    assert config.read_text() == before
+    assert len(asked) == 1 and "(now 0.004)" in asked[0] and str(config) in asked[0]
+
+
+def test_pad_gain_out_of_range_is_refused_naming_the_field(tmp_path):
+    config = tmp_path / "sim.toml"
+    tomledit.update(ROOT / "configs" / "sim.toml", tmp_path / "ok.toml", {"sim": {"pad_gain": 2.0}})
+    assert load_config(tmp_path / "ok.toml").sim.pad_gain == 2.0
+    config.write_text((ROOT / "configs" / "sim.toml").read_text().replace(
+        "seed = 0\n", "seed = 0\npad_gain = 0.0\n"))
+    with pytest.raises(ConfigError, match=r"sim\.pad_gain"):
+        load_config(config)
 
 
 @pytest.mark.asyncio
