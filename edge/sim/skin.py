@@ -241,7 +241,7 @@ class Skin:
     def forces(self, force_n: float, contact_radius_m: float) -> np.ndarray:
         """Force on each taxel in newtons, x, y, z, shape (96,): what a calibrated sensor
         reports (xela_server's ``calibrated``), whatever the pads' gain."""
-        return self._forces(force_n, contact_radius_m).reshape(-1).copy()
+        return self._forces(force_n, contact_radius_m).reshape(-1)
 
     def loads(self, force_n: float, contact_radius_m: float) -> np.ndarray:
         """Noise-free change in counts, shape (96,), for a per-finger force."""

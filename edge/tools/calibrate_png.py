@@ -30,7 +30,18 @@ FLOOR_COLOUR = (127, 127, 127)
 def plot_curve(trace: ProbeTrace, proposal: Proposal, idle: IdleNoise, path: str | Path) -> None:
     img = Image.new("RGB", SIZE, "white")
     draw = ImageDraw.Draw(img)
-    font = ImageFont.load_default(size=14)
+    try:
+        font: ImageFont.ImageFont | ImageFont.FreeTypeFont = ImageFont.load_default(size=14)
+    except TypeError:  # Pillow < 10.1: only the small bitmap font
+        font = ImageFont.load_default()
+
+    def text(xy: tuple[float, float], words: str, fill: object, anchor: str = "la") -> None:
+        # Anchored by hand: a bitmap font (older Pillow) takes no anchor.
+        left_, top_, right_, bottom_ = draw.textbbox((0, 0), words, font=font)
+        w, h = right_ - left_, bottom_ - top_
+        dx = {"l": 0.0, "m": -w / 2, "r": -w}[anchor[0]]
+        dy = {"a": 0.0, "t": 0.0, "m": -h / 2, "d": -h}[anchor[1]]
+        draw.text((xy[0] + dx, xy[1] + dy), words, fill=fill, font=font)
     left, top = MARGIN[0], MARGIN[1]
     right, bottom = SIZE[0] - MARGIN[2], SIZE[1] - MARGIN[3]
     x = 1e3 * trace.closing_m
@@ -54,23 +65,20 @@ def plot_curve(trace: ProbeTrace, proposal: Proposal, idle: IdleNoise, path: str
         gx = left + (right - left) * f
         gy = bottom - (bottom - top) * f
         draw.line((gx, bottom, gx, bottom + 5), fill="black")
-        draw.text((gx, bottom + 8), f"{f * x_max:.1f}", fill="black", font=font, anchor="mt")
-        draw.text((left - 8, gy), f"{f * n_max:.4f}", fill=NORM_COLOUR, font=font, anchor="rm")
-        draw.text((right + 8, gy), f"{c_lo + f * (c_hi - c_lo):.0f}", fill=CURRENT_COLOUR,
-                  font=font, anchor="lm")
-    draw.text(((left + right) / 2, SIZE[1] - 20), "closing distance (mm of gripper width)",
-              fill="black", font=font, anchor="mm")
-    draw.text((left, top - 30), "tactile norm (units)", fill=NORM_COLOUR, font=font)
-    draw.text((right, top - 30), "squeeze above free closing (mA)", fill=CURRENT_COLOUR,
-              font=font, anchor="ra")
+        text((gx, bottom + 8), f"{f * x_max:.1f}", "black", "mt")
+        text((left - 8, gy), f"{f * n_max:.4f}", NORM_COLOUR, "rm")
+        text((right + 8, gy), f"{c_lo + f * (c_hi - c_lo):.0f}", CURRENT_COLOUR, "lm")
+    text(((left + right) / 2, SIZE[1] - 20), "closing distance (mm of gripper width)", "black",
+         "mm")
+    text((left, top - 30), "tactile norm (units)", NORM_COLOUR)
+    text((right, top - 30), "squeeze above free closing (mA)", CURRENT_COLOUR, "ra")
     for level, colour, label in (
             (proposal.x_th, X_TH_COLOUR, f"x_th {proposal.x_th:.5f} at {proposal.target}"),
             (proposal.fragile, FRAGILE_COLOUR, f"fragile {proposal.fragile:.5f}"),
             (idle.floor, FLOOR_COLOUR, f"noise floor {idle.floor:.5f}")):
         if level <= n_max:
             draw.line((left, py_norm(level), right, py_norm(level)), fill=colour, width=1)
-            draw.text((left + 6, py_norm(level) - 3), label, fill=colour, font=font,
-                      anchor="ld")
+            text((left + 6, py_norm(level) - 3), label, colour, "ld")
     at = px(proposal.at_x_th["closing_mm"])
     draw.line((at, top, at, bottom), fill=X_TH_COLOUR, width=1)
     order = np.argsort(x, kind="stable")
