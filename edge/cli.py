@@ -137,9 +137,46 @@ def _cmd_pose_teach(args: argparse.Namespace) -> int:
     import asyncio
 
     from edge.core.config import load_config
-    from edge.tools.collect import teach_pose
+    from edge.tools.pose import teach_pose
 
     asyncio.run(teach_pose(load_config(args.config), args.config, args.name))
+    return 0
+
+
+def _cmd_pose_goto(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.core.config import load_config
+    from edge.tools.pose import goto_pose
+
+    asyncio.run(goto_pose(load_config(args.config), args.name))
+    return 0
+
+
+def _cmd_models_install(args: argparse.Namespace) -> int:
+    from edge.tools.models import PREVIOUS_SUFFIX, describe, install_models
+
+    if args.config is not None:
+        from edge.core.config import load_config
+
+        dest = load_config(args.config).runtime.models_dir
+    else:
+        dest = args.to
+    manifest = install_models(args.src, dest)
+    print(f"installed {args.src} as {dest} (the one it replaced, if any, is "
+          f"{dest}{PREVIOUS_SUFFIX}): {describe(manifest)}")
+    print("reload the daemon: systemctl reload vtzero-edge (or kill -HUP its pid)")
+    return 0
+
+
+def _cmd_install_udev(args: argparse.Namespace) -> int:
+    from edge.daemon import udev
+
+    if not args.install:
+        print(udev.rules_text(), end="")
+        return 0
+    path = udev.install()
+    print(f"installed {path}; now: {udev.RELOAD_COMMAND}, then unplug and replug the U2D2")
     return 0
 
 
@@ -178,19 +215,34 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
     import shutil
     from pathlib import Path
 
-    from edge.daemon import systemd
+    from edge.core.config import load_config
+    from edge.daemon import install, systemd
 
+    config = Path(args.config).resolve()
+    if not config.is_file():
+        raise EdgeError(f"config file {config} does not exist: write it first (start from "
+                        "configs/robot.toml), then run install-service again")
+    cfg = load_config(config)
     beside = Path(sys.executable).with_name("vt-edge")
     exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
-    config = Path(args.config).resolve()
-    priority = None
-    if config.exists():
-        # The unit lets the daemon do what its configuration asks (real-time scheduling).
-        from edge.core.config import load_config
-
-        runtime = load_config(config).runtime
-        priority = runtime.realtime_priority if runtime.realtime else None
-    unit = systemd.unit_text(exe, str(config), args.user, realtime_priority=priority)
+    reads, writes = install.config_paths(cfg, config)
+    install.check_paths([*install.interpreter_paths(exe), *reads], writes)
+    acc = install.accounts(cfg, args.user)
+    if args.create_user and (acc.missing_user or acc.missing_groups):
+        for command in install.create_accounts(acc):
+            print(f"ran: {command}", file=sys.stderr)
+        acc = install.accounts(cfg, args.user)
+    todo = acc.todo()
+    if note := install.readable_note(config, acc):
+        todo.append(note)
+    if todo and args.install:
+        raise EdgeError("before installing the unit: " + "; ".join(todo))
+    unit = install.service_unit(cfg, config, exe, acc)
+    for line in todo:
+        print(f"note: {line}", file=sys.stderr)
+    if not Path(cfg.runtime.models_dir, "manifest.json").is_file():
+        print(f"note: no model in {cfg.runtime.models_dir}: put one there with `vt-edge models "
+              f"install DIR --config {config}`", file=sys.stderr)
     if not args.install:
         print(unit, end="")
         return 0
@@ -232,6 +284,21 @@ def build_parser() -> argparse.ArgumentParser:
     teach.add_argument("name", help="e.g. above, lowered, rest")
     teach.add_argument("--config", required=True)
     teach.set_defaults(func=_cmd_pose_teach)
+    goto = posesub.add_parser("goto", help="move slowly to a taught pose to check it")
+    goto.add_argument("name")
+    goto.add_argument("--config", required=True)
+    goto.set_defaults(func=_cmd_pose_goto)
+
+    models = sub.add_parser("models", help="the model directory the daemon loads")
+    modsub = models.add_subparsers(dest="models_command", required=True)
+    minst = modsub.add_parser("install", help="verify a model directory and put it in place "
+                              "(the one it replaces kept as DIR.previous)")
+    minst.add_argument("src", help="a model directory (manifest.json, encoder, database)")
+    where = minst.add_mutually_exclusive_group()
+    where.add_argument("--to", default="/opt/vtzero/models", help="default: %(default)s")
+    where.add_argument("--config", default=None,
+                       help="install to this configuration's [runtime] models_dir")
+    minst.set_defaults(func=_cmd_models_install)
 
     bench = sub.add_parser("bench", help="measure the runtime on the emulated robot")
     bench.add_argument("--out", default="bench", help="directory for results.json/.md")
@@ -259,10 +326,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
     svc.add_argument("--config", default="/etc/vtzero/robot.toml")
-    svc.add_argument("--user", default="vtzero")
+    svc.add_argument("--user", default="vtzero", help="the system user the daemon runs as")
+    svc.add_argument("--create-user", action="store_true",
+                     help="create the user (useradd --system) and the device groups the "
+                          "configuration needs where missing (as root)")
     svc.add_argument("--install", action="store_true",
-                     help="write /etc/systemd/system/vtzero-edge.service")
+                     help="write /etc/systemd/system/vtzero-edge.service (refused while the "
+                          "user or a group is missing)")
     svc.set_defaults(func=_cmd_install_service)
+
+    udev = sub.add_parser("install-udev", help="print (or install) the udev rules: U2D2 "
+                          "latency timer 1 ms, /dev/ttyDXL")
+    udev.add_argument("--install", action="store_true",
+                      help="write /etc/udev/rules.d/60-vtzero.rules")
+    udev.set_defaults(func=_cmd_install_udev)
 
     sim = sub.add_parser("sim", help="the simulated robot")
     simsub = sim.add_subparsers(dest="sim_command", required=True)
