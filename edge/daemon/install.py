@@ -30,9 +30,10 @@ HIDDEN_DIRS = {
 }
 # The unit's StateDirectory=vtzero: the only place the service may write.
 STATE_DIR = PurePosixPath("/var/lib/vtzero")
-VENV_HINT = ("install vtzero into a venv the service can see, e.g. python3 -m venv "
-             "/opt/vtzero/venv && /opt/vtzero/venv/bin/pip install 'vtzero[edge]', and run "
-             "/opt/vtzero/venv/bin/vt-edge install-service")
+VENV_HINT = ("install vtzero into a venv the service can see, made from the system's Python "
+             "(a pyenv or user-installed one lives in a home directory): /usr/bin/python3 -m "
+             "venv /opt/vtzero/venv && /opt/vtzero/venv/bin/pip install 'vtzero[edge]', then "
+             "run /opt/vtzero/venv/bin/vt-edge install-service")
 FILES_HINT = "keep the files it reads under /etc/vtzero or /opt/vtzero"
 PYTHON_PARTS = ("the program", "the interpreter", "the Python installation", "the edge package")
 DEFAULT_USER = "vtzero"
