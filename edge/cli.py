@@ -154,7 +154,7 @@ def _cmd_pose_goto(args: argparse.Namespace) -> int:
 
 
 def _cmd_models_install(args: argparse.Namespace) -> int:
-    from edge.tools.models import PREVIOUS_SUFFIX, describe, install_models
+    from edge.tools.models import describe, install_models
 
     if args.config is not None:
         from edge.core.config import load_config
@@ -162,9 +162,9 @@ def _cmd_models_install(args: argparse.Namespace) -> int:
         dest = load_config(args.config).runtime.models_dir
     else:
         dest = args.to
-    manifest = install_models(args.src, dest)
-    print(f"installed {args.src} as {dest} (the one it replaced, if any, is "
-          f"{dest}{PREVIOUS_SUFFIX}): {describe(manifest)}")
+    manifest, previous = install_models(args.src, dest)
+    kept = f" (the one it replaced is {previous})" if previous else ""
+    print(f"installed {args.src} as {dest}{kept}: {describe(manifest)}")
     print("reload the daemon: systemctl reload vtzero-edge (or kill -HUP its pid)")
     return 0
 

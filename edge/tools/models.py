@@ -63,9 +63,9 @@ def _copy_tree(src: Path, dst: Path) -> None:
         _fsync(Path(root))
 
 
-def install_models(src: str | Path, dest: str | Path) -> dict:
+def install_models(src: str | Path, dest: str | Path) -> tuple[dict, Path | None]:
     """Verify ``src``, install it as ``dest`` (the old ``dest`` kept as ``dest.previous``);
-    returns the installed manifest."""
+    returns the installed manifest and where the replaced directory went (None: none)."""
     src, dest = Path(src).resolve(), Path(dest).absolute()
     if not src.is_dir():
         raise ModelError(f"{src}: not a directory (give a model directory with a "
@@ -79,8 +79,8 @@ def install_models(src: str | Path, dest: str | Path) -> dict:
     try:
         _copy_tree(src, tmp)
         verified_files(tmp, read_manifest(tmp))  # what landed on disk, read back
-        previous = dest.with_name(dest.name + PREVIOUS_SUFFIX)
-        if dest.exists():
+        previous = dest.with_name(dest.name + PREVIOUS_SUFFIX) if dest.exists() else None
+        if previous is not None:
             if previous.exists():
                 shutil.rmtree(previous)
             os.rename(dest, previous)
@@ -91,7 +91,7 @@ def install_models(src: str | Path, dest: str | Path) -> dict:
         raise
     _fsync(dest.parent)
     log.info("installed %s from %s", dest, src)
-    return manifest
+    return manifest, previous
 
 
 def describe(manifest: dict) -> str:

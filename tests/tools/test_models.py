@@ -26,7 +26,8 @@ def _copy(tmp_path, name="src"):
 def test_install_puts_a_verified_copy_in_place_and_keeps_the_previous(tmp_path):
     src = _copy(tmp_path)
     dest = tmp_path / "opt" / "models"
-    manifest = install_models(src, dest)
+    manifest, previous = install_models(src, dest)
+    assert previous is None
     assert manifest == json.loads((SHIPPED / "manifest.json").read_text())
     load_model(dest)  # the daemon's own check
     for name in manifest["files"]:
@@ -37,9 +38,9 @@ def test_install_puts_a_verified_copy_in_place_and_keeps_the_previous(tmp_path):
 
     # A second install: the first one becomes models.previous, one generation kept.
     (src / "README.md").write_text("second\n")
-    install_models(src, dest)
+    _, previous = install_models(src, dest)
     assert (dest / "README.md").read_text() == "second\n"
-    previous = tmp_path / "opt" / f"models{PREVIOUS_SUFFIX}"
+    assert previous == tmp_path / "opt" / f"models{PREVIOUS_SUFFIX}"
     assert (previous / "README.md").read_bytes() == (SHIPPED / "README.md").read_bytes()
     (src / "README.md").write_text("third\n")
     install_models(src, dest)
