@@ -16,6 +16,7 @@ TOLERANCE_RAW = 15  # DynamixelArm's in-position tolerance
 async def test_teach_warns_before_torque_off_then_stores_the_pose(tmp_path):
     path = tmp_path / "robot.toml"
     path.write_text('mode = "sim"\n# my comment stays\n[press]\nx_th = 0.003\n')
+    path.chmod(0o644)  # as installed: the service user reads it
     cfg = Config()
     hand = (2100, 1500, 2700, 1990)
     prompts, torque_at_prompt = [], []
@@ -40,6 +41,7 @@ async def test_teach_warns_before_torque_off_then_stores_the_pose(tmp_path):
     assert all(abs(a - b) <= 1 for a, b in zip(joints, hand, strict=True))
     assert torque == [0, 0, 0, 0]
     saved = path.read_text()
+    assert path.stat().st_mode & 0o777 == 0o644  # still readable by the service
     assert "# my comment stays" in saved and "x_th = 0.003" in saved
     loaded = load_config(path)
     assert loaded.poses["above"] == joints
