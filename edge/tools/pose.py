@@ -29,6 +29,14 @@ SUPPORT_PROMPT = ("support the arm: its torque goes off and a raised arm drops; 
                   "Enter to turn torque off ")
 
 
+async def _ask(prompt: Callable[[str], object], message: str) -> None:
+    try:
+        await asyncio.to_thread(prompt, message)
+    except EOFError:
+        raise EdgeError("no answer (standard input is closed): run it at a terminal, "
+                        "where Enter answers each step") from None
+
+
 def _check_name(name: str) -> None:
     if not name.replace("_", "").isalnum():
         raise EdgeError(f"pose name {name!r}: use letters, digits and underscores")
@@ -40,15 +48,14 @@ async def teach_pose(cfg: Config, config_path: str | Path, name: str,
     from edge.hw.dynamixel import DynamixelBus
 
     _check_name(name)
-    await asyncio.to_thread(prompt, SUPPORT_PROMPT)
+    await _ask(prompt, SUPPORT_PROMPT)
     own = bus is None
     bus = bus or DynamixelBus(cfg.bus)
     try:
         if own:
             await bus.connect()
         await bus.set_torque(False)
-        await asyncio.to_thread(prompt, f"move the arm to the '{name}' pose by hand, then "
-                                        "press Enter ")
+        await _ask(prompt, f"move the arm to the '{name}' pose by hand, then press Enter ")
         state = await bus.read_state()
         joints = tuple(int(state.motors[i].position) for i in cfg.bus.joint_ids)
     finally:
@@ -74,9 +81,8 @@ async def goto_pose(cfg: Config, name: str, prompt: Callable[[str], object] = in
     if name not in cfg.poses:
         raise EdgeError(f"pose {name!r} is not in [poses] (known: {', '.join(cfg.poses)}); "
                         f"teach it with `vt-edge pose teach {name}`")
-    await asyncio.to_thread(prompt, f"the arm moves to '{name}' over {move_time_s:g} s: clear "
-                                    "its path and support it (connecting turns torque off for "
-                                    "a moment); Enter to start ")
+    await _ask(prompt, f"the arm moves to '{name}' over {move_time_s:g} s: clear its path and "
+                       "support it (connecting turns torque off for a moment); Enter to start ")
     bus = DynamixelBus(cfg.bus)
     arm = DynamixelArm(bus, cfg.poses, move_time_s=move_time_s)
     timeout_s = move_time_s + GOTO_SETTLE_S
@@ -86,8 +92,7 @@ async def goto_pose(cfg: Config, name: str, prompt: Callable[[str], object] = in
         await arm.move_to(name, timeout_s)
         joints = tuple(int(j) for j in await arm.joints())
         print(f"at pose {name}: joints {list(joints)} (taught {list(cfg.poses[name])})")
-        await asyncio.to_thread(prompt, f"holding '{name}'; Enter to go back to rest and "
-                                        "turn torque off ")
+        await _ask(prompt, f"holding '{name}'; Enter to go back to rest and turn torque off ")
     finally:
         # Back to rest as slowly as it came (every way out, Ctrl-C included), torque off.
         await bus.close(safe_pose=lambda: arm.move_to("rest", timeout_s))

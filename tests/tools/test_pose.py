@@ -85,3 +85,24 @@ async def test_goto_moves_slowly_holds_then_rests_with_torque_off():
 async def test_goto_an_unknown_pose_is_refused_before_anything_moves():
     with pytest.raises(EdgeError, match=r"pose 'abve' is not in \[poses\].*pose teach abve"):
         await goto_pose(Config(), "abve", prompt=lambda _m: pytest.fail("prompted"))
+
+
+@pytest.mark.asyncio
+async def test_closed_stdin_is_a_one_line_error_and_the_arm_goes_back_to_rest():
+    cfg = Config()
+    prompts = []
+
+    def user(message):  # Enter to start, then the input ends (a pipe, a closed terminal)
+        prompts.append(message)
+        if len(prompts) > 1:
+            raise EOFError
+
+    async with SimRobot("wood_cube", seed=14, cfg=cfg) as robot:
+        with pytest.raises(EdgeError, match="standard input is closed"):
+            await goto_pose(robot.runtime_config(cfg), "above", prompt=user, move_time_s=0.3)
+        ids = cfg.bus.joint_ids
+        pos = [robot.dxl.get_register(i, "Present Position") for i in ids]
+        torque = [robot.dxl.get_register(i, "Torque Enable") for i in ids]
+    assert "holding 'above'" in prompts[1]
+    assert all(abs(a - b) <= TOLERANCE_RAW for a, b in zip(pos, cfg.poses["rest"], strict=True))
+    assert torque == [0, 0, 0, 0]
