@@ -142,8 +142,8 @@ def groupadd_command(group: str) -> list[str]:
 
 
 GROUP_DEVICES = {
-    "gpio": "and give it the GPIO chips: uncomment the gpiochip line of the udev rules "
-            "(vt-edge install-udev --install)",
+    "gpio": "and give it the GPIO chips with `vt-edge install-udev --install` (which writes "
+            "that rule once the group exists)",
 }
 
 

@@ -8,6 +8,7 @@ from importlib import resources
 from pathlib import Path
 
 from edge.core.atomic import atomic_write_text
+from edge.daemon.install import group_exists
 
 RULES_NAME = "60-vtzero.rules"
 RULES_DIR = Path("/etc/udev/rules.d")
@@ -15,8 +16,16 @@ RELOAD_COMMAND = "udevadm control --reload-rules && udevadm trigger --action=add
                  "--subsystem-match=usb-serial --subsystem-match=tty"
 
 
-def rules_text() -> str:
-    return resources.files("edge.daemon").joinpath(RULES_NAME).read_text()
+GPIO_RULE = '#SUBSYSTEM=="gpio"'
+
+
+def rules_text(gpio: bool | None = None) -> str:
+    """The rules; the gpio group's rule is enabled when ``gpio`` (default: when the host
+    has that group)."""
+    text = resources.files("edge.daemon").joinpath(RULES_NAME).read_text()
+    if gpio if gpio is not None else group_exists("gpio"):
+        text = text.replace(GPIO_RULE, GPIO_RULE[1:])
+    return text
 
 
 def install(dest_dir: Path = RULES_DIR) -> Path:
