@@ -244,3 +244,19 @@ def test_install_udev_prints_and_installs(tmp_path):
 def test_unit_text_defaults_name_dialout_only():
     text = unit_text(EXE, "/etc/vtzero/robot.toml", "robot")
     assert "SupplementaryGroups=dialout\n" in text and "Group=robot\n" in text
+
+
+def test_a_config_the_service_user_cannot_read_is_named(tmp_path):
+    path = tmp_path / "robot.toml"
+    path.write_text("")
+    group = install.primary_group("root")
+    acc = install.Accounts(user=NO_USER, group=group, groups=(), missing_user=True,
+                           missing_groups=())
+    path.chmod(0o600)
+    note = install.readable_note(path, acc)
+    assert note and f"chgrp {group} {path} && chmod 0640 {path}" in note
+    path.chmod(0o644)
+    assert install.readable_note(path, acc) is None
+    path.chmod(0o640)  # readable by the file's group, here the user's own
+    acc = replace(acc, group=install.grp.getgrgid(os.getgid()).gr_name)
+    assert install.readable_note(path, acc) is None
