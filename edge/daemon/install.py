@@ -36,7 +36,6 @@ VENV_HINT = ("install vtzero into a venv the service can see, made from the syst
              "run /opt/vtzero/venv/bin/vt-edge install-service")
 FILES_HINT = "keep the files it reads under /etc/vtzero or /opt/vtzero"
 PYTHON_PARTS = ("the program", "the interpreter", "the Python installation", "the edge package")
-DEFAULT_USER = "vtzero"
 # useradd/groupadd take a moment; a host whose account tools hang is not one to wait on.
 ACCOUNT_TOOL_TIMEOUT_S = 30.0
 
@@ -88,7 +87,7 @@ def check_paths(reads: Iterable[tuple[str, Path]], writes: Iterable[tuple[str, P
         if not path.is_absolute():
             problems[f"{what} {path} (relative, and the service runs in /: give an "
                      "absolute path)"] = False
-        elif setting := hidden_by(path):
+        elif setting := hidden_by(path) or hidden_by(path.resolve()):  # a link into /home
             problems[f"{what} {path} (hidden by {setting})"] = what in PYTHON_PARTS
     for what, path in writes:
         if not path.is_absolute() or STATE_DIR not in (PurePosixPath(path), *path.parents):

@@ -260,3 +260,15 @@ def test_a_config_the_service_user_cannot_read_is_named(tmp_path):
     path.chmod(0o640)  # readable by the file's group, here the user's own
     acc = replace(acc, group=install.grp.getgrgid(os.getgid()).gr_name)
     assert install.readable_note(path, acc) is None
+
+
+def test_a_link_into_a_home_directory_is_hidden_too():
+    link = Path("/dev/shm") / f"vtzero-test-{os.getpid()}"
+    if not link.parent.is_dir():
+        pytest.skip("no /dev/shm")
+    link.symlink_to("/root")
+    try:
+        with pytest.raises(EdgeError, match=rf"models_dir {link} \(hidden by ProtectHome"):
+            install.check_paths([("[runtime] models_dir", link)], [])
+    finally:
+        link.unlink()
