@@ -212,44 +212,10 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
 
 
 def _cmd_install_service(args: argparse.Namespace) -> int:
-    import shutil
-    from pathlib import Path
+    from edge.daemon.install import install_service
 
-    from edge.core.config import load_config
-    from edge.daemon import install, systemd
-
-    config = Path(args.config).resolve()
-    if not config.is_file():
-        raise EdgeError(f"config file {config} does not exist: write it first (start from "
-                        "configs/robot.toml), then run install-service again")
-    cfg = load_config(config)
-    beside = Path(sys.executable).with_name("vt-edge")
-    exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
-    reads, writes = install.config_paths(cfg, config)
-    install.check_paths([*install.interpreter_paths(exe), *reads], writes)
-    acc = install.accounts(cfg, args.user)
-    if args.create_user and (acc.missing_user or acc.missing_groups):
-        for command in install.create_accounts(acc):
-            print(f"ran: {command}", file=sys.stderr)
-        acc = install.accounts(cfg, args.user)
-    todo = acc.todo()
-    if note := install.readable_note(config, acc):
-        todo.append(note)
-    if todo and args.install:
-        raise EdgeError("before installing the unit: " + "; ".join(todo))
-    unit = install.service_unit(cfg, config, exe, acc)
-    for line in todo:
-        print(f"note: {line}", file=sys.stderr)
-    if not Path(cfg.runtime.models_dir, "manifest.json").is_file():
-        print(f"note: no model in {cfg.runtime.models_dir}: put one there with `vt-edge models "
-              f"install DIR --config {config}`", file=sys.stderr)
-    if not args.install:
-        print(unit, end="")
-        return 0
-    path = systemd.install(unit)
-    print(f"installed {path}; now: systemctl daemon-reload && systemctl enable --now "
-          f"{systemd.UNIT_NAME}")
-    return 0
+    return install_service(args.config, args.user, create_user=args.create_user,
+                           write=args.install)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import grp
 import pwd
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterable
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import edge
-from edge.core.config import Config
+from edge.core.config import Config, load_config
 from edge.core.errors import EdgeError
 
 # What the unit hides (ProtectHome=yes, PrivateTmp=yes): the service sees these empty.
@@ -220,3 +221,42 @@ def readable_note(path: Path, acc: Accounts) -> str | None:
         return None
     return (f"{path} is not readable by {acc.user}: chgrp {acc.group} {path} && "
             f"chmod 0640 {path}")
+
+
+def install_service(config_path: str | Path, user: str, *, create_user: bool = False,
+                    write: bool = False) -> int:
+    """`vt-edge install-service`: check the host, then print the unit or install it."""
+    from edge.daemon import systemd
+
+    config = Path(config_path).resolve()
+    if not config.is_file():
+        raise EdgeError(f"config file {config} does not exist: write it first (start from "
+                        "configs/robot.toml), then run install-service again")
+    cfg = load_config(config)
+    beside = Path(sys.executable).with_name("vt-edge")
+    exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
+    reads, writes = config_paths(cfg, config)
+    check_paths([*interpreter_paths(exe), *reads], writes)
+    acc = accounts(cfg, user)
+    if create_user and (acc.missing_user or acc.missing_groups):
+        for command in create_accounts(acc):
+            print(f"ran: {command}", file=sys.stderr)
+        acc = accounts(cfg, user)
+    todo = acc.todo()
+    if note := readable_note(config, acc):
+        todo.append(note)
+    if todo and write:
+        raise EdgeError("before installing the unit: " + "; ".join(todo))
+    unit = service_unit(cfg, config, exe, acc)
+    for line in todo:
+        print(f"note: {line}", file=sys.stderr)
+    if not Path(cfg.runtime.models_dir, "manifest.json").is_file():
+        print(f"note: no model in {cfg.runtime.models_dir}: put one there with `vt-edge models "
+              f"install DIR --config {config}`", file=sys.stderr)
+    if not write:
+        print(unit, end="")
+        return 0
+    path = systemd.install(unit)
+    print(f"installed {path}; now: systemctl daemon-reload && systemctl enable --now "
+          f"{systemd.UNIT_NAME}")
+    return 0
