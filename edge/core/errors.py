@@ -112,6 +112,10 @@ class VLMRejectedError(VLMHTTPError):
     """A status that is never retried (400, 401, 403, 404, 413, other 4xx, a redirect)."""
 
 
+class VLMFormatRefusedError(VLMRejectedError):
+    """The server refused the structured-output mode (``response_format``) it was sent."""
+
+
 class VLMResponseError(VLMError, ValueError):
     """The server's 200 answer is unusable: not JSON, no choices, or an error object."""
 
