@@ -225,7 +225,8 @@ def parse_label(text: str, candidates: Sequence[str]) -> str | None:
 
     Accepts ``{"label": "..."}``, the same inside a code fence or after a ``<think>`` block,
     a JSON string, or a bare label; each mapped by :func:`match_label`. A JSON label that is
-    not a candidate is None, never a guess.
+    not a candidate is None, never a guess. Free text (a server that ignores the response
+    format) is read only where it names exactly one candidate, spelled exactly as given.
     """
     if not isinstance(text, str) or len(text) > MAX_ANSWER_CHARS:
         return None
@@ -245,7 +246,19 @@ def parse_label(text: str, candidates: Sequence[str]) -> str | None:
             found = match_label(body, candidates)
             if found is not None:
                 return found
-    return None
+    if _is_json(text):
+        return None  # JSON without a label is not free text
+    named = [c for c in candidates
+             if re.search(rf"(?<![\w-]){re.escape(c)}(?![\w-])", text) is not None]
+    return named[0] if len(named) == 1 else None
+
+
+def _is_json(text: str) -> bool:
+    try:
+        json.loads(text)
+    except (ValueError, RecursionError):
+        return False
+    return True
 
 
 def _json_label(text: str) -> str | None:
