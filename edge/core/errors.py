@@ -75,6 +75,10 @@ class BusyError(EdgeError, RuntimeError):
         self.episode_id = episode_id
 
 
+class StateError(EdgeError, ValueError):
+    """The named thing exists but its state does not allow this (HTTP 409)."""
+
+
 class StoreError(EdgeError, OSError):
     """The episode store cannot write or read (disk full, permissions, corrupt entry)."""
 
