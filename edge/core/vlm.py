@@ -138,7 +138,7 @@ class VLMAnswer:
     label: str | None
     # The text content of the last answer ("" when none came).
     raw: str
-    # The rendered prompt of the first request.
+    # The rendered template (JSON mode may add a line asking for JSON; see ``request``).
     prompt: str
     candidates: tuple[str, ...]
     model: str
@@ -564,7 +564,7 @@ class OpenAIVLM:
             log.info("VLM answered %r in %.2f s (%d attempt(s), %s)", label, elapsed,
                      len(trace.outcomes), mode)
         return VLMAnswer(
-            status=status, label=label, raw=self._redact(raw), prompt=prompt,
+            status=status, label=label, raw=self._redact(raw), prompt=rendered,
             candidates=tuple(labels), model=self.config.model,
             request={**head, "messages": stored}, response=self._redact_json(response),
             image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
