@@ -6,17 +6,25 @@ recognition presses the emulated robot through the real drivers."""
 from __future__ import annotations
 
 import asyncio
+import os
 import re
+import sys
 from dataclasses import replace
 
 import pytest
 
-from edge.cli import main as cli_main
-from edge.core.errors import NotFoundError, StateError
+from edge.core.errors import EdgeError, NotFoundError
 from edge.core.vlm import UNREACHABLE_AFTER_ATTEMPTS
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.tools.episode_retry import run_retry
-from tests.support.daemon import FOOD, QUICK_OBJECT, fast_config, sim_daemon, wait_health
+from tests.support.daemon import (
+    FOOD,
+    QUICK_OBJECT,
+    ROOT,
+    fast_config,
+    sim_daemon,
+    wait_health,
+)
 from tests.support.waits import free_port
 
 pytestmark = pytest.mark.asyncio
@@ -92,29 +100,38 @@ async def test_failed_episodes_are_asked_again_by_route_and_command(tmp_path):
         status, body = await d.post("/v1/episodes/20990101T000000Z-deadbeef/retry", {})
         assert status == 404
 
-        # The command, through the daemon (a thread: the daemon runs on this loop).
+        # The command, through the daemon (its own process, as a person runs it).
         config = tmp_path / "robot.toml"
         config.write_text(f'[runtime]\nstate_dir = "{tmp_path / "state"}"\n')
+        rc, out, err = await vt_edge("episodes", "--config", str(config), "retry",
+                                     "--all-failed", "--url", d.url)
+        print(out, err[-300:])
+        assert rc == 0 and out.startswith(f"{invalid['id']}  done") and OBJECT in out
+        assert len(out.splitlines()) == 1 and d.store.get(invalid["id"]).status == "done"
+        rc, out, err = await vt_edge("episodes", "--config", str(config), "retry",
+                                     invalid["id"], "--url", d.url)
+        (line,) = [x for x in err.splitlines() if "ERROR" in x]
+        assert rc == 2 and line.endswith(f"episode {invalid['id']} is done: only vlm_error or "
+                                         "invalid_answer episodes are asked again")
         lines: list[str] = []
-        rc = await asyncio.to_thread(run_retry, d.cfg, d.store, None, True, d.url,
-                                     lines.append)
-        print("\n".join(lines))
-        assert rc == 0 and len(lines) == 1
-        assert lines[0].startswith(f"{invalid['id']}  done") and OBJECT in lines[0]
-        assert d.store.get(invalid["id"]).status == "done"
-        rc = await asyncio.to_thread(cli_main, ["episodes", "--config", str(config), "retry",
-                                                "--all-failed", "--url", d.url])
-        assert rc == 0  # none left
-        with pytest.raises(StateError, match="is done: only vlm_error"):
-            await asyncio.to_thread(run_retry, d.cfg, d.store, invalid["id"], False, d.url)
+        assert await asyncio.to_thread(run_retry, d.cfg, d.store, None, True, d.url,
+                                       lines.append) == 0
+        assert lines == ["no vlm_error or invalid_answer episodes to ask again"]
         with pytest.raises(NotFoundError, match="no episode 'nope'"):
             await asyncio.to_thread(run_retry, d.cfg, d.store, "nope", False, d.url)
-        rc = await asyncio.to_thread(cli_main, ["episodes", "--config", str(config), "retry",
-                                                invalid["id"], "--url", d.url])
-        assert rc == 2
-    rc = cli_main(["episodes", "--config", str(config), "retry", invalid["id"],
-                   "--url", f"http://127.0.0.1:{free_port()}"])
-    assert rc == 2  # no daemon: said in one line
+    url = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(EdgeError, match=f"no daemon answers at {url}"):
+        run_retry(d.cfg, d.store, invalid["id"], False, url)
+
+
+async def vt_edge(*args: str) -> tuple[int, str, str]:
+    """``vt-edge ARGS`` in a process of its own: (exit status, stdout, stderr)."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "edge", *args, cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    return proc.returncode, out.decode(), err.decode()
 
 
 async def test_a_wrong_vlm_url_shows_on_healthz_and_metrics_until_it_answers(tmp_path):
