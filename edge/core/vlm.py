@@ -751,11 +751,14 @@ class OpenAIVLM:
         """A short, secret-free, single-line excerpt of a response body."""
         text = body[:4096].decode("utf-8", "replace")
         try:
-            err = json.loads(body).get("error")
+            data = json.loads(body)
+            err = data.get("error")
             if isinstance(err, dict) and isinstance(err.get("message"), str):
                 text = err["message"]
             elif isinstance(err, str):
                 text = err
+            elif isinstance(data.get("message"), str):  # vLLM: {"object": "error", ...}
+                text = data["message"]
         except (ValueError, RecursionError, AttributeError):
             pass
         text = " ".join(self._redact(text).split())
