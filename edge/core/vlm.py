@@ -89,8 +89,9 @@ STRUCTURED_MODES = ("json_schema", "json_object", "none")
 # A refusal of the mode: these statuses (old llama.cpp builds answer 500) with a body naming
 # response_format or what real servers say instead: vLLM ("loc": ("body", "response_format")),
 # TGI (422 "response_format: unknown variant `json_schema`"), llama.cpp ("response_format type
-# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), hosted
-# APIs ("json mode is not supported", "structured outputs", "guided_json", "grammar").
+# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), Ollama
+# ("invalid JSON schema in format", a 500), hosted APIs ("json mode is not supported",
+# "structured outputs", "guided_json", "grammar").
 FORMAT_REFUSAL_STATUSES = frozenset({400, 422, 500})
 _FORMAT_REFUSAL = re.compile(
     r"response[_ .-]?format|json[_ ]?schema|json[_ ]?object|structured[_ ]outputs?|"

@@ -57,7 +57,7 @@ async def test_each_mode_sends_its_response_format(jpeg, mode, expected):
 
 
 @pytest.mark.asyncio
-@pytest.mark.parametrize("refusal", ["vllm", "tgi", "llamacpp_500", "lmstudio"])
+@pytest.mark.parametrize("refusal", ["vllm", "tgi", "llamacpp_500", "lmstudio", "ollama"])
 async def test_a_server_refusing_response_format_is_asked_in_free_text(jpeg, caplog, refusal):
     """(a) Refuses any response_format, in the words (and status) of a real server: the client
     steps down json_schema -> json_object -> none, logs each step once, keeps it."""
