@@ -107,6 +107,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))
     codebook = model.database.codebook
     embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook)}
+    if args.zeros:
+        zeros, zeros_norm, _ = load_checkpoint(args.zeros)
+        assert zeros.quantiser is not None
+        embedders["vq_zeros"] = ((lambda x: embed(zeros, zeros_norm, x)),
+                                 zeros.quantiser.codebook.detach().numpy().copy())
     if args.beta:
         beta, norm, _ = load_checkpoint(args.beta)
         embedders["beta"] = ((lambda x: embed(beta, norm, x)), None)
@@ -303,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unseen", required=True, nargs="+", help="unseen-class recordings")
     p.add_argument("--out", required=True)
     p.add_argument("--beta", help="beta-VAE checkpoint for the comparison")
+    p.add_argument("--zeros", help="checkpoint of the VQ-VAE with the zero-input decoder, "
+                   "for the comparison")
     p.add_argument("--splits")
     p.add_argument("--k", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
