@@ -72,6 +72,7 @@ VARIANT_TITLES = {
                 "with the reference presses' statistics, L2 nearest neighbours",
 }
 BASELINE = "baseline"
+NEIGHBOURS = 3  # per unseen class in the report: the most frequent nearest classes
 # The headline figures the encoder is held against the baseline on (key, name in the report).
 VERSUS_BASELINE = (("loo_1nn", "LOO 1-NN"), ("loo_top3", "LOO top-3"),
                    ("top3_consistency", "unseen top-3 consistency"),
@@ -310,8 +311,8 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
 
 def neighbours(retrieved: Sequence[list[tuple[str, float]]], labels: Sequence[str]
                ) -> dict[str, dict[str, Any]]:
-    """Per unseen class: how often each reference class came first, and the reference
-    classes most often in the top-k, most frequent first."""
+    """Per unseen class: the (up to) ``NEIGHBOURS`` reference classes that came first most
+    often, and those most often in the top-k, with their counts, most frequent first."""
     out: dict[str, dict[str, Any]] = {}
     for cls in dict.fromkeys(labels):
         mine = [r for r, lab in zip(retrieved, labels, strict=True) if lab == cls]
@@ -322,8 +323,9 @@ def neighbours(retrieved: Sequence[list[tuple[str, float]]], labels: Sequence[st
             for lab, _ in r:
                 anywhere[lab] = anywhere.get(lab, 0) + 1
         out[cls] = {"presses": len(mine),
-                    "first": sorted(first.items(), key=lambda kv: (-kv[1], kv[0])),
-                    "topk": sorted(anywhere.items(), key=lambda kv: (-kv[1], kv[0]))}
+                    "first": sorted(first.items(), key=lambda kv: (-kv[1], kv[0]))[:NEIGHBOURS],
+                    "topk": sorted(anywhere.items(),
+                                   key=lambda kv: (-kv[1], kv[0]))[:NEIGHBOURS]}
     return out
 
 
