@@ -233,6 +233,28 @@ def _cmd_release(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_build(args: argparse.Namespace) -> int:
+    from train.build import SHIPPED_PROMPTS, BuildConfig, build
+    from train.trainer import Progress
+
+    cfg = BuildConfig(data=Path(args.data), out=Path(args.out),
+                      variants=tuple(dict.fromkeys(args.variant or ())),
+                      unseen=tuple(Path(u) for u in args.unseen or ()),
+                      prompts=Path(args.prompts) if args.prompts else SHIPPED_PROMPTS,
+                      seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
+                      threads=args.threads)
+    manifest = build(cfg, Progress(enabled=not args.quiet))
+    m = manifest["metrics"]
+    base = m["comparison"].get("baseline/z", {})
+    print(f"built {cfg.out} from {cfg.data} ({manifest['origin']['kind']} data): "
+          f"{manifest['database']['references']} references of "
+          f"{manifest['database']['classes']} classes; LOO 1-NN {m['loo_1nn']:.3f} "
+          f"(trivial baseline {base.get('loo_1nn', float('nan')):.3f}); report "
+          f"{cfg.out / 'eval' / 'eval.md'}; load it with SIGHUP "
+          "(systemctl reload vtzero-edge) where [runtime] models_dir names it")
+    return 0
+
+
 def _cmd_rehash(args: argparse.Namespace) -> int:
     from train.manifest import write_manifest
 
@@ -433,6 +455,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)
+
+    p = sub.add_parser(
+        "build", help="a deployable model directory from a collected dataset (the lab's own "
+        "presses)", description="Train the VQ-VAE (the paper's decoder), export it to ONNX "
+        "(parity-checked), build the database of every offset of every press of the train "
+        "and val classes, copy and hash the prompt templates, evaluate retrieval beside a "
+        "trivial baseline (on the dataset's test classes and --unseen sets) and write the "
+        "manifest with the data's origin. Each step is kept in OUT.partial with the hash of "
+        "its inputs: run it again to continue. OUT is replaced at the end (the old one is "
+        "kept as OUT.previous).")
+    p.add_argument("--data", required=True, help="dataset directory (vt-edge collect --plan)")
+    p.add_argument("--out", required=True, help="model directory to write")
+    p.add_argument("--variant", action="append", choices=["beta", "zeros"],
+                   help="also train this comparison variant (repeatable): the beta-VAE, the "
+                   "zero-input decoder; their rows join the evaluation and Table I")
+    p.add_argument("--unseen", nargs="+", help="further test sets for the evaluation")
+    p.add_argument("--prompts", help="prompt templates to ship (default: models/prompts)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-epochs", type=int, default=300)
+    p.add_argument("--patience", type=int, default=25)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("rehash", help="re-hash a model directory after a deliberate edit")
     p.add_argument("--model", required=True)

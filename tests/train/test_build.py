@@ -1,0 +1,139 @@
+"""``vt-train build``: a collected dataset (the collect format, pressed by the robot's press
+controller on the emulated robot) to a model directory the daemon loads as it is and takes
+with SIGHUP; resumable; refusing mixed thresholds and origins within a class."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import signal
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from edge.core import recording
+from edge.core.errors import RecordingError
+from edge.core.model import load_model, model_ref
+from edge.sim.robot import SimRobot
+from tests.support.daemon import ROOT, Daemon, base_config
+from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
+from tests.support.waits import wait_until
+from train import evaluate
+from train.build import BuildConfig, build, partial_dir
+from train.cli import main
+from train.trainer import Progress
+
+REFERENCE = {"wood_cube": ("train", 3, False), "sponge_cube": ("train", 3, False),
+             "otedama": ("train", 3, False), "marshmallow": ("val", 3, False)}
+TEST = {"raw_kiri_mochi": ("test", 3, True), "boiled_kiri_mochi": ("test", 3, True)}
+EPOCHS = 3
+
+
+@pytest.fixture(scope="module")
+def lab_food(tmp_path_factory) -> Path:
+    return write_lab_dataset(tmp_path_factory.mktemp("lab") / "lab_food", REFERENCE | TEST)
+
+
+def quick(data: Path, out: Path, **kw) -> BuildConfig:
+    return BuildConfig(data=data, out=out, max_epochs=EPOCHS, **kw)
+
+
+@pytest.mark.asyncio
+async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tmp_path):
+    models = Path(shutil.copytree(ROOT / "models", tmp_path / "models"))
+    cfg = base_config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)))
+    async with SimRobot("wood_cube", seed=31, cfg=base_config()) as robot, \
+            Daemon(robot, cfg, tmp_path / "state") as d:
+        _, health = await d.get("/healthz")
+        t0 = time.perf_counter()
+        rc = await asyncio.to_thread(main, ["build", "--data", str(lab_food), "--out",
+                                            str(models), "--max-epochs", str(EPOCHS), "-q"])
+        print(f"vt-train build: {time.perf_counter() - t0:.1f} s")
+        assert rc == 0
+        assert not partial_dir(models).exists()
+        assert (tmp_path / "models.previous" / "manifest.json").exists()
+        os.kill(os.getpid(), signal.SIGHUP)
+
+        async def reloaded():
+            _, h = await d.get("/healthz")
+            return h["model_digest"] != health["model_digest"]
+
+        await wait_until(reloaded, 30, "the daemon took the built model", interval_s=0.1)
+        assert d.runtime.model.digest == model_ref(models).digest
+        _, ep = await d.post("/v1/recognize", {"candidates": list(TEST), "wait": True})
+        assert ep["status"] == "not_configured", ep  # no VLM: the touch part only
+        assert {t["label"] for t in ep["topk"]} <= set(REFERENCE) and len(ep["topk"]) == 3
+
+    model = load_model(models)  # hashes verified, prompts included
+    manifest = model.manifest
+    assert manifest["origin"] == ORIGIN and manifest["plan_sha256"] == PLAN_SHA256
+    assert {f"prompts/{m}.txt" for m in ("vision_tactile", "vision_only", "tactile_only")} \
+        <= set(manifest["files"])
+    assert manifest["prompts"]["vision_tactile"]["sha256"] == \
+        manifest["files"]["prompts/vision_tactile.txt"]["sha256"]
+    assert len(model.database) == 4 * 3 * 5 and model.database.offsets == [0, 1, 2, 3, 4]
+    assert manifest["training"]["dataset"]["test_classes"] == list(TEST)
+    assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
+    assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
+    report = json.loads((models / "eval" / "eval.json").read_text())
+    rows = {(r["variant"], r["space"]) for r in report["rows"]}
+    assert {("vq", "z"), ("baseline", "z")} <= rows
+    assert sorted(report["unseen_classes"]) == sorted(TEST)
+    md = (models / "eval" / "eval.md").read_text()
+    assert "| baseline | z |" in md and "## The encoder against the trivial baseline" in md
+
+
+def test_an_interrupted_build_resumes_and_a_rerun_skips_what_is_done(lab_food, tmp_path,
+                                                                     monkeypatch):
+    out = tmp_path / "models"
+    cfg = quick(lab_food, out, variants=("beta",))
+
+    def interrupted(*_a, **_k):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(evaluate, "evaluate", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            build(cfg, Progress(enabled=False))
+    assert not out.exists()  # nothing half-built where the daemon looks
+    state = json.loads((partial_dir(out) / "build-state.json").read_text())
+    assert set(state) == {"train vq", "train beta", "export", "database"}
+
+    first = build(cfg, Progress(enabled=False))
+    assert first["timings"]["steps_skipped"] == ["train vq", "train beta", "export", "database"]
+    assert (out / "training" / "beta" / "checkpoint.pt").exists()
+    again = build(cfg, Progress(enabled=False))
+    assert again["timings"]["steps_skipped"] == ["train vq", "train beta", "export",
+                                                  "database", "eval"]
+    assert again["files"] == first["files"]
+    # Another setting trains again: the key is the inputs' hash.
+    other = build(replace(cfg, seed=1), Progress(enabled=False))
+    assert "train vq" not in other["timings"]["steps_skipped"]
+
+
+def _rewrite(path: Path, **changes) -> None:
+    recording.save(replace(recording.load(path), **changes), path)
+
+
+def test_mixed_thresholds_or_origins_within_a_class_are_refused_by_name(lab_food, tmp_path):
+    data = Path(shutil.copytree(lab_food, tmp_path / "mixed"))
+    _rewrite(data / "otedama" / "otedama_002.press.npz", threshold=0.2)
+    with pytest.raises(RecordingError, match=r"class 'otedama' mixes thresholds x_th: "
+                       r"0\.004 \(otedama_000, otedama_001\); 0\.2 \(otedama_002\)"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
+    _rewrite(data / "otedama" / "otedama_002.press.npz", threshold=0.004)
+    _rewrite(data / "wood_cube" / "wood_cube_001.press.npz", sensor_model="XR1946")
+    with pytest.raises(RecordingError, match="class 'wood_cube' mixes origins: .*XR1944.*"
+                       r"XR1946 \(wood_cube_001\)"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
+    assert not (tmp_path / "m").exists()
+    index = json.loads((data / "dataset.json").read_text())
+    index["origin"]["kind"] = "real"
+    (data / "dataset.json").write_text(json.dumps(index))
+    with pytest.raises(RecordingError, match=r"origin\.kind is 'real'"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
