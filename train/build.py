@@ -36,11 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from edge.core import recording
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import ModelError, RecordingError
 from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder
-from edge.core.progress import Progress as Bar
 from edge.tools.record import DATASET_INDEX
 from train import database, evaluate
 from train.data import PressSet, Splits, load_presses, training_data_of
@@ -63,8 +61,6 @@ VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}}
 # Checkpoint directories under training/, as release names them (vt-train table1 --beta/--zeros).
 VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros"}
 ORIGIN_KINDS = ("emulated", "robot")
-# Two thresholds closer than this are the same setting written twice.
-X_TH_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -121,12 +117,6 @@ def check_origin(origin: Any, where: str) -> dict[str, Any]:
             "robot": origin.get("robot"), "sensor": sensor}
 
 
-def _mixed(what: str, label: str, groups: dict[Any, list[str]]) -> str:
-    parts = [f"{value} ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
-             for value, names in groups.items()]
-    return f"class {label!r} mixes {what}: {'; '.join(parts)}"
-
-
 def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
     """Read and check a collected dataset directory; refuse mixed thresholds or origins within
     a class, naming the class and its presses."""
@@ -148,42 +138,32 @@ def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
     splits = Splits.from_file(path)
     declared = {c["label"]: c.get("x_th") for c in index.get("classes", [])}
     test = tuple(c["label"] for c in index.get("classes", []) if c.get("split") == "test")
-    files = recording.find(directory)
+    metas = database.press_index(directory, progress)
     digest = hashlib.sha256(path.read_bytes())
-    thresholds: dict[str, dict[float, list[str]]] = {}
-    origins: dict[str, dict[str, list[str]]] = {}
-    with Bar(f"check {directory.name}", len(files), "presses", enabled=progress) as bar:
-        for file in files:
-            rec = recording.load(file)
-            digest.update(file.relative_to(directory).as_posix().encode())
-            digest.update(hashlib.sha256(file.read_bytes()).digest())
-            name = file.name.removesuffix(recording.SUFFIX)
-            th = thresholds.setdefault(rec.label, {})
-            same = next((t for t in th if abs(t - rec.threshold) <= X_TH_TOLERANCE),
-                        rec.threshold)
-            th.setdefault(same, []).append(name)
-            src = f"source {rec.source}, sensor {rec.sensor_model}"
-            origins.setdefault(rec.label, {}).setdefault(src, []).append(name)
-            bar.update()
+    for meta in metas:
+        digest.update(meta.path.relative_to(directory).as_posix().encode())
+        digest.update(hashlib.sha256(meta.path.read_bytes()).digest())
+    thresholds = database.grouped(metas, "x_th")
+    origins = database.grouped(metas, "origin")
     problems = []
     for label in splits.classes + test:
         if label not in thresholds:
             problems.append(f"class {label!r} has no presses in {directory}")
             continue
-        if len(thresholds[label]) > 1:
-            problems.append(_mixed("thresholds x_th", label, thresholds[label]))
-        elif declared.get(label) is not None and abs(
-                next(iter(thresholds[label])) - declared[label]) > X_TH_TOLERANCE:
-            problems.append(f"class {label!r}: presses at x_th {next(iter(thresholds[label]))}"
-                            f" but dataset.json says {declared[label]}")
-        if len(origins[label]) > 1:
-            problems.append(_mixed("origins", label, origins[label]))
+        mix = [database.mixed(label, "thresholds x_th", thresholds[label]),
+               database.mixed(label, "origins", origins[label])]
+        problems += [m for m in mix if m]
+        x_th = next(iter(thresholds[label]))
+        if not mix[0] and declared.get(label) is not None and x_th != round(
+                declared[label], database.X_TH_DIGITS):
+            problems.append(f"class {label!r}: presses at x_th {x_th:g} but dataset.json "
+                            f"says {declared[label]:g}")
     if problems:
         raise RecordingError(f"{directory}: " + "; ".join(problems)
                              + " (re-collect the class, or move the odd presses out)")
     return Dataset(directory, index, origin, splits, test,
                    {c: next(iter(t)) for c, t in thresholds.items()},
-                   {c: sum(len(v) for v in t.values()) for c, t in thresholds.items()},
+                   {c: sum(map(len, t.values())) for c, t in thresholds.items()},
                    digest.hexdigest())
 
 
@@ -334,6 +314,7 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     sections: dict[str, Any] = {
         "created_by": cfg.command(),
         "origin": ds.origin,
+        database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
         "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], ModelConfig(),
                                    exported["parity"]),
         "training": {

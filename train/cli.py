@@ -90,7 +90,8 @@ def _cmd_db_build(args: argparse.Namespace) -> int:
 def _cmd_db_add(args: argparse.Namespace) -> int:
     from train.database import add_class
 
-    db = add_class(args.model, args.recordings, args.label, args.description)
+    db = add_class(args.model, args.recordings, args.label, args.description,
+                   relabel=args.relabel, force=args.force)
     print(f"added {args.label!r}; database: {len(db)} references of {len(db.classes)} classes")
     return 0
 
@@ -322,6 +323,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--recordings", required=True)
     p.add_argument("--label", required=True)
     p.add_argument("--description", required=True)
+    p.add_argument("--relabel", action="store_true",
+                   help="file presses labelled otherwise in their metadata under --label")
+    p.add_argument("--force", action="store_true",
+                   help="add presses made at a threshold unlike the database's classes'")
     p.set_defaults(func=_cmd_db_add)
 
     p = sub.add_parser("eval", help="retrieval quality on unseen classes, pictures, tables")

@@ -244,6 +244,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                                   "cube_presses_per_class": cfg.unseen_presses},
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
+        database.CLASS_X_TH: {c["label"]: c["x_th"] for c in ref_index["classes"]},
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,

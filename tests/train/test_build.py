@@ -137,3 +137,93 @@ def test_mixed_thresholds_or_origins_within_a_class_are_refused_by_name(lab_food
     (data / "dataset.json").write_text(json.dumps(index))
     with pytest.raises(RecordingError, match=r"origin\.kind is 'real'"):
         build(quick(data, tmp_path / "m"), Progress(enabled=False))
+
+
+# --- vt-train db add ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def lab_model(lab_food, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("built") / "models"
+    build(quick(lab_food, out), Progress(enabled=False))
+    return out
+
+
+@pytest.fixture
+def model_dir(lab_model, tmp_path) -> Path:
+    return Path(shutil.copytree(lab_model, tmp_path / "models"))
+
+
+def add(model: Path, recordings: Path, label: str, *flags: str) -> int:
+    return main(["db", "add", "--model", str(model), "--recordings", str(recordings),
+                 "--label", label, "--description", f"{label.replace('_', ' ')} (a food)",
+                 *flags])
+
+
+def test_db_add_refuses_a_duplicate_with_the_list(model_dir, lab_food, caplog):
+    raw = lab_food / "raw_kiri_mochi"
+    assert add(model_dir, raw, "raw_kiri_mochi") == 0
+    before = load_model(model_dir).database
+    assert len(before) == 4 * 3 * 5 + 3 * 5
+    assert add(model_dir, raw, "raw_kiri_mochi") == 2
+    err = caplog.text
+    assert "15 of these references are in the database already" in err
+    assert "raw_kiri_mochi_000.press.npz (offsets 0, 1, 2, 3, 4)" in err and "Nothing added" in err
+    assert len(load_model(model_dir).database) == len(before)
+
+
+def test_db_add_refuses_another_label_unless_relabel(model_dir, lab_food, caplog):
+    raw = lab_food / "raw_kiri_mochi"
+    assert add(model_dir, raw, "cherry_tomato") == 2
+    err = caplog.text
+    assert "3 presses labelled 'raw_kiri_mochi' in their metadata, not 'cherry_tomato'" in err
+    assert "--relabel" in err
+    assert "cherry_tomato" not in load_model(model_dir).database.labels
+    assert add(model_dir, raw, "kiri_mochi", "--relabel") == 0
+    db = load_model(model_dir).database
+    assert "kiri_mochi" in db.labels and "raw_kiri_mochi" not in db.labels
+
+
+def test_db_add_refuses_an_unlike_threshold_unless_forced(model_dir, lab_food, tmp_path,
+                                                          caplog):
+    odd = Path(shutil.copytree(lab_food / "boiled_kiri_mochi", tmp_path / "odd"))
+    for path in odd.glob("*.press.npz"):
+        _rewrite(path, threshold=0.2)
+    assert add(model_dir, odd, "boiled_kiri_mochi") == 2
+    err = caplog.text
+    assert "made at x_th 0.2; the database's classes at 0.004" in err and "--force" in err
+    assert add(model_dir, odd, "boiled_kiri_mochi", "--force") == 0
+    manifest = load_model(model_dir).manifest
+    assert manifest["class_x_th"]["boiled_kiri_mochi"] == 0.2
+    _rewrite(next(odd.glob("*.press.npz")), threshold=0.004)
+    assert add(model_dir, odd, "other_mochi", "--relabel", "--force") == 2
+    assert "mixes thresholds x_th" in caplog.text
+
+
+BLOCK_TORCH_AND_ONNX = """
+import importlib.abc, sys
+
+class Blocked(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "onnx"):
+            raise ModuleNotFoundError(f"No module named {name!r} (blocked by the test)")
+        return None
+
+sys.meta_path.insert(0, Blocked())
+from train.cli import main
+rc = main(sys.argv[1:])
+assert not {"torch", "onnx"} & set(sys.modules), sorted({"torch", "onnx"} & set(sys.modules))
+sys.exit(rc)
+"""
+
+
+def test_db_add_works_on_an_edge_only_install(model_dir, lab_food):
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", BLOCK_TORCH_AND_ONNX, "db", "add", "--model", str(model_dir),
+         "--recordings", str(lab_food / "raw_kiri_mochi"), "--label", "raw_kiri_mochi",
+         "--description", "raw kiri mochi (a Japanese rice cake)"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "raw_kiri_mochi" in load_model(model_dir).database.labels

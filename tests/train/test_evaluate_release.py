@@ -89,7 +89,8 @@ def test_cli_eval_and_db_add(released, model_copy, work, tmp_path, capsys):
     assert "says how the object feels (hard)" in capsys.readouterr().err
     assert main(["db", "add", "--model", str(model_dir), "--recordings",
                  str(rec / "cube" / "raw_kiri_mochi"), "--label", "dried_mochi",
-                 "--description", "dried kiri mochi (a Japanese rice cake)"]) == 0
+                 "--description", "dried kiri mochi (a Japanese rice cake)",
+                 "--relabel"]) == 0
     assert main(["db", "add", "--model", str(tmp_path / "nowhere"), "--recordings",
                  str(rec / "cube"), "--label", "x", "--description", "y"]) == 2
 
