@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from edge import __version__
-from edge.core.errors import EdgeError
+from edge.core.errors import EdgeError, EvalVLMError
 from edge.core.logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -128,24 +128,27 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
 
     from train import eval_vlm
+    from train.manifest import read_raw
 
     vlm = _vlm_settings(args)
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
         if args.conditions else eval_vlm.DEFAULT_CONDITIONS
-    beta = Path(args.beta) if args.beta else None
-    zeros = Path(args.zeros) if args.zeros else None
-    reference = Path(args.reference) if args.reference else None
+    paths = _comparisons(args)
+    beta, zeros, reference = paths["beta"], paths["zeros"], paths["reference"]
     if not args.conditions and "beta_top3" in conditions and not (
             beta and beta.exists() and reference and reference.exists()):
+        facts = eval_vlm.model_facts(read_raw(Path(args.model_dir)))
         log.warning("no beta-VAE checkpoint (%s) or reference recordings (%s): skipping the "
-                    "beta_top3 condition (`vt-train release` makes both)", beta, reference)
+                    "beta_top3 condition (train it with %s)", beta, reference,
+                    eval_vlm.variant_advice(facts, Path(args.model_dir), "beta"))
         conditions = tuple(c for c in conditions if c != "beta_top3")
     out = Path(args.out) if args.out else Path("runs/eval-vlm") / eval_vlm.slug(vlm.model)
     cfg = eval_vlm.EvalVLMConfig(
         vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
         beta=beta, zeros=zeros, images=Path(args.images) if args.images else None,
-        limit=args.limit, concurrency=args.concurrency)
+        limit=args.limit, concurrency=args.concurrency,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:  # one INFO line per answer from the client is too much here
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     if args.dry_run:
@@ -170,10 +173,51 @@ def _vlm_settings(args: argparse.Namespace):
     return dataclasses.replace(vlm, **overrides)
 
 
+RELEASE_DEFAULTS = {"reference": "runs/release/recordings/reference",
+                    "beta": "runs/release/beta/checkpoint.pt",
+                    "zeros": "runs/release/vq_zeros/checkpoint.pt"}
+DEFAULTS_HELP = {
+    "reference": "the dataset a `vt-train build` model was built from, else "
+                 + RELEASE_DEFAULTS["reference"],
+    "beta": "MODEL_DIR/training/beta/checkpoint.pt (vt-train build --variant beta), else "
+            + RELEASE_DEFAULTS["beta"],
+    "zeros": "MODEL_DIR/training/vq_zeros/checkpoint.pt (vt-train build --variant zeros), "
+             "else " + RELEASE_DEFAULTS["zeros"]}
+
+
+def _comparisons(args: argparse.Namespace) -> dict[str, Path | None]:
+    """--reference, --beta, --zeros as given, else what a model directory `vt-train build`
+    made holds (its dataset, its comparison checkpoints; None where it has none), else (the
+    simulated release) the release's."""
+    from train.build import checkpoints
+    from train.eval_vlm import model_facts
+    from train.manifest import read_raw
+
+    model_dir = Path(args.model_dir)
+    manifest = read_raw(model_dir) if model_dir.is_dir() else {}
+    given = {name: getattr(args, name, None) for name in RELEASE_DEFAULTS}
+    if not model_facts(manifest)["built"]:
+        return {name: Path(given[name] or default) for name, default in
+                RELEASE_DEFAULTS.items()}
+    kept = checkpoints(model_dir)
+    data = manifest.get("training", {}).get("dataset", {}).get("directory")
+    found = {"reference": data, "beta": kept.get("beta"), "zeros": kept.get("vq_zeros")}
+    return {name: Path(given[name] or found[name]) if given[name] or found[name] else None
+            for name in RELEASE_DEFAULTS}
+
+
+def _reference(args: argparse.Namespace) -> Path:
+    reference = _comparisons(args)["reference"]
+    if reference is None:
+        raise EvalVLMError(f"{args.model_dir} records no dataset it was built from: give "
+                           "--reference DATASET")
+    return reference
+
+
 def _cmd_table1(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import table1
+    from train import eval_vlm, table1
 
     first = _vlm_settings(args)
     second = None
@@ -181,12 +225,14 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         second = dataclasses.replace(first, model=args.second_model,
                                      **({"base_url": args.second_url} if args.second_url
                                         else {}))
+    paths = _comparisons(args)
     cfg = table1.Table1Config(
         first=first, second=second, out=Path(args.out), work=Path(args.work),
         unseen=tuple(Path(d) for d in args.unseen), model_dir=Path(args.model_dir),
-        reference=Path(args.reference), beta=Path(args.beta), zeros=Path(args.zeros),
+        reference=paths["reference"], beta=paths["beta"], zeros=paths["zeros"],
         images=Path(args.images) if args.images else None, limit=args.limit,
-        concurrency=args.concurrency, extras=not args.no_extras)
+        concurrency=args.concurrency, extras=not args.no_extras,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
@@ -198,16 +244,17 @@ def _cmd_table1(args: argparse.Namespace) -> int:
 def _cmd_fig6(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import fig6
+    from train import eval_vlm, fig6
 
     cfg = fig6.Fig6Config(
         vlm=_vlm_settings(args), out=Path(args.out), work=Path(args.work),
-        reference=Path(args.reference), unseen=tuple(Path(d) for d in args.unseen),
+        reference=_reference(args), unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir),
         sizes=tuple(int(n) for n in args.sizes.split(",") if n.strip()), draws=args.draws,
         seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
         decoder=args.decoder, images=Path(args.images) if args.images else None,
-        limit=args.limit, concurrency=args.concurrency)
+        limit=args.limit, concurrency=args.concurrency,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     asyncio.run(fig6.run(cfg, progress=not args.quiet))
@@ -359,17 +406,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"],
         help="unseen test sets, one recordings directory each (default: the release's)")
-    p.add_argument("--reference", default="runs/release/recordings/reference",
-                   help="reference recordings (the beta-VAE's database)")
-    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt",
-                   help="beta-VAE checkpoint")
-    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt",
-                   help="checkpoint of the VQ-VAE with the zero-input decoder")
+    p.add_argument("--reference", help="reference recordings (the beta-VAE's database; "
+                   f"default: {DEFAULTS_HELP['reference']})")
+    p.add_argument("--beta", help=f"beta-VAE checkpoint (default: {DEFAULTS_HELP['beta']})")
+    p.add_argument("--zeros", help="checkpoint of the VQ-VAE with the zero-input decoder "
+                   f"(default: {DEFAULTS_HELP['zeros']})")
     p.add_argument("--conditions", help="comma-separated, from: vision_only, vq_top3, "
                    "vq_top1, beta_top3, vq_zeros_top3, vq_top3_adjectives, tactile_only "
                    "(default: the first four)")
     p.add_argument("--images", help="photos for real data: <press name>.jpg or <label>.jpg "
-                   "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the simulated camera)")
+                   "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the photo collect took "
+                   "beside each press, else the simulated camera)")
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable)")
     p.add_argument("--limit", type=int, help="at most N presses per set (round-robin over "
                    "classes), for a quick run")
     p.add_argument("--concurrency", type=int, default=4, help="requests in flight")
@@ -397,12 +446,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-dir", default="models")
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
-    p.add_argument("--reference", default="runs/release/recordings/reference")
-    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt")
-    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt")
+    p.add_argument("--reference", help=f"default: {DEFAULTS_HELP['reference']}")
+    p.add_argument("--beta", help=f"default: {DEFAULTS_HELP['beta']}")
+    p.add_argument("--zeros", help=f"default: {DEFAULTS_HELP['zeros']}")
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable; "
+                   "sets so named stand beside them unasked)")
     p.add_argument("--no-extras", action="store_true",
                    help="only the paper's rows (no zero-input decoder or ablation rows)")
-    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images; default: "
+                   "the photo collect took beside each press)")
     p.add_argument("--limit", type=int, help="at most N presses per set")
     p.add_argument("--concurrency", type=int, default=4)
     p.add_argument("--work", default="runs/table1", help="answer caches, one per model")
@@ -425,9 +478,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prompt-dir", help="prompt templates (default: models/prompts)")
     p.add_argument("--model-dir", default="models",
                    help="the shipped model (its decoder and window are copied)")
-    p.add_argument("--reference", default="runs/release/recordings/reference")
+    p.add_argument("--reference", help=f"default: {DEFAULTS_HELP['reference']}")
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable)")
     p.add_argument("--sizes", default="0,6,13,20,27", help="|Y_ref| values, comma-separated")
     p.add_argument("--draws", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
@@ -435,7 +490,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--patience", type=int, default=10)
     p.add_argument("--decoder", choices=["teacher", "zeros"],
                    help="default: the shipped model's")
-    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images; default: "
+                   "the photo collect took beside each press)")
     p.add_argument("--limit", type=int, help="at most N presses per set")
     p.add_argument("--concurrency", type=int, default=4)
     p.add_argument("--work", default="runs/fig6", help="trainings and answer cache")

@@ -227,3 +227,45 @@ def test_db_add_works_on_an_edge_only_install(model_dir, lab_food):
         cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "raw_kiri_mochi" in load_model(model_dir).database.labels
+
+
+# --- Table I and Fig. 6 on the lab's data ---------------------------------------------------
+
+def test_table1_and_fig6_on_a_lab_named_set_describe_its_data(lab_model, lab_food, tmp_path,
+                                                              capsys):
+    out = tmp_path / "table1"
+    assert main(["table1", "--model-dir", str(lab_model), "--unseen", str(lab_food),
+                 "--paper-set", "lab_food=foodreplica", "--work", str(tmp_path / "work"),
+                 "--out", str(out), "-q"]) == 0
+    report = json.loads((out / "table1.json").read_text())
+    assert report["sets"] == [{"name": "lab_food", "paper_set": "foodreplica",
+                               "origin": ORIGIN, "presses": 6}]
+    rows = {(m["model"], r["condition"]): r for m in report["models"] for r in m["rows"]}
+    lab = rows[("simulated-vlm", "vq_top3")]["sets"]["lab_food"]
+    # The test classes are the questions, their labels the candidates.
+    assert lab["n"] == 6 and lab["confusion"]["rows"] == list(TEST)
+    assert lab["paper"] == 58.9  # GPT-4V on FoodReplica, beside the set mapped to it
+    assert rows[("simulated-vlm-vision-led", "vision_only")]["sets"]["lab_food"]["paper"] == 39.0
+    assert "beta_top3" in report["missing"] and not any(c == "beta_top3" for _, c in rows)
+    md = (out / "table1.md").read_text()
+    print(md)
+    assert "| lab_food (as FoodReplica) | paper: FoodReplica |" in md
+    assert "decoder `teacher` (the paper's" in md
+    assert ("real presses by the robot `lab-arm-1` with a XELA XR1944 (XR1944-0001) pressed "
+            "by a lab member") in md
+    assert f"`vt-train build --data DATASET --out {lab_model} --variant beta`" in md
+    assert "vt-train release" not in md and "simulated presses" not in md
+    assert "images: lab_food: photos beside the presses" in md  # found without --images
+
+    fig = tmp_path / "fig6"
+    assert main(["fig6", "--model-dir", str(lab_model), "--unseen", str(lab_food),
+                 "--paper-set", "lab_food=foodreplica", "--sizes", "0,3", "--draws", "2",
+                 "--max-epochs", "2", "--work", str(tmp_path / "fwork"), "--out", str(fig),
+                 "-q"]) == 0
+    r = json.loads((fig / "fig6.json").read_text())
+    assert [row["size"] for row in r["sizes"]] == [0, 3]
+    assert r["sizes"][0]["sets"]["lab_food"]["paper"] == 53.6  # vision only, FoodReplica
+    assert r["data"]["reference"]["directory"] == str(lab_food)  # from the manifest
+    md = (fig / "fig6.md").read_text()
+    assert "decoder `teacher`: the paper's" in md and "lab_food (as FoodReplica)" in md
+    assert "real presses by the robot `lab-arm-1`" in md and "photos beside the presses" in md
