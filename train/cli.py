@@ -304,9 +304,11 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_rehash(args: argparse.Namespace) -> int:
-    from train.manifest import write_manifest
+    from train.manifest import read_raw, write_manifest
 
-    manifest = write_manifest(args.model)
+    reports = [name for name in read_raw(Path(args.model)).get("reports", {})
+               if (Path(args.model) / name).exists()]
+    manifest = write_manifest(args.model, reports=reports)
     print(f"re-hashed {len(manifest['files'])} files in {Path(args.model) / 'manifest.json'}")
     return 0
 
