@@ -287,7 +287,8 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     db_summary = steps.run("database", _key(encoder_sha, ds.sha256),
                            [work / name for name in REQUIRED_FILES[1:]], build_db)
 
-    (work / PROMPTS_DIR).mkdir(exist_ok=True)
+    shutil.rmtree(work / PROMPTS_DIR, ignore_errors=True)  # none left from another --prompts
+    (work / PROMPTS_DIR).mkdir()
     for template in prompts:
         shutil.copyfile(template, work / PROMPTS_DIR / template.name)
 
