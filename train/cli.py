@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from edge import __version__
-from edge.core.errors import EdgeError
+from edge.core.errors import EdgeError, EvalVLMError
 from edge.core.logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -93,7 +93,8 @@ def _cmd_db_build(args: argparse.Namespace) -> int:
 def _cmd_db_add(args: argparse.Namespace) -> int:
     from train.database import add_class
 
-    db = add_class(args.model, args.recordings, args.label, args.description)
+    db = add_class(args.model, args.recordings, args.label, args.description,
+                   relabel=args.relabel, force=args.force)
     print(f"added {args.label!r}; database: {len(db)} references of {len(db.classes)} classes")
     return 0
 
@@ -110,6 +111,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))
     codebook = model.database.codebook
     embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook)}
+    if args.zeros:
+        zeros, zeros_norm, _ = load_checkpoint(args.zeros)
+        assert zeros.quantiser is not None
+        embedders["vq_zeros"] = ((lambda x: embed(zeros, zeros_norm, x)),
+                                 zeros.quantiser.codebook.detach().numpy().copy())
     if args.beta:
         beta, norm, _ = load_checkpoint(args.beta)
         embedders["beta"] = ((lambda x: embed(beta, norm, x)), None)
@@ -125,24 +131,27 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
 
     from train import eval_vlm
+    from train.manifest import read_raw
 
     vlm = _vlm_settings(args)
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
         if args.conditions else eval_vlm.DEFAULT_CONDITIONS
-    beta = Path(args.beta) if args.beta else None
-    zeros = Path(args.zeros) if args.zeros else None
-    reference = Path(args.reference) if args.reference else None
+    paths = _comparisons(args)
+    beta, zeros, reference = paths["beta"], paths["zeros"], paths["reference"]
     if not args.conditions and "beta_top3" in conditions and not (
             beta and beta.exists() and reference and reference.exists()):
+        facts = eval_vlm.model_facts(read_raw(Path(args.model_dir)))
         log.warning("no beta-VAE checkpoint (%s) or reference recordings (%s): skipping the "
-                    "beta_top3 condition (`vt-train release` makes both)", beta, reference)
+                    "beta_top3 condition (train it with %s)", beta, reference,
+                    eval_vlm.variant_advice(facts, Path(args.model_dir), "beta"))
         conditions = tuple(c for c in conditions if c != "beta_top3")
     out = Path(args.out) if args.out else Path("runs/eval-vlm") / eval_vlm.slug(vlm.model)
     cfg = eval_vlm.EvalVLMConfig(
         vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
         beta=beta, zeros=zeros, images=Path(args.images) if args.images else None,
-        limit=args.limit, concurrency=args.concurrency)
+        limit=args.limit, concurrency=args.concurrency,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:  # one INFO line per answer from the client is too much here
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     if args.dry_run:
@@ -167,10 +176,51 @@ def _vlm_settings(args: argparse.Namespace):
     return dataclasses.replace(vlm, **overrides)
 
 
+RELEASE_DEFAULTS = {"reference": "runs/release/recordings/reference",
+                    "beta": "runs/release/beta/checkpoint.pt",
+                    "zeros": "runs/release/vq_zeros/checkpoint.pt"}
+DEFAULTS_HELP = {
+    "reference": "the dataset a `vt-train build` model was built from, else "
+                 + RELEASE_DEFAULTS["reference"],
+    "beta": "MODEL_DIR/training/beta/checkpoint.pt (vt-train build --variant beta), else "
+            + RELEASE_DEFAULTS["beta"],
+    "zeros": "MODEL_DIR/training/vq_zeros/checkpoint.pt (vt-train build --variant zeros), "
+             "else " + RELEASE_DEFAULTS["zeros"]}
+
+
+def _comparisons(args: argparse.Namespace) -> dict[str, Path | None]:
+    """--reference, --beta, --zeros as given, else what a model directory `vt-train build`
+    made holds (its dataset, its comparison checkpoints; None where it has none), else (the
+    simulated release) the release's."""
+    from train.build import checkpoints
+    from train.eval_vlm import model_facts
+    from train.manifest import read_raw
+
+    model_dir = Path(args.model_dir)
+    manifest = read_raw(model_dir) if model_dir.is_dir() else {}
+    given = {name: getattr(args, name, None) for name in RELEASE_DEFAULTS}
+    if not model_facts(manifest)["built"]:
+        return {name: Path(given[name] or default) for name, default in
+                RELEASE_DEFAULTS.items()}
+    kept = checkpoints(model_dir)
+    data = manifest.get("training", {}).get("dataset", {}).get("directory")
+    found = {"reference": data, "beta": kept.get("beta"), "zeros": kept.get("vq_zeros")}
+    return {name: Path(given[name] or found[name]) if given[name] or found[name] else None
+            for name in RELEASE_DEFAULTS}
+
+
+def _reference(args: argparse.Namespace) -> Path:
+    reference = _comparisons(args)["reference"]
+    if reference is None:
+        raise EvalVLMError(f"{args.model_dir} records no dataset it was built from: give "
+                           "--reference DATASET")
+    return reference
+
+
 def _cmd_table1(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import table1
+    from train import eval_vlm, table1
 
     first = _vlm_settings(args)
     second = None
@@ -178,12 +228,14 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         second = dataclasses.replace(first, model=args.second_model,
                                      **({"base_url": args.second_url} if args.second_url
                                         else {}))
+    paths = _comparisons(args)
     cfg = table1.Table1Config(
         first=first, second=second, out=Path(args.out), work=Path(args.work),
         unseen=tuple(Path(d) for d in args.unseen), model_dir=Path(args.model_dir),
-        reference=Path(args.reference), beta=Path(args.beta), zeros=Path(args.zeros),
+        reference=paths["reference"], beta=paths["beta"], zeros=paths["zeros"],
         images=Path(args.images) if args.images else None, limit=args.limit,
-        concurrency=args.concurrency, extras=not args.no_extras)
+        concurrency=args.concurrency, extras=not args.no_extras,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
@@ -195,16 +247,17 @@ def _cmd_table1(args: argparse.Namespace) -> int:
 def _cmd_fig6(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import fig6
+    from train import eval_vlm, fig6
 
     cfg = fig6.Fig6Config(
         vlm=_vlm_settings(args), out=Path(args.out), work=Path(args.work),
-        reference=Path(args.reference), unseen=tuple(Path(d) for d in args.unseen),
+        reference=_reference(args), unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir),
         sizes=tuple(int(n) for n in args.sizes.split(",") if n.strip()), draws=args.draws,
         seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
         decoder=args.decoder, images=Path(args.images) if args.images else None,
-        limit=args.limit, concurrency=args.concurrency)
+        limit=args.limit, concurrency=args.concurrency,
+        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:
         logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
     asyncio.run(fig6.run(cfg, progress=not args.quiet))
@@ -231,10 +284,34 @@ def _cmd_release(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_rehash(args: argparse.Namespace) -> int:
-    from train.manifest import write_manifest
+def _cmd_build(args: argparse.Namespace) -> int:
+    from train.build import SHIPPED_PROMPTS, BuildConfig, build
+    from train.trainer import Progress
 
-    manifest = write_manifest(args.model)
+    cfg = BuildConfig(data=Path(args.data), out=Path(args.out),
+                      variants=tuple(dict.fromkeys(args.variant or ())),
+                      unseen=tuple(Path(u) for u in args.unseen or ()),
+                      prompts=Path(args.prompts) if args.prompts else SHIPPED_PROMPTS,
+                      seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
+                      threads=args.threads)
+    manifest = build(cfg, Progress(enabled=not args.quiet))
+    m = manifest["metrics"]
+    base = m["comparison"].get("baseline/z", {})
+    print(f"built {cfg.out} from {cfg.data} ({manifest['origin']['kind']} data): "
+          f"{manifest['database']['references']} references of "
+          f"{manifest['database']['classes']} classes; LOO 1-NN {m['loo_1nn']:.3f} "
+          f"(trivial baseline {base.get('loo_1nn', float('nan')):.3f}); report "
+          f"{cfg.out / 'eval' / 'eval.md'}; load it with SIGHUP "
+          "(systemctl reload vtzero-edge) where [runtime] models_dir names it")
+    return 0
+
+
+def _cmd_rehash(args: argparse.Namespace) -> int:
+    from train.manifest import read_raw, write_manifest
+
+    reports = [name for name in read_raw(Path(args.model)).get("reports", {})
+               if (Path(args.model) / name).exists()]
+    manifest = write_manifest(args.model, reports=reports)
     print(f"re-hashed {len(manifest['files'])} files in {Path(args.model) / 'manifest.json'}")
     return 0
 
@@ -298,6 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--recordings", required=True)
     p.add_argument("--label", required=True)
     p.add_argument("--description", required=True)
+    p.add_argument("--relabel", action="store_true",
+                   help="file presses labelled otherwise in their metadata under --label")
+    p.add_argument("--force", action="store_true",
+                   help="add presses made at a threshold unlike the database's classes'")
     p.set_defaults(func=_cmd_db_add)
 
     p = sub.add_parser("eval", help="retrieval quality on unseen classes, pictures, tables")
@@ -306,6 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unseen", required=True, nargs="+", help="unseen-class recordings")
     p.add_argument("--out", required=True)
     p.add_argument("--beta", help="beta-VAE checkpoint for the comparison")
+    p.add_argument("--zeros", help="checkpoint of the VQ-VAE with the zero-input decoder, "
+                   "for the comparison")
     p.add_argument("--splits")
     p.add_argument("--k", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
@@ -328,17 +411,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"],
         help="unseen test sets, one recordings directory each (default: the release's)")
-    p.add_argument("--reference", default="runs/release/recordings/reference",
-                   help="reference recordings (the beta-VAE's database)")
-    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt",
-                   help="beta-VAE checkpoint")
-    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt",
-                   help="checkpoint of the VQ-VAE with the zero-input decoder")
+    p.add_argument("--reference", help="reference recordings (the beta-VAE's database; "
+                   f"default: {DEFAULTS_HELP['reference']})")
+    p.add_argument("--beta", help=f"beta-VAE checkpoint (default: {DEFAULTS_HELP['beta']})")
+    p.add_argument("--zeros", help="checkpoint of the VQ-VAE with the zero-input decoder "
+                   f"(default: {DEFAULTS_HELP['zeros']})")
     p.add_argument("--conditions", help="comma-separated, from: vision_only, vq_top3, "
                    "vq_top1, beta_top3, vq_zeros_top3, vq_top3_adjectives, tactile_only "
                    "(default: the first four)")
     p.add_argument("--images", help="photos for real data: <press name>.jpg or <label>.jpg "
-                   "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the simulated camera)")
+                   "(.jpeg, .png) in DIR/<set>/ or DIR/ (default: the photo collect took "
+                   "beside each press, else the simulated camera)")
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable)")
     p.add_argument("--limit", type=int, help="at most N presses per set (round-robin over "
                    "classes), for a quick run")
     p.add_argument("--concurrency", type=int, default=4, help="requests in flight")
@@ -366,12 +451,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model-dir", default="models")
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
-    p.add_argument("--reference", default="runs/release/recordings/reference")
-    p.add_argument("--beta", default="runs/release/beta/checkpoint.pt")
-    p.add_argument("--zeros", default="runs/release/vq_zeros/checkpoint.pt")
+    p.add_argument("--reference", help=f"default: {DEFAULTS_HELP['reference']}")
+    p.add_argument("--beta", help=f"default: {DEFAULTS_HELP['beta']}")
+    p.add_argument("--zeros", help=f"default: {DEFAULTS_HELP['zeros']}")
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable; "
+                   "sets so named stand beside them unasked)")
     p.add_argument("--no-extras", action="store_true",
                    help="only the paper's rows (no zero-input decoder or ablation rows)")
-    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images; default: "
+                   "the photo collect took beside each press)")
     p.add_argument("--limit", type=int, help="at most N presses per set")
     p.add_argument("--concurrency", type=int, default=4)
     p.add_argument("--work", default="runs/table1", help="answer caches, one per model")
@@ -394,9 +483,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prompt-dir", help="prompt templates (default: models/prompts)")
     p.add_argument("--model-dir", default="models",
                    help="the shipped model (its decoder and window are copied)")
-    p.add_argument("--reference", default="runs/release/recordings/reference")
+    p.add_argument("--reference", help=f"default: {DEFAULTS_HELP['reference']}")
     p.add_argument("--unseen", nargs="+", default=[
         "runs/release/recordings/foodreplica", "runs/release/recordings/cube"])
+    p.add_argument("--paper-set", action="append", default=[], metavar="NAME=PAPER_SET",
+                   help="stand set NAME beside the paper's foodreplica or cube (repeatable)")
     p.add_argument("--sizes", default="0,6,13,20,27", help="|Y_ref| values, comma-separated")
     p.add_argument("--draws", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
@@ -404,7 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--patience", type=int, default=10)
     p.add_argument("--decoder", choices=["teacher", "zeros"],
                    help="default: the shipped model's")
-    p.add_argument("--images", help="photos for real data (as eval-vlm --images)")
+    p.add_argument("--images", help="photos for real data (as eval-vlm --images; default: "
+                   "the photo collect took beside each press)")
     p.add_argument("--limit", type=int, help="at most N presses per set")
     p.add_argument("--concurrency", type=int, default=4)
     p.add_argument("--work", default="runs/fig6", help="trainings and answer cache")
@@ -429,6 +521,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)
+
+    p = sub.add_parser(
+        "build", help="a deployable model directory from a collected dataset (the lab's own "
+        "presses)", description="Train the VQ-VAE (the paper's decoder), export it to ONNX "
+        "(parity-checked), build the database of every offset of every press of the train "
+        "and val classes, copy and hash the prompt templates, evaluate retrieval beside a "
+        "trivial baseline (on the dataset's test classes and --unseen sets) and write the "
+        "manifest with the data's origin. Each step is kept in OUT.partial with the hash of "
+        "its inputs: run it again to continue. OUT is replaced at the end (the old one is "
+        "kept as OUT.previous).")
+    p.add_argument("--data", required=True, help="dataset directory (vt-edge collect --plan)")
+    p.add_argument("--out", required=True, help="model directory to write")
+    p.add_argument("--variant", action="append", choices=["beta", "zeros"],
+                   help="also train this comparison variant (repeatable): the beta-VAE, the "
+                   "zero-input decoder; their rows join the evaluation and Table I")
+    p.add_argument("--unseen", nargs="+", help="further test sets for the evaluation")
+    p.add_argument("--prompts", help="prompt templates to ship (default: models/prompts)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-epochs", type=int, default=300)
+    p.add_argument("--patience", type=int, default=25)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_build)
 
     p = sub.add_parser("rehash", help="re-hash a model directory after a deliberate edit")
     p.add_argument("--model", required=True)

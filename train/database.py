@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from edge.core import recording
 from edge.core.descriptions import check_description
 from edge.core.errors import ModelError, RecordingError
 from edge.core.model import (
@@ -30,14 +33,18 @@ from edge.core.model import (
     load_model,
     nearest_code,
 )
+from edge.core.progress import Progress as Bar
 from train.data import PressSet, Splits, load_presses
-from train.export import codebook_of
-from train.manifest import write_manifest
+from train.manifest import read_raw, write_manifest
 
 log = logging.getLogger(__name__)
 
 # Every subsampling offset of every press (the paper's 5 per press).
 DB_OFFSETS = (0, 1, 2, 3, 4)
+# The manifest's record of the stop threshold each class's presses were made at.
+CLASS_X_TH = "class_x_th"
+# Thresholds are compared to this many decimals (a setting written twice is one value).
+X_TH_DIGITS = 9
 
 
 def summary(db: ReferenceDatabase) -> dict:
@@ -108,6 +115,8 @@ def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
 def build_database(encoder_onnx: bytes, presses: PressSet, splits: Splits,
                    space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
     """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_onnx``."""
+    from train.export import codebook_of  # onnx: not needed to add to a database
+
     encoder = OnnxEncoder(encoder_onnx)
     presses = presses.select(splits.classes)
     z, code = encode_presses(encoder, presses)
@@ -126,41 +135,148 @@ def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | N
     splits = splits or Splits.of_dataset(recordings)
     presses = load_presses(recordings, splits.classes)
     db = build_database(onnx_bytes, presses, splits, space, k)
+    thresholds = {}
+    for label, values in grouped(press_index(recordings), "x_th").items():
+        problem = mixed(label, "thresholds x_th", values)
+        if problem:
+            raise RecordingError(f"{recordings}: {problem}")
+        if label in splits.classes:
+            thresholds[label] = next(iter(values))
     db.save(model_dir)
-    write_manifest(model_dir, {"database": summary(db)})
+    write_manifest(model_dir, {"database": summary(db), CLASS_X_TH: thresholds})
     log.info("database: %d references of %d classes in %s", len(db), len(db.classes),
              model_dir)
     return db
 
 
+@dataclass(frozen=True)
+class PressMeta:
+    """What a press's metadata says about how it was made."""
+
+    path: Path
+    label: str
+    x_th: float  # rounded to X_TH_DIGITS: one setting written twice is one value
+    origin: str  # recording source and sensor model
+
+
+def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta]:
+    """The metadata of every press under ``directory``, sorted by path."""
+    files = recording.find(directory)
+    out = []
+    with Bar(f"check {Path(directory).name}", len(files), "presses", enabled=progress) as bar:
+        for path in files:
+            rec = recording.load(path)
+            out.append(PressMeta(path, rec.label, round(rec.threshold, X_TH_DIGITS),
+                                 f"source {rec.source}, sensor {rec.sensor_model}"))
+            bar.update()
+    return out
+
+
+def grouped(presses: Sequence[PressMeta], field: str) -> dict[str, dict[Any, list[str]]]:
+    """Per label: each value of ``field`` among its presses, with the presses' names."""
+    out: dict[str, dict[Any, list[str]]] = {}
+    for p in presses:
+        out.setdefault(p.label, {}).setdefault(getattr(p, field), []).append(
+            p.path.name.removesuffix(recording.SUFFIX))
+    return out
+
+
+def mixed(label: str, what: str, values: dict[Any, list[str]]) -> str | None:
+    """One line naming the values and presses where a class mixes ``what``; else None."""
+    if len(values) < 2:
+        return None
+    return f"class {label!r} mixes {what}: " + "; ".join(
+        f"{v} ({_names(names)})" for v, names in values.items())
+
+
+def _names(names: Sequence[str], most: int = 4) -> str:
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more"
+                                       if len(names) > most else "")
+
+
+def _check_threshold(label: str, x_th: float, known: dict[str, float]) -> None:
+    if label in known:
+        if round(known[label], X_TH_DIGITS) != x_th:
+            raise ModelError(f"the presses of {label!r} were made at x_th {x_th:g}; the "
+                             f"database's {label!r} at {known[label]:g}: press at that "
+                             "threshold, or say --force")
+        return
+    if known and x_th not in {round(t, X_TH_DIGITS) for t in known.values()}:
+        levels = ", ".join(f"{t:g}" for t in sorted(set(known.values())))
+        raise ModelError(f"the presses of {label!r} were made at x_th {x_th:g}; the "
+                         f"database's classes at {levels}: press at one of those "
+                         "(vt-edge collect --x-th), or say --force")
+
+
 def add_class(model_dir: str | Path, recordings: str | Path, label: str,
-              description: str) -> ReferenceDatabase:
+              description: str, *, relabel: bool = False, force: bool = False
+              ) -> ReferenceDatabase:
     """``vt-train db add``: encode the presses of a new (or existing) class with the shipped
-    encoder and add them under ``label``; no retraining. Database files and manifest are
-    rewritten atomically, the manifest last."""
+    encoder (onnxruntime only: no torch or onnx on this path) and add them under ``label``; no
+    retraining. Refused: presses labelled otherwise in their metadata (unless ``relabel``),
+    references the database already holds (same press file and offset), a threshold unlike
+    the database's classes' (unless ``force``). Database files and manifest are rewritten
+    atomically, the manifest last."""
     if not label.strip() or not description.strip():
         raise ModelError("db add needs a non-empty --label and --description")
     check_description(description, label)
     model = load_model(model_dir)  # verifies hashes: never extend a damaged directory
-    presses = load_presses(recordings)
-    found = sorted(set(presses.labels))
-    if label in found:
-        presses = presses.select([label])
-    elif len(found) == 1:
-        log.info("recordings are labelled %r; adding them as %r", found[0], label)
+    metas = press_index(recordings)
+    if not metas:
+        raise RecordingError(f"{recordings}: no press recordings")
+    others: dict[str, int] = {}
+    for m in metas:
+        if m.label != label:
+            others[m.label] = others.get(m.label, 0) + 1
+    if others and not relabel:
+        raise RecordingError(
+            f"{recordings}: " + ", ".join(f"{n} presses labelled {lab!r}"
+                                          for lab, n in others.items())
+            + f" in their metadata, not {label!r}: add them under their own --label, or say "
+            f"--relabel to file them as {label!r}")
+    thresholds = grouped([replace(m, label=label) for m in metas], "x_th")[label]
+    problem = mixed(label, "thresholds x_th", thresholds)
+    if problem:
+        raise RecordingError(f"{recordings}: {problem}")
+    x_th = next(iter(thresholds))
+    known = {str(k): float(v) for k, v in read_raw(Path(model_dir)).get(CLASS_X_TH, {}).items()}
+    if not known:
+        log.warning("%s records no class thresholds (built before vt-train build): the "
+                    "threshold %g is not checked", Path(model_dir) / "manifest.json", x_th)
+    if force:
+        try:
+            _check_threshold(label, x_th, known)
+        except ModelError as exc:
+            log.warning("--force: %s", exc)
     else:
-        raise RecordingError(f"{recordings}: recordings of {', '.join(found)}; none is labelled "
-                             f"{label!r} (point --recordings at one class's presses)")
-    z, code = encode_presses(model.encoder, presses)
+        _check_threshold(label, x_th, known)
+    presses = load_presses(recordings)
     old = model.database
-    db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code,
-                        [Path(p).name for p in presses.paths for _ in DB_OFFSETS],
-                        np.tile(np.asarray(DB_OFFSETS, dtype=np.int8), len(presses)))
+    sources = [Path(p).name for p in presses.paths for _ in DB_OFFSETS]
+    offsets = np.tile(np.asarray(DB_OFFSETS, dtype=np.int8), len(presses))
+    have = set(zip(old.source.tolist(), old.offset.tolist(), strict=True))
+    dup: dict[str, list[int]] = {}
+    for source, offset in zip(sources, offsets.tolist(), strict=True):
+        if (source, offset) in have:
+            dup.setdefault(source, []).append(offset)
+    if dup:
+        listed = "; ".join(f"{source} (offsets {', '.join(map(str, offs))})"
+                           for source, offs in dup.items())
+        raise ModelError(f"{sum(map(len, dup.values()))} of these references are in the "
+                         f"database already (same press file and offset): {listed}. "
+                         "Nothing added")
+    z, code = encode_presses(model.encoder, presses)
+    db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code, sources,
+                        offsets)
     db.save(model_dir)
-    write_manifest(model_dir, {"database": summary(db)})
-    log.info("added %d presses (%d references) of %s (%s); database now %d references of "
-             "%d classes", len(presses), len(z), label,
-             "existing class" if label in old.labels else "new class", len(db), len(db.classes))
+    sections: dict = {"database": summary(db)}
+    if known:
+        sections[CLASS_X_TH] = known | {label: known.get(label, x_th)}
+    write_manifest(model_dir, sections)
+    log.info("added %d presses (%d references) of %s (%s) at x_th %g; database now %d "
+             "references of %d classes", len(presses), len(z), label,
+             "existing class" if label in old.labels else "new class", x_th, len(db),
+             len(db.classes))
     return db
 
 

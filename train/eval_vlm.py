@@ -115,6 +115,91 @@ PAPER = {"vision_only": {"foodreplica": 53.6, "cube": 50.0},
          "vq_top1": {"foodreplica": 58.4, "cube": 52.5},
          "beta_top3": {"foodreplica": 52.5, "cube": 50.0}}
 DATASET_TITLES = {"foodreplica": "FoodReplica", "cube": "Cube"}
+PAPER_SETS = tuple(DATASET_TITLES)
+# A dataset directory's ``dataset.json`` without "origin": the simulated recorder's.
+EMULATED = {"kind": "emulated", "recorder": None, "robot": None, "sensor": None}
+PHOTO_BESIDE = "photos beside the presses"
+SIM_CAMERA = "simulated camera (edge.sim.camera.render)"
+
+
+def parse_paper_sets(items: Iterable[str]) -> dict[str, str]:
+    """``--paper-set NAME=foodreplica`` (or ``=cube``): which of our sets stands beside which
+    of the paper's; a set named like the paper's stands beside it unasked."""
+    out: dict[str, str] = {}
+    for item in items:
+        name, sep, paper = item.partition("=")
+        if not sep or not name.strip() or paper.strip().lower() not in PAPER_SETS:
+            raise EvalVLMError(f"--paper-set {item!r}: expected NAME=foodreplica or NAME=cube")
+        out[name.strip()] = paper.strip().lower()
+    return out
+
+
+def paper_set(name: str, mapping: Mapping[str, str]) -> str | None:
+    """The paper's set ``name`` stands beside, if any."""
+    return mapping.get(name) or (name if name in PAPER_SETS else None)
+
+
+def set_title(name: str, mapping: Mapping[str, str]) -> str:
+    paper = paper_set(name, mapping)
+    if paper is None or paper == name:
+        return DATASET_TITLES.get(name, name)
+    return f"{name} (as {DATASET_TITLES[paper]})"
+
+
+def describe_origin(origin: Mapping[str, Any] | None) -> str:
+    """Who pressed: the emulated robot, or which robot and sensor (the contract's origin)."""
+    if origin is None:
+        return "presses of unrecorded origin"
+    if origin.get("kind") != "robot":
+        return "simulated presses by the emulated robot"
+    sensor = origin.get("sensor") or {}
+    serials = ", ".join(sensor.get("serials") or [])
+    parts = ["real presses by the robot" + (f" `{origin['robot']}`" if origin.get("robot")
+                                            else "")]
+    if sensor.get("model"):
+        parts.append(f"with a XELA {sensor['model']}" + (f" ({serials})" if serials else ""))
+    if origin.get("recorder"):
+        parts.append(f"pressed by {origin['recorder']}")
+    return " ".join(parts)
+
+
+def reference_origin(directory: Path) -> dict[str, Any] | None:
+    """Who pressed a dataset directory's presses (its ``dataset.json`` origin); None when
+    it has no ``dataset.json``."""
+    index = Path(directory) / DATASET_INDEX
+    try:
+        meta = json.loads(index.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise RecordingError(f"{index}: unreadable: {exc}") from None
+    return dict(meta.get("origin") or EMULATED)
+
+
+def model_facts(manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """What a report says about a tactile model: its decoder, its data's origin, and whether
+    it was built from a lab's data (``vt-train build``) or is the simulated release."""
+    decoder = manifest.get("training", {}).get("vq", {}).get("config", {}).get(
+        "model", {}).get("decoder")
+    origin = manifest.get("origin", EMULATED)
+    built = str(manifest.get("created_by", "")).startswith("vt-train build")
+    return {"decoder": decoder, "origin": origin, "built": built or origin["kind"] == "robot"}
+
+
+def decoder_title(decoder: str | None) -> str:
+    return {"teacher": "the paper's (z_q and X, teacher-forced)",
+            "zeros": "zero-input (z_q alone)"}.get(
+        decoder or "", "not recorded in the manifest")
+
+
+def variant_advice(facts: Mapping[str, Any], model_dir: Path, variant: str) -> str:
+    """How to train a missing comparison variant (``beta`` or ``zeros``) from the data the
+    model came from: ``vt-train build`` for a lab's data, ``vt-train release`` only for the
+    simulated set."""
+    if facts["built"]:
+        return (f"`vt-train build --data DATASET --out {model_dir} --variant {variant}` "
+                "(the dataset the model was built from; the other steps are kept)")
+    return "`vt-train release` (the simulated reference set)"
 
 
 @dataclass(frozen=True)
@@ -127,9 +212,10 @@ class EvalVLMConfig:
     reference: Path | None = None  # reference recordings (the checkpoint variants' database)
     beta: Path | None = None  # beta-VAE checkpoint
     zeros: Path | None = None  # the zero-input decoder's VQ-VAE checkpoint
-    images: Path | None = None  # photos for real data; None = the simulated camera
+    images: Path | None = None  # photos; None = beside the presses, else the simulated camera
     limit: int | None = None  # presses per dataset
     concurrency: int = DEFAULT_CONCURRENCY
+    paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
 
     def validate(self, endpoint: bool = True) -> None:
         """Refuse a configuration that cannot run; ``endpoint=False`` (a dry run) lets the
@@ -170,6 +256,7 @@ class UnseenSet:
     candidates: tuple[str, ...]
     presses: PressSet
     press_ids: tuple[str, ...]  # recording paths relative to ``directory``
+    origin: dict[str, Any] | None = None  # who pressed (dataset.json); None: not recorded
 
 
 def round_robin(labels: Sequence[str], classes: Sequence[str]) -> list[int]:
@@ -197,11 +284,19 @@ def load_test_set(directory: str | Path, limit: int | None = None,
     index = directory / DATASET_INDEX
     name = directory.name
     candidates = list(dict.fromkeys(sorted(presses.labels)))
+    origin = None
     if index.exists():
         try:
             meta = json.loads(index.read_text(encoding="utf-8"))
-            candidates = [str(c["label"]) for c in meta["classes"]]
+            classes = meta["classes"]
+            # A collected dataset holds its reference classes too: its test classes are
+            # the questions.
+            if any(c.get("split") == "test" for c in classes):
+                classes = [c for c in classes if c.get("split") == "test"]
+                presses = presses.select([str(c["label"]) for c in classes])
+            candidates = [str(c["label"]) for c in classes]
             name = str(meta.get("dataset") or name)
+            origin = dict(meta.get("origin") or EMULATED)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise RecordingError(f"{index}: cannot read the class list: {exc!r}") from None
     stray = sorted(set(presses.labels) - set(candidates))
@@ -215,7 +310,7 @@ def load_test_set(directory: str | Path, limit: int | None = None,
                        tuple(presses.labels[i] for i in order),
                        tuple(presses.paths[i] for i in order))
     ids = tuple(Path(p).relative_to(directory).as_posix() for p in presses.paths)
-    return UnseenSet(name, directory, tuple(candidates), presses, ids)
+    return UnseenSet(name, directory, tuple(candidates), presses, ids, origin)
 
 
 @dataclass(frozen=True, eq=False)
@@ -339,7 +434,8 @@ class Job:
 
 
 class ImageSource:
-    """The picture of a press: a user's photo (per press, else per class), or the
+    """The picture of a press: a user's photo in ``--images`` (per press, else per class);
+    without it the photo ``vt-edge collect`` took beside the press (same stem), else the
     simulated camera's picture of its label."""
 
     def __init__(self, directory: Path | None = None, vlm: VLMConfig | None = None) -> None:
@@ -347,11 +443,31 @@ class ImageSource:
         self.vlm = vlm or VLMConfig()
         if directory is not None and not directory.is_dir():
             raise EvalVLMError(f"--images {directory}: not a directory")
+        self.used: dict[str, dict[str, int]] = {}  # per set: source -> pictures
 
     @property
     def name(self) -> str:
-        return "simulated camera (edge.sim.camera.render)" if self.directory is None \
-            else str(self.directory)
+        if self.directory is not None:
+            return str(self.directory)
+        if not self.used:
+            return SIM_CAMERA
+        return "; ".join(f"{dataset}: " + ", ".join(
+            f"{source} ({n})" if len(counts) > 1 else source for source, n in counts.items())
+            for dataset, counts in self.used.items())
+
+    def _count(self, dataset: str, source: str) -> None:
+        counts = self.used.setdefault(dataset, {})
+        counts[source] = counts.get(source, 0) + 1
+
+    @staticmethod
+    def beside(press_path: Path) -> Path | None:
+        """The photo collect saved beside a press: ``<label>_NNN.jpg`` (.jpeg, .png)."""
+        stem = press_path.name.split(".")[0]
+        for suffix in IMAGE_SUFFIXES:
+            path = press_path.with_name(stem + suffix)
+            if path.is_file():
+                return path
+        return None
 
     def path_for(self, dataset: str, press: str, label: str) -> Path | None:
         assert self.directory is not None
@@ -364,8 +480,13 @@ class ImageSource:
                         return path
         return None
 
-    def get(self, dataset: str, press: str, label: str) -> bytes:
+    def get(self, dataset: str, press: str, label: str, press_path: Path | None = None
+            ) -> bytes:
         if self.directory is None:
+            photo = self.beside(press_path) if press_path is not None else None
+            self._count(dataset, PHOTO_BESIDE if photo else SIM_CAMERA)
+            if photo is not None:
+                return _read_image(photo, self.vlm.max_image_side_px, self.vlm.max_image_bytes)
             return _rendered(label)
         path = self.path_for(dataset, press, label)
         if path is None:
@@ -461,7 +582,8 @@ def build_jobs(sets: Sequence[UnseenSet],
                     k = max(c.k for c, s in conditions if s is source)
                     retrieved[id(source)] = source.topk(x, k)
         for i, (press, label) in enumerate(zip(ts.press_ids, ts.presses.labels, strict=True)):
-            image = images.get(ts.name, press, label) if with_image else None
+            image = images.get(ts.name, press, label, ts.directory / press) \
+                if with_image else None
             for cond, source in conditions:
                 template = templates[cond.mode]
                 topk: tuple[tuple[str, float], ...] = ()
@@ -718,7 +840,8 @@ def summarise(plan: Plan, records: Mapping[str, Mapping[str, Any]]) -> dict[str,
         "prompts": {mode: {"source": t.source, "sha256": sha256_hex(t.text.encode("utf-8"))}
                     for mode, t in plan.templates.items()},
         "datasets": [{"name": ts.name, "directory": str(ts.directory),
-                      "candidates": list(ts.candidates), "presses": len(ts.press_ids)}
+                      "candidates": list(ts.candidates), "presses": len(ts.press_ids),
+                      "origin": ts.origin, "paper_set": paper_set(ts.name, cfg.paper_sets)}
                      for ts in plan.sets],
         "results": out,
         "presses": list(presses.values()),
@@ -733,7 +856,8 @@ def _pct(r: Mapping[str, Any]) -> str:
 
 def markdown(report: Mapping[str, Any]) -> str:
     sets = [d["name"] for d in report["datasets"]]
-    titles = [DATASET_TITLES.get(s, s) for s in sets]
+    beside = {d["name"]: d.get("paper_set") for d in report["datasets"]}
+    titles = [set_title(s, {k: v for k, v in beside.items() if v}) for s in sets]
     conds = report["conditions"]
     head = ["| method | " + " | ".join(titles) + " |", "| --- |" + " --- |" * len(sets)]
     lines = [
@@ -758,7 +882,7 @@ def markdown(report: Mapping[str, Any]) -> str:
         lines.append(f"| {c['title']} | " + " | ".join(
             str(report["results"][s][c["name"]]["invalid_answer"]) for s in sets) + " |")
     paper_rows = [c for c in conds if c["name"] in PAPER]
-    paper_sets = [s for s in sets if s in ("foodreplica", "cube")]
+    paper_sets = [beside[s] for s in sets if beside.get(s)]
     if paper_rows and paper_sets:
         lines += ["", "The paper (GPT-4V, real objects), for comparison:", "",
                   "| method | " + " | ".join(DATASET_TITLES[s] for s in paper_sets) + " |",
@@ -766,6 +890,9 @@ def markdown(report: Mapping[str, Any]) -> str:
         for c in paper_rows:
             lines.append(f"| {c['title']} | " + " | ".join(
                 f"{PAPER[c['name']][s]:.1f} %" for s in paper_sets) + " |")
+    lines += ["", "The presses: " + "; ".join(
+        f"{d['name']}: {describe_origin(d.get('origin'))}" for d in report["datasets"])
+        + "."]
     lines += ["", "Answers are a strict JSON enum of the candidates (a label is always a "
               "candidate, or `invalid_answer`); the paper's GPT-4V and LLaVA answered in free "
               "text.", "", "Prompt templates: " + ", ".join(

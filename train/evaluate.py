@@ -24,6 +24,11 @@ posterior mean). Metrics:
   presses per class, one AUC step is 0.01, and a pair the embedding cannot tell apart can
   score below 0.5 (leaving one out pulls its own centroid away).
 
+A trivial baseline row (``baseline``) is always set beside the encoder, on the same presses
+and the same protocol: each channel's mean over the crop window (the 25 steps of an input),
+standardised with the statistics of the reference (press, offset) inputs, L2 nearest
+neighbours. The report says where the primary encoder row does worse than it.
+
 Files: ``eval.json`` (all metrics), ``eval.md`` (the tables), ``retrieval.json`` (top-k per
 unseen press with its description sentence), ``confusion.png`` (leave-one-out 1-NN on the
 reference classes), ``embedding_pca.png`` (2-D PCA of the embedding space: reference classes
@@ -63,7 +68,16 @@ VARIANT_TITLES = {
     "vq": "VQ-VAE, the paper's decoder (z_q and X, teacher-forced)",
     "vq_zeros": "VQ-VAE, zero-input decoder (z_q alone)",
     "beta": "beta-VAE (paper's decoder), posterior mean",
+    "baseline": "trivial baseline: each channel's mean over the crop window, standardised "
+                "with the reference presses' statistics, L2 nearest neighbours",
 }
+BASELINE = "baseline"
+NEIGHBOURS = 3  # per unseen class in the report: the most frequent nearest classes
+# The headline figures the encoder is held against the baseline on (key, name in the report).
+VERSUS_BASELINE = (("loo_1nn", "LOO 1-NN"), ("loo_top3", "LOO top-3"),
+                   ("top3_consistency", "unseen top-3 consistency"),
+                   ("mean_auc_real_vs_replica", "mean AUC real/replica"),
+                   ("mean_auc_raw_vs_boiled", "mean AUC raw/boiled"))
 
 
 @dataclass(frozen=True)
@@ -82,6 +96,19 @@ def onnx_embedder(encoder: OnnxEncoder, codebook: np.ndarray) -> Embedder:
     def embed(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         z, code = encoder(x)
         return z, codebook[code]
+    return embed
+
+
+def baseline_embedder(x_reference: np.ndarray) -> Embedder:
+    """Each channel's mean over the window, standardised with the statistics of
+    ``x_reference`` (N, steps, channels); a channel that never moves is left unscaled."""
+    features = x_reference.mean(axis=1, dtype=np.float64)
+    mean = features.mean(axis=0)
+    std = features.std(axis=0)
+    std[std <= 0] = 1.0
+
+    def embed(x: np.ndarray) -> tuple[np.ndarray, None]:
+        return ((x.mean(axis=1, dtype=np.float64) - mean) / std).astype(np.float32), None
     return embed
 
 
@@ -194,23 +221,29 @@ def consistency(retrieved: Sequence[list[str]], labels: Sequence[str]) -> dict[s
 
 
 def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
-             reference: PressSet, splits: Splits, unseen: PressSet, out_dir: str | Path,
-             primary: tuple[str, Space] = ("vq", "z"), k: int = 3, seed: int = 0
-             ) -> dict[str, Any]:
-    """Evaluate every (variant, space); write the files of the primary row and the tables.
+             reference: PressSet, splits: Splits, unseen: PressSet | None,
+             out_dir: str | Path, primary: tuple[str, Space] = ("vq", "z"), k: int = 3,
+             seed: int = 0) -> dict[str, Any]:
+    """Evaluate every (variant, space) and the trivial baseline; write the files of the
+    primary row and the tables.
 
-    ``embedders`` maps a variant name to (embedder, codebook or None).
+    ``embedders`` maps a variant name to (embedder, codebook or None). Without ``unseen``
+    presses only the reference (leave-one-out) figures are measured.
     """
+    if unseen is None:
+        unseen = PressSet(reference.x[:0], reference.x_bar[:0], (), ())
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     offsets = database.DB_OFFSETS
     per_press = len(offsets)
     at_query = offsets.index(QUERY_OFFSET)
     x_all, x_uns = database.reference_inputs(reference, offsets), unseen.inputs(QUERY_OFFSET)
+    embedders = {**embedders, BASELINE: (baseline_embedder(x_all), None)}
     rows: list[Row] = []
     for variant, (embedder, codebook) in embedders.items():
         z_all, zq_all = embedder(x_all)
-        z_uns, zq_uns = embedder(x_uns)
+        z_uns, zq_uns = embedder(x_uns) if len(x_uns) else (
+            z_all[:0], None if zq_all is None else zq_all[:0])
         spaces: list[Space] = ["z"] if zq_all is None else ["z", "z_q"]
         for space in spaces:
             db = database.from_embeddings(reference, splits, z_all, codebook, space=space,
@@ -253,6 +286,7 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
             "pair_auc": {name: m["auc"] for name, m in pair_metrics.items()},
             "pairs": pair_metrics,
             "consistency_per_class": cons["per_class"],
+            "unseen_neighbours": neighbours(retrieved, unseen.labels),
         }
         report["rows"].append(metrics)
         if (row.variant, row.space) == primary:
@@ -273,6 +307,26 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
     atomic_write_text(out / "eval.md", markdown(report, pairs))
     _pictures(out, row, knn, reference, unseen)
     return report
+
+
+def neighbours(retrieved: Sequence[list[tuple[str, float]]], labels: Sequence[str]
+               ) -> dict[str, dict[str, Any]]:
+    """Per unseen class: the (up to) ``NEIGHBOURS`` reference classes that came first most
+    often, and those most often in the top-k, with their counts, most frequent first."""
+    out: dict[str, dict[str, Any]] = {}
+    for cls in dict.fromkeys(labels):
+        mine = [r for r, lab in zip(retrieved, labels, strict=True) if lab == cls]
+        first: dict[str, int] = {}
+        anywhere: dict[str, int] = {}
+        for r in mine:
+            first[r[0][0]] = first.get(r[0][0], 0) + 1
+            for lab, _ in r:
+                anywhere[lab] = anywhere.get(lab, 0) + 1
+        out[cls] = {"presses": len(mine),
+                    "first": sorted(first.items(), key=lambda kv: (-kv[1], kv[0]))[:NEIGHBOURS],
+                    "topk": sorted(anywhere.items(),
+                                   key=lambda kv: (-kv[1], kv[0]))[:NEIGHBOURS]}
+    return out
 
 
 def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
@@ -307,6 +361,48 @@ def _decoder_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
             f"(`vq_zeros`), retrieval in z: {parts}. {verdict}. The paper's decoder is the "
             "shipped default; what each gives the VLM is in Table I "
             "(`table1/table1.md`, rows `vq_zeros_top3`)."]
+
+
+def _versus_baseline(report: dict[str, Any]) -> list[str]:
+    """Where the primary encoder row loses to the trivial baseline, said plainly, and each
+    unseen class's nearest reference classes for both."""
+    rows = report["rows"]
+    p = report.get("primary", {"variant": "vq", "space": "z"})
+    by = {(r["variant"], r["space"]): r for r in rows}
+    enc, base = by.get((p["variant"], p["space"])), by.get((BASELINE, "z"))
+    if enc is None or base is None:
+        return []
+    name = f"{enc['variant']}/{enc['space']}"
+    lost = [f"{label} ({_fmt(enc[key])} against {_fmt(base[key])})"
+            for key, label in VERSUS_BASELINE
+            if enc[key] is not None and base[key] is not None and base[key] > enc[key]]
+    won = [label for key, label in VERSUS_BASELINE
+           if enc[key] is not None and base[key] is not None and enc[key] > base[key]]
+    pairs = [pair for pair, auc_ in enc["pair_auc"].items() if base["pair_auc"][pair] > auc_]
+    lines = ["", "## The encoder against the trivial baseline", ""]
+    if lost:
+        lines.append(f"The encoder (`{name}`) does worse than the trivial baseline on "
+                     f"{'; '.join(lost)}.")
+    else:
+        lines.append(f"The encoder (`{name}`) does no worse than the trivial baseline on any "
+                     "headline figure.")
+    if won:
+        lines.append(f"It does better on {', '.join(won)}.")
+    if pairs:
+        lines.append(f"Pairs the baseline separates better (higher AUC): {', '.join(pairs)}.")
+    lines += ["", "Unseen classes' nearest reference classes (how many of the class's presses "
+              "had it first; the most frequent in the top-k):", "",
+              f"| unseen class | {name} first | {name} top-{report['k']} | baseline first "
+              f"| baseline top-{report['k']} |", "| --- | --- | --- | --- | --- |"]
+
+    def most(items: list, n: int) -> str:
+        return ", ".join(f"{lab} {count}" for lab, count in items[:n])
+
+    for cls, e in enc["unseen_neighbours"].items():
+        b = base["unseen_neighbours"][cls]
+        lines.append(f"| {cls} | {most(e['first'], 2)} | {most(e['topk'], 3)} | "
+                     f"{most(b['first'], 2)} | {most(b['topk'], 3)} |")
+    return lines
 
 
 def _fmt(v: float | None) -> str:
@@ -354,6 +450,7 @@ def markdown(report: dict[str, Any], pairs: Sequence[tuple[str, str, str]]) -> s
                      + " | ".join(_fmt(r["pair_auc"][name]) for r in rows)
                      + f" | {sep:.2f} |")
     lines += _decoder_comparison(rows)
+    lines += _versus_baseline(report)
     lines += ["",
               "LOO: leave one reference press out (its five references), nearest remaining "
               "reference (5-NN: majority of the 5 nearest references). "

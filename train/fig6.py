@@ -62,7 +62,6 @@ RESULT_FORMAT = "vtzero-fig6-run-1"
 REPORT_MD = "fig6.md"
 REPORT_JSON = "fig6.json"
 REPORT_PNG = "fig6.png"
-SETS = ("foodreplica", "cube")
 # The paper's end points (GPT-4V, Table I): vision only (|Y_ref| = 0) and the full set (27).
 PAPER_ENDS = {0: {"foodreplica": 53.6, "cube": 50.0}, 27: {"foodreplica": 58.9, "cube": 65.0}}
 DPI = 80
@@ -86,6 +85,7 @@ class Fig6Config:
     images: Path | None = None
     limit: int | None = None
     concurrency: int = eval_vlm.DEFAULT_CONCURRENCY
+    paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
 
     @property
     def standin(self) -> bool:
@@ -247,6 +247,12 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
         await _ask(ecfg, sets, templates, all_jobs, cache, eval_bar, images.name)
     report = summarise(cfg, draws, jobs, cache.records, model_name, decoder,
                        t_train, time.perf_counter() - started)
+    report["data"] = {
+        "reference": {"directory": str(cfg.reference), "train_classes": len(splits.train),
+                      "origin": eval_vlm.reference_origin(cfg.reference)},
+        "sets": [{"name": ts.name, "paper_set": eval_vlm.paper_set(ts.name, cfg.paper_sets),
+                  "origin": ts.origin} for ts in sets],
+        "images": images.name}
     await asyncio.to_thread(write_report, cfg, report)
     return report
 
@@ -272,7 +278,7 @@ def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, i
     missing = [j.key for js in jobs.values() for j in js if j.key not in records]
     if missing:
         raise EvalVLMError(f"{len(missing)} answers missing (first: {missing[0]})")
-    names = [ds for ds in SETS if any(j.dataset == ds for js in jobs.values() for j in js)]
+    names = list(dict.fromkeys(j.dataset for js in jobs.values() for j in js))
     runs = []
     for draw in draws:
         js = jobs[(draw.size, draw.index)]
@@ -290,7 +296,8 @@ def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, i
             row["sets"][ds] = {
                 "values": accs, "mean": float(arr.mean()),
                 "std": float(arr.std(ddof=1)) if len(arr) > 1 else 0.0,
-                "paper": PAPER_ENDS.get(n, {}).get(ds)}
+                "paper": PAPER_ENDS.get(n, {}).get(
+                    eval_vlm.paper_set(ds, cfg.paper_sets) or "")}
         sizes.append(row)
     trained = [r["train_seconds"] for r in runs if r["train_seconds"] is not None]
     return {
@@ -299,7 +306,7 @@ def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, i
         "simulated_vlm": cfg.standin, "model": model, "base_url": cfg.vlm.base_url,
         "decoder": decoder, "seed": cfg.seed, "draws": cfg.draws,
         "max_epochs": cfg.max_epochs, "patience": cfg.patience, "limit": cfg.limit,
-        "protocol": "vision + tactile, top-3; |Y_ref| drawn from the 27 training classes, "
+        "protocol": "vision + tactile, top-3; |Y_ref| drawn from the training classes, "
                     "encoder retrained on them (validation classes for early stopping), "
                     "database of the drawn classes only (all offsets); |Y_ref| = 0 is "
                     "vision only; std over draws with ddof = 1",
@@ -316,18 +323,33 @@ def _pct(v: float | None) -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"
 
 
+def _sets(r: Mapping[str, Any]) -> tuple[list[str], list[str]]:
+    """The sets' names and titles (a set standing beside one of the paper's says which)."""
+    names = list(r["sizes"][0]["sets"]) if r["sizes"] else []
+    data = r.get("data", {})
+    mapping = {d["name"]: d["paper_set"] for d in data.get("sets", []) if d.get("paper_set")}
+    return names, [eval_vlm.set_title(ds, mapping) for ds in names]
+
+
 def markdown(r: Mapping[str, Any]) -> str:
-    names = [ds for ds in SETS if r["sizes"] and ds in r["sizes"][0]["sets"]]
-    titles = [eval_vlm.DATASET_TITLES[ds] for ds in names]
+    names, titles = _sets(r)
     lines = [f"# {r['title']}", ""]
     if r["simulated_vlm"]:
         lines += ["**Simulated VLM, not a real model** (`edge/sim/standin_vlm.py`: sight "
                   "plus common sense about object names; see `table1.md`). What moves here "
                   "is the encoder and the database: what a VLM is told the press felt "
                   "like.", ""]
-    lines += [f"VLM `{r['model']}`; encoders retrained per draw (decoder `{r['decoder']}`, "
-              f"at most {r['max_epochs']} epochs, patience {r['patience']}); {r['draws']} "
-              f"draws per size, seed {r['seed']}. {r['protocol']}.", "",
+    data = r.get("data", {})
+    ref = data.get("reference", {})
+    lines += [f"VLM `{r['model']}`; encoders retrained per draw (decoder `{r['decoder']}`: "
+              f"{eval_vlm.decoder_title(r['decoder'])}; at most {r['max_epochs']} epochs, "
+              f"patience {r['patience']}); {r['draws']} draws per size, seed {r['seed']}. "
+              f"{r['protocol']}.", "",
+              f"Reference classes: `{ref.get('directory')}` ({ref.get('train_classes')} "
+              f"training classes, {eval_vlm.describe_origin(ref.get('origin'))}); test sets: "
+              + "; ".join(f"{d['name']} ({eval_vlm.describe_origin(d.get('origin'))})"
+                          for d in data.get("sets", []))
+              + f"; images: {data.get('images')}.", "",
               "| classes in Y_ref | " + " | ".join(f"{t} mean ± std (%)" for t in titles)
               + " | "
               + " | ".join(f"{t} per draw" for t in titles) + " | paper (GPT-4V) |",
@@ -360,17 +382,18 @@ def plot(r: Mapping[str, Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    names = [ds for ds in SETS if r["sizes"] and ds in r["sizes"][0]["sets"]]
-    for i, ds in enumerate(names):
+    names, titles = _sets(r)
+    for i, (ds, title) in enumerate(zip(names, titles, strict=True)):
         xs = [row["size"] for row in r["sizes"]]
         mean = [100 * row["sets"][ds]["mean"] for row in r["sizes"]]
         std = [100 * row["sets"][ds]["std"] for row in r["sizes"]]
         ax.errorbar(xs, mean, yerr=std, marker="o", capsize=3, color=f"C{i}",
-                    label=f"{eval_vlm.DATASET_TITLES[ds]} ({r['model']})")
-        ends = [(n, v[ds]) for n, v in PAPER_ENDS.items()]
-        ax.scatter([n for n, _ in ends], [v for _, v in ends], marker="s",
-                   facecolors="none", edgecolors=f"C{i}",
-                   label=f"{eval_vlm.DATASET_TITLES[ds]}, paper (GPT-4V)")
+                    label=f"{title} ({r['model']})")
+        ends = [(row["size"], row["sets"][ds]["paper"]) for row in r["sizes"]
+                if row["sets"][ds]["paper"] is not None]
+        if ends:
+            ax.scatter([n for n, _ in ends], [v for _, v in ends], marker="s",
+                       facecolors="none", edgecolors=f"C{i}", label=f"{title}, paper (GPT-4V)")
     ax.set_xlabel("|Y_ref| (reference classes)")
     ax.set_ylabel("accuracy (%)")
     ax.set_xticks([row["size"] for row in r["sizes"]])

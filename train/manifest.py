@@ -36,12 +36,16 @@ def runtime_files(directory: Path) -> list[str]:
 
 
 def versions() -> dict[str, str]:
-    import onnx
-    import onnxruntime
-    import torch
+    from importlib.metadata import PackageNotFoundError, version
 
-    return {"vtzero": __version__, "torch": torch.__version__,
-            "onnxruntime": onnxruntime.__version__, "onnx": onnx.__version__,
+    def installed(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:  # an edge-only install has no torch or onnx
+            return "not installed"
+
+    return {"vtzero": __version__, "torch": installed("torch"),
+            "onnxruntime": installed("onnxruntime"), "onnx": installed("onnx"),
             "numpy": np.__version__, "python": platform.python_version()}
 
 
@@ -68,7 +72,8 @@ def write_manifest(directory: str | Path, sections: Mapping[str, Any] | None = N
     manifest["files"] = {name: file_entry(directory / name) for name in runtime_files(directory)}
     if reports is not None:
         manifest["reports"] = {name: file_entry(directory / name) for name in sorted(reports)}
-    manifest.setdefault("versions", versions())
+    if "versions" not in manifest:
+        manifest["versions"] = versions()
     for key, value in (sections or {}).items():
         manifest[key] = value
     atomic_write_text(directory / MANIFEST, dumps(manifest))

@@ -30,8 +30,15 @@ from edge.core.prompt import MODES, PromptTemplate
 from edge.sim.catalogue import DATASETS
 from edge.tools.record import DATASET_INDEX, record_dataset
 from train import database, evaluate
-from train.data import STD_FLOOR_FRACTION, PressSet, load_presses, training_data
-from train.export import OPSET, PARITY_BOUND, check_parity, codebook_of, export_onnx, parity
+from train.data import STD_FLOOR_FRACTION, Normaliser, PressSet, load_presses, training_data
+from train.export import (
+    OPSET,
+    PARITY_BOUND,
+    check_parity,
+    codebook_of,
+    export_onnx,
+    parity,
+)
 from train.manifest import versions, write_manifest
 from train.model import ModelConfig
 from train.trainer import Progress, TrainConfig, embed, train
@@ -128,6 +135,24 @@ def prompt_hashes(model_dir: Path) -> dict[str, Any]:
     return out
 
 
+def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
+                    ) -> dict[str, Any]:
+    """The manifest's ``encoder``: what the exported graph takes and gives, and its parity."""
+    return {
+        "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", 25, 96],
+        "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
+        "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
+        "mean": norm.mean.tolist(), "std": norm.std.tolist(),
+        "outputs": {"z": ["batch", 4], "code": ["batch"]},
+        "embedding_dim": model.latent,
+        "codebook_size": model.codebook_size,
+        "window": {k: getattr(DEFAULT_WINDOW, k) for k in
+                   ("rate_hz", "before_s", "after_s", "subsample", "sigma_samples")},
+        "opset": OPSET, "exporter": "torch.onnx.export(dynamo=False)",
+        "parity": par | {"bound": PARITY_BOUND},
+    }
+
+
 def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, Any]:
     started = time.perf_counter()
     work = Path(cfg.work)
@@ -199,19 +224,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                 "release_s": time.perf_counter() - started}
     sections = {
         "created_by": cfg.command(),
-        "encoder": {
-            "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", 25, 96],
-            "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
-            "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
-            "mean": data.norm.mean.tolist(), "std": data.norm.std.tolist(),
-            "outputs": {"z": ["batch", 4], "code": ["batch"]},
-            "embedding_dim": vq.config.model.latent,
-            "codebook_size": vq.config.model.codebook_size,
-            "window": {k: getattr(DEFAULT_WINDOW, k) for k in
-                       ("rate_hz", "before_s", "after_s", "subsample", "sigma_samples")},
-            "opset": OPSET, "exporter": "torch.onnx.export(dynamo=False)",
-            "parity": par.to_dict() | {"bound": PARITY_BOUND},
-        },
+        "encoder": encoder_section(data.norm, vq.config.model, par.to_dict()),
         "training": {
             "dataset": {"simulated": True, "seed": ref_index["seed"],
                         "presses_per_class": ref_index["presses_per_class"],
@@ -231,6 +244,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                                   "cube_presses_per_class": cfg.unseen_presses},
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
+        database.CLASS_X_TH: {c["label"]: c["x_th"] for c in ref_index["classes"]},
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,

@@ -2,8 +2,12 @@
 simulated VLM.
 
 Rows: vision only, the method (VQ-VAE, top-3), top-1 instead of top-3, the beta-VAE, for a
-first model (the paper's GPT-4V rows) and a second one (the paper's LLaVA rows); columns:
-FoodReplica and Cube accuracy, with the paper's own numbers beside ours. Extra rows when their
+first model (the paper's GPT-4V rows) and a second one (the paper's LLaVA rows); columns: the
+accuracy on each test set (any name: the recorder's FoodReplica and Cube, or a lab's own), with
+the paper's own numbers beside a set named or mapped (``--paper-set lab_food=foodreplica``) to
+FoodReplica or Cube. The report says where the presses came from (each set's ``dataset.json``
+origin: the emulated robot, or which robot and sensor), which decoder the tactile model has,
+and how to train a missing variant from the data the model was built from. Extra rows when their
 checkpoint exists: the zero-input decoder (``vq_zeros_top3``) and the tactile-adjective
 ablation (``vq_top3_adjectives``).
 
@@ -45,7 +49,9 @@ REPORT_MD = "table1.md"
 REPORT_JSON = "table1.json"
 TABLE_CONDITIONS = ("vision_only", "vq_top3", "vq_top1", "beta_top3")
 EXTRA_CONDITIONS = ("vq_zeros_top3", "vq_top3_adjectives")
-SETS = ("foodreplica", "cube")
+SETS = eval_vlm.PAPER_SETS
+# The comparison conditions and the `--variant` of vt-train build that trains their model.
+VARIANT_OF = {"beta_top3": "beta", "vq_zeros_top3": "zeros"}
 
 # The paper's Table I, percent (FoodReplica, Cube); LLaVA has only two rows.
 PAPER: dict[str, dict[str, tuple[float, float]]] = {
@@ -71,25 +77,36 @@ class Table1Config:
     limit: int | None = None
     concurrency: int = eval_vlm.DEFAULT_CONCURRENCY
     extras: bool = True  # add the extra rows whose checkpoints exist
+    paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
 
     @property
     def standin(self) -> bool:
         return not self.first.configured
 
-    def conditions(self) -> tuple[str, ...]:
+    def missing(self) -> dict[str, str]:
+        """The comparison rows that cannot run here, each with how to make its model."""
         have = {"beta_top3": self.beta, "vq_zeros_top3": self.zeros}
-        out = []
-        for name in (*TABLE_CONDITIONS, *(EXTRA_CONDITIONS if self.extras else ())):
-            if name in have:
-                path = have[name]
-                if path is None or not path.exists() or self.reference is None \
-                        or not self.reference.exists():
-                    log.warning("%s skipped: no checkpoint (%s) or reference recordings "
-                                "(%s); `vt-train release` makes both", name, path,
-                                self.reference)
-                    continue
-            out.append(name)
-        return tuple(out)
+        wanted = (*TABLE_CONDITIONS, *(EXTRA_CONDITIONS if self.extras else ()))
+        facts = eval_vlm.model_facts(read_manifest(self.model_dir))
+        out = {}
+        for name in wanted:
+            if name not in have:
+                continue
+            path = have[name]
+            if path is None or not path.exists() or self.reference is None \
+                    or not self.reference.exists():
+                out[name] = (f"no checkpoint ({path or 'none kept with the model'}) or "
+                             f"reference recordings ({self.reference}); train it with "
+                             + eval_vlm.variant_advice(facts, self.model_dir, VARIANT_OF[name]))
+        return out
+
+    def conditions(self) -> tuple[str, ...]:
+        missing = self.missing()
+        for name, why in missing.items():
+            log.warning("%s skipped: %s", name, why)
+        return tuple(name for name in (*TABLE_CONDITIONS,
+                                       *(EXTRA_CONDITIONS if self.extras else ()))
+                     if name not in missing)
 
 
 def _cache_dir(work: Path, model: str, standin: bool) -> Path:
@@ -109,7 +126,7 @@ async def _run_models(cfg: Table1Config, models: Sequence[VLMConfig], progress: 
             vlm=vlm, out=_cache_dir(cfg.work, vlm.model, cfg.standin), unseen=cfg.unseen,
             model_dir=cfg.model_dir, conditions=conditions, reference=cfg.reference,
             beta=cfg.beta, zeros=cfg.zeros, images=cfg.images, limit=cfg.limit,
-            concurrency=cfg.concurrency)
+            concurrency=cfg.concurrency, paper_sets=cfg.paper_sets)
         log.info("Table I: asking %s (%s)", vlm.model, vlm.base_url)
         reports.append((vlm, await eval_vlm.run(ecfg, progress=progress)))
     return reports
@@ -141,21 +158,25 @@ def _cell(r: Mapping[str, Any] | None) -> str:
 def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, Any]]]
             ) -> dict[str, Any]:
     manifest = read_manifest(cfg.model_dir)
+    facts = eval_vlm.model_facts(manifest)
+    datasets = reports[0][1]["datasets"] if reports else []
+    names = [d["name"] for d in datasets]
     models = []
     for i, (vlm, report) in enumerate(reports):
         paper_model = PAPER_MODELS[i] if i < len(PAPER_MODELS) else None
         rows = []
         for cond in report["conditions"]:
             row = {"condition": cond["name"], "title": cond["title"], "sets": {}}
-            for name in SETS:
+            for name in names:
                 r = report["results"].get(name, {}).get(cond["name"])
                 paper = PAPER.get(paper_model or "", {}).get(cond["name"])
+                beside = eval_vlm.paper_set(name, cfg.paper_sets)
                 row["sets"][name] = {
                     "accuracy": r["accuracy"] if r else None,
                     "correct": r["correct"] if r else None, "n": r["n"] if r else None,
                     "invalid_answer": r["invalid_answer"] if r else None,
                     "confusion": r["confusion"] if r else None,
-                    "paper": paper[SETS.index(name)] if paper else None}
+                    "paper": paper[SETS.index(beside)] if paper and beside else None}
             rows.append(row)
         # The stand-in's loopback port changes every run: not part of the result.
         where = "simulated VLM, in process" if cfg.standin else vlm.base_url
@@ -168,9 +189,13 @@ def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, A
         "protocol": "one query per unseen press (offset-0 input), candidates = the set's "
                     "labels, temperature 0; invalid answers count as wrong",
         "tactile_model": {"dir": str(cfg.model_dir), "created_by": manifest.get("created_by"),
-                          "decoder": manifest.get("training", {}).get("vq", {}).get(
-                              "config", {}).get("model", {}).get("decoder"),
+                          "decoder": facts["decoder"], "origin": facts["origin"],
                           "database": manifest.get("database")},
+        "sets": [{"name": d["name"], "paper_set": eval_vlm.paper_set(d["name"],
+                                                                    cfg.paper_sets),
+                  "origin": d.get("origin"), "presses": d["presses"]} for d in datasets],
+        "images": reports[0][1]["images"] if reports else None,
+        "missing": cfg.missing(),
         "limit": cfg.limit,
         "models": models,
         "paper": {m: {c: dict(zip(SETS, v, strict=True)) for c, v in rows.items()}
@@ -195,31 +220,48 @@ def markdown(s: Mapping[str, Any]) -> str:
             "nothing about any real VLM.", ""]
     tm = s["tactile_model"]
     db = tm.get("database") or {}
-    lines += [f"Tactile model `{tm['dir']}` (decoder `{tm['decoder']}`; database "
-              f"{db.get('references')} references of {db.get('classes')} classes); "
+    sets = s["sets"]
+    names = [d["name"] for d in sets]
+    mapping = {d["name"]: d["paper_set"] for d in sets if d["paper_set"]}
+    beside = [d for d in sets if d["paper_set"]]
+    titles = [eval_vlm.set_title(n, mapping) for n in names]
+    lines += [f"Tactile model `{tm['dir']}`: decoder `{tm['decoder']}` "
+              f"({eval_vlm.decoder_title(tm['decoder'])}), trained on "
+              f"{eval_vlm.describe_origin(tm.get('origin'))}; database "
+              f"{db.get('references')} references of {db.get('classes')} classes; "
               f"{s['protocol']}" + (f"; first {s['limit']} presses per set"
                                     if s["limit"] else "") + ".", "",
-              "| model | method | FoodReplica | Cube | paper: FoodReplica | paper: Cube |",
-              "| --- | --- | --- | --- | --- | --- |"]
+              "| model | method | " + " | ".join(titles + [
+                  f"paper: {eval_vlm.DATASET_TITLES[d['paper_set']]}" for d in beside]) + " |",
+              "| --- | --- |" + " --- |" * (len(names) + len(beside))]
     for m in s["models"]:
         for row in m["rows"]:
-            ours = [row["sets"][name] for name in SETS]
-            paper = [f"{v['paper']:.1f} % ({m['beside']})" if v["paper"] is not None
-                     else "" for v in ours]
+            ours = [row["sets"][name] for name in names]
+            paper = [row["sets"][d["name"]]["paper"] for d in beside]
             lines.append(f"| `{m['model']}` | {row['title']} | "
-                         + " | ".join(_cell(v if v["n"] else None) for v in ours)
-                         + " | " + " | ".join(paper) + " |")
+                         + " | ".join([_cell(v if v["n"] else None) for v in ours] + [
+                             f"{v:.1f} % ({m['beside']})" if v is not None else ""
+                             for v in paper]) + " |")
+    if not beside:
+        lines += ["", "No set stands beside the paper's FoodReplica or Cube: map one with "
+                  "`--paper-set NAME=foodreplica` (or `=cube`) to show the paper's columns."]
     lines += ["", "Invalid answers (not a candidate after the corrective retry; counted as "
-              "wrong):", "", "| model | method | FoodReplica | Cube |", "| --- | --- | --- | --- |"]
+              "wrong):", "", "| model | method | " + " | ".join(titles) + " |",
+              "| --- | --- |" + " --- |" * len(names)]
     for m in s["models"]:
         for row in m["rows"]:
             lines.append(f"| `{m['model']}` | {row['title']} | " + " | ".join(
-                str(row["sets"][name]["invalid_answer"]) for name in SETS) + " |")
+                str(row["sets"][name]["invalid_answer"]) for name in names) + " |")
     lines += _decoders(s)
+    if s.get("missing"):
+        lines += ["", "Rows left out:", "", *(f"- `{name}`: {why}."
+                                              for name, why in s["missing"].items())]
     prompts = s["models"][0]["prompts"] if s["models"] else {}
     lines += ["", "Answers are a strict JSON enum of the candidates; the paper's GPT-4V and "
-              "LLaVA answered in free text. The paper's objects were real, ours are "
-              "simulated presses with a simulated camera. Prompt templates: " + ", ".join(
+              "LLaVA answered in free text. The paper's objects were real; here "
+              + "; ".join(f"{d['name']} is {d['presses']} "
+                          f"{eval_vlm.describe_origin(d.get('origin'))}" for d in sets)
+              + f"; images: {s.get('images')}. Prompt templates: " + ", ".join(
                   f"`{mode}` sha256 {p['sha256'][:12]}" for mode, p in prompts.items())
               + ". Confusion matrices: `table1.json` and `confusion_<model>_<set>.png`.", ""]
     return "\n".join(lines)
@@ -233,8 +275,8 @@ def _decoders(s: Mapping[str, Any]) -> list[str]:
         if "vq_top3" not in rows or "vq_zeros_top3" not in rows:
             continue
         pairs = ", ".join(
-            f"{DATASET_TITLES[name]} {_cell(rows['vq_top3']['sets'][name])} against "
-            f"{_cell(rows['vq_zeros_top3']['sets'][name])}" for name in SETS
+            f"{DATASET_TITLES.get(name, name)} {_cell(rows['vq_top3']['sets'][name])} against "
+            f"{_cell(rows['vq_zeros_top3']['sets'][name])}" for name in rows["vq_top3"]["sets"]
             if rows["vq_top3"]["sets"][name]["n"])
         out.append(f"- `{m['model']}`, top-3, the paper's decoder against the zero-input "
                    f"one: {pairs}.")
@@ -270,9 +312,10 @@ def validate(cfg: Table1Config) -> None:
         raise EvalVLMError("--url needs --model")
     missing = [str(d) for d in cfg.unseen if not d.exists()]
     if missing:
-        raise EvalVLMError(f"no recordings at {', '.join(missing)} (`vt-train release` "
-                           "records them)")
-    unknown = [d.name for d in cfg.unseen if d.name not in DATASET_TITLES]
-    if unknown:
-        log.warning("sets %s are not the paper's; their columns are left out of the table",
-                    ", ".join(unknown))
+        raise EvalVLMError(f"no recordings at {', '.join(missing)} (a dataset directory of "
+                           "`vt-edge collect`; for the simulated sets `vt-train release`)")
+    unmapped = [d.name for d in cfg.unseen
+                if eval_vlm.paper_set(d.name, cfg.paper_sets) is None]
+    if unmapped:
+        log.info("sets %s stand beside none of the paper's; --paper-set NAME=foodreplica (or "
+                 "=cube) shows the paper's columns beside one", ", ".join(unmapped))

@@ -112,7 +112,8 @@ def test_db_add_refuses_a_description_that_says_how_it_feels(model_copy, cube_di
 
 def test_db_add_refuses_mixed_recordings(model_copy, cube_dir):
     model_dir = model_copy
-    with pytest.raises(RecordingError, match="none is labelled"):
+    with pytest.raises(RecordingError, match=r"2 presses labelled 'raw_kiri_mochi' in their "
+                       r"metadata, not 'mochi': .* or say --relabel"):
         add_class(model_dir, cube_dir, "mochi", "a rice cake")
 
 

@@ -31,7 +31,8 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert set(manifest["files"]) == {"encoder.onnx", "database.npz", "database.json"}
     m = manifest["metrics"]
     assert 0.0 <= m["kiri_mochi_auc"] <= 1.0
-    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "vq_zeros/z", "vq_zeros/z_q", "beta/z"}
+    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "vq_zeros/z", "vq_zeros/z_q", "beta/z",
+                                    "baseline/z"}
     assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
     assert manifest["training"]["vq_zeros"]["config"]["model"]["decoder"] == "zeros"
     assert manifest["database"]["references"] == 32 * PRESSES * 5
@@ -39,10 +40,13 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     assert {"torch", "onnxruntime", "vtzero"} <= set(manifest["versions"])
     report = json.loads((released / "eval" / "eval.json").read_text())
-    assert len(report["rows"]) == 5
+    assert len(report["rows"]) == 6
     assert report["references"] == 32 * PRESSES * 5 and report["query_offset"] == 0
     md = (released / "eval" / "eval.md").read_text()
-    assert "| vq | z |" in md and "| vq_zeros | z |" in md
+    assert "| vq | z |" in md and "| vq_zeros | z |" in md and "| baseline | z |" in md
+    assert "## The encoder against the trivial baseline" in md
+    base = next(r for r in report["rows"] if r["variant"] == "baseline")
+    assert set(base["unseen_neighbours"]) == set(report["unseen_classes"])
     assert "`vq`: VQ-VAE, the paper's decoder" in md
     for block in md.split("\n\n"):  # every Markdown table has as many cells as its header
         rows = [line for line in block.splitlines() if line.startswith("|")]
@@ -85,7 +89,8 @@ def test_cli_eval_and_db_add(released, model_copy, work, tmp_path, capsys):
     assert "says how the object feels (hard)" in capsys.readouterr().err
     assert main(["db", "add", "--model", str(model_dir), "--recordings",
                  str(rec / "cube" / "raw_kiri_mochi"), "--label", "dried_mochi",
-                 "--description", "dried kiri mochi (a Japanese rice cake)"]) == 0
+                 "--description", "dried kiri mochi (a Japanese rice cake)",
+                 "--relabel"]) == 0
     assert main(["db", "add", "--model", str(tmp_path / "nowhere"), "--recordings",
                  str(rec / "cube"), "--label", "x", "--description", "y"]) == 2
 

@@ -1,0 +1,285 @@
+"""``vt-train build``: a collected dataset (the collect format, pressed by the robot's press
+controller on the emulated robot) to a model directory the daemon loads as it is and takes
+with SIGHUP; resumable; refusing mixed thresholds and origins within a class."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import shutil
+import signal
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from edge.core import logs, recording
+from edge.core.errors import RecordingError
+from edge.core.model import load_model, model_ref
+from edge.sim.robot import SimRobot
+from tests.support.daemon import ROOT, Daemon, base_config
+from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
+from tests.support.waits import wait_until
+from train import evaluate
+from train.build import BuildConfig, build, partial_dir
+from train.cli import main
+from train.trainer import Progress
+
+REFERENCE = {"wood_cube": ("train", 3, False), "sponge_cube": ("train", 3, False),
+             "otedama": ("train", 3, False), "marshmallow": ("val", 3, False)}
+TEST = {"raw_kiri_mochi": ("test", 3, True), "boiled_kiri_mochi": ("test", 3, True)}
+EPOCHS = 3
+
+
+@pytest.fixture(autouse=True)
+def _logging_as_found():
+    """``main`` configures logging once, onto the stderr of the test that first calls it:
+    undo that, so later modules' captured stderr still gets the log lines."""
+    root = logging.getLogger()
+    handlers, level, configured = list(root.handlers), root.level, logs._configured
+    yield
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+    root.setLevel(level)
+    logs._configured = configured
+
+
+@pytest.fixture(scope="module")
+def lab_food(tmp_path_factory) -> Path:
+    return write_lab_dataset(tmp_path_factory.mktemp("lab") / "lab_food", REFERENCE | TEST)
+
+
+def quick(data: Path, out: Path, **kw) -> BuildConfig:
+    return BuildConfig(data=data, out=out, max_epochs=EPOCHS, **kw)
+
+
+@pytest.mark.asyncio
+async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tmp_path):
+    models = Path(shutil.copytree(ROOT / "models", tmp_path / "models"))
+    cfg = base_config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)))
+    async with SimRobot("wood_cube", seed=31, cfg=base_config()) as robot, \
+            Daemon(robot, cfg, tmp_path / "state") as d:
+        _, health = await d.get("/healthz")
+        t0 = time.perf_counter()
+        rc = await asyncio.to_thread(main, ["build", "--data", str(lab_food), "--out",
+                                            str(models), "--max-epochs", str(EPOCHS), "-q"])
+        print(f"vt-train build: {time.perf_counter() - t0:.1f} s")
+        assert rc == 0
+        assert not partial_dir(models).exists()
+        assert (tmp_path / "models.previous" / "manifest.json").exists()
+        os.kill(os.getpid(), signal.SIGHUP)
+
+        async def reloaded():
+            _, h = await d.get("/healthz")
+            return h["model_digest"] != health["model_digest"]
+
+        await wait_until(reloaded, 30, "the daemon took the built model", interval_s=0.1)
+        assert d.runtime.model.digest == model_ref(models).digest
+        _, ep = await d.post("/v1/recognize", {"candidates": list(TEST), "wait": True})
+        assert ep["status"] == "not_configured", ep  # no VLM: the touch part only
+        assert {t["label"] for t in ep["topk"]} <= set(REFERENCE) and len(ep["topk"]) == 3
+
+    model = load_model(models)  # hashes verified, prompts included
+    manifest = model.manifest
+    assert manifest["origin"] == ORIGIN and manifest["plan_sha256"] == PLAN_SHA256
+    assert {f"prompts/{m}.txt" for m in ("vision_tactile", "vision_only", "tactile_only")} \
+        <= set(manifest["files"])
+    assert manifest["prompts"]["vision_tactile"]["sha256"] == \
+        manifest["files"]["prompts/vision_tactile.txt"]["sha256"]
+    assert len(model.database) == 4 * 3 * 5 and model.database.offsets == [0, 1, 2, 3, 4]
+    assert manifest["training"]["dataset"]["test_classes"] == list(TEST)
+    assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
+    assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
+    report = json.loads((models / "eval" / "eval.json").read_text())
+    rows = {(r["variant"], r["space"]) for r in report["rows"]}
+    assert {("vq", "z"), ("baseline", "z")} <= rows
+    assert sorted(report["unseen_classes"]) == sorted(TEST)
+    md = (models / "eval" / "eval.md").read_text()
+    assert "| baseline | z |" in md and "## The encoder against the trivial baseline" in md
+
+
+def test_an_interrupted_build_resumes_and_a_rerun_skips_what_is_done(lab_food, tmp_path,
+                                                                     monkeypatch):
+    out = tmp_path / "models"
+    cfg = quick(lab_food, out, variants=("beta",))
+
+    def interrupted(*_a, **_k):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(evaluate, "evaluate", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            build(cfg, Progress(enabled=False))
+    assert not out.exists()  # nothing half-built where the daemon looks
+    state = json.loads((partial_dir(out) / "build-state.json").read_text())
+    assert set(state) == {"train vq", "train beta", "export", "database"}
+
+    first = build(cfg, Progress(enabled=False))
+    assert first["timings"]["steps_skipped"] == ["train vq", "train beta", "export", "database"]
+    assert (out / "training" / "beta" / "checkpoint.pt").exists()
+    again = build(cfg, Progress(enabled=False))
+    assert again["timings"]["steps_skipped"] == ["train vq", "train beta", "export",
+                                                  "database", "eval"]
+    assert again["files"] == first["files"]
+    # Another setting trains again: the key is the inputs' hash.
+    other = build(replace(cfg, seed=1), Progress(enabled=False))
+    assert "train vq" not in other["timings"]["steps_skipped"]
+
+
+def _rewrite(path: Path, **changes) -> None:
+    recording.save(replace(recording.load(path), **changes), path)
+
+
+def test_mixed_thresholds_or_origins_within_a_class_are_refused_by_name(lab_food, tmp_path):
+    data = Path(shutil.copytree(lab_food, tmp_path / "mixed"))
+    _rewrite(data / "otedama" / "otedama_002.press.npz", threshold=0.2)
+    with pytest.raises(RecordingError, match=r"class 'otedama' mixes thresholds x_th: "
+                       r"0\.004 \(otedama_000, otedama_001\); 0\.2 \(otedama_002\)"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
+    _rewrite(data / "otedama" / "otedama_002.press.npz", threshold=0.004)
+    _rewrite(data / "wood_cube" / "wood_cube_001.press.npz", sensor_model="XR1946")
+    with pytest.raises(RecordingError, match="class 'wood_cube' mixes origins: .*XR1944.*"
+                       r"XR1946 \(wood_cube_001\)"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
+    assert not (tmp_path / "m").exists()
+    index = json.loads((data / "dataset.json").read_text())
+    index["origin"]["kind"] = "real"
+    (data / "dataset.json").write_text(json.dumps(index))
+    with pytest.raises(RecordingError, match=r"origin\.kind is 'real'"):
+        build(quick(data, tmp_path / "m"), Progress(enabled=False))
+
+
+# --- vt-train db add ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def lab_model(lab_food, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("built") / "models"
+    build(quick(lab_food, out), Progress(enabled=False))
+    return out
+
+
+@pytest.fixture
+def model_dir(lab_model, tmp_path) -> Path:
+    return Path(shutil.copytree(lab_model, tmp_path / "models"))
+
+
+def add(model: Path, recordings: Path, label: str, *flags: str) -> int:
+    return main(["db", "add", "--model", str(model), "--recordings", str(recordings),
+                 "--label", label, "--description", f"{label.replace('_', ' ')} (a food)",
+                 *flags])
+
+
+def test_db_add_refuses_a_duplicate_with_the_list(model_dir, lab_food, caplog):
+    raw = lab_food / "raw_kiri_mochi"
+    assert add(model_dir, raw, "raw_kiri_mochi") == 0
+    before = load_model(model_dir).database
+    assert len(before) == 4 * 3 * 5 + 3 * 5
+    assert add(model_dir, raw, "raw_kiri_mochi") == 2
+    err = caplog.text
+    assert "15 of these references are in the database already" in err
+    assert "raw_kiri_mochi_000.press.npz (offsets 0, 1, 2, 3, 4)" in err and "Nothing added" in err
+    assert len(load_model(model_dir).database) == len(before)
+
+
+def test_db_add_refuses_another_label_unless_relabel(model_dir, lab_food, caplog):
+    raw = lab_food / "raw_kiri_mochi"
+    assert add(model_dir, raw, "cherry_tomato") == 2
+    err = caplog.text
+    assert "3 presses labelled 'raw_kiri_mochi' in their metadata, not 'cherry_tomato'" in err
+    assert "--relabel" in err
+    assert "cherry_tomato" not in load_model(model_dir).database.labels
+    assert add(model_dir, raw, "kiri_mochi", "--relabel") == 0
+    db = load_model(model_dir).database
+    assert "kiri_mochi" in db.labels and "raw_kiri_mochi" not in db.labels
+
+
+def test_db_add_refuses_an_unlike_threshold_unless_forced(model_dir, lab_food, tmp_path,
+                                                          caplog):
+    odd = Path(shutil.copytree(lab_food / "boiled_kiri_mochi", tmp_path / "odd"))
+    for path in odd.glob("*.press.npz"):
+        _rewrite(path, threshold=0.2)
+    assert add(model_dir, odd, "boiled_kiri_mochi") == 2
+    err = caplog.text
+    assert "made at x_th 0.2; the database's classes at 0.004" in err and "--force" in err
+    assert add(model_dir, odd, "boiled_kiri_mochi", "--force") == 0
+    manifest = load_model(model_dir).manifest
+    assert manifest["class_x_th"]["boiled_kiri_mochi"] == 0.2
+    _rewrite(next(odd.glob("*.press.npz")), threshold=0.004)
+    assert add(model_dir, odd, "other_mochi", "--relabel", "--force") == 2
+    assert "mixes thresholds x_th" in caplog.text
+
+
+BLOCK_TORCH_AND_ONNX = """
+import importlib.abc, sys
+
+class Blocked(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("torch", "onnx"):
+            raise ModuleNotFoundError(f"No module named {name!r} (blocked by the test)")
+        return None
+
+sys.meta_path.insert(0, Blocked())
+from train.cli import main
+rc = main(sys.argv[1:])
+assert not {"torch", "onnx"} & set(sys.modules), sorted({"torch", "onnx"} & set(sys.modules))
+sys.exit(rc)
+"""
+
+
+def test_db_add_works_on_an_edge_only_install(model_dir, lab_food):
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", BLOCK_TORCH_AND_ONNX, "db", "add", "--model", str(model_dir),
+         "--recordings", str(lab_food / "raw_kiri_mochi"), "--label", "raw_kiri_mochi",
+         "--description", "raw kiri mochi (a Japanese rice cake)"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "raw_kiri_mochi" in load_model(model_dir).database.labels
+
+
+# --- Table I and Fig. 6 on the lab's data ---------------------------------------------------
+
+def test_table1_and_fig6_on_a_lab_named_set_describe_its_data(lab_model, lab_food, tmp_path,
+                                                              capsys):
+    out = tmp_path / "table1"
+    assert main(["table1", "--model-dir", str(lab_model), "--unseen", str(lab_food),
+                 "--paper-set", "lab_food=foodreplica", "--work", str(tmp_path / "work"),
+                 "--out", str(out), "-q"]) == 0
+    report = json.loads((out / "table1.json").read_text())
+    assert report["sets"] == [{"name": "lab_food", "paper_set": "foodreplica",
+                               "origin": ORIGIN, "presses": 6}]
+    rows = {(m["model"], r["condition"]): r for m in report["models"] for r in m["rows"]}
+    lab = rows[("simulated-vlm", "vq_top3")]["sets"]["lab_food"]
+    # The test classes are the questions, their labels the candidates.
+    assert lab["n"] == 6 and lab["confusion"]["rows"] == list(TEST)
+    assert lab["paper"] == 58.9  # GPT-4V on FoodReplica, beside the set mapped to it
+    assert rows[("simulated-vlm-vision-led", "vision_only")]["sets"]["lab_food"]["paper"] == 39.0
+    assert "beta_top3" in report["missing"] and not any(c == "beta_top3" for _, c in rows)
+    md = (out / "table1.md").read_text()
+    print(md)
+    assert "| lab_food (as FoodReplica) | paper: FoodReplica |" in md
+    assert "decoder `teacher` (the paper's" in md
+    assert ("real presses by the robot `lab-arm-1` with a XELA XR1944 (XR1944-0001) pressed "
+            "by a lab member") in md
+    assert f"`vt-train build --data DATASET --out {lab_model} --variant beta`" in md
+    assert "vt-train release" not in md and "simulated presses" not in md
+    assert "images: lab_food: photos beside the presses" in md  # found without --images
+
+    fig = tmp_path / "fig6"
+    assert main(["fig6", "--model-dir", str(lab_model), "--unseen", str(lab_food),
+                 "--paper-set", "lab_food=foodreplica", "--sizes", "0,3", "--draws", "2",
+                 "--max-epochs", "2", "--work", str(tmp_path / "fwork"), "--out", str(fig),
+                 "-q"]) == 0
+    r = json.loads((fig / "fig6.json").read_text())
+    assert [row["size"] for row in r["sizes"]] == [0, 3]
+    assert r["sizes"][0]["sets"]["lab_food"]["paper"] == 53.6  # vision only, FoodReplica
+    assert r["data"]["reference"]["directory"] == str(lab_food)  # from the manifest
+    md = (fig / "fig6.md").read_text()
+    assert "decoder `teacher`: the paper's" in md and "lab_food (as FoodReplica)" in md
+    assert "real presses by the robot `lab-arm-1`" in md and "photos beside the presses" in md
