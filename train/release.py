@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from edge.core.atomic import atomic_write_bytes
-from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
+from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.prompt import MODES, PromptTemplate
 from edge.sim.catalogue import DATASETS
@@ -231,6 +231,9 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                                   "cube_presses_per_class": cfg.unseen_presses},
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
+        # The release always presses its references on the emulated robot; a lab's own
+        # database comes from its robot (`vt-edge collect`).
+        "origin": Origin("emulated", ref_index["recorder"]).to_json(),
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,
