@@ -68,6 +68,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.config)
 
 
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from edge.tools.doctor import main
+
+    return main(args.config, args.json)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from edge.daemon.serve import run
 
@@ -213,6 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run the daemon")
     run.add_argument("--config", required=True)
     run.set_defaults(func=_cmd_run)
+
+    doc = sub.add_parser("doctor", help="check every part of the setup before the first "
+                         "press, without moving the arm (exit 1 on any FAIL)")
+    doc.add_argument("--config", required=True)
+    doc.add_argument("--json", action="store_true", help="the checks as JSON")
+    doc.set_defaults(func=_cmd_doctor)
 
     col = sub.add_parser("collect", help="record reference presses of an object")
     col.add_argument("--config", required=True)
