@@ -9,7 +9,6 @@ one photo and the VLM gets one tiny question. ``--json`` gives the same lines as
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import enum
 import getpass
 import grp
@@ -685,28 +684,29 @@ def _check_api(cfg: Config) -> Check:
 
 
 async def _check_mqtt(cfg: Config) -> list[Check]:
-    from edge.daemon.mqtt import check_config
+    from edge.daemon.mqtt import _password, _tls, check_config
 
     mc = cfg.mqtt
     if not mc.enabled:
         return [ok("mqtt", "disabled")]
     try:
         check_config(mc)
-        async with asyncio.timeout(mc.connect_timeout_s):
-            _, writer = await asyncio.open_connection(mc.host, mc.port)
+        import aiomqtt
+
+        # A client ID of its own: the broker would drop a running daemon's session for it.
+        client = aiomqtt.Client(mc.host, mc.port, identifier=f"vtzero-doctor-{os.getpid()}",
+                                username=mc.username or None, password=_password(mc),
+                                timeout=mc.connect_timeout_s, tls_context=_tls(mc))
+        async with client:
+            pass
     except ConfigError as exc:
         return [fail("mqtt", str(exc), "fix [mqtt]")]
-    except (OSError, TimeoutError) as exc:
-        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else (
-            str(exc) or f"no answer within {mc.connect_timeout_s} s")
-        return [fail("mqtt", f"broker {mc.host}:{mc.port} unreachable: {why}",
-                     "start the broker, or fix mqtt.host and mqtt.port (or set "
-                     "mqtt.enabled = false)")]
-    writer.close()
-    with contextlib.suppress(OSError):
-        await writer.wait_closed()
-    return [ok("mqtt", f"broker {mc.host}:{mc.port} reachable"
-               + (" (TLS)" if mc.tls else ""))]
+    except aiomqtt.MqttError as exc:
+        return [fail("mqtt", f"broker {mc.host}:{mc.port}: {exc}",
+                     "start the broker, or fix mqtt.host, port, username, password_file and "
+                     "tls (or set mqtt.enabled = false)")]
+    return [ok("mqtt", f"broker {mc.host}:{mc.port} accepts the connection"
+               + (" (TLS)" if mc.tls else "") + (f" as {mc.username}" if mc.username else ""))]
 
 
 def main(config_path: str, as_json: bool) -> int:
