@@ -163,7 +163,12 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
     from edge.daemon.serve import state_dir
     from edge.daemon.store import EpisodeStore
 
-    store = EpisodeStore(state_dir(load_config(args.config)) / "episodes")
+    cfg = load_config(args.config)
+    store = EpisodeStore(state_dir(cfg) / "episodes")
+    if args.episodes_command == "retry":
+        from edge.tools.episode_retry import run_retry
+
+        return run_retry(cfg, store, args.id, args.all_failed, args.url)
     if args.episodes_command == "list":
         status = Status(args.status) if args.status else None
         for ep in store.list(status=status, limit=args.limit):
@@ -267,6 +272,14 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--format", choices=["tar.gz", "mcap"], default="tar.gz",
                         help="tar.gz: the episode directory as stored; mcap: tactile frames, "
                              "gripper, press states, photo and result for Foxglove")
+    retry = epsub.add_parser("retry", help="ask the VLM again about a vlm_error or "
+                             "invalid_answer episode, through the running daemon")
+    which = retry.add_mutually_exclusive_group(required=True)
+    which.add_argument("id", nargs="?", default=None)
+    which.add_argument("--all-failed", action="store_true",
+                       help="every vlm_error and invalid_answer episode, oldest first")
+    retry.add_argument("--url", default=None,
+                       help="the daemon's API (default: from [api] host and port)")
     eps.set_defaults(func=_cmd_episodes)
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
@@ -343,7 +356,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except EdgeError as exc:
-        log.error("%s", exc)
+        # (A KeyError's str() quotes its message.)
+        log.error("%s", exc.args[0] if isinstance(exc, KeyError) and exc.args else exc)
         return 2
     except KeyboardInterrupt:
         return 130

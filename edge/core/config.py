@@ -312,6 +312,10 @@ class VLMConfig:
     max_image_side_px: int = 1024
     max_image_bytes: int = 1_000_000
     max_response_bytes: int = 1_000_000
+    # How the answer is constrained: a strict JSON schema of the candidates, JSON mode, or
+    # none (free text read by the label parser). A server that refuses the mode makes the
+    # client step down one mode at a time for its session (README, "VLM").
+    structured_output: Literal["json_schema", "json_object", "none"] = "json_schema"
 
     @property
     def configured(self) -> bool:
@@ -355,6 +359,9 @@ class VLMConfig:
                  self.max_image_bytes, "must be >= 10000")
         _require(self.max_response_bytes >= 1024, path, "max_response_bytes",
                  self.max_response_bytes, "must be >= 1024")
+        _require(self.structured_output in ("json_schema", "json_object", "none"), path,
+                 "structured_output", self.structured_output,
+                 "must be 'json_schema', 'json_object' or 'none'")
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,10 @@ class BusyError(EdgeError, RuntimeError):
         self.episode_id = episode_id
 
 
+class StateError(EdgeError, ValueError):
+    """The named thing exists but its state does not allow this (HTTP 409)."""
+
+
 class StoreError(EdgeError, OSError):
     """The episode store cannot write or read (disk full, permissions, corrupt entry)."""
 
@@ -110,6 +114,10 @@ class VLMServerError(VLMHTTPError, VLMUnavailableError):
 
 class VLMRejectedError(VLMHTTPError):
     """A status that is never retried (400, 401, 403, 404, 413, other 4xx, a redirect)."""
+
+
+class VLMFormatRefusedError(VLMRejectedError):
+    """The server refused the structured-output mode (``response_format``) it was sent."""
 
 
 class VLMResponseError(VLMError, ValueError):

@@ -3,14 +3,23 @@ for one label.
 
 ``OpenAIVLM.ask(image, description, candidates)`` renders the prompt, prepares the image off
 the loop, POSTs ``{base_url}/chat/completions`` with the image as a base64 data URL,
-``temperature: 0``, ``seed`` and a strict ``json_schema`` whose enum is the candidates, and
+``temperature: 0``, ``seed`` and the configured structured output (``vlm.structured_output``:
+a strict ``json_schema`` whose enum is the candidates, ``json_object``, or ``none``), and
 checks the answer: a candidate (or a case/spacing variant of one) is ``ok``; anything else
 gets one corrective retry, then an explicit ``invalid_answer``. A label is never invented.
 
 Transport failures (408, 409, 429, 5xx, connection errors, timeouts) are retried with capped
 exponential backoff and jitter, honouring ``Retry-After``; other statuses are never retried.
 When retries run out the error is a :class:`VLMUnavailableError`: the episode should wait in
-the store and be asked again later. The API key is read from the environment or a file, sent
+the store and be asked again later; after :data:`UNREACHABLE_AFTER_ATTEMPTS` attempts in a row
+without any HTTP answer the client reports the server as unreachable (``unreachable``).
+
+A server that refuses the structured-output mode (400, 422, or an old llama.cpp's 500, whose
+body names ``response_format`` or an equivalent) makes the client step down one mode at a
+time, json_schema -> json_object -> none, log it once and keep the lower mode for the rest
+of its life (a client made after SIGHUP starts again from the configured mode). Every answer
+records the mode that answered. ``list_models()`` and ``probe()`` check an endpoint before
+anything is pressed (``vt-edge doctor``). The API key is read from the environment or a file, sent
 as a Bearer token, and never logged, stored or put in an exception.
 
 ``NoVLM`` stands in when no VLM is configured: it answers ``not_configured`` with the exact
@@ -22,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import email.utils
+import io
 import json
 import logging
 import math
@@ -32,6 +42,7 @@ import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from datetime import UTC
+from functools import cache
 from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
 from urllib.parse import urlsplit
@@ -44,6 +55,7 @@ from edge.core.errors import (
     ImageError,
     VLMConnectionError,
     VLMError,
+    VLMFormatRefusedError,
     VLMHTTPError,
     VLMRejectedError,
     VLMResponseError,
@@ -72,6 +84,26 @@ MAX_ANSWER_CHARS = 100_000
 # The most of a bad answer echoed back in the corrective retry.
 MAX_ECHO_CHARS = 2_000
 SCHEMA_NAME = "label"
+# Structured-output modes, strictest first: a server that refuses one is sent the next.
+STRUCTURED_MODES = ("json_schema", "json_object", "none")
+# A refusal of the mode: these statuses (old llama.cpp builds answer 500) with a body naming
+# response_format or what real servers say instead: vLLM ("loc": ("body", "response_format")),
+# TGI (422 "response_format: unknown variant `json_schema`"), llama.cpp ("response_format type
+# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), hosted
+# APIs ("json mode is not supported", "structured outputs", "guided_json", "grammar").
+FORMAT_REFUSAL_STATUSES = frozenset({400, 422, 500})
+_FORMAT_REFUSAL = re.compile(
+    r"response[_ .-]?format|json[_ ]?schema|json[_ ]?object|structured[_ ]outputs?|"
+    r"guided[_ ](?:json|decoding)|grammar|json mode", re.I)
+# JSON mode needs the prompt to ask for JSON (OpenAI refuses it otherwise).
+JSON_REPLY = 'Reply only with JSON: {"label": "<candidate>"}'
+# Attempts in a row that got no HTTP answer at all (refused, DNS, timeout) after which the
+# server counts as unreachable: one question's worth with the default vlm.max_retries = 3.
+UNREACHABLE_AFTER_ATTEMPTS = 4
+# The probe's question: two made-up candidates and, where the prompt needs one, a tiny photo.
+PROBE_CANDIDATES = ("red_cube", "blue_ball")
+PROBE_DESCRIPTION = "wood cube"
+PROBE_IMAGE_SIDE_PX = 64
 
 Status = Literal["ok", "invalid_answer", "not_configured"]
 
@@ -123,9 +155,24 @@ class VLMAnswer:
     outcomes: tuple[str, ...]
     # From ask() to the answer, image preparation and backoff waits included.
     elapsed_s: float
+    # The structured-output mode of the request that answered (None: no request).
+    structured_output: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class VLMProbe:
+    """What :meth:`OpenAIVLM.probe` found: the mode that answered, how fast, the label it
+    gave (None: no candidate), and the modes the server refused on the way (``reasons``:
+    the server's words for each)."""
+
+    structured_output: str
+    latency_s: float
+    label: str | None
+    fallbacks: tuple[str, ...]
+    reasons: tuple[str, ...] = ()
 
 
 @runtime_checkable
@@ -178,7 +225,8 @@ def parse_label(text: str, candidates: Sequence[str]) -> str | None:
 
     Accepts ``{"label": "..."}``, the same inside a code fence or after a ``<think>`` block,
     a JSON string, or a bare label; each mapped by :func:`match_label`. A JSON label that is
-    not a candidate is None, never a guess.
+    not a candidate is None, never a guess. Free text (a server that ignores the response
+    format) is read only where it names exactly one candidate, spelled exactly as given.
     """
     if not isinstance(text, str) or len(text) > MAX_ANSWER_CHARS:
         return None
@@ -198,7 +246,19 @@ def parse_label(text: str, candidates: Sequence[str]) -> str | None:
             found = match_label(body, candidates)
             if found is not None:
                 return found
-    return None
+    if _is_json(text):
+        return None  # JSON without a label is not free text
+    named = [c for c in candidates
+             if re.search(rf"(?<![\w-]){re.escape(c)}(?![\w-])", text) is not None]
+    return named[0] if len(named) == 1 else None
+
+
+def _is_json(text: str) -> bool:
+    try:
+        json.loads(text)
+    except (ValueError, RecursionError):
+        return False
+    return True
 
 
 def _json_label(text: str) -> str | None:
@@ -212,6 +272,18 @@ def _json_label(text: str) -> str | None:
 
 
 # --- request pieces ----------------------------------------------------------------------
+
+def request_head(model: str, seed: int, mode: str, candidates: Sequence[str]
+                 ) -> dict[str, Any]:
+    """The request's settings: deterministic sampling and the ``mode``'s response format
+    (none for ``"none"``)."""
+    head: dict[str, Any] = {"model": model, "temperature": 0, "seed": seed, "stream": False}
+    if mode == "json_schema":
+        head["response_format"] = response_format(candidates)
+    elif mode == "json_object":
+        head["response_format"] = {"type": "json_object"}
+    return head
+
 
 def response_format(candidates: Sequence[str]) -> dict[str, Any]:
     """The strict ``json_schema`` response format: one ``label`` from the candidates."""
@@ -309,6 +381,9 @@ class _Trace:
     def __init__(self) -> None:
         self.latency_s: list[float] = []
         self.outcomes: list[str] = []
+        # Structured-output modes the server refused, and its words for each.
+        self.refused: list[str] = []
+        self.reasons: list[str] = []
 
     def add(self, started: float, outcome: str) -> None:
         self.latency_s.append(time.monotonic() - started)
@@ -348,6 +423,11 @@ class OpenAIVLM:
         self._rng = rng or random.Random()
         # Where the image is prepared: a worker thread, or the daemon's compute process.
         self._offload = offload
+        # The structured-output mode sent now: the configured one until a server refuses it.
+        self._structured: str = config.structured_output
+        # Attempts in a row that got no HTTP answer, and the last one's error.
+        self._unanswered = 0
+        self._unanswered_why = ""
         host = urlsplit(self.url).hostname or ""
         if self._api_key and self.url.startswith("http://") and not _is_loopback(host):
             log.warning("the VLM API key will cross the network in clear text to %s: "
@@ -377,11 +457,57 @@ class OpenAIVLM:
             return None
         return self.config.max_image_side_px, self.config.max_image_bytes
 
+    @property
+    def structured_output(self) -> str:
+        """The structured-output mode the next question is sent with."""
+        return self._structured
+
+    @property
+    def unreachable(self) -> str | None:
+        """Why the server counts as unreachable (no HTTP answer to the last
+        :data:`UNREACHABLE_AFTER_ATTEMPTS` attempts), else None."""
+        if self._unanswered < UNREACHABLE_AFTER_ATTEMPTS:
+            return None
+        return (f"VLM at {self.config.base_url} unreachable: {self._unanswered} attempts in a "
+                f"row without an answer, the last: {self._unanswered_why}")
+
+    async def list_models(self) -> list[str] | None:
+        """The model ids ``GET {base_url}/models`` lists; None where the server does not
+        serve that route (404, 405). Raises the :class:`VLMError` of :meth:`ask`."""
+        url = self.config.base_url.rstrip("/") + "/models"
+        trace = _Trace()
+        status, body = await self._send("GET", url, None, trace, 0)
+        if status in (404, 405):
+            return None
+        if not 200 <= status < 300:
+            raise self._http_error(status, body, url=url)
+        data = self._decode(body, status).get("data")
+        if not isinstance(data, list):
+            raise VLMResponseError(f"GET {url} answered without a 'data' list: "
+                                   f"{self._excerpt(body)!r}")
+        return [m["id"] for m in data if isinstance(m, dict) and isinstance(m.get("id"), str)]
+
+    async def probe(self) -> VLMProbe:
+        """One tiny question (two made-up candidates, a 64 px photo only when the prompt
+        mode sends one) with this client's structured-output mode and its fallback, no
+        transport retry. Raises :class:`VLMError`: unreachable, a refused key (401/403), an
+        unknown model (404), ..."""
+        image = _probe_image() if self.template.uses_image else None
+        answer, trace = await self._ask(image, PROBE_DESCRIPTION, PROBE_CANDIDATES, 0)
+        return VLMProbe(structured_output=answer.structured_output or self._structured,
+                        latency_s=answer.elapsed_s, label=answer.label,
+                        fallbacks=tuple(trace.refused), reasons=tuple(trace.reasons))
+
     async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:
+        answer, _ = await self._ask(image, description, candidates, self.config.max_retries)
+        return answer
+
+    async def _ask(self, image: bytes | VLMImage | None, description: str,
+                   candidates: Sequence[str], max_retries: int) -> tuple[VLMAnswer, _Trace]:
         started = time.monotonic()
         labels = check_candidates(candidates)
-        prompt = self.template.render(description, labels)
+        rendered = self.template.render(description, labels)
         prepared: PreparedImage | None = None
         stored_url = None
         splice: tuple[str, bytes] | None = None
@@ -400,13 +526,24 @@ class OpenAIVLM:
         elif image is not None:
             log.debug("VLM mode %s: image not sent", self.template.mode)
 
-        head = {"model": self.config.model, "temperature": 0, "seed": self.config.seed,
-                "stream": False, "response_format": response_format(labels)}
-        # Both name the image; _encode_json puts the data URL in what goes on the wire.
-        wire = [_user_message(prompt, stored_url)]
-        stored = [_user_message(prompt, stored_url)]
         trace = _Trace()
-        response, raw = await self._complete({**head, "messages": wire}, trace, splice)
+        while True:
+            mode = self._structured
+            head = request_head(self.config.model, self.config.seed, mode, labels)
+            prompt = rendered
+            if mode == "json_object" and '"label"' not in prompt:
+                prompt += "\n" + JSON_REPLY
+            # Both name the image; _encode_json puts the data URL in what goes on the wire.
+            wire = [_user_message(prompt, stored_url)]
+            stored = [_user_message(prompt, stored_url)]
+            try:
+                response, raw = await self._complete({**head, "messages": wire}, trace,
+                                                     splice, max_retries, mode != "none")
+                break
+            except VLMFormatRefusedError as exc:
+                trace.refused.append(mode)
+                trace.reasons.append(exc.excerpt)
+                self._step_down(mode, exc)
         label = parse_label(raw, labels)
         if label is None:
             log.warning("VLM answer %r is not a candidate; asking once more",
@@ -415,7 +552,8 @@ class OpenAIVLM:
             echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
             wire += [{"role": "assistant", "content": echo}, correction]
             stored += [{"role": "assistant", "content": self._redact(echo)}, correction]
-            response, raw = await self._complete({**head, "messages": wire}, trace, splice)
+            response, raw = await self._complete({**head, "messages": wire}, trace, splice,
+                                                 max_retries, False)
             label = parse_label(raw, labels)
         status: Status = "ok" if label is not None else "invalid_answer"
         elapsed = time.monotonic() - started
@@ -423,31 +561,52 @@ class OpenAIVLM:
             log.warning("VLM gave no valid label after a corrective retry: %r",
                         self._redact(raw[:EXCERPT_CHARS]))
         else:
-            log.info("VLM answered %r in %.2f s (%d attempt(s))", label, elapsed,
-                     len(trace.outcomes))
+            log.info("VLM answered %r in %.2f s (%d attempt(s), %s)", label, elapsed,
+                     len(trace.outcomes), mode)
         return VLMAnswer(
             status=status, label=label, raw=self._redact(raw), prompt=prompt,
             candidates=tuple(labels), model=self.config.model,
             request={**head, "messages": stored}, response=self._redact_json(response),
             image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
             latency_s=tuple(trace.latency_s), outcomes=tuple(trace.outcomes),
-            elapsed_s=elapsed,
-        )
+            elapsed_s=elapsed, structured_output=mode,
+        ), trace
+
+    def _step_down(self, mode: str, refusal: VLMFormatRefusedError) -> None:
+        """The next mode after a refusal of ``mode``, for this client's life; logged once
+        (questions in flight together may each meet the refusal)."""
+        lower = STRUCTURED_MODES[STRUCTURED_MODES.index(mode) + 1]
+        if self._structured == mode:
+            self._structured = lower
+            log.warning("VLM at %s refused structured output %s (HTTP %d: %s); asking with "
+                        "%s from now on (set vlm.structured_output = %r to start there)",
+                        self.url, mode, refusal.status, refusal.excerpt, lower, lower)
 
     # -- one round: POST with transport retries, then the answer text --
 
     async def _complete(self, body: dict[str, Any], trace: _Trace,
-                        splice: tuple[str, bytes] | None) -> tuple[dict, str]:
+                        splice: tuple[str, bytes] | None, max_retries: int,
+                        structured: bool) -> tuple[dict, str]:
         payload = _encode_json(body, splice)
-        data = await self._post(payload, trace)
+        status, raw = await self._send("POST", self.url, payload, trace, max_retries,
+                                       structured)
+        if not 200 <= status < 300:
+            raise self._http_error(status, raw, structured)
+        data = self._decode(raw, status)
         return data, self._content(data)
 
-    async def _post(self, payload: bytes, trace: _Trace) -> dict[str, Any]:
+    async def _send(self, method: str, url: str, payload: bytes | None, trace: _Trace,
+                    max_retries: int, structured: bool = False) -> tuple[int, bytes]:
+        """The (status, body) of the last attempt, retrying what is worth it (not a
+        refusal of the structured-output mode); :class:`VLMError` when no answer came or
+        the server stayed busy."""
         cfg = self.config
         timeout = aiohttp.ClientTimeout(total=cfg.total_timeout_s,
                                         connect=cfg.connect_timeout_s,
                                         sock_connect=cfg.connect_timeout_s)
-        headers = {"Content-Type": "application/json", "Accept": "application/json"}
+        headers = {"Accept": "application/json"}
+        if payload is not None:
+            headers["Content-Type"] = "application/json"
         if self._api_key:
             headers["Authorization"] = f"Bearer {self._api_key}"
         session = self._get_session()
@@ -456,8 +615,9 @@ class OpenAIVLM:
             started = time.monotonic()
             wait_s: float | None = None
             try:
-                async with session.post(self.url, data=payload, headers=headers,
-                                        timeout=timeout, allow_redirects=False) as resp:
+                async with session.request(method, url, data=payload, headers=headers,
+                                           timeout=timeout, allow_redirects=False) as resp:
+                    self._answered()
                     status = resp.status
                     wait_s = parse_retry_after(resp.headers.get("Retry-After"))
                     body = await self._read_body(resp)
@@ -467,27 +627,29 @@ class OpenAIVLM:
             except TimeoutError:
                 trace.add(started, "timeout")
                 failure: VLMError = VLMTimeoutError(
-                    f"no complete answer from {self.url} within total_timeout_s="
+                    f"no complete answer from {url} within total_timeout_s="
                     f"{cfg.total_timeout_s} (connect_timeout_s={cfg.connect_timeout_s})")
+                self._unanswered_attempt(failure)
             except (aiohttp.ClientConnectionError, aiohttp.ClientPayloadError) as exc:
                 trace.add(started, "connection")
                 failure = VLMConnectionError(
-                    f"connection to {self.url} failed: {type(exc).__name__}: "
+                    f"connection to {url} failed: {type(exc).__name__}: "
                     f"{self._redact(str(exc))[:EXCERPT_CHARS]}")
+                self._unanswered_attempt(failure)
             except aiohttp.ClientError as exc:
                 trace.add(started, "protocol")
                 raise VLMResponseError(
-                    f"unusable HTTP answer from {self.url}: {type(exc).__name__}: "
+                    f"unusable HTTP answer from {url}: {type(exc).__name__}: "
                     f"{self._redact(str(exc))[:EXCERPT_CHARS]}") from None
             else:
                 trace.add(started, str(status))
-                if 200 <= status < 300:
-                    return self._decode(body, status)
-                failure = self._http_error(status, body)
+                if (status not in RETRYABLE_STATUSES
+                        or (structured and _refuses_format(status, body))):
+                    return status, body
+                failure = self._http_error(status, body, url=url)
             attempts = len(trace.outcomes)
-            if not isinstance(failure, VLMUnavailableError) or retry >= cfg.max_retries:
-                if isinstance(failure, VLMUnavailableError):
-                    log.warning("VLM unavailable after %d attempt(s): %s", attempts, failure)
+            if retry >= max_retries:
+                log.warning("VLM unavailable after %d attempt(s): %s", attempts, failure)
                 raise failure
             delay = backoff_delay(retry, cfg.backoff_base_s, cfg.backoff_cap_s, self._rng)
             if wait_s is not None:
@@ -496,6 +658,17 @@ class OpenAIVLM:
                         trace.outcomes[-1], delay)
             await self._sleep(delay)
             retry += 1
+
+    def _answered(self) -> None:
+        if self._unanswered >= UNREACHABLE_AFTER_ATTEMPTS:
+            log.info("VLM at %s answers again", self.config.base_url)
+        self._unanswered = 0
+
+    def _unanswered_attempt(self, failure: VLMError) -> None:
+        self._unanswered += 1
+        self._unanswered_why = str(failure)
+        if self._unanswered == UNREACHABLE_AFTER_ATTEMPTS:
+            log.error("%s", self.unreachable)
 
     def _get_session(self) -> aiohttp.ClientSession:
         if self._session is None or self._session.closed:
@@ -551,22 +724,28 @@ class OpenAIVLM:
             content = refusal if isinstance(refusal, str) else ""
         return content
 
-    def _http_error(self, status: int, body: bytes) -> VLMError:
+    def _http_error(self, status: int, body: bytes, structured: bool = False,
+                    url: str | None = None) -> VLMError:
+        url = url or self.url
         excerpt = self._excerpt(body)
+        if structured and _refuses_format(status, body):
+            return VLMFormatRefusedError(
+                f"VLM at {url} refused the structured-output mode (HTTP {status}): {excerpt}",
+                status, excerpt)
         if status in RETRYABLE_STATUSES:
-            return VLMServerError(f"VLM at {self.url} answered HTTP {status}: {excerpt}",
+            return VLMServerError(f"VLM at {url} answered HTTP {status}: {excerpt}",
                                   status, excerpt)
         hint = {
             400: "the request was refused as malformed",
             401: "check the API key (vlm.api_key_env / vlm.api_key_file)",
             403: "the API key is not allowed to use this model or endpoint",
-            404: "check vlm.base_url and vlm.model",
+            404: f"check vlm.base_url and that vlm.model = {self.config.model!r} is served",
             413: "the request is too large: lower vlm.max_image_bytes / max_image_side_px",
         }.get(status, "not retried")
         if 300 <= status < 400:
             hint = "redirect not followed: set vlm.base_url to the final address"
         return VLMRejectedError(
-            f"VLM at {self.url} answered HTTP {status} ({hint}): {excerpt}", status, excerpt)
+            f"VLM at {url} answered HTTP {status} ({hint}): {excerpt}", status, excerpt)
 
     def _excerpt(self, body: bytes) -> str:
         """A short, secret-free, single-line excerpt of a response body."""
@@ -615,6 +794,23 @@ def _encode_json(body: dict[str, Any], splice: tuple[str, bytes] | None = None) 
     return b"".join((head, data_url, tail))
 
 
+def _refuses_format(status: int, body: bytes) -> bool:
+    """Whether an error answer refuses the structured-output mode (response_format)."""
+    return (status in FORMAT_REFUSAL_STATUSES
+            and _FORMAT_REFUSAL.search(body[:4096].decode("utf-8", "replace")) is not None)
+
+
+@cache
+def _probe_image() -> bytes:
+    """A small grey JPEG: enough for a server to accept an image, cheap to send."""
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.new("RGB", (PROBE_IMAGE_SIDE_PX, PROBE_IMAGE_SIDE_PX), (128, 128, 128)).save(
+        out, "JPEG", quality=80)
+    return out.getvalue()
+
+
 def _is_loopback(host: str) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
@@ -660,9 +856,10 @@ def make_vlm(config: VLMConfig, **kwargs: Any) -> VLMClient:
 
 
 __all__ = [
-    "NoVLM", "OpenAIVLM", "VLMAnswer", "VLMClient", "VLMConfig",
-    "VLMConnectionError", "VLMHTTPError", "VLMRejectedError", "VLMResponseError",
+    "STRUCTURED_MODES", "NoVLM", "OpenAIVLM", "VLMAnswer", "VLMClient", "VLMConfig",
+    "VLMConnectionError", "VLMFormatRefusedError", "VLMHTTPError", "VLMProbe",
+    "VLMRejectedError", "VLMResponseError",
     "VLMResponseTooLargeError", "VLMServerError", "VLMTimeoutError", "VLMUnavailableError",
     "backoff_delay", "make_vlm", "match_label", "normalise_label", "parse_label",
-    "parse_retry_after", "response_format",
+    "parse_retry_after", "request_head", "response_format",
 ]

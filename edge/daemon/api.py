@@ -37,6 +37,7 @@ from edge.core.errors import (
     EdgeError,
     ImageError,
     NotFoundError,
+    StateError,
 )
 from edge.core.images import check_image
 from edge.daemon.episode import Episode
@@ -55,7 +56,8 @@ MAX_LABEL_CHARS = 80
 SSE_KEEPALIVE_S = 15.0
 _RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
-_ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, GET /v1/events, POST /v1/abort, "
+_ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, POST /v1/episodes/{id}/retry, "
+           "GET /v1/events, POST /v1/abort, "
            "GET /healthz, GET /metrics, GET / (operator page), GET /v1/episodes?limit=N, "
            "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile")
 
@@ -69,6 +71,8 @@ class Runtime(Protocol):
     async def abort(self) -> bool: ...
 
     async def episode(self, episode_id: str) -> Episode: ...
+
+    async def retry(self, episode_id: str) -> Episode: ...
 
     def subscribe(self) -> AbstractContextManager[Subscription]: ...
 
@@ -166,6 +170,7 @@ class Api:
         self.app.add_routes([
             web.post("/v1/recognize", self.recognize),
             web.get("/v1/episodes/{id}", self.episode),
+            web.post("/v1/episodes/{id}/retry", self.retry),
             web.get("/v1/events", self.events),
             web.post("/v1/abort", self.abort),
             web.get("/healthz", self.healthz),
@@ -343,6 +348,14 @@ class Api:
 
     async def episode(self, request: web.Request) -> web.Response:
         episode = await self.runtime.episode(request.match_info["id"])
+        return web.json_response(episode.to_json())
+
+    async def retry(self, request: web.Request) -> web.Response:
+        """Ask the VLM again about a vlm_error or invalid_answer episode; its new state."""
+        try:
+            episode = await self.runtime.retry(request.match_info["id"])
+        except StateError as exc:
+            return _error(409, str(exc))
         return web.json_response(episode.to_json())
 
     async def abort(self, request: web.Request) -> web.Response:

@@ -63,6 +63,8 @@ class Episode:
     last_error: str | None = None
     label: str | None = None
     vlm: dict[str, Any] | None = None
+    # The structured-output mode of the request that answered (json_schema, json_object, none).
+    structured_output: str | None = None
     # Store bookkeeping (wall-clock seconds).
     accepted: float | None = None
     created: float | None = None

@@ -137,6 +137,9 @@ class Runtime:
     async def episode(self, episode_id: str) -> Episode:
         return await self.recognizer.episode(episode_id)
 
+    async def retry(self, episode_id: str) -> Episode:
+        return await self.recognizer.retry(episode_id)
+
     async def abort(self) -> bool:
         return self.press.request_abort()
 
@@ -149,9 +152,11 @@ class Runtime:
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
         bus_error = getattr(self.devices.bus, "fault", None)
         store_error = self.store.space_error()
-        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error,
+        vlm_error = getattr(self.vlm, "unreachable", None)
+        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error
+                and vlm_error is None,
                 "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
-                "store_error": store_error,
+                "store_error": store_error, "vlm_error": vlm_error,
                 "state": self.press.state, "episode": self.recognizer.current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 # Which model answers: changes when a reload took a new model or database.
@@ -159,7 +164,7 @@ class Runtime:
                 "version": __version__}
 
     def metrics_text(self) -> str:
-        return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus)
+        return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm)
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""

@@ -37,18 +37,23 @@ class Metrics:
         self.presses: dict[str, int] = {}
         self.stop_latency = Histogram((0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05))
         self.vlm_latency = Histogram((0.25, 0.5, 1, 2, 5, 10, 30, 60))
+        # Answers by the structured-output mode that answered.
+        self.vlm_answers: dict[str, int] = {}
 
     def observe_press(self, outcome: Any) -> None:
         self.presses[outcome.result] = self.presses.get(outcome.result, 0) + 1
         if outcome.stop_latency_s is not None:
             self.stop_latency.observe(outcome.stop_latency_s)
 
-    def observe_vlm(self, latency_s: float) -> None:
+    def observe_vlm(self, latency_s: float, structured_output: str | None = None) -> None:
         self.vlm_latency.observe(latency_s)
+        if structured_output is not None:
+            self.vlm_answers[structured_output] = self.vlm_answers.get(structured_output, 0) + 1
 
-    def render(self, st: Any, sensor: Any, bus: Any = None) -> str:
+    def render(self, st: Any, sensor: Any, bus: Any = None, vlm: Any = None) -> str:
         """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
-        frame and stale counts and, with a Dynamixel ``bus``, its stops."""
+        frame and stale counts, with a Dynamixel ``bus`` its stops, and whether the ``vlm``
+        client reaches its server."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
@@ -64,6 +69,15 @@ class Metrics:
             "# HELP vtzero_vlm_errors_total VLM calls that failed and were left pending.",
             "# TYPE vtzero_vlm_errors_total counter",
             f"vtzero_vlm_errors_total {self.vlm_errors}",
+            "# HELP vtzero_vlm_answers_total VLM answers by the structured-output mode that "
+            "answered.",
+            "# TYPE vtzero_vlm_answers_total counter",
+            *(f'vtzero_vlm_answers_total{{structured_output="{mode}"}} {n}'
+              for mode, n in sorted(self.vlm_answers.items())),
+            "# HELP vtzero_vlm_reachable 0 after attempts in a row got no answer from the VLM "
+            "server (see /healthz), else 1.",
+            "# TYPE vtzero_vlm_reachable gauge",
+            f"vtzero_vlm_reachable {0 if getattr(vlm, 'unreachable', None) else 1}",
             "# HELP vtzero_store_discarded_partial_total Episodes found half-written at start "
             "(a crash while writing) and discarded.",
             "# TYPE vtzero_store_discarded_partial_total counter",

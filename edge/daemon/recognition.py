@@ -25,6 +25,7 @@ from edge.core.errors import (
     EdgeError,
     ModelError,
     NotFoundError,
+    StateError,
     StoreError,
     VLMUnavailableError,
 )
@@ -44,6 +45,8 @@ log = logging.getLogger(__name__)
 # How many episodes that could not be stored at all (disk full) are remembered, for
 # whoever asks about them.
 UNSTORED_KEPT = 100
+# Final statuses a person may have asked again (the server or its settings fixed since).
+RE_ASKABLE = (Status.VLM_ERROR, Status.INVALID_ANSWER)
 
 
 @dataclass
@@ -291,8 +294,10 @@ class Recognizer:
             delay = min(runtime.vlm_retry_base_s * 2 ** (attempts - 1), runtime.vlm_retry_max_s)
             log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode.id, exc,
                         delay)
-            await asyncio.to_thread(self.store.update, episode.id, attempts=attempts,
-                                    last_error=str(exc), next_retry_at=time.time() + delay)
+            # (A re-asked vlm_error or invalid_answer episode waits with the pending ones.)
+            await asyncio.to_thread(self.store.update, episode.id, status=Status.PENDING,
+                                    attempts=attempts, last_error=str(exc),
+                                    next_retry_at=time.time() + delay)
             self._retry_wakeup.set()  # the retry task plans from the new due time
             self.events.publish({"type": "episode", "episode": episode.id,
                                  "status": Status.PENDING.value, "error": str(exc)})
@@ -300,10 +305,11 @@ class Recognizer:
         latency = time.monotonic() - t
         if stored is not None:
             await stored
-        self.metrics.observe_vlm(latency)
+        self.metrics.observe_vlm(latency, answer.structured_output)
         status = Status.DONE if answer.status == "ok" else Status(answer.status)
         await asyncio.to_thread(self.store.update, episode.id, status=status,
                                 label=answer.label, vlm=answer.to_dict(), attempts=attempts,
+                                structured_output=answer.structured_output,
                                 timings={**episode.timings, "vlm_s": latency})
         self.events.publish({"type": "result", "episode": episode.id, "status": status.value,
                              "label": answer.label})
@@ -332,6 +338,18 @@ class Recognizer:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._retry_wakeup.wait(),
                                        max(0.05, next_due - time.time()))
+
+    async def retry(self, episode_id: str) -> Episode:
+        """Ask again about a ``vlm_error`` or ``invalid_answer`` episode, with its stored
+        description and photo, the way the retry task asks a pending one; the episode as
+        stored afterwards. :class:`NotFoundError` for an unknown id, :class:`StateError`
+        for an episode in another status."""
+        episode = await self.episode(episode_id)
+        if episode.status not in RE_ASKABLE:
+            raise StateError(f"episode {episode_id} is {episode.status}: only "
+                             + " or ".join(RE_ASKABLE) + " episodes are asked again")
+        await self._retry(episode)
+        return await self.episode(episode_id)
 
     async def _retry(self, episode: Episode) -> None:
         if episode.id in self._asking:

@@ -2,10 +2,12 @@
 
 It checks requests the way the real servers do and a little more strictly (the shape the
 runtime promises: ``model``, ``messages`` with a data-URL image that decodes, ``temperature``
-0, a strict ``json_schema`` response format with an enum of candidates), answers 400 to a
-malformed one, 401 to a wrong key, 404 to an unknown model, 413 to an oversized body, and
-records every request it received (``fake.requests``, each with the monotonic time it
-arrived) for assertions; ``on_request`` is called with each once it is answered.
+0, and a response format that is a strict ``json_schema`` with an enum of candidates,
+``json_object`` with a prompt that asks for JSON, or none; without a schema the candidates
+are read from the prompt's "Candidates:" line), answers 400 to a malformed one, 401 to a
+wrong key, 404 to an unknown model, 413 to an oversized body, and records every request
+it received (``fake.requests``, each with the monotonic time it arrived) for assertions;
+``on_request`` is called with each once it is answered.
 
 What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
 (a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
@@ -17,6 +19,12 @@ this same class.
     async with FakeVLM(model="fake") as fake:
         fake.script(Reply.error(503), Reply(label="wood_cube"))
         client = OpenAIVLM(VLMConfig(base_url=fake.base_url, model="fake"))
+
+``structured`` makes it act like servers that do not support every structured-output mode,
+answering as they do (:data:`REFUSALS`): ``"json_object_only"`` refuses ``json_schema`` (an
+older llama.cpp server), ``"none_only"`` refuses any ``response_format`` (vLLM without it,
+TGI, ...), ``"ignored"`` takes any ``response_format`` without looking and answers prose
+("The object is most likely the ... because ...").
 
 Standalone, for demos: ``python -m edge.sim.fake_vlm --port 8011``.
 """
@@ -46,6 +54,36 @@ log = logging.getLogger(__name__)
 
 DATA_URL = re.compile(r"data:(image/(?:jpeg|png|webp|gif));base64,(.*)", re.S)
 DEFAULT_MAX_REQUEST_BYTES = 20 * 1024 * 1024
+STRUCTURED = ("any", "json_object_only", "none_only", "ignored")
+# How real servers refuse a response_format they do not support: (status, content type,
+# body with {mode} for the refused type). Quoted from their answers.
+REFUSALS: dict[str, tuple[int, str, str]] = {
+    # vLLM built without the field: its request model forbids extra inputs (pydantic).
+    "vllm": (400, "application/json", json.dumps({
+        "object": "error", "type": "BadRequestError", "param": None, "code": 400,
+        "message": "[{'type': 'extra_forbidden', 'loc': ('body', 'response_format'), "
+                   "'msg': 'Extra inputs are not permitted', 'input': {'type': '{mode}'}}]"})),
+    # TGI: axum's rejection of a body it cannot deserialise, as plain text.
+    "tgi": (422, "text/plain; charset=utf-8",
+            "Failed to deserialize the JSON body into the target type: response_format: "
+            "unknown variant `{mode}`, expected `json` or `regex` at line 1 column 97"),
+    # llama.cpp server before json_schema support (a build that answers 400).
+    "llamacpp": (400, "application/json", json.dumps({"error": {
+        "code": 400, "type": "invalid_request_error",
+        "message": 'response_format type must be one of "text" or "json_object", but got: '
+                   "{mode}"}})),
+    # Older llama.cpp builds answered the same refusal as a 500 server_error.
+    "llamacpp_500": (500, "application/json", json.dumps({"error": {
+        "code": 500, "type": "server_error",
+        "message": 'response_format type must be one of "text" or "json_object", but got: '
+                   "{mode}"}})),
+    # LM Studio 0.3: only json_schema or text.
+    "lmstudio": (400, "application/json",
+                 json.dumps({"error": "'response_format.type' must be 'json_schema' or "
+                                      "'text'"})),
+}
+# What a model behind a server that ignores response_format says.
+PROSE = "The object is most likely the {label} because the photo and the touch both fit it."
 
 
 @dataclass(frozen=True)
@@ -134,8 +172,11 @@ def choose_by_description(req: FakeRequest) -> str:
     return max(req.candidates, key=score)
 
 
-def validate_chat_request(body: Any) -> tuple[str | None, dict[str, Any]]:
-    """(error or None, parsed pieces) for a /chat/completions body, as the runtime sends."""
+def validate_chat_request(body: Any, check_format: bool = True
+                          ) -> tuple[str | None, dict[str, Any]]:
+    """(error or None, parsed pieces) for a /chat/completions body, as the runtime sends;
+    ``check_format=False``: the response format is not looked at, like a server that
+    ignores it."""
     got: dict[str, Any] = {"candidates": [], "prompt": "", "images": [], "mimes": []}
     if not isinstance(body, dict):
         return "request body must be a JSON object", got
@@ -188,11 +229,34 @@ def validate_chat_request(body: Any) -> tuple[str | None, dict[str, Any]]:
         return "seed: must be an integer", got
     if body.get("stream") not in (None, False):
         return "stream: this fake does not stream", got
-    err, candidates = _check_response_format(body.get("response_format"))
-    if err:
-        return f"response_format: {err}", got
-    got["candidates"] = candidates
+    rf = body.get("response_format")
+    kind = rf.get("type") if isinstance(rf, dict) else None
+    if check_format and kind == "json_schema":
+        err, candidates = _check_response_format(rf)
+        if err:
+            return f"response_format: {err}", got
+        got["candidates"] = candidates
+        return None, got
+    if check_format and rf is not None and kind not in ("json_object", "text"):
+        return "response_format.type: must be 'json_schema', 'json_object' or 'text'", got
+    if check_format and kind == "json_object" and "json" not in json.dumps(messages).lower():
+        # OpenAI's own rule for JSON mode.
+        return ("'messages' must contain the word 'json' in some form, to use "
+                "'response_format' of type 'json_object'."), got
+    got["candidates"] = prompt_candidates(got["prompt"])
+    if not got["candidates"]:
+        return "no schema and no 'Candidates:' line in the prompt to choose from", got
     return None, got
+
+
+def prompt_candidates(prompt: str) -> list[str]:
+    """The labels of the prompt's "Candidates: ..." line (the shipped templates'), or []."""
+    m = re.search(r"^Candidates: (.+)$", prompt, re.M)
+    try:
+        labels = json.loads(f"[{m.group(1)}]") if m else []
+    except ValueError:
+        return []
+    return [x for x in labels if isinstance(x, str) and x]
 
 
 def _decode_data_url(url: str) -> tuple[str | None, str, bytes]:
@@ -256,7 +320,11 @@ class FakeVLM:
         on_request: Callable[[FakeRequest], None] | None = None,
         title: str = "fake VLM",
         fingerprint: str = "fake-vlm",
+        structured: str = "any",
+        refusal: str | None = None,
     ) -> None:
+        if structured not in STRUCTURED:
+            raise ValueError(f"structured={structured!r}: one of {', '.join(STRUCTURED)}")
         self.host = host
         self.port = port
         # None accepts any model name; several names are several models of one server.
@@ -274,6 +342,11 @@ class FakeVLM:
         self.echo_key_in_errors = echo_key_in_errors
         # Called with each chat request once it is answered, refused or dropped.
         self.on_request = on_request
+        # Which response formats it supports, and whose words it refuses the others with.
+        self.structured = structured
+        self.refusal = refusal or ("llamacpp" if structured == "json_object_only" else "vllm")
+        if self.refusal not in REFUSALS:
+            raise ValueError(f"refusal={self.refusal!r}: one of {', '.join(REFUSALS)}")
         self.requests: list[FakeRequest] = []
         self._replies: collections.deque[Reply] = collections.deque()
         self._runner: web.AppRunner | None = None
@@ -352,7 +425,10 @@ class FakeVLM:
             rec.body = json.loads(rec.raw)
         except (ValueError, RecursionError):
             return self._error(rec, 400, "request body is not valid JSON", "invalid_json")
-        err, got = validate_chat_request(rec.body)
+        refused = self._refused_format(rec.body)
+        if refused is not None:
+            return self._refuse(rec, refused)
+        err, got = validate_chat_request(rec.body, self.structured != "ignored")
         rec.candidates, rec.prompt = got["candidates"], got["prompt"]
         rec.images, rec.image_mimes = got["images"], got["mimes"]
         if err:
@@ -380,7 +456,8 @@ class FakeVLM:
             content = reply.content
             if content is None:
                 label = reply.label if reply.label is not None else self.choose(rec)
-                content = json.dumps({"label": label})
+                content = (PROSE.format(label=label) if self.structured == "ignored"
+                           else json.dumps({"label": label}))
             body = json.dumps(self._completion(rec, content)).encode()
         headers = {"Content-Type": "application/json", **reply.headers}
         if not reply.chunked and not reply.chunk_delay_s:
@@ -414,6 +491,23 @@ class FakeVLM:
                       "total_tokens": prompt_tokens + completion_tokens},
         }
 
+    def _refused_format(self, body: Any) -> str | None:
+        """The response_format type this server refuses in ``body``, or None."""
+        rf = body.get("response_format") if isinstance(body, dict) else None
+        if rf is None or self.structured in ("any", "ignored"):
+            return None
+        kind = rf.get("type") if isinstance(rf, dict) else None
+        if self.structured == "none_only" or kind == "json_schema":
+            return str(kind)
+        return None
+
+    def _refuse(self, rec: FakeRequest, mode: str) -> web.Response:
+        status, content_type, body = REFUSALS[self.refusal]
+        rec.error, rec.status = f"response_format {mode} refused ({self.refusal})", status
+        log.debug("%s refused response_format %s", self.title, mode)
+        return web.Response(status=status, text=body.replace("{mode}", mode),
+                            content_type=content_type.split(";")[0])
+
     def _error(self, rec: FakeRequest, status: int, message: str, code: str) -> web.Response:
         rec.error, rec.status = message, status
         log.debug("%s refused a request: %d %s", self.title, status, message)
@@ -437,7 +531,8 @@ async def _serve(args: argparse.Namespace) -> None:
             return fixed
 
     fake = FakeVLM(host=args.host, port=args.port, model=args.model or None,
-                   choose=choose, latency_s=args.latency_s)
+                   choose=choose, latency_s=args.latency_s, structured=args.structured,
+                   refusal=args.refusal)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -459,6 +554,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="first | description | standin (the simulated VLM's choice) | "
                         "label:<name> (default first)")
     parser.add_argument("--latency-s", type=float, default=0.0)
+    parser.add_argument("--structured", choices=STRUCTURED, default="any",
+                        help="the response formats it supports, like a real server's "
+                        "(default any)")
+    parser.add_argument("--refusal", choices=sorted(REFUSALS), default=None,
+                        help="whose words it refuses a response format with")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     asyncio.run(_serve(args))

@@ -36,6 +36,10 @@ from tests.vlm.helpers import CANDIDATES
         ('<think>soft... maybe raw?</think>\n{"label": "boiled_kiri_mochi"}',
          "boiled_kiri_mochi"),
         ('Sure! {"label": "raw_kiri_mochi"} is my answer.', "raw_kiri_mochi"),
+        # free text naming exactly one candidate, spelled as given:
+        ("The object is most likely the boiled_kiri_mochi because it is soft.",
+         "boiled_kiri_mochi"),
+        ("It looks like raw_kabocha_squash.\nThe touch agrees.", "raw_kabocha_squash"),
         # never a guess:
         ('{"label": "pizza"}', None),
         ('{"label": "raw_kiri"}', None),
@@ -43,6 +47,9 @@ from tests.vlm.helpers import CANDIDATES
         ('{"answer": "raw_kiri_mochi"}', None),
         ("I think it is raw kiri mochi", None),
         ("raw_kiri_mochi\nor boiled_kiri_mochi", None),
+        ("Either raw_kiri_mochi or boiled_kiri_mochi, hard to say.", None),
+        ("It is a raw_kiri_mochi_cake.", None),
+        ("<think>maybe raw_kiri_mochi</think> I cannot tell.", None),
         ("", None),
         ("{", None),
         ("[" * 100_000, None),

@@ -12,6 +12,7 @@ def test_defaults_mean_no_vlm_and_are_valid():
     cfg.validate("vlm")
     assert not cfg.configured and cfg.mode == "vision_tactile" and cfg.seed == 0
     assert cfg.api_key_env == "VTZERO_VLM_API_KEY"
+    assert cfg.structured_output == "json_schema"
 
 
 def test_loads_from_a_toml_table(tmp_path):
@@ -32,6 +33,8 @@ def test_loads_from_a_toml_table(tmp_path):
         ({"base_url": "http://user:pw@x/v1", "model": "m"}, "must not hold credentials"),
         ({"base_url": "http://x/v1"}, "vlm.model = ''"),
         ({"mode": "smell"}, "vlm.mode = 'smell'"),
+        ({"structured_output": "xml"}, "vlm.structured_output = 'xml'"),
+        ({"structured_output": "json"}, "'json_schema', 'json_object', 'none'"),
         ({"seed": -1}, "vlm.seed = -1"),
         ({"connect_timeout_s": 0}, "vlm.connect_timeout_s = 0"),
         ({"connect_timeout_s": 10.0, "total_timeout_s": 5.0}, "vlm.total_timeout_s = 5.0"),
