@@ -14,7 +14,6 @@ import getpass
 import grp
 import json
 import logging
-import math
 import os
 import shutil
 import stat
@@ -31,7 +30,15 @@ import numpy as np
 from edge.core import preprocess
 from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config, SensorConfig
-from edge.core.errors import ConfigError, DeviceError, EdgeError, ModelError, MotorError
+from edge.core.errors import (
+    ConfigError,
+    DeviceError,
+    EdgeError,
+    ModelError,
+    MotorError,
+    PreprocessError,
+    SensorLayoutError,
+)
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, model_ref
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
@@ -410,26 +417,28 @@ def _check_layout(cfg: Config, sample: _Sample) -> Check:
     data = {"sensors": list(frame.sensors), "models": list(frame.models),
             "taxels": list(frame.taxels)}
     try:
-        # The daemon's own check: what it would refuse at start.
+        # The daemon's own check of the first frame.
         parse_frame(sample.first, sc.pads, sc.taxels_per_pad, expected_model=sc.model)
-    except EdgeError:
-        found = (f"configured {sc.pads} x {sc.model} ({sc.taxels_per_pad} taxels each), the "
-                 f"server sends {frame.describe()}")
-        if len(frame.sensors) != sc.pads:
-            fix = (f"connect every pad and list it in xela_server's configuration, or set "
-                   f"sensor.pads = {len(frame.sensors)}")
-        else:
-            fix = (f"set sensor.taxels_per_pad = {frame.taxels[0]} and sensor.model = "
-                   f"{frame.models[0]!r} if that is the hardware, or fix xela_server's "
-                   "configuration")
-        return fail("xela layout", found, fix, **data)
-    others = sorted({m for m in frame.models if m != sc.model})
-    if others:
-        return warn("xela layout", f"the server sends {frame.describe()}; configured "
-                    f"sensor.model = {sc.model!r}",
-                    f"set sensor.model = {others[0]!r} if that is the hardware: x_th and the "
-                    "references depend on the sensor", **data)
-    return ok("xela layout", frame.describe(), **data)
+        refused = False
+    except SensorLayoutError:
+        refused = True
+    # A server that does not name its model ("?") is taken at its layout.
+    other_models = [m for m in frame.models if m != "?" and m.casefold() != sc.model.casefold()]
+    if not refused and not other_models:
+        return ok("xela layout", frame.describe(), **data)
+    found = (f"configured {sc.pads} x {sc.model} ({sc.taxels_per_pad} taxels each), the "
+             f"server sends {frame.describe()}")
+    if len(frame.sensors) != sc.pads:
+        fix = (f"connect every pad and list it in xela_server's configuration, or set "
+               f"sensor.pads = {len(frame.sensors)}")
+    elif any(n != sc.taxels_per_pad for n in frame.taxels):
+        fix = (f"set sensor.taxels_per_pad = {frame.taxels[0]} and sensor.model = "
+               f"{frame.models[0]!r} if that is the hardware, or fix xela_server's "
+               "configuration")
+    else:
+        fix = (f"set sensor.model = {other_models[0]!r} if that is the hardware (x_th and the "
+               "references belong to one sensor model), or fix xela_server's configuration")
+    return fail("xela layout", found, fix, **data)
 
 
 def _check_rate(cfg: Config, sample: _Sample) -> Check:
@@ -451,17 +460,6 @@ def _check_rate(cfg: Config, sample: _Sample) -> Check:
     return ok("xela rate", found, **data)
 
 
-def idle_noise(times: np.ndarray, raw: np.ndarray, tare_s: float) -> np.ndarray:
-    """The norm the press compares with x_th, of idle frames: tared over the first
-    ``tare_s`` as the press tares, then every later frame in tactile units."""
-    times = np.asarray(times)
-    tared = times < times[0] + tare_s
-    if tared.sum() < 1 or tared.all():
-        raise ValueError("too few frames to tare and then measure")
-    units = preprocess.to_units(raw[~tared], preprocess.tare(raw[tared]))
-    return np.asarray(preprocess.norm(units))
-
-
 def _check_noise(cfg: Config, sample: _Sample) -> Check:
     x_th = cfg.press.x_th
     times = np.array([t for t, _ in sample.frames])
@@ -471,13 +469,13 @@ def _check_noise(cfg: Config, sample: _Sample) -> Check:
                     "check xela_server's pads (a loose connector?)")
     raw = np.stack([f.raw for _, f in sample.frames])
     try:
-        norms = idle_noise(times, raw, cfg.press.tare_s)
-    except ValueError as exc:
-        return fail("idle noise", f"{exc} ({len(times)} frames)", "see xela rate")
+        norms = preprocess.tared_norms(times, raw, cfg.press.tare_s)
+    except PreprocessError as exc:
+        return fail("idle noise", str(exc), "see xela rate: the stream is too slow")
     p = float(np.percentile(norms, NOISE_PERCENTILE))
     safe = NOISE_MARGIN * p
     data = {"p999": p, "max": float(norms.max()), "frames": int(norms.size), "x_th": x_th,
-            "margin": x_th / p if p > 0 else math.inf, "safe_x_th": safe}
+            "margin": x_th / p if p > 0 else None, "safe_x_th": safe}
     found = (f"idle norm p{NOISE_PERCENTILE:g} {p:.5f}, max {norms.max():.5f} over "
              f"{norms.size} frames; press.x_th = {x_th:g} is "
              + (f"{x_th / p:.1f} x the p{NOISE_PERCENTILE:g}" if p > 0 else "above a silent pad"))
@@ -595,16 +593,23 @@ async def _check_vlm(vlm: Any, checks: list[Check]) -> list[Check]:
     try:
         probe = await vlm.probe()
     except EdgeError as exc:
-        return [listed, key, fail("vlm probe", str(exc), "see the server's log")]
+        return [listed, key, fail("vlm probe", str(exc), "see the server's log; check "
+                                  "vlm.model and the key")]
     data = {"structured_output": probe.structured_output, "latency_s": probe.latency_s,
-            "fallbacks": list(probe.fallbacks)}
-    found = (f"answered {probe.label!r} in {probe.latency_s:.2f} s with structured output "
+            "label": probe.label, "fallbacks": list(probe.fallbacks)}
+    found = (f"a tiny question answered in {probe.latency_s:.2f} s with structured output "
              f"{probe.structured_output!r}")
     if probe.fallbacks:
-        refused = ", ".join(probe.fallbacks)
-        return [listed, key, warn("vlm probe", f"{found}; refused: {refused}",
-                                  f"set vlm.structured_output = {probe.structured_output!r} "
-                                  "(saves one refused request per session)", **data)]
+        refused = "; ".join(f"{mode} refused ({why})" for mode, why in
+                            zip(probe.fallbacks, probe.reasons, strict=False))
+        return [listed, key, warn("vlm probe", f"{found}; {refused}",
+                                  f"set vlm.structured_output = {probe.structured_output!r}: "
+                                  "the client steps down by itself, but asks in vain first "
+                                  "every session", **data)]
+    if probe.label is None:
+        return [listed, key, warn("vlm probe", f"{found}, but it named none of the candidates",
+                                  f"try another model than {vc.model!r}: recognitions would "
+                                  "end invalid_answer", **data)]
     return [listed, key, ok("vlm probe", found, **data)]
 
 
@@ -656,8 +661,9 @@ def _check_state_dir(state: Path) -> Check:
             pass
     except OSError as exc:
         return fail("state dir", f"{state}: cannot write in {existing} "
-                    f"({exc.strerror or exc})", "chown the directory to the daemon's user, "
-                    "or set runtime.state_dir (systemd: StateDirectory=)")
+                    f"({exc.strerror or exc})", "run the doctor as the daemon's user "
+                    "(sudo -u vtzero vt-edge doctor ...), chown the directory to that user, "
+                    "or set runtime.state_dir")
     free = shutil.disk_usage(existing).free
     made = "" if existing == state else f" (created at start, in {existing})"
     found = f"{state} writable{made}, {free / 2**30:.1f} GiB free"

@@ -53,7 +53,7 @@ def lab() -> Iterator[Lab]:
 
     robot = SimRobot("stainless_cube", seed=5, cfg=base_config())
     vlm = FakeVLM(model=MODEL)
-    refusing = FakeVLM(model=MODEL)  # TMP
+    refusing = FakeVLM(model=MODEL, structured="json_object_only")
     call(robot.start())
     call(vlm.start())
     call(refusing.start())
@@ -110,11 +110,12 @@ CASES = [
      ["configured 2 x XR1944 (24 taxels each)", "XR1944 x 16 taxels",
       "set sensor.taxels_per_pad = 16"]),
     ("wrong sensor model", lambda c, lab: sub(c, "sensor", model="XR1946"),
-     {"xela layout": Level.WARN}, ["sensor.model = 'XR1946'", "set sensor.model = 'XR1944'"]),
+     {"xela layout": Level.FAIL},
+     ["configured 2 x XR1946 (16 taxels each)", "set sensor.model = 'XR1944'"]),
     ("camera command failing",
      lambda c, lab: sub(c, "camera", kind="command", command="vtzero-no-camera -o {out}"),
      {"camera": Level.FAIL},
-     ["'vtzero-no-camera' cannot start", "'vision_tactile' needs a photo", "camera.command"]),
+     ["vtzero-no-camera", "cannot start", "'vision_tactile' needs a photo", "camera.command"]),
     ("VLM URL unreachable",
      lambda c, lab: sub(c, "vlm", base_url=f"http://127.0.0.1:{free_port()}/v1"),
      {"vlm server": Level.FAIL}, ["http://127.0.0.1:", "start the server", "vlm.base_url"]),
