@@ -48,6 +48,7 @@ from edge.hw.control_table import (
     describe_hardware_error,
 )
 from edge.hw.dynamixel import (
+    LATENCY_TIMER_DIR,
     LATENCY_TIMER_UDEV_RULE,
     XM430_MODELS,
     DynamixelBus,
@@ -218,8 +219,8 @@ def _by_id_name(port: str) -> str | None:
     return None
 
 
-def _check_latency(port: str) -> Check:
-    path = latency_timer_path(port)
+def _check_latency(port: str, timer_dir: Path = LATENCY_TIMER_DIR) -> Check:
+    path = latency_timer_path(port, timer_dir)
     try:
         value = read_latency_timer(path)
     except (OSError, ValueError) as exc:

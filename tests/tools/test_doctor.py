@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import shutil
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -21,8 +22,10 @@ import pytest
 from edge.cli import main as cli_main
 from edge.core import tomledit
 from edge.core.config import Config
+from edge.core.model import Origin
 from edge.sim.fake_vlm import FakeVLM
 from edge.sim.robot import SimRobot
+from edge.tools import doctor as doctor_module
 from edge.tools.doctor import Level, Report, run_doctor
 from tests.support.daemon import ROOT, base_config
 from tests.support.waits import free_port
@@ -201,3 +204,51 @@ def test_a_motor_in_alarm_fails_and_the_table_says_what_to_do(lab, tmp_path):
     assert any(row.startswith("FAIL  motor 12") and " -> remove the cause" in row
                for row in table)
     assert table[-1].startswith(f"{len(report.checks) - 1} OK, 0 WARN, 1 FAIL")
+
+
+def test_the_port_lines_explain_permissions_names_and_the_latency_timer(tmp_path, monkeypatch):
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    tty = tmp_path / "ttyUSB0"
+    tty.write_text("")
+    link = by_id / "usb-FTDI_USB__-__Serial_Converter_FT1234-if00-port0"
+    link.symlink_to(tty)
+    monkeypatch.setattr(doctor_module, "SERIAL_BY_ID", by_id)
+    missing = doctor_module._port_problem(str(tmp_path / "ttyUSB1"))
+    assert missing.level is Level.FAIL and link.name in missing.found
+    assert doctor_module._by_id_name(str(tty)) == str(link)
+    assert doctor_module._by_id_name(str(link)) is None
+    # (Root may open anything: the refusal a lab user meets is simulated at os.access.)
+    monkeypatch.setattr(doctor_module.os, "access", lambda path, mode: False)
+    denied = doctor_module._port_problem(str(tty))
+    assert denied.level is Level.FAIL and "permission denied" in denied.found
+    assert "usermod -aG" in denied.fix or "udev rule" in denied.fix
+
+    timers = tmp_path / "usb-serial"
+    (timers / "ttyUSB0").mkdir(parents=True)
+    (timers / "ttyUSB0" / "latency_timer").write_text("16\n")
+    slow = doctor_module._check_latency(str(link), timers)
+    assert slow.level is Level.WARN and "16 ms" in slow.found
+    assert "echo 1 | sudo tee" in slow.fix and 'ATTR{latency_timer}="1"' in slow.fix
+    (timers / "ttyUSB0" / "latency_timer").write_text("1\n")
+    assert doctor_module._check_latency(str(tty), timers).level is Level.OK
+    assert doctor_module._check_latency("/dev/pts/0", timers).found.startswith("not a USB")
+
+
+def test_a_lab_database_is_ok_on_its_robot_and_warned_with_other_pads(tmp_path):
+    models = tmp_path / "models"
+    shutil.copytree(ROOT / "models", models, ignore=shutil.ignore_patterns("eval"))
+    manifest = json.loads((models / "manifest.json").read_text())
+    manifest["origin"] = Origin("robot", "the lab's own presses (vt-edge collect)", "arm-3",
+                                "XR1944", ("S1", "S2")).to_json()
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    cfg = Config(mode="robot")
+    cfg = sub(cfg, "runtime", models_dir=str(models))
+    model, refs = doctor_module._check_model(cfg)
+    assert model.level is Level.OK and "every file verified" in model.found
+    assert refs.level is Level.OK and "pressed by a real robot (arm-3)" in refs.found
+    _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
+    assert refs.level is Level.WARN and "XR1944" in refs.found and "uSPa46" in refs.fix
+    (models / "database.npz").write_bytes(b"damaged")
+    (broken,) = doctor_module._check_model(cfg)
+    assert broken.level is Level.FAIL and "database.npz: sha256" in broken.found
