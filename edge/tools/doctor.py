@@ -38,6 +38,7 @@ from edge.core.errors import (
     MotorError,
     PreprocessError,
     SensorLayoutError,
+    VLMHTTPError,
 )
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, model_ref
 from edge.hw.contracts import StreamStats
@@ -74,6 +75,8 @@ MIN_FREE_BYTES = 1 << 30
 # The API token the daemon asks for when bound beyond loopback (edge.daemon.api.load_token).
 MIN_TOKEN_CHARS = 16
 SERIAL_BY_ID = Path("/dev/serial/by-id")
+# HTTP statuses of a VLM server that wants another key (or one at all).
+KEY_REFUSED = (401, 403)
 DOCTOR_DIR = "doctor"
 
 
@@ -562,6 +565,12 @@ def _vlm_client(cfg: Config) -> tuple[Any, list[Check]]:
         return None, [fail("vlm", str(exc), "fix [vlm]")]
 
 
+def _key_refused(vc: Any, keyed: bool, exc: Exception) -> Check:
+    return fail("vlm key", f"{vc.base_url} refuses "
+                + ("the key" if keyed else "a request without a key") + f": {exc}",
+                f"set ${vc.api_key_env} or vlm.api_key_file to a key the server accepts")
+
+
 async def _check_vlm(vlm: Any, checks: list[Check]) -> list[Check]:
     from urllib.parse import urlsplit
 
@@ -579,6 +588,10 @@ async def _check_vlm(vlm: Any, checks: list[Check]) -> list[Check]:
                 "vlm.api_key_file"))
     try:
         models = await vlm.list_models()
+    except VLMHTTPError as exc:
+        if exc.status in KEY_REFUSED:
+            return [_key_refused(vc, keyed, exc)]
+        return [fail("vlm server", str(exc), "check vlm.base_url: the server's /v1 root"), key]
     except EdgeError as exc:
         return [fail("vlm server", f"{vc.base_url}: {exc}",
                      "start the server, or fix vlm.base_url (it ends in /v1)"), key]
@@ -593,6 +606,10 @@ async def _check_vlm(vlm: Any, checks: list[Check]) -> list[Check]:
                      models=models), key]
     try:
         probe = await vlm.probe()
+    except VLMHTTPError as exc:
+        if exc.status in KEY_REFUSED:
+            return [listed, _key_refused(vc, keyed, exc)]
+        return [listed, key, fail("vlm probe", str(exc), "see the server's log")]
     except EdgeError as exc:
         return [listed, key, fail("vlm probe", str(exc), "see the server's log; check "
                                   "vlm.model and the key")]

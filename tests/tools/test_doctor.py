@@ -42,6 +42,8 @@ class Lab:
     vlm: FakeVLM
     # Refuses response_format json_schema with a 400, as older Ollama and llama.cpp do.
     refusing: FakeVLM
+    # Wants a key (vLLM started with --api-key).
+    keyed: FakeVLM
     call: Callable
 
 
@@ -57,13 +59,14 @@ def lab() -> Iterator[Lab]:
     robot = SimRobot("stainless_cube", seed=5, cfg=base_config())
     vlm = FakeVLM(model=MODEL)
     refusing = FakeVLM(model=MODEL, structured="json_object_only")
-    call(robot.start())
-    call(vlm.start())
-    call(refusing.start())
+    keyed = FakeVLM(model=MODEL, api_key="lab-secret-key-0123")
+    servers = (robot, vlm, refusing, keyed)
+    for server in servers:
+        call(server.start())
     try:
-        yield Lab(robot, vlm, refusing, call)
+        yield Lab(robot, vlm, refusing, keyed, call)
     finally:
-        for server in (refusing, vlm, robot):
+        for server in reversed(servers):
             call(server.stop())
         loop.call_soon_threadsafe(loop.stop)
         thread.join(10)
@@ -122,6 +125,9 @@ CASES = [
     ("VLM URL unreachable",
      lambda c, lab: sub(c, "vlm", base_url=f"http://127.0.0.1:{free_port()}/v1"),
      {"vlm server": Level.FAIL}, ["http://127.0.0.1:", "start the server", "vlm.base_url"]),
+    ("VLM key missing", lambda c, lab: sub(c, "vlm", base_url=lab.keyed.base_url),
+     {"vlm key": Level.FAIL},
+     ["refuses a request without a key", "HTTP 401", "$VTZERO_VLM_API_KEY"]),
     ("wrong VLM model name", lambda c, lab: sub(c, "vlm", model="llava:13b"),
      {"vlm server": Level.FAIL}, ["does not serve 'llava:13b'", MODEL, "set vlm.model"]),
     ("VLM refusing json_schema", lambda c, lab: sub(c, "vlm", base_url=lab.refusing.base_url),
