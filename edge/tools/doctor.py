@@ -260,7 +260,7 @@ async def _check_bus(cfg: Config) -> list[Check]:
                   _check_latency(bc.port)]
         motors = [await _check_motor(bus, cfg, motor_id) for motor_id in ids]
         checks += motors
-        if any("did not answer" in c.found for c in motors):
+        if any(c.data.get("answered") is False for c in motors):
             # Which IDs are there after all: a wrong ID or baud rate shows at once.
             found = await bus.scan()
             answering = ", ".join(map(str, found)) or "none"
@@ -287,7 +287,7 @@ async def _check_motor(bus: DynamixelBus, cfg: Config, motor_id: int) -> Check:
         if "did not answer" in str(exc):
             return fail(part, f"{'gripper' if gripper else 'joint'} {exc}",
                         "check the motor's power and cable, its ID (bus.joint_ids, "
-                        "bus.gripper_id) and baud rate (bus.baudrate)")
+                        "bus.gripper_id) and baud rate (bus.baudrate)", answered=False)
         # A motor in alarm answers every read with its Hardware Error Status.
         return fail(part, str(exc), "remove the cause (load, heat, voltage), then power-cycle "
                     "the arm or reboot the motor in Dynamixel Wizard 2")
@@ -379,7 +379,8 @@ async def _listen(sc: SensorConfig, duration_s: float) -> _Sample:
                     continue
                 if sample.first is None:
                     sample.first = msg.data
-                    sample.dialect = _dialect(json.loads(msg.data))
+                    # (Read as leniently as the parser reads it.)
+                    sample.dialect = _dialect(json.loads(msg.data, strict=False))
                 sample.frames.append((recv, frame))
     return sample
 

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from edge.cli import main as cli_main
@@ -25,6 +26,7 @@ from edge.core.config import Config
 from edge.core.model import Origin
 from edge.sim.fake_vlm import FakeVLM
 from edge.sim.robot import SimRobot
+from edge.sim.xela_server import encode_frame
 from edge.tools import doctor as doctor_module
 from edge.tools.doctor import Level, Report, run_doctor
 from tests.support.daemon import ROOT, base_config
@@ -259,3 +261,14 @@ def test_a_lab_database_is_ok_on_its_robot_and_warned_with_other_pads(tmp_path):
     (models / "database.npz").write_bytes(b"damaged")
     (broken,) = doctor_module._check_model(cfg)
     assert broken.level is Level.FAIL and "database.npz: sha256" in broken.found
+
+
+@pytest.mark.parametrize(("dialect", "says"), [
+    ("1.8", "xela_server 1.8.0-vtzero-emulator"), ("1.7.7", "xela_server 1.7.7 (data as ints)"),
+    ("1.7", "xela_server 1.7 (data as hex)")])
+def test_the_server_version_is_told_from_its_frames(dialect, says):
+    raw = np.full(96, 30000, dtype=np.uint16)
+    frame = json.loads(encode_frame(7, 1.0, raw, dialect=dialect))
+    assert doctor_module._dialect(frame) == says
+    real = json.loads((ROOT / "tests/fixtures/xela/v1.8_uSPa46_two_sensors.json").read_text())
+    assert doctor_module._dialect(real) == "xela_server 1.8.0b_208601"
