@@ -506,26 +506,19 @@ async def _check_camera(cfg: Config, state: Path, needs_photo: bool) -> list[Che
     why = f"vlm.mode = {cfg.vlm.mode!r} needs a photo"
     try:
         camera = make_camera(cfg)
-    except DeviceError as exc:
-        camera, error = None, str(exc)
-    else:
-        error = ""
-    if camera is None and not error:
-        if needs_photo:
-            return [fail("camera", f"camera.kind = 'none' but {why}",
-                         "configure [camera] (kind = command, v4l2 or http), or set vlm.mode "
-                         "= 'tactile_only'")]
-        return [ok("camera", "none configured (no VLM question needs a photo)")]
-    try:
         if camera is None:
-            raise DeviceError(error)
+            if needs_photo:
+                return [fail("camera", f"camera.kind = 'none' but {why}",
+                             "configure [camera] (kind = command, v4l2 or http), or set "
+                             "vlm.mode = 'tactile_only'")]
+            return [ok("camera", "none configured (no VLM question needs a photo)")]
         data = await camera.capture()
         fmt, width, height = await asyncio.to_thread(check_image, data)
     except EdgeError as exc:
         fix = {"command": f"run it by hand ({cc.command!r} with a file for {{out}}), install "
                           "it or fix camera.command",
                "v4l2": f"check {cc.device} (ls -l; the video group) and the camera extra",
-               "http": f"open {cc.url} in a browser; check camera.url"}.get(cc.kind, "")
+               "http": f"open {cc.url} in a browser; check camera.url"}[cc.kind]
         level = fail if needs_photo else warn
         return [level("camera", f"camera.kind = {cc.kind!r}: {exc}"
                       + (f" ({why})" if needs_photo else ""), fix)]
