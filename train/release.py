@@ -231,12 +231,12 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                                   "cube_presses_per_class": cfg.unseen_presses},
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
-        # The release always presses its references on the emulated robot; a lab's own
-        # database comes from its robot (`vt-edge collect`).
-        "origin": Origin("emulated", ref_index["recorder"]).to_json(),
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,
+        # The release always presses its references on the emulated robot; a lab's own
+        # database comes from its robot (`vt-edge collect`, `vt-train build`).
+        "origin": Origin("emulated", ref_index["recorder"]).to_json(),
         "versions": versions(),
     }
     manifest = write_manifest(out, sections,
