@@ -435,8 +435,7 @@ class DynamixelBus:
         self._thread = threading.Thread(target=self._run, name="dxl-bus", daemon=True)
         self._thread.start()
         try:
-            self._motors = await self._call(
-                "connect", self._connect_sync if configure else self._open_port_sync)
+            self._motors = await self._call("connect", self._connect_sync)
         except BaseException:
             await self._shutdown_thread()
             raise
@@ -851,12 +850,7 @@ class DynamixelBus:
         if self.on_write is not None:
             self.on_write(t, head)
 
-    def _refuse_if_read_only(self, what: str) -> None:
-        if self._read_only:
-            raise DeviceError(f"Dynamixel bus on {self._config.port} is open read-only: "
-                              f"{what} refused")
-
-    def _open_port_sync(self) -> dict[int, MotorInfo]:
+    def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
         port = self._port_handler_factory(cfg.port)
         try:
@@ -871,38 +865,9 @@ class DynamixelBus:
         if isinstance(port, BlockingPortHandler):
             port.on_write = self._written
         self._check_latency_timer(port)
-        return {}
+        if self._read_only:
+            return {}
 
-    def _ping_once(self, motor_id: int) -> tuple[int | None, str]:
-        """(model number, "") or (None, why there was no answer)."""
-        for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
-            model, result, error = self._ph.ping(self._port, motor_id)
-            if result == sdk.COMM_SUCCESS:
-                self._check(motor_id, "ping", result, error)
-                return model, ""
-            self._port.clearPort()
-        return None, self._ph.getTxRxResult(result)
-
-    def _no_answer(self, ids: list[int], why: str) -> MotorError:
-        cfg = self._config
-        return MotorError(
-            f"motor {', '.join(map(str, ids))} did not answer a ping on {cfg.port} at "
-            f"{cfg.baudrate} bps: {why} (check power, cabling, ID and baud rate)", ids[0])
-
-    def _scan_sync(self) -> dict[int, int]:
-        found, _ = self._ph.broadcastPing(self._port)
-        self._port.clearPort()
-        return {motor_id: model for motor_id, (model, _firmware) in sorted(found.items())}
-
-    def _ping_sync(self, motor_id: int) -> int:
-        model, why = self._ping_once(motor_id)
-        if model is None:
-            raise self._no_answer([motor_id], why)
-        return model
-
-    def _connect_sync(self) -> dict[int, MotorInfo]:
-        cfg = self._config
-        self._open_port_sync()
         models: dict[int, int] = {}
         missing: list[tuple[int, str]] = []
         for motor_id in self._ids:
@@ -992,6 +957,38 @@ class DynamixelBus:
                 "to 1 now with `echo 1 | sudo tee %s`, and for good with the udev rule %s in "
                 "/etc/udev/rules.d/99-dynamixel.rules", self._config.port, value, value, path,
                 LATENCY_TIMER_UDEV_RULE)
+
+    def _refuse_if_read_only(self, what: str) -> None:
+        if self._read_only:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is open read-only: "
+                              f"{what} refused")
+
+    def _ping_once(self, motor_id: int) -> tuple[int | None, str]:
+        """(model number, "") or (None, why there was no answer)."""
+        for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
+            model, result, error = self._ph.ping(self._port, motor_id)
+            if result == sdk.COMM_SUCCESS:
+                self._check(motor_id, "ping", result, error)
+                return model, ""
+            self._port.clearPort()
+        return None, self._ph.getTxRxResult(result)
+
+    def _no_answer(self, ids: list[int], why: str) -> MotorError:
+        cfg = self._config
+        return MotorError(
+            f"motor {', '.join(map(str, ids))} did not answer a ping on {cfg.port} at "
+            f"{cfg.baudrate} bps: {why} (check power, cabling, ID and baud rate)", ids[0])
+
+    def _ping_sync(self, motor_id: int) -> int:
+        model, why = self._ping_once(motor_id)
+        if model is None:
+            raise self._no_answer([motor_id], why)
+        return model
+
+    def _scan_sync(self) -> dict[int, int]:
+        found, _ = self._ph.broadcastPing(self._port)
+        self._port.clearPort()
+        return {motor_id: model for motor_id, (model, _firmware) in sorted(found.items())}
 
     def _torque_on_sync(self) -> None:
         state = self._read_state_sync()
