@@ -123,6 +123,21 @@ _STATE_START = PRESENT_CURRENT.address
 _STATE_LENGTH = PRESENT_POSITION.end - _STATE_START
 
 
+def latency_timer_path(port: str, timer_dir: Path = LATENCY_TIMER_DIR) -> Path:
+    """Where the kernel shows the USB latency timer of serial ``port`` (by-id links
+    followed)."""
+    return timer_dir / Path(os.path.realpath(port)).name / "latency_timer"
+
+
+def read_latency_timer(path: Path) -> int | None:
+    """The latency timer in ms; None when there is none (not a USB serial adapter). Raises
+    OSError or ValueError when it cannot be read."""
+    try:
+        return int(path.read_text().strip())
+    except FileNotFoundError:
+        return None
+
+
 class BlockingPortHandler(sdk.PortHandler):
     """A ``PortHandler`` whose reads block in ``select()`` instead of spinning.
 
@@ -1062,21 +1077,6 @@ class DynamixelBus:
                 f"motor {motor_id}: torque is off ({why}): the motor shut itself down; "
                 "remove the cause, power-cycle or reboot it, then restart the daemon")
             raise MotorError(self._torque_fault, motor_id)
-
-
-def latency_timer_path(port: str, timer_dir: Path = LATENCY_TIMER_DIR) -> Path:
-    """Where the kernel shows the USB latency timer of serial ``port`` (by-id links
-    followed)."""
-    return timer_dir / Path(os.path.realpath(port)).name / "latency_timer"
-
-
-def read_latency_timer(path: Path) -> int | None:
-    """The latency timer in ms; None when there is none (not a USB serial adapter). Raises
-    OSError or ValueError when it cannot be read."""
-    try:
-        return int(path.read_text().strip())
-    except FileNotFoundError:
-        return None
 
 
 def _field(reg: Register, data: list[int]) -> int:
