@@ -165,8 +165,13 @@ class SimConfig:
     seed: int = 0
     object: str = "stainless_cube"
     sensor_rate_hz: float = 125.0
+    # The emulated pads' sensitivity to load, relative to the XR1944 model (edge/sim/skin.py):
+    # another sensor's scale, for `vt-edge calibrate threshold` to find.
+    pad_gain: float = 1.0
 
     def validate(self, path: str) -> None:
+        _require(0.1 <= self.pad_gain <= 10, path, "pad_gain", self.pad_gain,
+                 "must be in [0.1, 10]")
         _require(
             1 <= self.sensor_rate_hz <= 1000,
             path,

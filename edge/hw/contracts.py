@@ -48,6 +48,9 @@ class TactileFrame:
     raw: np.ndarray
     # Model name per pad, in pad order.
     models: tuple[str, ...]
+    # xela_server's `calibrated` forces (N, x, y, z per taxel, the raw channels' order) where
+    # the model is calibrated and the source was asked for them; else None.
+    newtons: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.raw.dtype != np.uint16 or self.raw.ndim != 1:

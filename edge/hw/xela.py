@@ -58,6 +58,8 @@ class ParsedFrame:
     sensors: tuple[str, ...]  # sensor numbers, e.g. ("1", "2")
     models: tuple[str, ...]
     taxels: tuple[int, ...]
+    # `calibrated` newtons (float64, like ``raw``) when asked for and every sensor sends them.
+    newtons: np.ndarray | None = None
 
     def describe(self) -> str:
         """The layout in words, e.g. ``2 sensors: 1 = uSPa46 x 24 taxels, 2 = ...``."""
@@ -68,8 +70,10 @@ class ParsedFrame:
         return f"{len(self.sensors)} sensor{'s' if len(self.sensors) != 1 else ''}: {parts}"
 
 
-def parse_layout_free(msg: str | bytes | Mapping[str, Any]) -> ParsedFrame | None:
+def parse_layout_free(msg: str | bytes | Mapping[str, Any], *,
+                      newtons: bool = False) -> ParsedFrame | None:
     """Parse one server frame without a layout expectation; None for the Welcome frame.
+    ``newtons``: also read the sensors' ``calibrated`` forces (see :func:`_newtons`).
 
     Raises SensorError, naming what is wrong, for anything that is not a well-formed frame.
     """
@@ -108,8 +112,24 @@ def parse_layout_free(msg: str | bytes | Mapping[str, Any]) -> ParsedFrame | Non
         arrays.append(words)
     raw = arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
     return ParsedFrame(
-        seq, _frame_time(obj, seq, numbers[0]), raw, tuple(numbers), tuple(models), tuple(taxels)
+        seq, _frame_time(obj, seq, numbers[0]), raw, tuple(numbers), tuple(models), tuple(taxels),
+        _newtons(obj, numbers, raw.size) if newtons else None,
     )
+
+
+def _newtons(obj: Mapping[str, Any], numbers: list[str], channels: int) -> np.ndarray | None:
+    """Every sensor's ``calibrated`` list (newtons, x, y, z per taxel) joined, or None when
+    one is absent, null (uncalibrated models such as the XR1944) or not one number per
+    channel: the forces are a measurement aid, never a reason to drop a frame."""
+    values: list[Any] = []
+    for number in numbers:
+        forces = obj[number].get("calibrated")
+        if not isinstance(forces, list):
+            return None
+        values.extend(forces)
+    if len(values) != channels or not all(type(v) in (int, float) for v in values):
+        return None
+    return np.array(values, dtype=np.float64)
 
 
 def _frame_time(obj: Mapping[str, Any], seq: int, first_sensor: str) -> float:
@@ -136,13 +156,14 @@ def parse_frame(
     expected_taxels: int,
     *,
     expected_model: str | None = None,
+    newtons: bool = False,
 ) -> ParsedFrame | None:
     """Parse one frame and check it has ``expected_pads`` sensors of ``expected_taxels``.
 
     Returns None for the Welcome frame. Raises SensorLayoutError when the layout differs
     (the message names both sides) and SensorError for a malformed frame.
     """
-    frame = parse_layout_free(msg)
+    frame = parse_layout_free(msg, newtons=newtons)
     if frame is None:
         return None
     configured = (
@@ -279,6 +300,9 @@ class XelaClient:
         # Awaited with each fresh frame before it is queued (see the class docstring); it
         # must not raise.
         self.on_frame: Callable[[TactileFrame], Awaitable[None]] | None = None
+        # Keep the `calibrated` newtons in each frame (vt-edge calibrate threshold); off on the
+        # press's path, which never reads them.
+        self.newtons = False
 
     @property
     def connected(self) -> bool:
@@ -479,7 +503,8 @@ class XelaClient:
         """Parse and count one message; the frame when it is a fresh one."""
         cfg = self._cfg
         try:
-            frame = parse_frame(data, cfg.pads, cfg.taxels_per_pad, expected_model=cfg.model)
+            frame = parse_frame(data, cfg.pads, cfg.taxels_per_pad, expected_model=cfg.model,
+                                newtons=self.newtons)
         except SensorLayoutError:
             raise
         except SensorError as exc:
@@ -510,4 +535,5 @@ class XelaClient:
         self._last_fresh = recv_time
         if self.on_parsed is not None:
             self.on_parsed(frame.seq, recv_time, time.monotonic())
-        return TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models)
+        return TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models,
+                            frame.newtons)

@@ -15,7 +15,7 @@ from aiohttp import web
 from edge.core.config import Config
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
-from edge.sim.world import SimWorld, raw_from_width, robot_motors
+from edge.sim.world import SimWorld, raw_from_width, robot_motors, robot_pads
 from edge.sim.xela_replay import Replay
 from edge.sim.xela_server import XelaServerEmulator
 
@@ -27,10 +27,12 @@ class SimRobot:
                  xela_port: int = 0, control_port: int = 0, rate_hz: float = 125.0,
                  dialect: str = "1.8", reply_latency_s: float = 0.0,
                  initial_width_m: float | None = None, cfg: Config | None = None,
-                 replay: Replay | None = None, replay_loop: bool = True) -> None:
+                 replay: Replay | None = None, replay_loop: bool = True,
+                 calibrated: bool = False) -> None:
         get(object_name)
         bus = (cfg or Config()).bus
-        self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id)
+        pads = replace(robot_pads(seed), gain=(cfg or Config()).sim.pad_gain)
+        self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id, skin_draw=pads)
         poses = (cfg or Config()).poses
         positions = {mid: float(v) for mid, v in zip(bus.joint_ids, poses["rest"], strict=True)}
         # The gripper starts open, where the runtime opens it before a press.
@@ -40,7 +42,8 @@ class SimRobot:
                                 reply_latency_s=reply_latency_s)
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
                                        dialect=dialect,  # type: ignore[arg-type]
-                                       replay=replay, loop=replay_loop)
+                                       replay=replay, loop=replay_loop,
+                                       calibrated=calibrated)
         self._control_port = control_port
         self._runner: web.AppRunner | None = None
         self.control_url = ""

@@ -121,6 +121,9 @@ class SkinDraw:
     offsets: np.ndarray  # (C,) counts at idle
     drift_per_s: np.ndarray  # (C,) counts per second at t = 0; it levels off (DRIFT_TAU_S)
     field_gain: np.ndarray | None = None  # (C,) counts per unit of the shared disturbance
+    # Sensitivity to load relative to the XR1944 model above (GAIN_*_COUNTS_PER_N): another
+    # pad, or another sensor, reads the same force on another scale with the same idle noise.
+    gain: float = 1.0
 
     @classmethod
     def draw(cls, rng: np.random.Generator, pads: int = PADS,
@@ -235,11 +238,23 @@ class Skin:
             self._flat_cache[pad] = p
         return p
 
+    def forces(self, force_n: float, contact_radius_m: float) -> np.ndarray:
+        """Force on each taxel in newtons, x, y, z, shape (96,): what a calibrated sensor
+        reports (xela_server's ``calibrated``), whatever the pads' gain."""
+        return self._forces(force_n, contact_radius_m).reshape(-1)
+
     def loads(self, force_n: float, contact_radius_m: float) -> np.ndarray:
         """Noise-free change in counts, shape (96,), for a per-finger force."""
+        out = self._forces(force_n, contact_radius_m)
+        out[..., 0:2] *= GAIN_XY_COUNTS_PER_N
+        out[..., 2] *= GAIN_Z_COUNTS_PER_N
+        out[..., 0:2] += XTALK_Z_TO_XY * out[..., 2:3]
+        return self.draw.gain * out.reshape(-1)
+
+    def _forces(self, force_n: float, contact_radius_m: float) -> np.ndarray:
         out = np.zeros((PADS, TAXELS, 3))
         if force_n <= 0.0:
-            return out.reshape(-1)
+            return out
         obj = self.inst.cls
         bulge = min(obj.bulge, obj.mu)
         for pad in range(PADS):
@@ -254,10 +269,7 @@ class Skin:
             for axis, field in enumerate((sx, sy, p)):
                 taxel = field.reshape(4, _SUB, 4, _SUB).sum(axis=(1, 3)).reshape(-1)
                 out[pad, :, axis] = taxel
-        out[..., 0:2] *= GAIN_XY_COUNTS_PER_N
-        out[..., 2] *= GAIN_Z_COUNTS_PER_N
-        out[..., 0:2] += XTALK_Z_TO_XY * out[..., 2:3]
-        return out.reshape(-1)
+        return out
 
     def frame(self, t_s: float, force_n: float, contact_radius_m: float) -> np.ndarray:
         """Raw uint16 counts at press time ``t_s`` (seconds since the press began)."""

@@ -136,6 +136,12 @@ class SimWorld:
             return self._skin.frame(t - self._t0, self._contact.force,
                                     self._contact.contact_radius())
 
+    def frame_newtons(self) -> np.ndarray:
+        """The taxel forces (N, (96,)) behind the last frame, as a calibrated sensor reports
+        them (the XELA emulator's ``calibrated``)."""
+        with self._lock:
+            return self._skin.forces(self.frame_force_n, self._contact.contact_radius())
+
     @property
     def force_n(self) -> float:
         with self._lock:

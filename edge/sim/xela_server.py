@@ -94,8 +94,10 @@ def encode_frame(
     taxels: int = 16,
     model: str = "XR1944",
     dialect: Dialect = "1.8",
+    newtons: np.ndarray | None = None,
 ) -> str:
-    """One data frame as ``xela_server`` of ``dialect`` would send it."""
+    """One data frame as ``xela_server`` of ``dialect`` would send it; ``newtons``: the
+    ``calibrated`` forces of a calibrated model, else none (the XR1944's)."""
     per = taxels * 3
     frame: dict[str, object] = {"message": seq, "time": wall_time, "sensors": sensors}
     if dialect == "1.8":
@@ -118,6 +120,8 @@ def encode_frame(
             sensor |= {"integer": ints, "temp": [303.15] * taxels, "ups": [125.0] * taxels}
         else:
             sensor["calibrated"] = None
+        if newtons is not None:
+            sensor["calibrated"] = np.round(newtons[i * per : (i + 1) * per], 5).tolist()
         frame[str(i + 1)] = sensor
     if dialect == "1.8":
         frame["sendtime"] = time.time()
@@ -144,7 +148,10 @@ class XelaServerEmulator:
         dialect: Dialect = "1.8",
         replay: Replay | None = None,
         loop: bool = True,
+        calibrated: bool = False,
     ) -> None:
+        """``calibrated``: send the source's taxel forces (its ``frame_newtons()``) as a
+        calibrated model's ``calibrated`` newtons."""
         if not 0 < rate_hz <= 2000:
             raise ValueError(f"rate_hz must be in (0, 2000], got {rate_hz!r}")
         if replay is not None:
@@ -156,6 +163,7 @@ class XelaServerEmulator:
         self._period_s = 1.0 / rate_hz
         self._sensors, self._taxels, self._model = sensors, taxels, model
         self._dialect: Dialect = dialect
+        self._calibrated = calibrated
         self.fault = Fault.NONE
         self.frames_sent = 0  # data frames produced (each goes to every client)
         self.late_ticks = 0  # ticks skipped because the loop woke more than a period late
@@ -364,6 +372,7 @@ class XelaServerEmulator:
             )
         self._seq += 1
         self.frames_sent += 1
+        newtons = self._source.frame_newtons() if self._calibrated else None  # type: ignore[attr-defined]
         self._last_text = encode_frame(
             self._seq,
             time.time(),
@@ -372,6 +381,7 @@ class XelaServerEmulator:
             taxels=self._taxels,
             model=self._model,
             dialect=self._dialect,
+            newtons=newtons,
         )
         return self._last_text
 
