@@ -57,15 +57,13 @@ from edge.hw.dynamixel import (
     read_latency_timer,
 )
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
+from edge.tools.calibrate import NOISE_FLOOR_FACTOR
 
 log = logging.getLogger(__name__)
 
 # How long the pads are listened to, after a tare as long as the press's, for the idle noise.
 NOISE_WINDOW_S = 2.0
 NOISE_PERCENTILE = 99.9
-# A threshold below this many times the idle p99.9 is too close to the noise: drift and a
-# nudge of the arm cross it.
-NOISE_MARGIN = 2.0
 # Below this rate the press refuses its tare (edge.daemon.press: 50 frames per second).
 MIN_RATE_HZ = 50.0
 # Below this fraction of the model's grid rate the input is mostly interpolated.
@@ -478,7 +476,9 @@ def _check_noise(cfg: Config, sample: _Sample) -> Check:
     except PreprocessError as exc:
         return fail("idle noise", str(exc), "see xela rate: the stream is too slow")
     p = float(np.percentile(norms, NOISE_PERCENTILE))
-    safe = NOISE_MARGIN * p
+    # Below the floor `vt-edge calibrate threshold` keeps, drift and the pads' slow wander
+    # cross the threshold.
+    safe = NOISE_FLOOR_FACTOR * p
     data = {"p999": p, "max": float(norms.max()), "frames": int(norms.size), "x_th": x_th,
             "margin": x_th / p if p > 0 else None, "safe_x_th": safe}
     found = (f"idle norm p{NOISE_PERCENTILE:g} {p:.5f}, max {norms.max():.5f} over "
@@ -486,11 +486,11 @@ def _check_noise(cfg: Config, sample: _Sample) -> Check:
              + (f"{x_th / p:.1f} x the p{NOISE_PERCENTILE:g}" if p > 0 else "above a silent pad"))
     if x_th <= p:
         return fail("idle noise", found + ": inside the noise, the press would stop on air",
-                    f"raise press.x_th above {safe:.4f} ({NOISE_MARGIN:g} x the idle "
+                    f"raise press.x_th above {safe:.4f} ({NOISE_FLOOR_FACTOR:g} x the idle "
                     f"p{NOISE_PERCENTILE:g}); `vt-edge calibrate threshold` finds one", **data)
     if x_th < safe:
         return warn("idle noise", found, f"raise press.x_th to at least {safe:.4f} "
-                    f"({NOISE_MARGIN:g} x the idle p{NOISE_PERCENTILE:g}): drift or a nudge "
+                    f"({NOISE_FLOOR_FACTOR:g} x the idle p{NOISE_PERCENTILE:g}): drift or a nudge "
                     "would cross it", **data)
     return ok("idle noise", found, **data)
 
