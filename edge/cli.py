@@ -240,15 +240,15 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--config", default="configs/sim.toml")
     demo.set_defaults(func=_cmd_demo)
 
-    run = sub.add_parser("run", help="run the daemon")
-    run.add_argument("--config", required=True)
-    run.set_defaults(func=_cmd_run)
-
     doc = sub.add_parser("doctor", help="check every part of the setup before the first "
                          "press, without moving the arm (exit 1 on any FAIL)")
     doc.add_argument("--config", required=True)
     doc.add_argument("--json", action="store_true", help="the checks as JSON")
     doc.set_defaults(func=_cmd_doctor)
+
+    run = sub.add_parser("run", help="run the daemon")
+    run.add_argument("--config", required=True)
+    run.set_defaults(func=_cmd_run)
 
     col = sub.add_parser("collect", help="record reference presses of an object")
     col.add_argument("--config", required=True)
