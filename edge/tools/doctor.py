@@ -248,8 +248,9 @@ async def _check_bus(cfg: Config) -> list[Check]:
     try:
         await bus.connect(configure=False)
     except DeviceError as exc:
-        return [fail("bus port", str(exc), "check bus.port and bus.baudrate (1000000 for the "
-                     "OpenMANIPULATOR-X)")]
+        return [fail("bus port", str(exc), "where another program holds the port, stop it "
+                     "(the daemon: systemctl stop vtzero-edge); else check bus.port and "
+                     "bus.baudrate (1000000 for the OpenMANIPULATOR-X)")]
     try:
         by_id = _by_id_name(bc.port)
         checks = [warn("bus port", f"{bc.port} opens at {bc.baudrate} bps, but its name follows "
