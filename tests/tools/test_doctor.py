@@ -108,6 +108,8 @@ def _not_a_dir(cfg: Config, lab: Lab) -> Config:
 CASES = [
     ("port missing", lambda c, lab: sub(c, "bus", port="/dev/vtzero-no-such-port"),
      {"bus port": Level.FAIL}, ["/dev/vtzero-no-such-port does not exist", "/dev/serial/by-id"]),
+    ("port not a serial device", lambda c, lab: sub(c, "bus", port=str(ROOT / "README.md")),
+     {"bus port": Level.FAIL}, ["cannot open Dynamixel port", "bus.port"]),
     ("wrong motor ID", lambda c, lab: sub(c, "bus", joint_ids=(11, 12, 13, 17)),
      {"motor 17": Level.FAIL, "bus scan": Level.FAIL},
      ["motor 17 did not answer a ping", "bus.joint_ids"]),
