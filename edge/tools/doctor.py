@@ -23,13 +23,14 @@ from collections.abc import Awaitable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import aiohttp
 import numpy as np
 
 from edge.core import preprocess
 from edge.core.atomic import atomic_write_bytes
-from edge.core.config import Config, SensorConfig
+from edge.core.config import Config, SensorConfig, VLMConfig, load_config
 from edge.core.errors import (
     ConfigError,
     DeviceError,
@@ -40,7 +41,13 @@ from edge.core.errors import (
     SensorLayoutError,
     VLMHTTPError,
 )
+from edge.core.images import check_image
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, model_ref
+from edge.core.vlm import OpenAIVLM, _is_loopback, load_api_key
+from edge.daemon.api import load_token
+from edge.daemon.devices import make_camera
+from edge.daemon.mqtt import _password, _tls, check_config
+from edge.daemon.serve import state_dir, vlm_config
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
     MIN_FIRMWARE,
@@ -145,8 +152,6 @@ class Report:
 async def run_doctor(cfg: Config, config_path: str = "<config>", *,
                      noise_window_s: float = NOISE_WINDOW_S) -> Report:
     """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side."""
-    from edge.daemon.serve import state_dir
-
     started = time.monotonic()
     state = state_dir(cfg)
     vlm, vlm_checks = _vlm_client(cfg)
@@ -500,9 +505,6 @@ def _check_noise(cfg: Config, sample: _Sample) -> Check:
 
 
 async def _check_camera(cfg: Config, state: Path, needs_photo: bool) -> list[Check]:
-    from edge.core.images import check_image
-    from edge.daemon.devices import make_camera
-
     cc = cfg.camera
     why = f"vlm.mode = {cfg.vlm.mode!r} needs a photo"
     try:
@@ -541,12 +543,9 @@ def _keep(path: Path, data: bytes) -> None:
 # ------------------------------------------------------------------------------- the VLM
 
 
-def _vlm_client(cfg: Config) -> tuple[Any, list[Check]]:
+def _vlm_client(cfg: Config) -> tuple[OpenAIVLM | None, list[Check]]:
     """The configured VLM client (None without one), or the line saying why there is
     none."""
-    from edge.core.vlm import OpenAIVLM
-    from edge.daemon.serve import vlm_config
-
     try:
         vc = vlm_config(cfg)
         if not vc.configured:
@@ -560,17 +559,13 @@ def _vlm_client(cfg: Config) -> tuple[Any, list[Check]]:
         return None, [fail("vlm", str(exc), "fix [vlm]")]
 
 
-def _key_refused(vc: Any, keyed: bool, exc: Exception) -> Check:
+def _key_refused(vc: VLMConfig, keyed: bool, exc: Exception) -> Check:
     return fail("vlm key", f"{vc.base_url} refuses "
                 + ("the key" if keyed else "a request without a key") + f": {exc}",
                 f"set ${vc.api_key_env} or vlm.api_key_file to a key the server accepts")
 
 
-async def _check_vlm(vlm: Any, checks: list[Check]) -> list[Check]:
-    from urllib.parse import urlsplit
-
-    from edge.core.vlm import _is_loopback, load_api_key
-
+async def _check_vlm(vlm: OpenAIVLM | None, checks: list[Check]) -> list[Check]:
     if vlm is None:
         return checks
     vc = vlm.config
@@ -687,8 +682,6 @@ def _check_state_dir(state: Path) -> Check:
 
 
 def _check_api(cfg: Config) -> Check:
-    from edge.daemon.api import load_token
-
     ac = cfg.api
     try:
         token = load_token(ac)
@@ -703,8 +696,6 @@ def _check_api(cfg: Config) -> Check:
 
 
 async def _check_mqtt(cfg: Config) -> list[Check]:
-    from edge.daemon.mqtt import _password, _tls, check_config
-
     mc = cfg.mqtt
     if not mc.enabled:
         return [ok("mqtt", "disabled")]
@@ -730,8 +721,6 @@ async def _check_mqtt(cfg: Config) -> list[Check]:
 
 def main(config_path: str, as_json: bool) -> int:
     """``vt-edge doctor``: 0 when nothing FAILs, 1 otherwise."""
-    from edge.core.config import load_config
-
     cfg = load_config(config_path)
     report = asyncio.run(run_doctor(cfg, config_path))
     print(json.dumps(report.to_json(), indent=2) if as_json else report.table())
