@@ -552,7 +552,8 @@ def _vlm_client(cfg: Config) -> tuple[OpenAIVLM | None, list[Check]]:
             if cfg.mode == "robot":
                 return None, [warn("vlm", "none configured: every recognition ends "
                                    "not_configured, with the prompt it would have sent",
-                                   "set vlm.base_url and vlm.model (README, 'VLM')")]
+                                   "set vlm.base_url and vlm.model (or $VTZERO_VLM_URL "
+                                   "and $VTZERO_VLM_MODEL)")]
             return None, [ok("vlm", "none configured: recognitions store the prompt")]
         return OpenAIVLM(vc), []
     except EdgeError as exc:
