@@ -144,7 +144,7 @@ def _cmd_pose_teach(args: argparse.Namespace) -> int:
     import asyncio
 
     from edge.core.config import load_config
-    from edge.tools.collect import teach_pose
+    from edge.tools.pose import teach_pose
 
     asyncio.run(teach_pose(load_config(args.config), args.config, args.name))
     return 0
@@ -165,6 +165,43 @@ def _cmd_calibrate_threshold(args: argparse.Namespace) -> int:
     asyncio.run(calibrate_threshold(
         load_config(args.config), args.config, args.out, **given,
         prompt=None if args.no_prompt else input, confirm=None if args.yes else input))
+    return 0
+
+
+def _cmd_pose_goto(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from edge.core.config import load_config
+    from edge.tools.pose import goto_pose
+
+    asyncio.run(goto_pose(load_config(args.config), args.name))
+    return 0
+
+
+def _cmd_models_install(args: argparse.Namespace) -> int:
+    from edge.tools.models import describe, install_models
+
+    if args.config is not None:
+        from edge.core.config import load_config
+
+        dest = load_config(args.config).runtime.models_dir
+    else:
+        dest = args.to
+    manifest, previous = install_models(args.src, dest)
+    kept = f" (the one it replaced is {previous})" if previous else ""
+    print(f"installed {args.src} as {dest}{kept}: {describe(manifest)}")
+    print("reload the daemon: systemctl reload vtzero-edge (or kill -HUP its pid)")
+    return 0
+
+
+def _cmd_install_udev(args: argparse.Namespace) -> int:
+    from edge.daemon import udev
+
+    if not args.install:
+        print(udev.rules_text(), end="")
+        return 0
+    path = udev.install()
+    print(f"installed {path}; now: {udev.RELOAD_COMMAND}, then unplug and replug the U2D2")
     return 0
 
 
@@ -205,29 +242,10 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
 
 
 def _cmd_install_service(args: argparse.Namespace) -> int:
-    import shutil
-    from pathlib import Path
+    from edge.daemon.install import install_service
 
-    from edge.daemon import systemd
-
-    beside = Path(sys.executable).with_name("vt-edge")
-    exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
-    config = Path(args.config).resolve()
-    priority = None
-    if config.exists():
-        # The unit lets the daemon do what its configuration asks (real-time scheduling).
-        from edge.core.config import load_config
-
-        runtime = load_config(config).runtime
-        priority = runtime.realtime_priority if runtime.realtime else None
-    unit = systemd.unit_text(exe, str(config), args.user, realtime_priority=priority)
-    if not args.install:
-        print(unit, end="")
-        return 0
-    path = systemd.install(unit)
-    print(f"installed {path}; now: systemctl daemon-reload && systemctl enable --now "
-          f"{systemd.UNIT_NAME}")
-    return 0
+    return install_service(args.config, args.user, create_user=args.create_user,
+                           write=args.install)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -268,6 +286,21 @@ def build_parser() -> argparse.ArgumentParser:
     teach.add_argument("name", help="e.g. above, lowered, rest")
     teach.add_argument("--config", required=True)
     teach.set_defaults(func=_cmd_pose_teach)
+    goto = posesub.add_parser("goto", help="move slowly to a taught pose to check it")
+    goto.add_argument("name")
+    goto.add_argument("--config", required=True)
+    goto.set_defaults(func=_cmd_pose_goto)
+
+    models = sub.add_parser("models", help="the model directory the daemon loads")
+    modsub = models.add_subparsers(dest="models_command", required=True)
+    minst = modsub.add_parser("install", help="verify a model directory and put it in place "
+                              "(the one it replaces kept as DIR.previous)")
+    minst.add_argument("src", help="a model directory (manifest.json, encoder, database)")
+    where = minst.add_mutually_exclusive_group()
+    where.add_argument("--to", default="/opt/vtzero/models", help="default: %(default)s")
+    where.add_argument("--config", default=None,
+                       help="install to this configuration's [runtime] models_dir")
+    minst.set_defaults(func=_cmd_models_install)
 
     cal = sub.add_parser("calibrate", help="find settings for this robot's own hardware")
     calsub = cal.add_subparsers(dest="calibrate_command", required=True)
@@ -332,10 +365,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
     svc.add_argument("--config", default="/etc/vtzero/robot.toml")
-    svc.add_argument("--user", default="vtzero")
+    svc.add_argument("--user", default="vtzero", help="the system user the daemon runs as")
+    svc.add_argument("--create-user", action="store_true",
+                     help="create the user (useradd --system) and the device groups the "
+                          "configuration needs where missing (as root)")
     svc.add_argument("--install", action="store_true",
-                     help="write /etc/systemd/system/vtzero-edge.service")
+                     help="write /etc/systemd/system/vtzero-edge.service (refused while the "
+                          "user or a group is missing)")
     svc.set_defaults(func=_cmd_install_service)
+
+    udev = sub.add_parser("install-udev", help="print (or install) the udev rules: U2D2 "
+                          "latency timer 1 ms, /dev/ttyDXL")
+    udev.add_argument("--install", action="store_true",
+                      help="write /etc/udev/rules.d/60-vtzero.rules")
+    udev.set_defaults(func=_cmd_install_udev)
 
     sim = sub.add_parser("sim", help="the simulated robot")
     simsub = sim.add_subparsers(dest="sim_command", required=True)

@@ -20,6 +20,9 @@ from edge.core.logs import setup_logging
 
 log = logging.getLogger(__name__)
 
+# The modules only the `train` extra installs (pyproject.toml).
+TRAIN_EXTRA_MODULES = ("torch", "onnx", "matplotlib")
+
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from edge.core.progress import Progress
@@ -453,6 +456,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except (EdgeError, ValueError) as exc:
         log.error("%s", exc)
+        return 2
+    except ModuleNotFoundError as exc:
+        # An edge-only install (vtzero[edge]) has no training stack; any other missing
+        # module is a broken install and keeps its traceback.
+        if (exc.name or "").split(".")[0] not in TRAIN_EXTRA_MODULES:
+            raise
+        command = " ".join(filter(None, (args.command, getattr(args, "db_command", None))))
+        log.error("vt-train %s needs the training extra (no module %r): "
+                  "pip install 'vtzero[train]'", command, exc.name)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -5,10 +5,11 @@ once per condition to name the object among that set's labels, exactly as the ro
 the offset-0 input through the shipped encoder and reference database
 (:func:`edge.core.model.load_model`), the description of the nearest distinct classes, the
 shipped prompt templates (:mod:`edge.core.prompt`, ``models/prompts``) and the robot's own client
-(:class:`edge.core.vlm.OpenAIVLM`: data-URL image, temperature 0, seed, strict ``json_schema``,
-answer checked against the candidates with one corrective retry, transport retries with
-backoff). The picture is :func:`edge.sim.camera.render` of the press's label (a real food
-and its replica look the same), or a photo from a user's directory for real data.
+(:class:`edge.core.vlm.OpenAIVLM`: data-URL image, temperature 0, seed, ``[vlm]
+structured_output`` with the robot's fallback when a server refuses it, answer checked
+against the candidates with one corrective retry, transport retries with backoff). The
+picture is :func:`edge.sim.camera.render` of the press's label (a real food and its replica
+look the same), or a photo from a user's directory for real data.
 
 Conditions (``CONDITIONS``): ``vision_only`` (the vision_only template: no tactile
 sentence), ``vq_top3`` (the proposed method), ``vq_top1`` (only the nearest class's

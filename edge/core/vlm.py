@@ -89,8 +89,9 @@ STRUCTURED_MODES = ("json_schema", "json_object", "none")
 # A refusal of the mode: these statuses (old llama.cpp builds answer 500) with a body naming
 # response_format or what real servers say instead: vLLM ("loc": ("body", "response_format")),
 # TGI (422 "response_format: unknown variant `json_schema`"), llama.cpp ("response_format type
-# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), hosted
-# APIs ("json mode is not supported", "structured outputs", "guided_json", "grammar").
+# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), Ollama
+# ("invalid JSON schema in format", a 500), hosted APIs ("json mode is not supported",
+# "structured outputs", "guided_json", "grammar").
 FORMAT_REFUSAL_STATUSES = frozenset({400, 422, 500})
 _FORMAT_REFUSAL = re.compile(
     r"response[_ .-]?format|json[_ ]?schema|json[_ ]?object|structured[_ ]outputs?|"
@@ -138,7 +139,7 @@ class VLMAnswer:
     label: str | None
     # The text content of the last answer ("" when none came).
     raw: str
-    # The rendered prompt of the first request.
+    # The rendered template (JSON mode may add a line asking for JSON; see ``request``).
     prompt: str
     candidates: tuple[str, ...]
     model: str
@@ -564,7 +565,7 @@ class OpenAIVLM:
             log.info("VLM answered %r in %.2f s (%d attempt(s), %s)", label, elapsed,
                      len(trace.outcomes), mode)
         return VLMAnswer(
-            status=status, label=label, raw=self._redact(raw), prompt=prompt,
+            status=status, label=label, raw=self._redact(raw), prompt=rendered,
             candidates=tuple(labels), model=self.config.model,
             request={**head, "messages": stored}, response=self._redact_json(response),
             image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
@@ -751,11 +752,14 @@ class OpenAIVLM:
         """A short, secret-free, single-line excerpt of a response body."""
         text = body[:4096].decode("utf-8", "replace")
         try:
-            err = json.loads(body).get("error")
+            data = json.loads(body)
+            err = data.get("error")
             if isinstance(err, dict) and isinstance(err.get("message"), str):
                 text = err["message"]
             elif isinstance(err, str):
                 text = err
+            elif isinstance(data.get("message"), str):  # vLLM: {"object": "error", ...}
+                text = data["message"]
         except (ValueError, RecursionError, AttributeError):
             pass
         text = " ".join(self._redact(text).split())

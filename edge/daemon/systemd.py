@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
@@ -87,12 +88,15 @@ _SYSCALLS_REALTIME = "SystemCallFilter=sched_setscheduler sched_setaffinity\n"
 
 
 def unit_text(exec_start: str, config: str, user: str = "vtzero",
-              realtime_priority: int | None = None) -> str:
-    """The unit for ``vt-edge run --config CONFIG``; with ``realtime_priority``, allowed to
-    run its loop and bus threads at that SCHED_FIFO priority."""
+              realtime_priority: int | None = None, group: str | None = None,
+              groups: Sequence[str] = ("dialout",)) -> str:
+    """The unit for ``vt-edge run --config CONFIG`` as ``user`` (primary group ``group``,
+    default the user's name) with supplementary ``groups``; with ``realtime_priority``,
+    allowed to run its loop and bus threads at that SCHED_FIFO priority."""
     template = resources.files("edge.daemon").joinpath("vtzero-edge.service").read_text()
     text = (template.replace("@EXEC_START@", exec_start).replace("@CONFIG@", config)
-            .replace("@USER@", user))
+            .replace("@USER@", user).replace("@GROUP@", group or user)
+            .replace("@GROUPS@", " ".join(groups)))
     if realtime_priority is not None:
         text = text.replace(_REALTIME_DENIED,
                             _REALTIME_ALLOWED.format(priority=realtime_priority))
@@ -108,4 +112,6 @@ def install(unit: str, dest_dir: Path = Path("/etc/systemd/system")) -> Path:
 
     path = dest_dir / UNIT_NAME
     atomic_write_text(path, unit)
+    # Atomic writes are private (mkstemp); systemd warns about a world-inaccessible unit.
+    path.chmod(0o644)
     return path

@@ -77,6 +77,8 @@ REFUSALS: dict[str, tuple[int, str, str]] = {
         "code": 500, "type": "server_error",
         "message": 'response_format type must be one of "text" or "json_object", but got: '
                    "{mode}"}})),
+    # Ollama (0.5) when it cannot turn the schema into its own "format".
+    "ollama": (500, "application/json", json.dumps({"error": "invalid JSON schema in format"})),
     # LM Studio 0.3: only json_schema or text.
     "lmstudio": (400, "application/json",
                  json.dumps({"error": "'response_format.type' must be 'json_schema' or "

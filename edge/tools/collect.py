@@ -1,12 +1,8 @@
-"""Collect mode and pose teaching: the robot side of adapting the system at low cost.
+"""Collect mode: the robot side of adapting the system at low cost.
 
 ``vt-edge collect``: press an object N times and write each press in the recordings format
 (the same files the simulator writes and training reads). Between presses the user moves the
 object slightly, so the references vary as they will at recognition time.
-
-``vt-edge pose teach NAME``: torque off on the arm joints, the user moves the arm by hand,
-Enter stores the present joint positions as the named pose in the config file (the rest of
-the file, comments included, is kept).
 """
 
 from __future__ import annotations
@@ -17,7 +13,7 @@ import logging
 from collections.abc import Callable
 from pathlib import Path
 
-from edge.core import recording, tomledit
+from edge.core import recording
 from edge.core.config import Config
 from edge.core.errors import EdgeError
 from edge.daemon.press import PressController, outcome_recording
@@ -83,32 +79,3 @@ async def collect(cfg: Config, label: str, presses: int, out: str | Path,
             await close_devices(devices, cfg.runtime.move_timeout_s)
     return written
 
-
-async def teach_pose(cfg: Config, config_path: str | Path, name: str,
-                     prompt: Callable[[str], object] = input, bus=None) -> tuple[int, ...]:
-    """Store the arm's present joint positions as pose ``name`` in ``config_path``."""
-    from edge.hw.dynamixel import DynamixelBus
-
-    if not name.replace("_", "").isalnum():
-        raise EdgeError(f"pose name {name!r}: use letters, digits and underscores")
-    own = bus is None
-    bus = bus or DynamixelBus(cfg.bus)
-    try:
-        if own:
-            await bus.connect()
-        # Torque off: the arm goes limp so it can be moved by hand (support it!).
-        await bus.set_torque(False)
-        await asyncio.to_thread(prompt, f"move the arm to the '{name}' pose by hand, then "
-                                        "press Enter ")
-        state = await bus.read_state()
-        joints = tuple(int(state.motors[i].position) for i in cfg.bus.joint_ids)
-    finally:
-        if own:
-            await bus.close()
-    # Poses not in the file yet are written with their current values, so the file stays a
-    # complete, loadable configuration.
-    poses = {k: list(v) for k, v in cfg.poses.items()}
-    poses[name] = list(joints)
-    tomledit.update(config_path, config_path, {"poses": poses})
-    print(f"pose {name} = {list(joints)} saved in {config_path}")
-    return joints

@@ -3,21 +3,32 @@ import shutil
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+from edge.core.config import load_config
+from edge.daemon import install
 from edge.daemon.systemd import Notifier, unit_text
 
 needs_systemd = pytest.mark.skipif(shutil.which("systemd-analyze") is None,
                                    reason="systemd-analyze is not installed")
+# What install-service builds for this interpreter (systemd-analyze verify wants the program
+# to exist; whether the unit could run it is tests/daemon/test_install.py's part).
+EXE = f"{sys.executable} -m edge"
+CONFIG = Path("/etc/vtzero/robot.toml")
+
+
+def _service_unit(config):
+    cfg = load_config(config)
+    return install.service_unit(cfg, CONFIG, EXE, install.accounts(cfg, "vtzero"))
 
 
 def _unit(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "edge", "install-service", "--config",
-                          str(tmp_path / "robot.toml")], capture_output=True, text=True,
-                         check=True)
+    config = tmp_path / "robot.toml"
+    config.write_text("")
     path = tmp_path / "vtzero-edge.service"
-    path.write_text(out.stdout)
+    path.write_text(_service_unit(config))
     return path
 
 
@@ -69,9 +80,7 @@ def test_sd_notify_datagrams(tmp_path):
 def test_realtime_unit_lets_the_daemon_ask_for_fifo(tmp_path):
     config = tmp_path / "robot.toml"
     config.write_text("[runtime]\nrealtime = true\nrealtime_priority = 30\n")
-    out = subprocess.run([sys.executable, "-m", "edge", "install-service", "--config",
-                          str(config)], capture_output=True, text=True, check=True)
-    text = out.stdout
+    text = _service_unit(config)
     assert "RestrictRealtime=no" in text and "RestrictRealtime=yes" not in text
     assert "LimitRTPRIO=30" in text
     deny = text.index("SystemCallFilter=~@privileged @resources")

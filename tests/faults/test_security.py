@@ -53,6 +53,7 @@ async def test_off_loopback_every_route_but_healthz_needs_the_token(tmp_path, ca
                  f"bearer{TOKEN}", TOKEN, f"Bearer  {TOKEN}"]
         routes = [("POST", "/v1/recognize"), ("GET", "/v1/episodes/20200101T000000000Z-abcdef"),
                   ("GET", "/metrics"), ("GET", "/v1/events"), ("POST", "/v1/abort"),
+                  ("POST", "/v1/episodes/20200101T000000000Z-abcdef/retry"),
                   ("GET", "/no/such/route")]
         for auth in wrong:
             headers = {} if auth is None else {"Authorization": auth}

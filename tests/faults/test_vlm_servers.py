@@ -6,17 +6,28 @@ recognition presses the emulated robot through the real drivers."""
 from __future__ import annotations
 
 import asyncio
+import os
 import re
+import sys
 from dataclasses import replace
 
 import pytest
 
-from edge.cli import main as cli_main
-from edge.core.errors import NotFoundError, StateError
+from edge.core.errors import EdgeError, NotFoundError
 from edge.core.vlm import UNREACHABLE_AFTER_ATTEMPTS
 from edge.sim.fake_vlm import FakeVLM, Reply
+from edge.sim.robot import SimRobot
 from edge.tools.episode_retry import run_retry
-from tests.support.daemon import FOOD, QUICK_OBJECT, fast_config, sim_daemon, wait_health
+from tests.support.daemon import (
+    FOOD,
+    QUICK_OBJECT,
+    ROOT,
+    Daemon,
+    base_config,
+    fast_config,
+    sim_daemon,
+    wait_health,
+)
 from tests.support.waits import free_port
 
 pytestmark = pytest.mark.asyncio
@@ -65,56 +76,72 @@ async def test_a_server_refusing_response_format_still_recognises(tmp_path):
 
 
 async def test_failed_episodes_are_asked_again_by_route_and_command(tmp_path):
+    state = tmp_path / "state"
     async with FakeVLM(choose=truth) as fake, \
-            sim_daemon(tmp_path / "state", OBJECT, cfg=fast_config(fake.base_url)) as \
-            (_robot, d):
-        # Made by real recognitions against a failing server: a refusal and two answers
-        # outside the candidates.
-        fake.script(Reply.error(403, "this key may not use fake-vlm"))
-        refused = await recognize(d)
-        fake.script(Reply(label="a_brick"), Reply(label="still_a_brick"))
-        invalid = await recognize(d)
+            SimRobot(OBJECT, seed=7, cfg=base_config()) as robot:
+        # Made by real recognitions against a failing server, by an earlier run of the
+        # daemon: a refusal and two answers outside the candidates.
+        async with Daemon(robot, fast_config(fake.base_url), state) as d:
+            fake.script(Reply.error(403, "this key may not use fake-vlm"))
+            refused = await recognize(d)
+            fake.script(Reply(label="a_brick"), Reply(label="still_a_brick"))
+            invalid = await recognize(d)
         assert (refused["status"], invalid["status"]) == ("vlm_error", "invalid_answer")
-        await asyncio.sleep(0.3)  # longer than the retry period: not asked by the daemon
-        assert len(fake.chat_requests) == 3
+        async with Daemon(robot, fast_config(fake.base_url), state) as d:
+            await asyncio.sleep(0.3)  # longer than the retry period: not asked by itself
+            assert len(fake.chat_requests) == 3
 
-        # The route: the stored description and photo asked again, now answered.
-        status, ep = await d.post(f"/v1/episodes/{refused['id']}/retry", {})
-        assert status == 200 and ep["status"] == "done" and ep["label"] == OBJECT, ep
-        asked = fake.chat_requests[-1]
-        assert asked.description == refused["description"] and asked.candidates == FOOD
-        assert asked.images and asked.images[0][:2] == b"\xff\xd8"
-        # Refused in one line: a done episode, an unknown one.
-        status, body = await d.post(f"/v1/episodes/{refused['id']}/retry", {})
-        assert status == 409 and body["error"] == (
-            f"episode {refused['id']} is done: only vlm_error or invalid_answer episodes "
-            "are asked again")
-        status, body = await d.post("/v1/episodes/20990101T000000Z-deadbeef/retry", {})
-        assert status == 404
+            # The command, through the daemon (its own process, as a person runs it): the
+            # old vlm_error episode's stored description and photo asked again.
+            config = tmp_path / "robot.toml"
+            config.write_text(f'[runtime]\nstate_dir = "{state}"\n')
+            status, ep = await d.get(f"/v1/episodes/{refused['id']}")
+            assert ep["status"] == "vlm_error" and "HTTP 403" in ep["last_error"]
+            rc, out, err = await vt_edge("episodes", "--config", str(config), "retry",
+                                         refused["id"], "--url", d.url)
+            print(out, err[-300:])
+            assert rc == 0 and out.startswith(f"{refused['id']}  done") and OBJECT in out
+            ep = d.store.get(refused["id"])
+            assert ep.status == "done" and ep.label == OBJECT
+            assert ep.structured_output == "json_schema"
+            asked = fake.chat_requests[-1]
+            assert asked.description == refused["description"] and asked.candidates == FOOD
+            assert asked.images and asked.images[0][:2] == b"\xff\xd8"
+            # The route, as the command's --all-failed asks it: the invalid_answer one.
+            status, ep = await d.post(f"/v1/episodes/{invalid['id']}/retry", {})
+            assert status == 200 and ep["status"] == "done" and ep["label"] == OBJECT, ep
+            # Refused in one line: a done episode, an unknown one; nothing left to ask.
+            status, body = await d.post(f"/v1/episodes/{refused['id']}/retry", {})
+            assert status == 409 and body["error"] == (
+                f"episode {refused['id']} is done: only vlm_error or invalid_answer "
+                "episodes are asked again")
+            status, body = await d.post("/v1/episodes/20990101T000000Z-deadbeef/retry", {})
+            assert status == 404
+            rc, out, err = await vt_edge("episodes", "--config", str(config), "retry",
+                                         invalid["id"], "--url", d.url)
+            (line,) = [x for x in err.splitlines() if "ERROR" in x]
+            assert rc == 2 and line.endswith(f"episode {invalid['id']} is done: only "
+                                             "vlm_error or invalid_answer episodes are asked "
+                                             "again")
+            lines: list[str] = []
+            assert await asyncio.to_thread(run_retry, d.cfg, d.store, None, True, d.url,
+                                           lines.append) == 0
+            assert lines == ["no vlm_error or invalid_answer episodes to ask again"]
+            with pytest.raises(NotFoundError, match="no episode 'nope'"):
+                await asyncio.to_thread(run_retry, d.cfg, d.store, "nope", False, d.url)
+    url = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(EdgeError, match=f"no daemon answers at {url}"):
+        run_retry(d.cfg, d.store, invalid["id"], False, url)
 
-        # The command, through the daemon (a thread: the daemon runs on this loop).
-        config = tmp_path / "robot.toml"
-        config.write_text(f'[runtime]\nstate_dir = "{tmp_path / "state"}"\n')
-        lines: list[str] = []
-        rc = await asyncio.to_thread(run_retry, d.cfg, d.store, None, True, d.url,
-                                     lines.append)
-        print("\n".join(lines))
-        assert rc == 0 and len(lines) == 1
-        assert lines[0].startswith(f"{invalid['id']}  done") and OBJECT in lines[0]
-        assert d.store.get(invalid["id"]).status == "done"
-        rc = await asyncio.to_thread(cli_main, ["episodes", "--config", str(config), "retry",
-                                                "--all-failed", "--url", d.url])
-        assert rc == 0  # none left
-        with pytest.raises(StateError, match="is done: only vlm_error"):
-            await asyncio.to_thread(run_retry, d.cfg, d.store, invalid["id"], False, d.url)
-        with pytest.raises(NotFoundError, match="no episode 'nope'"):
-            await asyncio.to_thread(run_retry, d.cfg, d.store, "nope", False, d.url)
-        rc = await asyncio.to_thread(cli_main, ["episodes", "--config", str(config), "retry",
-                                                invalid["id"], "--url", d.url])
-        assert rc == 2
-    rc = cli_main(["episodes", "--config", str(config), "retry", invalid["id"],
-                   "--url", f"http://127.0.0.1:{free_port()}"])
-    assert rc == 2  # no daemon: said in one line
+
+async def vt_edge(*args: str) -> tuple[int, str, str]:
+    """``vt-edge ARGS`` in a process of its own: (exit status, stdout, stderr)."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "edge", *args, cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    return proc.returncode, out.decode(), err.decode()
 
 
 async def test_a_wrong_vlm_url_shows_on_healthz_and_metrics_until_it_answers(tmp_path):

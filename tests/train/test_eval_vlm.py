@@ -234,3 +234,30 @@ def test_cli_with_key_photos_limit_and_dry_run(released, work, tmp_path, capsys,
         assert len(fake.chat_requests) == 6  # refused before asking anything
     for path in out.iterdir():
         assert key not in path.read_bytes().decode("utf-8", "replace"), path
+
+
+@pytest.mark.asyncio
+async def test_a_server_refusing_response_format_is_asked_with_the_robots_fallback(
+        released, work, tmp_path):
+    """The robot's client, so its fallback: every question answered in free text by a server
+    refusing response_format; a question refused for another reason stops the run naming
+    the question and the server's reason."""
+    out = tmp_path / "ev"
+    async with FakeVLM(model=MODEL, choose=StandIn(), structured="none_only") as fake:
+        cfg = settings(released, work, out, fake.base_url, concurrency=1,
+                       conditions=("vision_only", "vq_top3"))
+        report = await eval_vlm.run(cfg, progress=False)
+        modes = {r["answer"]["structured_output"] for r in cache_lines(out)}
+        refusals = [r for r in fake.chat_requests if r.status == 400]
+        assert modes == {"none"} and len(cache_lines(out)) == len(CUBE) * PRESSES * 2
+        assert len(refusals) == 2 * 2  # json_schema, json_object: once per prompt mode
+        assert report["results"]["cube"]["vq_top3"]["valid"] == len(CUBE) * PRESSES
+        fake.script(Reply.error(400, "image too large for this model"))
+        with pytest.raises(EvalVLMError) as err:
+            await eval_vlm.run(settings(released, work, tmp_path / "ev2", fake.base_url,
+                                        concurrency=1, conditions=("vision_only",)),
+                               progress=False)
+    print(err.value)
+    assert str(err.value).startswith(
+        "stopped: cube/raw_kabocha_squash/raw_kabocha_squash_000.press.npz (vision_only): ")
+    assert "HTTP 400" in str(err.value) and "image too large for this model" in str(err.value)

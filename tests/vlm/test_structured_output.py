@@ -57,7 +57,7 @@ async def test_each_mode_sends_its_response_format(jpeg, mode, expected):
 
 
 @pytest.mark.asyncio
-@pytest.mark.parametrize("refusal", ["vllm", "tgi", "llamacpp_500", "lmstudio"])
+@pytest.mark.parametrize("refusal", ["vllm", "tgi", "llamacpp_500", "lmstudio", "ollama"])
 async def test_a_server_refusing_response_format_is_asked_in_free_text(jpeg, caplog, refusal):
     """(a) Refuses any response_format, in the words (and status) of a real server: the client
     steps down json_schema -> json_object -> none, logs each step once, keeps it."""
@@ -84,6 +84,8 @@ async def test_a_server_refusing_response_format_is_asked_in_free_text(jpeg, cap
         assert "json_schema" in warnings[0].getMessage()
         assert "json_object" in warnings[1].getMessage()
         assert f"HTTP {status}" in warnings[0].getMessage()
+        if refusal == "vllm":  # its message, not the whole error object
+            assert "HTTP 400: [{'type': 'extra_forbidden'" in warnings[0].getMessage()
         # A new client (as after SIGHUP) starts from the configured mode again.
         async with OpenAIVLM(vlm_config(fake.base_url)) as vlm:
             assert vlm.structured_output == "json_schema"

@@ -52,6 +52,7 @@ async function pollHealth() {
     if (!data.sensor_fresh) why.push(`tactile stream stale (last frame ${data.last_frame_age_s ?? "?"} s ago)`);
     if (data.bus_error) why.push(`bus: ${data.bus_error}`);
     if (data.store_error) why.push(`store: ${data.store_error}`);
+    if (data.vlm_error) why.push(data.vlm_error);
     $("health-detail").textContent = (why.join("; ") || "sensor fresh, bus and store fine") +
       ` · v${data.version}`;
     showState(data.state, data.episode);
