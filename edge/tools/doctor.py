@@ -215,8 +215,9 @@ def _port_problem(port: str) -> Check | None:
 
 
 def _by_id_name(port: str) -> str | None:
-    """The /dev/serial/by-id/ link to ``port`` when ``port`` is not one already."""
-    if not SERIAL_BY_ID.is_dir() or Path(port).parent == SERIAL_BY_ID:
+    """The /dev/serial/by-id/ link to ``port`` when ``port`` is the kernel's name
+    (``ttyUSBn``, given in plug order), not a stable link (by-id, a udev rule's alias)."""
+    if not SERIAL_BY_ID.is_dir() or Path(port).is_symlink():
         return None
     target = os.path.realpath(port)
     for link in sorted(SERIAL_BY_ID.iterdir()):

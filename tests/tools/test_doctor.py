@@ -235,6 +235,9 @@ def test_the_port_lines_explain_permissions_names_and_the_latency_timer(tmp_path
     assert missing.level is Level.FAIL and link.name in missing.found
     assert doctor_module._by_id_name(str(tty)) == str(link)
     assert doctor_module._by_id_name(str(link)) is None
+    alias = tmp_path / "ttyDXL"  # a udev rule's stable name
+    alias.symlink_to(tty)
+    assert doctor_module._by_id_name(str(alias)) is None
     # (Root may open anything: the refusal a lab user meets is simulated at os.access.)
     monkeypatch.setattr(doctor_module.os, "access", lambda path, mode: False)
     denied = doctor_module._port_problem(str(tty))
