@@ -194,8 +194,9 @@ def _port_problem(port: str) -> Check | None:
         seen = (f"{SERIAL_BY_ID}/ holds {', '.join(present)}" if present
                 else f"{SERIAL_BY_ID}/ lists no USB serial adapter")
         return fail("bus port", f"{port} does not exist ({seen})",
-                    "plug in the U2D2 and set bus.port to its /dev/serial/by-id/ path (stable "
-                    "across reboots and plug order)")
+                    "plug in the U2D2 and set bus.port to its /dev/serial/by-id/ path, or to "
+                    "/dev/ttyDXL after `vt-edge install-udev --install` (names stable across "
+                    "reboots and plug order)")
     if not os.access(path, os.R_OK | os.W_OK):
         st = path.stat()
         try:
