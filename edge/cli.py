@@ -68,6 +68,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.config)
 
 
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from edge.tools.doctor import main
+
+    return main(args.config, args.json)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from edge.daemon.serve import run
 
@@ -251,6 +257,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the main job: recognitions on the emulated robot")
     demo.add_argument("--config", default="configs/sim.toml")
     demo.set_defaults(func=_cmd_demo)
+
+    doc = sub.add_parser("doctor", help="check every part of the setup before the first "
+                         "press, without moving the arm (exit 1 on any FAIL)")
+    doc.add_argument("--config", required=True)
+    doc.add_argument("--json", action="store_true", help="the checks as JSON")
+    doc.set_defaults(func=_cmd_doctor)
 
     run = sub.add_parser("run", help="run the daemon")
     run.add_argument("--config", required=True)

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from edge.core.descriptions import check_description, tactile_words
-from edge.core.errors import DescriptionError
-from edge.core.model import load_model
+from edge.core.errors import DescriptionError, ModelError
+from edge.core.model import EMULATED_ORIGIN, Origin, load_model, model_ref
 from edge.sim import catalogue
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,3 +97,22 @@ def test_readme_takes_its_figures_from_the_generated_evaluation(model):
     descriptions = {c.description for c in model.database.classes}
     items = re.split(r", (?![^()]*\))", " ".join(example.group(1).split()))
     assert len(items) == 3 and all(item in descriptions for item in items), items
+
+
+def test_manifest_says_the_references_were_pressed_by_the_emulated_robot(model, tmp_path):
+    assert model.origin.kind == "emulated" and "emulated robot" in model.origin.recorder
+    manifest = json.loads((MODELS / "manifest.json").read_text())
+    # A release made before the key reads as emulated; a malformed one is refused by name.
+    del manifest["origin"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    assert model_ref(tmp_path).origin == EMULATED_ORIGIN
+    manifest["origin"] = {"kind": "robot", "recorder": "lab", "robot": "arm-3",
+                          "sensor": {"model": "XR1944", "serials": ["A1", "B2"]}}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    origin = model_ref(tmp_path).origin
+    assert origin == Origin("robot", "lab", "arm-3", "XR1944", ("A1", "B2"))
+    assert Origin.from_json(origin.to_json()) == origin
+    manifest["origin"] = {"kind": "real"}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ModelError, match=r"manifest\.json: origin kind must be"):
+        model_ref(tmp_path)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from edge.core.atomic import atomic_write_bytes
-from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder
+from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.prompt import MODES, PromptTemplate
 from edge.sim.catalogue import DATASETS
@@ -248,6 +248,9 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,
+        # The release always presses its references on the emulated robot; a lab's own
+        # database comes from its robot (`vt-edge collect`, `vt-train build`).
+        "origin": Origin("emulated", ref_index["recorder"]).to_json(),
         "versions": versions(),
     }
     manifest = write_manifest(out, sections,

@@ -60,6 +60,8 @@ INPUT_NAME = "x"
 OUTPUT_NAMES = ("z", "code")
 
 Space = Literal["z", "z_q"]
+# What pressed a database's references: the emulated robot, or a real one (its lab's own).
+OriginKind = Literal["emulated", "robot"]
 
 
 def sha256_bytes(data: bytes) -> str:
@@ -423,6 +425,66 @@ def synthetic_inputs(manifest: Mapping[str, Any], n: int = 64, steps: int = 25,
 # The model directory
 
 
+@dataclass(frozen=True)
+class Origin:
+    """Who pressed a model's reference database (the manifest's ``origin``).
+
+    A manifest without one is older than the key, and every such release was pressed by the
+    emulated robot: it reads as :data:`EMULATED_ORIGIN`.
+    """
+
+    kind: OriginKind
+    recorder: str
+    robot: str | None = None  # the robot's [robot]/host name
+    sensor_model: str | None = None
+    sensor_serials: tuple[str, ...] = ()
+
+    @property
+    def emulated(self) -> bool:
+        return self.kind == "emulated"
+
+    def to_json(self) -> dict[str, Any]:
+        sensor = None if self.sensor_model is None else {
+            "model": self.sensor_model, "serials": list(self.sensor_serials)}
+        return {"kind": self.kind, "recorder": self.recorder, "robot": self.robot,
+                "sensor": sensor}
+
+    @classmethod
+    def from_json(cls, raw: Any, where: str = MANIFEST) -> Origin:
+        """The ``origin`` object; :class:`ModelError` naming ``where`` if malformed."""
+        def bad(why: str) -> ModelError:
+            return ModelError(f"{where}: origin {why}")
+
+        if not isinstance(raw, dict):
+            raise bad(f"must be an object, got {type(raw).__name__}")
+        kind = raw.get("kind")
+        if kind not in ("emulated", "robot"):
+            raise bad(f"kind must be 'emulated' or 'robot', got {kind!r:.40}")
+        recorder = raw.get("recorder", "")
+        robot = raw.get("robot")
+        if not isinstance(recorder, str) or not (robot is None or isinstance(robot, str)):
+            raise bad("recorder must be a string and robot a string or null")
+        sensor = raw.get("sensor")
+        if sensor is None:
+            return cls(kind, recorder, robot)
+        serials = sensor.get("serials", []) if isinstance(sensor, dict) else None
+        if (not isinstance(sensor, dict) or not isinstance(sensor.get("model"), str)
+                or not isinstance(serials, list)
+                or not all(isinstance(s, str) for s in serials)):
+            raise bad('sensor must be null or {"model": str, "serials": [str, ...]}')
+        return cls(kind, recorder, robot, sensor["model"], tuple(serials))
+
+
+EMULATED_ORIGIN = Origin("emulated", "the emulated robot (a release older than the manifest's "
+                         "origin)")
+
+
+def manifest_origin(manifest: Mapping[str, Any]) -> Origin:
+    """The manifest's ``origin``; :data:`EMULATED_ORIGIN` when it has none."""
+    raw = manifest.get("origin")
+    return EMULATED_ORIGIN if raw is None else Origin.from_json(raw)
+
+
 @dataclass(frozen=True, eq=False)
 class Model:
     """A verified model directory: the encoder plus the reference database."""
@@ -457,6 +519,11 @@ class Model:
     def labels(self) -> list[str]:
         return self.database.labels
 
+    @property
+    def origin(self) -> Origin:
+        """Who pressed the reference database (checked when the manifest was read)."""
+        return manifest_origin(self.manifest)
+
     @functools.cached_property
     def digest(self) -> str:
         return manifest_digest(self.manifest)
@@ -472,6 +539,8 @@ class ModelRef:
     # Where the model's input is cut around the stop (the manifest's encoder.window): the
     # press records around it and the analysis crops it.
     window: WindowSpec = DEFAULT_WINDOW
+    # Who pressed the reference database (the manifest's origin).
+    origin: Origin = EMULATED_ORIGIN
 
 
 def manifest_digest(manifest: Mapping[str, Any]) -> str:
@@ -484,7 +553,8 @@ def model_ref(models_dir: str | Path) -> ModelRef:
     the model is loaded)."""
     directory = Path(models_dir).resolve()  # absolute: errors and logs say where
     manifest = read_manifest(directory)
-    return ModelRef(directory, manifest_digest(manifest), _window(manifest))
+    return ModelRef(directory, manifest_digest(manifest), _window(manifest),
+                    manifest_origin(manifest))
 
 
 def _read(path: Path) -> bytes:
@@ -522,6 +592,8 @@ def read_manifest(directory: str | Path) -> dict[str, Any]:
     missing = [name for name in REQUIRED_FILES if name not in files]
     if missing:
         raise ModelError(f"{path}: does not list {', '.join(missing)}")
+    if manifest.get("origin") is not None:
+        Origin.from_json(manifest["origin"], str(path))
     return manifest
 
 

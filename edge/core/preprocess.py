@@ -83,6 +83,19 @@ def norm(units: np.ndarray) -> np.ndarray | float:
     return np.linalg.norm(units, axis=-1)
 
 
+def tared_norms(times: np.ndarray, raw: np.ndarray, tare_s: float) -> np.ndarray:
+    """The norm a press compares with x_th, frame by frame: tared over the first ``tare_s``
+    of the frames as the press tares, the frames after it in tactile units. On idle frames:
+    the pads' noise as the press sees it."""
+    times = np.asarray(times, dtype=np.float64)
+    raw = np.asarray(raw)
+    tared = times < times[0] + tare_s
+    if tared.all():
+        raise PreprocessError(f"{times.shape[0]} frames over {times[-1] - times[0]:.2f} s: "
+                              f"none left after a {tare_s} s tare")
+    return np.asarray(norm(to_units(raw[~tared], tare(raw[tared]))))
+
+
 def resample(times: np.ndarray, values: np.ndarray, grid: np.ndarray,
              method: Literal["linear", "hold"] = "linear") -> np.ndarray:
     """Values of an irregular stream at ``grid`` times.

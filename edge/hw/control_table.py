@@ -209,6 +209,8 @@ RAW_PER_S_PER_VELOCITY_UNIT = VELOCITY_RPM_PER_UNIT * RAW_PER_REV / 60.0
 # Raw counts per second squared for one Profile Acceleration unit (214.577 rev/min^2).
 RAW_PER_S2_PER_ACCELERATION_UNIT = ACCELERATION_RPM2_PER_UNIT * RAW_PER_REV / 3600.0
 BUS_WATCHDOG_UNIT_S = 0.020
+# The oldest XM430 firmware with every register the driver uses (Bus Watchdog came with 38).
+MIN_FIRMWARE = 38
 RETURN_DELAY_UNIT_S = 2e-6
 
 # Drive Mode bits.

@@ -123,6 +123,21 @@ _STATE_START = PRESENT_CURRENT.address
 _STATE_LENGTH = PRESENT_POSITION.end - _STATE_START
 
 
+def latency_timer_path(port: str, timer_dir: Path = LATENCY_TIMER_DIR) -> Path:
+    """Where the kernel shows the USB latency timer of serial ``port`` (by-id links
+    followed)."""
+    return timer_dir / Path(os.path.realpath(port)).name / "latency_timer"
+
+
+def read_latency_timer(path: Path) -> int | None:
+    """The latency timer in ms; None when there is none (not a USB serial adapter). Raises
+    OSError or ValueError when it cannot be read."""
+    try:
+        return int(path.read_text().strip())
+    except FileNotFoundError:
+        return None
+
+
 class BlockingPortHandler(sdk.PortHandler):
     """A ``PortHandler`` whose reads block in ``select()`` instead of spinning.
 
@@ -345,6 +360,8 @@ class DynamixelBus:
         self._last_op_end = 0.0
         self._motors: dict[int, MotorInfo] = {}
         self._torque_on = False
+        # Opened with connect(configure=False): nothing is ever written to a motor.
+        self._read_only = False
         self._feed_task: asyncio.Task[None] | None = None
         self._last_traffic = 0.0
         self.last_state: BusState | None = None
@@ -411,7 +428,7 @@ class DynamixelBus:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-    async def connect(self) -> Mapping[int, MotorInfo]:
+    async def connect(self, *, configure: bool = True) -> Mapping[int, MotorInfo]:
         """Open the port, find every motor and configure it; torque stays off.
 
         Pings every ID (a missing one raises :class:`MotorError` naming it), reads model and
@@ -419,9 +436,14 @@ class DynamixelBus:
         time-based profile bit, the gripper the velocity-based one), sets Operating Mode (3
         for joints, 5 for the gripper) and Return Delay Time 0 with torque off, sets the
         gripper's Goal Current, and checks the USB latency timer.
+
+        ``configure=False`` (``vt-edge doctor``) only opens the port and checks the latency
+        timer: the bus is then read-only (:meth:`ping`, :meth:`read`); every write is refused
+        and :meth:`close` leaves the motors as they were.
         """
         if self._thread is not None:
             raise DeviceError(f"Dynamixel bus on {self._config.port} is already connected")
+        self._read_only = not configure
         self._thread_exit = False
         self._accepting = True
         self._wake_fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
@@ -444,6 +466,9 @@ class DynamixelBus:
         """
         if self._thread is None:
             return
+        if self._read_only:
+            await self._shutdown_thread()
+            return
         try:
             if self._torque_on and safe_pose is not None:
                 try:
@@ -458,6 +483,15 @@ class DynamixelBus:
             await self._shutdown_thread()
 
     # ---------------------------------------------------------------- operations
+
+    async def ping(self, motor_id: int) -> int:
+        """Ping one motor; its model number, or :class:`MotorError` naming it."""
+        return await self._call(f"ping {motor_id}", lambda: self._ping_sync(motor_id))
+
+    async def scan(self) -> dict[int, int]:
+        """Every motor that answers a broadcast ping: ID -> model number. Slow (the SDK
+        waits out the replies of all 253 IDs: about 0.8 s at 1 Mbps)."""
+        return await self._call("broadcast ping", self._scan_sync)
 
     async def read(self, motor_id: int, name: str) -> int:
         """One register of one motor (sign applied)."""
@@ -753,6 +787,7 @@ class DynamixelBus:
         return reg.from_unsigned(raw)
 
     def _write(self, motor_id: int, reg: Register, value: int) -> None:
+        self._refuse_if_read_only(f"motor {motor_id}: write {reg.name}")
         write = {1: self._ph.write1ByteTxRx, 2: self._ph.write2ByteTxRx,
                  4: self._ph.write4ByteTxRx}[reg.size]
         with self._expect(0):
@@ -772,6 +807,7 @@ class DynamixelBus:
         self._check(motor_id, f"write {reg.name} = {value}", result, error)
 
     def _sync_write(self, reg: Register, values: Mapping[int, int]) -> None:
+        self._refuse_if_read_only(f"sync write {reg.name}")
         param: list[int] = []
         for motor_id, value in values.items():
             param += [motor_id, *reg.encode(value)]
@@ -844,25 +880,19 @@ class DynamixelBus:
         if isinstance(port, BlockingPortHandler):
             port.on_write = self._written
         self._check_latency_timer(port)
+        if self._read_only:
+            return {}
 
         models: dict[int, int] = {}
         missing: list[tuple[int, str]] = []
         for motor_id in self._ids:
-            for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
-                model, result, error = self._ph.ping(port, motor_id)
-                if result == sdk.COMM_SUCCESS:
-                    break
-                port.clearPort()
-            if result != sdk.COMM_SUCCESS:
-                missing.append((motor_id, self._ph.getTxRxResult(result)))
-                continue
-            self._check(motor_id, "ping", result, error)
-            models[motor_id] = model
+            model, why = self._ping_once(motor_id)
+            if model is None:
+                missing.append((motor_id, why))
+            else:
+                models[motor_id] = model
         if missing:
-            names = ", ".join(str(i) for i, _ in missing)
-            raise MotorError(
-                f"motor {names} did not answer a ping on {cfg.port} at {cfg.baudrate} bps: "
-                f"{missing[0][1]} (check power, cabling, ID and baud rate)", missing[0][0])
+            raise self._no_answer([i for i, _ in missing], missing[0][1])
 
         infos = {}
         for motor_id in self._ids:
@@ -925,15 +955,14 @@ class DynamixelBus:
                              motor_id)
 
     def _check_latency_timer(self, port: sdk.PortHandler) -> None:
-        tty = Path(os.path.realpath(self._config.port)).name
-        path = self._latency_timer_dir / tty / "latency_timer"
+        path = latency_timer_path(self._config.port, self._latency_timer_dir)
         try:
-            value = int(path.read_text().strip())
-        except FileNotFoundError:
-            _log.debug("no USB latency timer at %s (not a USB serial adapter)", path)
-            return
+            value = read_latency_timer(path)
         except (OSError, ValueError) as exc:
             _log.warning("cannot read the USB latency timer %s: %s", path, exc)
+            return
+        if value is None:
+            _log.debug("no USB latency timer at %s (not a USB serial adapter)", path)
             return
         if isinstance(port, BlockingPortHandler):
             port.latency_timer_ms = float(value)
@@ -943,6 +972,38 @@ class DynamixelBus:
                 "to 1 now with `echo 1 | sudo tee %s`, and for good with the udev rule %s in "
                 "/etc/udev/rules.d/99-dynamixel.rules", self._config.port, value, value, path,
                 LATENCY_TIMER_UDEV_RULE)
+
+    def _refuse_if_read_only(self, what: str) -> None:
+        if self._read_only:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is open read-only: "
+                              f"{what} refused")
+
+    def _ping_once(self, motor_id: int) -> tuple[int | None, str]:
+        """(model number, "") or (None, why there was no answer)."""
+        for _ in range(READ_ATTEMPTS):  # one lost reply is not a missing motor
+            model, result, error = self._ph.ping(self._port, motor_id)
+            if result == sdk.COMM_SUCCESS:
+                self._check(motor_id, "ping", result, error)
+                return model, ""
+            self._port.clearPort()
+        return None, self._ph.getTxRxResult(result)
+
+    def _no_answer(self, ids: list[int], why: str) -> MotorError:
+        cfg = self._config
+        return MotorError(
+            f"motor {', '.join(map(str, ids))} did not answer a ping on {cfg.port} at "
+            f"{cfg.baudrate} bps: {why} (check power, cabling, ID and baud rate)", ids[0])
+
+    def _ping_sync(self, motor_id: int) -> int:
+        model, why = self._ping_once(motor_id)
+        if model is None:
+            raise self._no_answer([motor_id], why)
+        return model
+
+    def _scan_sync(self) -> dict[int, int]:
+        found, _ = self._ph.broadcastPing(self._port)
+        self._port.clearPort()
+        return {motor_id: model for motor_id, (model, _firmware) in sorted(found.items())}
 
     def _torque_on_sync(self) -> None:
         state = self._read_state_sync()

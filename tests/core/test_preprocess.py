@@ -98,3 +98,15 @@ def test_target_needs_the_filters_reach_beyond_the_window():
     preprocess.crop(times, units, t_stop)  # the input itself is fine
     with pytest.raises(PreprocessError, match=r"12 samples \(96 ms\) of stream beyond"):
         preprocess.training_pairs(times, units, t_stop)
+
+
+def test_tared_norms_tare_the_first_frames_as_the_press_does():
+    times = np.arange(10) * 0.1
+    raw = np.full((10, 96), 30000, dtype=np.uint16)
+    raw[3:, 0] += 262  # one channel 262 counts up after the tare: 0.004 tactile units
+    raw[:3, 1] = [29990, 30000, 30010]  # tared to its mean: no change after
+    norms = preprocess.tared_norms(times, raw, 0.25)
+    np.testing.assert_allclose(norms, 262 / 65536, rtol=1e-6)
+    assert norms.shape == (7,)
+    with pytest.raises(PreprocessError, match=r"none left after a 1.0 s tare"):
+        preprocess.tared_norms(times, raw, 1.0)

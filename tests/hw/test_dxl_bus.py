@@ -96,6 +96,31 @@ async def test_missing_motor_is_named(emu):
 
 
 @pytest.mark.asyncio
+async def test_read_only_bus_pings_reads_and_writes_nothing(emu):
+    """What vt-edge doctor opens: the factory settings stay, and a write is refused."""
+    emu.set_missing(13)
+    bus = DynamixelBus(BusConfig(port=emu.port))
+    assert await bus.connect(configure=False) == {}
+    try:
+        assert await bus.ping(11) == 1020
+        assert await bus.read(15, "Firmware Version") == 48
+        with pytest.raises(MotorError, match="motor 13 did not answer a ping"):
+            await bus.ping(13)
+        assert await bus.scan() == {11: 1020, 12: 1020, 14: 1020, 15: 1020}
+        emu.set_missing(13, False)
+        with pytest.raises(DeviceError, match="read-only: motor 11: write Torque Enable"):
+            await bus.write(11, "Torque Enable", 1)
+        with pytest.raises(DeviceError, match="read-only: sync write Goal Position"):
+            await bus.set_torque(True)
+    finally:
+        await bus.close()
+    for i in IDS:
+        assert emu.get_register(i, "Return Delay Time") == 250  # not configured
+        assert emu.get_register(i, "Torque Enable") == 0
+    assert emu.get_register(15, "Operating Mode") == 3 and not bus.torque_on
+
+
+@pytest.mark.asyncio
 async def test_unopenable_port_is_a_device_error(tmp_path):
     with pytest.raises(DeviceError, match="cannot open Dynamixel port"):
         await DynamixelBus(BusConfig(port=str(tmp_path / "ttyUSB9"))).connect()

@@ -39,6 +39,8 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert manifest["database"]["offsets"] == [0, 1, 2, 3, 4]
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     assert {"torch", "onnxruntime", "vtzero"} <= set(manifest["versions"])
+    assert manifest["origin"] == {"kind": "emulated", "robot": None, "sensor": None,
+                                  "recorder": manifest["training"]["dataset"]["recorder"]}
     report = json.loads((released / "eval" / "eval.json").read_text())
     assert len(report["rows"]) == 6
     assert report["references"] == 32 * PRESSES * 5 and report["query_offset"] == 0

@@ -1,0 +1,285 @@
+"""``vt-edge doctor`` on the emulated robot: a good setup is all OK; each wrong setting gives
+the line that names its cause and fix, and only that line; nothing moves.
+
+One emulated robot and the fake VLM servers run for the whole module on an event loop of their
+own in a thread; each case runs the doctor (real drivers: the bus over the robot's pty, the
+pads over loopback WebSocket) on the test's thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edge.cli import build_parser
+from edge.core import tomledit
+from edge.core.config import Config
+from edge.core.model import Origin
+from edge.sim.fake_vlm import FakeVLM
+from edge.sim.robot import SimRobot
+from edge.sim.xela_server import encode_frame
+from edge.tools import doctor as doctor_module
+from edge.tools.doctor import Level, Report, run_doctor
+from tests.support.daemon import ROOT, base_config
+from tests.support.waits import free_port
+
+# Long enough for a tare and a few dozen idle frames; the CLI case runs the shipped 2 s.
+TEST_NOISE_WINDOW_S = 0.3
+TEST_TARE_S = 0.1
+MODEL = "fake-vlm"
+
+
+@dataclass
+class Lab:
+    robot: SimRobot
+    vlm: FakeVLM
+    # Refuses response_format json_schema with a 400, as older Ollama and llama.cpp do.
+    refusing: FakeVLM
+    # Wants a key (vLLM started with --api-key).
+    keyed: FakeVLM
+    call: Callable
+
+
+@pytest.fixture(scope="module")
+def lab() -> Iterator[Lab]:
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_forever, name="emulated-lab", daemon=True)
+    thread.start()
+
+    def call(coro, timeout_s: float = 30.0):
+        return asyncio.run_coroutine_threadsafe(coro, loop).result(timeout_s)
+
+    robot = SimRobot("stainless_cube", seed=5, cfg=base_config())
+    vlm = FakeVLM(model=MODEL)
+    refusing = FakeVLM(model=MODEL, structured="json_object_only")
+    keyed = FakeVLM(model=MODEL, api_key="lab-secret-key-0123")
+    servers = (robot, vlm, refusing, keyed)
+    for server in servers:
+        call(server.start())
+    try:
+        yield Lab(robot, vlm, refusing, keyed, call)
+    finally:
+        for server in reversed(servers):
+            call(server.stop())
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(10)
+        loop.close()
+
+
+def good_config(lab: Lab, state: Path) -> Config:
+    cfg = lab.robot.runtime_config(base_config(lab.vlm.base_url))
+    return replace(cfg, press=replace(cfg.press, tare_s=TEST_TARE_S),
+                   runtime=replace(cfg.runtime, state_dir=str(state)))
+
+
+def doctor(cfg: Config) -> Report:
+    return asyncio.run(run_doctor(cfg, noise_window_s=TEST_NOISE_WINDOW_S))
+
+
+def not_ok(report: Report) -> dict[str, Level]:
+    return {c.part: c.level for c in report.checks if c.level is not Level.OK}
+
+
+def line(report: Report, part: str) -> str:
+    (check,) = [c for c in report.checks if c.part == part]
+    return f"{check.found} -> {check.fix}"
+
+
+def sub(cfg: Config, section: str, **changes) -> Config:
+    return replace(cfg, **{section: replace(getattr(cfg, section), **changes)})
+
+
+def _not_a_dir(cfg: Config, lab: Lab) -> Config:
+    blocker = Path(cfg.runtime.state_dir).parent / "a-file"
+    blocker.write_text("")
+    return sub(cfg, "runtime", state_dir=str(blocker / "state"))
+
+
+# (id, the wrong setting, {part: level} of every line that is not OK, what the line says)
+CASES = [
+    ("port missing", lambda c, lab: sub(c, "bus", port="/dev/vtzero-no-such-port"),
+     {"bus port": Level.FAIL}, ["/dev/vtzero-no-such-port does not exist", "/dev/serial/by-id"]),
+    ("port not a serial device", lambda c, lab: sub(c, "bus", port=str(ROOT / "README.md")),
+     {"bus port": Level.FAIL}, ["cannot open Dynamixel port", "bus.port"]),
+    ("wrong motor ID", lambda c, lab: sub(c, "bus", joint_ids=(11, 12, 13, 17)),
+     {"motor 17": Level.FAIL, "bus scan": Level.FAIL},
+     ["motor 17 did not answer a ping", "bus.joint_ids"]),
+    ("xela_server down", lambda c, lab: sub(c, "sensor", url=f"ws://127.0.0.1:{free_port()}/"),
+     {"xela server": Level.FAIL}, ["cannot connect to ws://127.0.0.1:", "start xela_server"]),
+    ("wrong taxel count", lambda c, lab: sub(c, "sensor", taxels_per_pad=24),
+     {"xela layout": Level.FAIL},
+     ["configured 2 x XR1944 (24 taxels each)", "XR1944 x 16 taxels",
+      "set sensor.taxels_per_pad = 16"]),
+    ("wrong sensor model", lambda c, lab: sub(c, "sensor", model="XR1946"),
+     {"xela layout": Level.FAIL},
+     ["configured 2 x XR1946 (16 taxels each)", "set sensor.model = 'XR1944'"]),
+    ("camera command failing",
+     lambda c, lab: sub(c, "camera", kind="command", command="vtzero-no-camera -o {out}"),
+     {"camera": Level.FAIL},
+     ["vtzero-no-camera", "cannot start", "'vision_tactile' needs a photo", "camera.command"]),
+    ("camera failing, no photo needed",
+     lambda c, lab: sub(sub(c, "camera", kind="command", command="vtzero-no-camera -o {out}"),
+                        "vlm", mode="tactile_only"),
+     {"camera": Level.WARN}, ["vtzero-no-camera", "cannot start", "camera.command"]),
+    ("VLM URL unreachable",
+     lambda c, lab: sub(c, "vlm", base_url=f"http://127.0.0.1:{free_port()}/v1"),
+     {"vlm server": Level.FAIL}, ["http://127.0.0.1:", "start the server", "vlm.base_url"]),
+    ("VLM key missing", lambda c, lab: sub(c, "vlm", base_url=lab.keyed.base_url),
+     {"vlm key": Level.FAIL},
+     ["refuses a request without a key", "HTTP 401", "$VTZERO_VLM_API_KEY"]),
+    ("wrong VLM model name", lambda c, lab: sub(c, "vlm", model="llava:13b"),
+     {"vlm server": Level.FAIL}, ["does not serve 'llava:13b'", MODEL, "set vlm.model"]),
+    ("VLM refusing json_schema", lambda c, lab: sub(c, "vlm", base_url=lab.refusing.base_url),
+     {"vlm probe": Level.WARN},
+     ["structured output 'json_object'", "json_schema", "vlm.structured_output = 'json_object'"]),
+    ("threshold inside the idle noise", lambda c, lab: sub(c, "press", x_th=0.0001),
+     {"idle noise": Level.FAIL},
+     ["press.x_th = 0.0001", "inside the noise", "raise press.x_th above 0.00"]),
+    ("emulated database on a robot", lambda c, lab: replace(c, mode="robot"),
+     {"references": Level.WARN}, ["pressed by the emulated robot", "vt-edge collect"]),
+    ("API exposed without a token", lambda c, lab: sub(c, "api", host="0.0.0.0"),
+     {"api": Level.FAIL}, ["exposes the API beyond this machine", "api.token_file"]),
+    ("MQTT broker unreachable",
+     lambda c, lab: sub(c, "mqtt", enabled=True, port=free_port(), connect_timeout_s=1.0),
+     {"mqtt": Level.FAIL}, ["Connection refused", "start the broker"]),
+    ("state dir not a directory", _not_a_dir,
+     {"state dir": Level.FAIL}, ["a-file is not a directory", "runtime.state_dir"]),
+]
+
+
+def test_a_good_setup_is_all_ok_and_nothing_moves(lab, tmp_path, capsys):
+    """The CLI as a lab runs it (the shipped 2 s noise window), on a config file."""
+    path = tmp_path / "robot.toml"
+    cfg = good_config(lab, tmp_path / "state")
+    tomledit.update(ROOT / "configs/sim.toml", path, {
+        "sensor": {"url": cfg.sensor.url}, "bus": {"port": cfg.bus.port},
+        "camera": {"kind": "http", "url": cfg.camera.url},
+        "runtime": {"models_dir": str(ROOT / "models"), "state_dir": str(tmp_path / "state")},
+        "vlm": {"base_url": lab.vlm.base_url, "model": MODEL}})
+    before = {i: lab.robot.dxl.get_register(i, "Goal Position") for i in range(11, 16)}
+    started = time.monotonic()
+    # The command as the CLI parses it (not main(): its logging set-up would outlive the test).
+    args = build_parser().parse_args(["doctor", "--config", str(path), "--json"])
+    assert args.func(args) == 0
+    elapsed = time.monotonic() - started
+    out = json.loads(capsys.readouterr().out)
+    print(f"doctor on a good setup: {elapsed:.2f} s")
+    assert out["ok"] and out["counts"]["WARN"] == out["counts"]["FAIL"] == 0
+    parts = [c["part"] for c in out["checks"]]
+    assert all(c["level"] == "OK" for c in out["checks"]), out["checks"]
+    assert {"bus port", "bus latency", "motor 11", "motor 15", "xela server", "xela layout",
+            "xela rate", "idle noise", "camera", "vlm server", "vlm key", "vlm probe", "model",
+            "references", "state dir", "api", "mqtt"} <= set(parts)
+    checks = {c["part"]: c for c in out["checks"]}
+    noise = checks["idle noise"]["data"]
+    # 2 s at 125 frames/s; fewer where the loaded host delays the emulator's ticks.
+    assert noise["frames"] > 100 and 0 < noise["p999"] < noise["x_th"] / 2, noise
+    assert 62.5 <= checks["xela rate"]["data"]["rate_hz"] < 150
+    assert checks["vlm probe"]["data"]["structured_output"] == "json_schema"
+    photo = Path(checks["camera"]["data"]["path"])
+    assert photo.read_bytes()[:2] == b"\xff\xd8" and checks["camera"]["data"]["width"] == 320
+    assert checks["references"]["data"]["origin"]["kind"] == "emulated"
+    # Read-only: no goal written, torque never on.
+    assert {i: lab.robot.dxl.get_register(i, "Goal Position") for i in range(11, 16)} == before
+    assert all(lab.robot.dxl.get_register(i, "Torque Enable") == 0 for i in range(11, 16))
+    assert elapsed < 15
+
+
+@pytest.mark.parametrize(("setting", "wrong", "expected", "says"), CASES,
+                         ids=[c[0] for c in CASES])
+def test_each_wrong_setting_names_its_cause_and_fix(lab, tmp_path, setting, wrong, expected,
+                                                     says):
+    cfg = wrong(good_config(lab, tmp_path / "state"), lab)
+    report = doctor(cfg)
+    assert not_ok(report) == expected, report.table()
+    (part,) = [p for p, level in expected.items() if level is Level.FAIL][:1] or list(expected)
+    text = line(report, part)
+    for words in says:
+        assert words in text, f"{setting}: {words!r} not in {text!r}"
+    assert report.failed == (Level.FAIL in expected.values())
+    assert all(c.fix for c in report.checks if c.level is not Level.OK)
+
+
+def test_a_motor_in_alarm_fails_and_the_table_says_what_to_do(lab, tmp_path):
+    lab.robot.dxl.set_hardware_error(12, 0x20)
+    try:
+        report = doctor(good_config(lab, tmp_path / "state"))
+    finally:
+        lab.robot.dxl.set_hardware_error(12, 0)
+    assert not_ok(report) == {"motor 12": Level.FAIL}
+    assert "overload" in line(report, "motor 12") and "power-cycle" in line(report, "motor 12")
+    table = report.table().splitlines()
+    assert any(row.startswith("FAIL  motor 12") and " -> remove the cause" in row
+               for row in table)
+    assert table[-1].startswith(f"{len(report.checks) - 1} OK, 0 WARN, 1 FAIL")
+
+
+def test_the_port_lines_explain_permissions_names_and_the_latency_timer(tmp_path, monkeypatch):
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    tty = tmp_path / "ttyUSB0"
+    tty.write_text("")
+    link = by_id / "usb-FTDI_USB__-__Serial_Converter_FT1234-if00-port0"
+    link.symlink_to(tty)
+    monkeypatch.setattr(doctor_module, "SERIAL_BY_ID", by_id)
+    missing = doctor_module._port_problem(str(tmp_path / "ttyUSB1"))
+    assert missing.level is Level.FAIL and link.name in missing.found
+    assert doctor_module._by_id_name(str(tty)) == str(link)
+    assert doctor_module._by_id_name(str(link)) is None
+    alias = tmp_path / "ttyDXL"  # a udev rule's stable name
+    alias.symlink_to(tty)
+    assert doctor_module._by_id_name(str(alias)) is None
+    # (Root may open anything: the refusal a lab user meets is simulated at os.access.)
+    monkeypatch.setattr(doctor_module.os, "access", lambda path, mode: False)
+    denied = doctor_module._port_problem(str(tty))
+    assert denied.level is Level.FAIL and "permission denied" in denied.found
+    assert "usermod -aG" in denied.fix or "udev rule" in denied.fix
+
+    timers = tmp_path / "usb-serial"
+    (timers / "ttyUSB0").mkdir(parents=True)
+    (timers / "ttyUSB0" / "latency_timer").write_text("16\n")
+    slow = doctor_module._check_latency(str(link), timers)
+    assert slow.level is Level.WARN and "16 ms" in slow.found
+    assert "echo 1 | sudo tee" in slow.fix and 'ATTR{latency_timer}="1"' in slow.fix
+    (timers / "ttyUSB0" / "latency_timer").write_text("1\n")
+    assert doctor_module._check_latency(str(tty), timers).level is Level.OK
+    assert doctor_module._check_latency("/dev/pts/0", timers).found.startswith("not a USB")
+
+
+def test_a_lab_database_is_ok_on_its_robot_and_warned_with_other_pads(tmp_path):
+    models = tmp_path / "models"
+    shutil.copytree(ROOT / "models", models, ignore=shutil.ignore_patterns("eval"))
+    manifest = json.loads((models / "manifest.json").read_text())
+    manifest["origin"] = Origin("robot", "the lab's own presses (vt-edge collect)", "arm-3",
+                                "XR1944", ("S1", "S2")).to_json()
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    cfg = Config(mode="robot")
+    cfg = sub(cfg, "runtime", models_dir=str(models))
+    model, refs = doctor_module._check_model(cfg)
+    assert model.level is Level.OK and "every file verified" in model.found
+    assert refs.level is Level.OK and "pressed by a real robot (arm-3)" in refs.found
+    _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
+    assert refs.level is Level.WARN and "XR1944" in refs.found and "uSPa46" in refs.fix
+    (models / "database.npz").write_bytes(b"damaged")
+    (broken,) = doctor_module._check_model(cfg)
+    assert broken.level is Level.FAIL and "database.npz: sha256" in broken.found
+
+
+@pytest.mark.parametrize(("dialect", "says"), [
+    ("1.8", "xela_server 1.8.0-vtzero-emulator"), ("1.7.7", "xela_server 1.7.7 (data as ints)"),
+    ("1.7", "xela_server 1.7 (data as hex)")])
+def test_the_server_version_is_told_from_its_frames(dialect, says):
+    raw = np.full(96, 30000, dtype=np.uint16)
+    frame = json.loads(encode_frame(7, 1.0, raw, dialect=dialect))
+    assert doctor_module._dialect(frame) == says
+    real = json.loads((ROOT / "tests/fixtures/xela/v1.8_uSPa46_two_sensors.json").read_text())
+    assert doctor_module._dialect(real) == "xela_server 1.8.0b_208601"
