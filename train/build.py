@@ -38,7 +38,7 @@ import numpy as np
 
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import ModelError, RecordingError
-from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder
+from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.tools.record import DATASET_INDEX
 from train import database, evaluate
 from train.data import PressSet, Splits, load_presses, training_data_of
@@ -60,7 +60,6 @@ SHIPPED_PROMPTS = Path(__file__).resolve().parents[1] / "models" / PROMPTS_DIR
 VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}}
 # Checkpoint directories under training/, as release names them (vt-train table1 --beta/--zeros).
 VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros"}
-ORIGIN_KINDS = ("emulated", "robot")
 
 
 @dataclass(frozen=True)
@@ -100,23 +99,6 @@ class Dataset:
     sha256: str  # of dataset.json and every press file
 
 
-def check_origin(origin: Any, where: str) -> dict[str, Any]:
-    """The contract's origin: kind, recorder, robot, sensor; refused by field otherwise."""
-    if not isinstance(origin, dict):
-        raise RecordingError(f"{where}: 'origin' must be an object with kind, recorder, robot "
-                             "and sensor")
-    if origin.get("kind") not in ORIGIN_KINDS:
-        raise RecordingError(f"{where}: origin.kind is {origin.get('kind')!r}; expected one "
-                             f"of {', '.join(ORIGIN_KINDS)}")
-    sensor = origin.get("sensor")
-    if sensor is not None and not (isinstance(sensor, dict) and isinstance(
-            sensor.get("model"), str) and isinstance(sensor.get("serials", []), list)):
-        raise RecordingError(f"{where}: origin.sensor must be null or "
-                             "{'model': str, 'serials': [str, ...]}")
-    return {"kind": origin["kind"], "recorder": origin.get("recorder"),
-            "robot": origin.get("robot"), "sensor": sensor}
-
-
 def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
     """Read and check a collected dataset directory; refuse mixed thresholds or origins within
     a class, naming the class and its presses."""
@@ -130,7 +112,11 @@ def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
     except json.JSONDecodeError as exc:
         raise RecordingError(f"{path}: not valid JSON: {exc}") from None
     if "origin" in index:
-        origin = check_origin(index["origin"], str(path))
+        # The manifest's own reader: one definition of a well-formed origin.
+        try:
+            origin = Origin.from_json(index["origin"], str(path)).to_json()
+        except ModelError as exc:
+            raise RecordingError(str(exc)) from None
     else:  # the simulated recorder's datasets say who pressed, not where
         log.warning("%s has no 'origin': taken as pressed by the emulated robot", path)
         origin = {"kind": "emulated", "recorder": index.get("recorder"), "robot": None,

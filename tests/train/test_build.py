@@ -149,7 +149,8 @@ def test_mixed_thresholds_or_origins_within_a_class_are_refused_by_name(lab_food
     index = json.loads((data / "dataset.json").read_text())
     index["origin"]["kind"] = "real"
     (data / "dataset.json").write_text(json.dumps(index))
-    with pytest.raises(RecordingError, match=r"origin\.kind is 'real'"):
+    with pytest.raises(RecordingError,
+                       match=r"origin kind must be 'emulated' or 'robot', got 'real'"):
         build(quick(data, tmp_path / "m"), Progress(enabled=False))
 
 
