@@ -13,7 +13,9 @@ Each segment (``vtzero-YYYYmmddTHHMMSSZ.mcap``, one per ``record_mcap_segment_s`
 to ``.NAME.tmp`` and renamed when complete, so a complete ``.mcap`` is always a whole file; a
 ``.tmp`` left by a crash holds the chunks written so far (``mcap recover`` repairs it).
 Topics and clock: :mod:`edge.daemon.mcaplog` (``/tactile/raw``, ``/press/state``,
-``/events``).
+``/events``). With ``[runtime] record_format = "rosbag2"`` each segment is a rosbag2 bag
+directory instead (:mod:`edge.daemon.rosbag`: ``/xServTopic``, ``/press/state``,
+``/events``; wall-clock stamps), staged beside its name and renamed when complete.
 """
 
 from __future__ import annotations

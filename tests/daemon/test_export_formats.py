@@ -20,7 +20,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from ruamel.yaml import YAML
 
 from edge.core import preprocess, recording
-from edge.daemon import lerobot
+from edge.core.config import Config
+from edge.core.errors import ConfigError
+from edge.daemon import lerobot, rosbag
 from edge.daemon.store import EpisodeStore
 from edge.sim.fake_vlm import FakeVLM, Reply
 from tests.support.daemon import CUBE, fast_config, sim_daemon
@@ -85,7 +87,7 @@ def stamp_ns(header):
     return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
-def test_rosbag2_export_reads_back_in_rosbags(pressed, tmp_path):
+def test_rosbag2_export_reads_back_in_rosbags(pressed, tmp_path, monkeypatch):
     state, store, eps, _ = pressed
     ep = eps[0]
     rec = recording.load(store.file(ep["id"], "press.press.npz"))
@@ -135,6 +137,23 @@ def test_rosbag2_export_reads_back_in_rosbags(pressed, tmp_path):
     assert result.episode == ep["id"] and result.press_result == "ok"
     assert list(result.topk_labels) == [t["label"] for t in ep["topk"]]
     assert json.loads(result.json)["description"] == ep["description"]
+
+    # Killed half-way through a new export over it: the good bag stays, no staging left.
+    good = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def killed(*_args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(rosbag.RosbagLog, "result", killed)
+    with pytest.raises(KeyboardInterrupt):
+        rosbag.export_episodes(store, [ep["id"]], out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == good
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]
+
+
+def test_record_format_is_checked():
+    with pytest.raises(ConfigError, match="record_format"):
+        replace(Config().runtime, record_format="bag").validate("robot.toml")
 
 
 def test_rosbag2_live_recording(pressed):
