@@ -29,8 +29,8 @@ Time: bag times and header stamps are wall time (ns since the epoch): the robot'
 times (the tactile clock of :mod:`edge.daemon.mcaplog`) plus the offset between the clocks,
 taken at the instant the episode was stored (``created`` and ``created_monotonic``; an
 episode stored before that was kept is mapped with its last press state at ``created``,
-which puts it up to the encoder's time, ~10-50 ms, early). The offset and how it was
-found are in ``metadata.yaml``'s ``custom_data``. Messages without a header (the XELA and
+which puts it late by the time between the two: the press's analysis). The offset and how
+it was found are in ``metadata.yaml``'s ``custom_data``. Messages without a header (the XELA and
 array messages) carry their time as the bag's log time.
 
 Bags are written to a staging directory beside the target and renamed into place complete

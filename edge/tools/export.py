@@ -7,16 +7,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from edge.core.errors import StoreError
+
 # What marks a directory as an earlier export of the same kind (replaced, not nested into).
 MARKERS = {"rosbag2": "metadata.yaml", "lerobot": "meta/info.json"}
 
 
 def output_dir(out: str | Path, name: str, fmt: str) -> Path:
     """``out`` itself unless it is an existing directory other than an earlier export of
-    ``fmt``: then ``out/name``."""
+    ``fmt``: then ``out/name``. Only an earlier export is ever replaced."""
     out = Path(out)
     if out.is_dir() and not (out / MARKERS[fmt]).exists():
-        return out / name
+        out = out / name
+    if out.exists() and not (out / MARKERS[fmt]).exists():
+        raise StoreError(f"{out} exists and is not a {fmt} export (no {MARKERS[fmt]}): "
+                         "choose another --out")
     return out
 
 

@@ -303,6 +303,13 @@ def test_collection_export_and_atomic_replacement(tmp_path, monkeypatch):
     photo = (col / "melon_pan" / "melon_pan_000.jpg").read_bytes()
     episodes = check_lerobot(out, presses, photo)
     assert json.loads(episodes[1]["vtzero/result"])["split"] == "train"
+    # Only an earlier export is replaced: a file (or any other directory) is refused.
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    run = cli(tmp_path, "dataset", "export", str(col), "--out", str(notes))
+    assert run.returncode == 2 and "is not a lerobot export" in run.stderr, run.stderr
+    assert notes.read_text() == "mine"
+    notes.unlink()
     good = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
 
     # A corrupt press file: one line naming it, the good dataset as it was.
