@@ -367,10 +367,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the daemon's API (default: from [api] host and port)")
     eps.set_defaults(func=_cmd_episodes)
 
-    dset = sub.add_parser("dataset", help="collection directories (vt-edge collect)")
-    dsub = dset.add_subparsers(dest="dataset_command", required=True)
-    dexp = dsub.add_parser("export", help="a collection as one LeRobotDataset v3.0 "
-                           "(pip install 'vtzero[export]')")
+    ds = sub.add_parser("dataset", help="collected datasets")
+    dssub = ds.add_subparsers(dest="dataset_command", required=True)
+    dexp = dssub.add_parser("export", help="a collection as one LeRobotDataset v3.0 "
+                            "(pip install 'vtzero[export]')")
     dexp.add_argument("dir", help="the collection (DIR/dataset.json)")
     dexp.add_argument("--format", choices=["lerobot"], default="lerobot")
     dexp.add_argument("--out", default=None, help="the dataset directory (default DIR.lerobot)")
