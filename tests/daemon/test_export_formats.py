@@ -151,6 +151,16 @@ def test_rosbag2_export_reads_back_in_rosbags(pressed, tmp_path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["bag"]
 
 
+def test_rosbag2_export_of_several_episodes_is_one_bag(pressed, tmp_path):
+    _, store, eps, _ = pressed
+    path = rosbag.export_episodes(store, [ep["id"] for ep in eps], tmp_path / "all")
+    messages, meta = read_bag(path)
+    recs = [recording.load(store.file(ep["id"], "press.press.npz")) for ep in eps]
+    assert len(messages["/xServTopic"]) == sum(len(r.frames) for r in recs)
+    assert [m.label for _, m in messages["/result"]] == list(LABELS)
+    assert meta["custom_data"]["vtzero.episodes"] == ",".join(ep["id"] for ep in eps)
+
+
 def test_record_format_is_checked():
     with pytest.raises(ConfigError, match="record_format"):
         replace(Config().runtime, record_format="bag").validate("robot.toml")
