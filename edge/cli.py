@@ -232,12 +232,23 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
                   f"{(ep.description or ep.error or '')[:60]}")
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id).to_json(), indent=2))
-    elif args.format == "mcap":
+    elif args.format in ("rosbag2", "lerobot"):
+        from edge.tools.export import export_episodes
+
+        print(export_episodes(store, args.id, args.format, args.out))
+    else:
         from edge.daemon.mcaplog import export_episode
 
-        print(export_episode(store, args.id, args.out))
-    else:
-        print(store.export(args.id, args.out))
+        for eid in args.id:
+            print(export_episode(store, eid, args.out) if args.format == "mcap"
+                  else store.export(eid, args.out))
+    return 0
+
+
+def _cmd_dataset_export(args: argparse.Namespace) -> int:
+    from edge.tools.export import export_collection
+
+    print(export_collection(args.dir, args.out))
     return 0
 
 
@@ -348,11 +359,16 @@ def build_parser() -> argparse.ArgumentParser:
     show = epsub.add_parser("show")
     show.add_argument("id")
     export = epsub.add_parser("export")
-    export.add_argument("id")
-    export.add_argument("--out", default=".", help="a file, or a directory for ID.tar.gz/ID.mcap")
-    export.add_argument("--format", choices=["tar.gz", "mcap"], default="tar.gz",
+    export.add_argument("id", nargs="+")
+    export.add_argument("--out", default=".",
+                        help="a file, or a directory for ID.tar.gz/ID.mcap; the bag or dataset "
+                             "directory (inside an existing other directory: DIR/ID)")
+    export.add_argument("--format", choices=["tar.gz", "mcap", "rosbag2", "lerobot"],
+                        default="tar.gz",
                         help="tar.gz: the episode directory as stored; mcap: tactile frames, "
-                             "gripper, press states, photo and result for Foxglove")
+                             "gripper, press states, photo and result for Foxglove; rosbag2: "
+                             "all the episodes as one ROS 2 bag; lerobot: all as one "
+                             "LeRobotDataset v3.0 (both: pip install 'vtzero[export]')")
     retry = epsub.add_parser("retry", help="ask the VLM again about a vlm_error or "
                              "invalid_answer episode, through the running daemon")
     which = retry.add_mutually_exclusive_group(required=True)
@@ -362,6 +378,15 @@ def build_parser() -> argparse.ArgumentParser:
     retry.add_argument("--url", default=None,
                        help="the daemon's API (default: from [api] host and port)")
     eps.set_defaults(func=_cmd_episodes)
+
+    ds = sub.add_parser("dataset", help="collected datasets")
+    dssub = ds.add_subparsers(dest="dataset_command", required=True)
+    dexp = dssub.add_parser("export", help="a collection as one LeRobotDataset v3.0 "
+                            "(pip install 'vtzero[export]')")
+    dexp.add_argument("dir", help="the collection (DIR/dataset.json)")
+    dexp.add_argument("--format", choices=["lerobot"], default="lerobot")
+    dexp.add_argument("--out", default=None, help="the dataset directory (default DIR.lerobot)")
+    dexp.set_defaults(func=_cmd_dataset_export)
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
     svc.add_argument("--config", default="/etc/vtzero/robot.toml")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import stat
 import tempfile
 from collections.abc import Iterator
@@ -42,6 +43,46 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 
 def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | Path) -> Iterator[Path]:
+    """A directory that replaces ``path`` only if the block completes.
+
+    Yields ``path``'s stand-in, not yet created, inside a hidden staging directory beside
+    ``path`` (same name, so writers that name files after their directory name them right).
+    A directory already at ``path`` is moved aside, the new one renamed in, the old removed:
+    an interrupted or failed write leaves the old one in place.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    try:
+        yield stage / path.name
+        _fsync_tree(stage / path.name)
+        old = stage / ".old"
+        if path.exists():
+            os.rename(path, old)
+        try:
+            os.rename(stage / path.name, path)
+        except BaseException:
+            if old.exists():
+                os.rename(old, path)
+            raise
+        _fsync_dir(path.parent)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _fsync_tree(root: Path) -> None:
+    for directory, _, files in os.walk(root):
+        for name in files:
+            fd = os.open(os.path.join(directory, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        _fsync_dir(Path(directory))
 
 
 def _keep_owner_and_mode(path: Path, tmp: str) -> None:

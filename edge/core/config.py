@@ -234,6 +234,9 @@ class RuntimeConfig:
     # Record the live tactile stream and events to MCAP segments here ("": off).
     record_mcap_dir: str = ""
     record_mcap_segment_s: float = 600.0
+    # The segments' encoding: "mcap" (JSON messages, Foxglove) or "rosbag2" (a bag directory
+    # of CDR messages, ros2 bag; needs the export extra).
+    record_format: str = "mcap"
     # Real-time scheduling of the event loop and the bus thread (edge/daemon/realtime.py):
     # SCHED_FIFO at realtime_priority on CPU realtime_cpu (-1: the last one the daemon may
     # use). Needs root, CAP_SYS_NICE or LimitRTPRIO=; a restart applies it.
@@ -247,6 +250,8 @@ class RuntimeConfig:
             _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
         _require(self.record_mcap_segment_s >= 1, path, "record_mcap_segment_s",
                  self.record_mcap_segment_s, "must be >= 1 s")
+        _require(self.record_format in ("mcap", "rosbag2"), path, "record_format",
+                 self.record_format, 'must be "mcap" or "rosbag2"')
         _require(1 <= self.realtime_priority <= 99, path, "realtime_priority",
                  self.realtime_priority, "must be a SCHED_FIFO priority, 1..99")
         _require(self.realtime_cpu >= -1, path, "realtime_cpu", self.realtime_cpu,

@@ -13,7 +13,9 @@ Each segment (``vtzero-YYYYmmddTHHMMSSZ.mcap``, one per ``record_mcap_segment_s`
 to ``.NAME.tmp`` and renamed when complete, so a complete ``.mcap`` is always a whole file; a
 ``.tmp`` left by a crash holds the chunks written so far (``mcap recover`` repairs it).
 Topics and clock: :mod:`edge.daemon.mcaplog` (``/tactile/raw``, ``/press/state``,
-``/events``).
+``/events``). With ``[runtime] record_format = "rosbag2"`` each segment is a rosbag2 bag
+directory instead (:mod:`edge.daemon.rosbag`: ``/xServTopic``, ``/press/state``,
+``/events``; wall-clock stamps), staged beside its name and renamed when complete.
 """
 
 from __future__ import annotations
@@ -56,19 +58,23 @@ class Batch:
     events: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
 
 
-def segment_name(now: float | None = None) -> str:
+def segment_name(now: float | None = None, fmt: str = "mcap") -> str:
+    """An MCAP file's name, or a rosbag2 bag directory's (no suffix)."""
     ts = datetime.fromtimestamp(now if now is not None else time.time(), UTC)
-    return f"vtzero-{ts:%Y%m%dT%H%M%S}Z{SUFFIX}"
+    return f"vtzero-{ts:%Y%m%dT%H%M%S}Z{SUFFIX if fmt == 'mcap' else ''}"
 
 
 class McapRecorder:
     """The ``mcap-record`` task: ``await McapRecorder(runtime, directory).run()``."""
 
     def __init__(self, runtime: Any, directory: str | Path, segment_s: float = 600.0,
-                 worker: Any = None) -> None:
+                 worker: Any = None, *, record_format: str = "mcap",
+                 sensor_model: str = "") -> None:
         self.runtime = runtime
         self.directory = Path(directory)
         self.segment_s = segment_s
+        self.record_format = record_format
+        self.sensor_model = sensor_model
         self._worker = worker
         self._events: collections.deque[tuple[float, dict[str, Any]]] = collections.deque(
             maxlen=EVENT_BACKLOG)
@@ -93,7 +99,9 @@ class McapRecorder:
             while True:
                 try:
                     if not opened:
-                        await worker.run(segment_open, str(self.directory), segment_name())
+                        await worker.run(segment_open, str(self.directory),
+                                         segment_name(fmt=self.record_format),
+                                         self.record_format, self.sensor_model)
                         opened, started = True, time.monotonic()
                         log.info("recording the live stream to %s", self.directory)
                     await asyncio.sleep(FLUSH_PERIOD_S)
@@ -151,8 +159,15 @@ class McapRecorder:
 
 
 class _Segment:
-    def __init__(self, directory: str, name: str) -> None:
-        self.log = McapLog(Path(directory) / name, LIVE_TOPICS, chunk_size=CHUNK_BYTES)
+    def __init__(self, directory: str, name: str, fmt: str, sensor_model: str) -> None:
+        if fmt == "rosbag2":
+            from edge.daemon.rosbag import LIVE_TOPICS as BAG_TOPICS
+            from edge.daemon.rosbag import RosbagLog, live_offset
+
+            self.log = RosbagLog(Path(directory) / name, BAG_TOPICS, offset_s=live_offset(),
+                                 sensor_model=sensor_model)
+        else:
+            self.log = McapLog(Path(directory) / name, LIVE_TOPICS, chunk_size=CHUNK_BYTES)
         self.lost = 0
         self.frames = 0
 
@@ -179,13 +194,13 @@ class _Segment:
 _segment: _Segment | None = None
 
 
-def segment_open(directory: str, name: str) -> None:
+def segment_open(directory: str, name: str, fmt: str = "mcap", sensor_model: str = "") -> None:
     global _segment
     if _segment is not None:
         _segment.log.abandon()
         _segment = None
     try:
-        _segment = _Segment(directory, name)
+        _segment = _Segment(directory, name, fmt, sensor_model)
     except OSError as exc:
         raise EdgeError(f"live MCAP recording: cannot create a segment in {directory}: "
                         f"{exc}") from None

@@ -32,6 +32,7 @@ import contextlib
 import json
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -227,11 +228,21 @@ def episode_mcap_path(episode_id: str, dest: str | Path) -> Path:
     return dest / f"{episode_id}{SUFFIX}" if dest.is_dir() else dest
 
 
-def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
-    """Write one stored episode as an MCAP file (``dest`` a file, or a directory for
-    ``ID.mcap``); returns the path written. Blocks (file I/O): off the event loop."""
+@dataclass(frozen=True)
+class EpisodeFiles:
+    """A stored episode as the exports read it."""
+
+    episode: dict[str, Any]
+    rec: recording.Recording | None
+    image: bytes | None
+    image_format: str  # jpeg | png | ""
+    states: list[tuple[str, float]]
+    t_first: float  # the press's first state (monotonic s): the photo's stamp
+    t_last: float  # its last: the result's
+
+
+def episode_files(store: Any, episode_id: str) -> EpisodeFiles:
     episode = store.get(episode_id).to_json()
-    path = episode_mcap_path(episode_id, dest)
     rec = None
     npz = _optional_file(store, episode_id, "press.press.npz")
     if npz is not None:
@@ -246,6 +257,17 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
     states = [(str(s), float(t)) for s, t in press.get("states") or []]
     t_first = states[0][1] if states else (float(rec.recv_time[0]) if rec else 0.0)
     t_last = states[-1][1] if states else (float(rec.recv_time[-1]) if rec else 0.0)
+    return EpisodeFiles(episode, rec, image, image_format, states, t_first, t_last)
+
+
+def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
+    """Write one stored episode as an MCAP file (``dest`` a file, or a directory for
+    ``ID.mcap``); returns the path written. Blocks (file I/O): off the event loop."""
+    path = episode_mcap_path(episode_id, dest)
+    item = episode_files(store, episode_id)
+    episode, rec, image, image_format = item.episode, item.rec, item.image, item.image_format
+    press = episode.get("press") or {}
+    states, t_first, t_last = item.states, item.t_first, item.t_last
     try:
         out = McapLog(path)
     except OSError as exc:

@@ -27,6 +27,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.daemon.sensor import FrameRing, Window
+from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 
@@ -427,4 +428,8 @@ def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"
         gripper_current_ma=np.array([s.squeeze_ma for s in trace], dtype=np.float64),
         source=cfg.mode,
         extra={"stop_latency_s": outcome.stop_latency_s, "t_cross": outcome.t_cross,
-               "peak_level": outcome.peak_level, "result": outcome.result})
+               "peak_level": outcome.peak_level, "result": outcome.result,
+               # The gripper goals the press wrote, for exports that carry them as actions.
+               "t_open": next((t for s, t in outcome.states if s == "opening"), None),
+               "gripper_goal_m": {"open": cfg.press.open_width_m,
+                                  "closed": GRIPPER_CLOSED_WIDTH_M}})

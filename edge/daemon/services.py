@@ -19,7 +19,9 @@ def optional_services(runtime: Any) -> list[tuple[str, Coroutine[Any, Any, None]
         from edge.daemon.mcap_live import McapRecorder
 
         recorder = McapRecorder(runtime, cfg.runtime.record_mcap_dir,
-                                cfg.runtime.record_mcap_segment_s)
+                                cfg.runtime.record_mcap_segment_s,
+                                record_format=cfg.runtime.record_format,
+                                sensor_model=cfg.sensor.model)
         services.append(("mcap-record", recorder.run()))
     if cfg.mqtt.enabled:
         from edge.daemon.mqtt import MqttBridge

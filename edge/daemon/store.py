@@ -128,7 +128,9 @@ class EpisodeStore:
         """Write a new episode with its data files; returns its id."""
         episode_id = episode.id
         now = time.time()
-        episode = episode.with_(created=now, updated=now)
+        # The monotonic clock at the same instant: exports map the press's times to wall time.
+        episode = episode.with_(created=now, updated=now, extra={
+            **episode.extra, "created_monotonic": time.monotonic()})
         tmp = self.root / f"{_TMP_PREFIX}{episode_id}"
         try:
             tmp.mkdir()
