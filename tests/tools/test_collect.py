@@ -16,7 +16,9 @@ async def test_collect_writes_labelled_recordings(tmp_path):
     async with SimRobot("otedama", seed=11, cfg=cfg) as robot:
         files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path,
                               prompt=prompts.append)
-    assert len(files) == 2 and len(prompts) == 1 and "move the otedama" in prompts[0]
+    print(prompts)
+    assert len(files) == 2 and len(prompts) == 2
+    assert "place the otedama" in prompts[0] and "move the otedama" in prompts[1]
     for f in files:
         rec = recording.load(f)
         assert rec.label == "otedama" and rec.source == "sim"
