@@ -1,12 +1,175 @@
-"""Collect mode and pose teaching against the emulated robot."""
+"""Collect mode (a collection plan, resumed, interrupted, with failed presses and photos;
+refused beside a running daemon) and pose teaching against the emulated robot."""
+
+import asyncio
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
 
 import pytest
 
-from edge.core import recording
+from edge.core import recording, tomledit
 from edge.core.config import Config, load_config
+from edge.core.errors import ConfigError
+from edge.sim.catalogue import DATASETS
+from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.tools.collect import collect, teach_pose
-from tests.support.daemon import base_config
+from edge.sim.xela_server import Fault
+from edge.tools import collect as collect_mod
+from edge.tools.collect import CollectReport, collect, collect_plan, teach_pose
+from edge.tools.plan import load_plan
+from edge.tools.stack import http_json, stop, wait_for
+from tests.support.daemon import CUBE, ROOT, Daemon, base_config
+
+PLAN = """
+[dataset]
+name = "lab_food"
+recorder = "test"
+presses = 2
+val = ["wood_cube"]
+
+[[class]]
+label = "otedama"
+description = "otedama (a small Japanese cloth beanbag filled with beans)"
+photo = true
+
+[[class]]
+label = "wood_cube"
+description = "wood cube"
+x_th = 0.003
+"""
+# The command line as a user runs it.
+VT_EDGE = [sys.executable, "-m", "edge"]
+COMMAND_TIMEOUT_S = 120
+
+
+def write_plan(tmp_path: Path, text: str = PLAN, name: str = "plan.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def digests(out: Path) -> dict[str, str]:
+    return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != "dataset.json"}
+
+
+def person(robot: SimRobot, placed: list[str]):
+    """The prompt's answer: the person puts the object the prompt names in the gripper."""
+    def answer(message: str) -> None:
+        if message.startswith("place the "):
+            name = message.split()[2]
+            robot.world.place(name)
+            placed.append(name)
+    return answer
+
+
+@pytest.mark.asyncio
+async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_path):
+    plan_path = write_plan(tmp_path)
+    out = tmp_path / "data"
+    placed: list[str] = []
+    async with SimRobot("stainless_cube", seed=13, cfg=base_config()) as robot:
+        cfg = robot.runtime_config(base_config())
+        t0 = time.monotonic()
+        report = await collect_plan(cfg, load_plan(plan_path), out, person(robot, placed))
+        elapsed = time.monotonic() - t0
+        print(f"2 classes x 2 presses in {elapsed:.1f} s; pieces placed "
+              f"{robot.world.placements}")
+        assert placed == ["otedama", "wood_cube"] and report.complete and not report.failed
+        # The person placed each object once; the emulated robot put a fresh piece back
+        # before each later press of it.
+        assert robot.world.placements >= 1 + 2 * 2
+        index = json.loads((out / "dataset.json").read_text())
+        assert index["dataset"] == "lab_food"
+        assert index["plan_sha256"] == hashlib.sha256(plan_path.read_bytes()).hexdigest()
+        assert index["origin"]["kind"] == "emulated" and index["origin"]["recorder"] == "test"
+        assert index["origin"]["sensor"]["model"] == "XR1944"
+        assert isinstance(index["recorder"], str) and "test" in index["recorder"]
+        classes = {c["label"]: c for c in index["classes"]}
+        assert classes["otedama"] == {
+            "label": "otedama", "split": "train", "x_th": cfg.press.x_th, "presses": 2,
+            "photo": True, "failed": [],
+            "description": "otedama (a small Japanese cloth beanbag filled with beans)"}
+        assert classes["wood_cube"]["split"] == "val" and classes["wood_cube"]["x_th"] == 0.003
+        for label, x_th in (("otedama", cfg.press.x_th), ("wood_cube", 0.003)):
+            files = sorted((out / label).glob("*.press.npz"))
+            assert [f.name for f in files] == [f"{label}_000.press.npz",
+                                               f"{label}_001.press.npz"]
+            for f in files:
+                rec = recording.load(f)
+                assert rec.label == label and rec.threshold == x_th
+                assert rec.extra["stop_latency_s"] > 0
+        photos = sorted((out / "otedama").glob("*.jpg"))
+        assert [p.name for p in photos] == ["otedama_000.jpg", "otedama_001.jpg"]
+        assert all(p.read_bytes()[:3] == b"\xff\xd8\xff" for p in photos)
+        assert not list((out / "wood_cube").glob("*.jpg"))
+        assert not list(out.rglob("*.tmp"))
+
+        # Run again: nothing to do. Then 3 per class: one more each, numbered on.
+        before = digests(out)
+        again = await collect_plan(cfg, load_plan(plan_path), out, None)
+        assert again.kept == [] and again.complete
+        more = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"), "more.toml")
+        third = await collect_plan(cfg, load_plan(more), out, None)
+        assert [p.name for p in third.kept] == ["otedama_002.press.npz",
+                                                "wood_cube_002.press.npz"]
+        after = digests(out)
+        assert {k: after[k] for k in before} == before  # nothing rewritten
+        assert (out / "otedama" / "otedama_002.jpg").exists()
+
+        # A plan whose threshold differs from the kept presses' is refused, naming a file.
+        other = write_plan(tmp_path, PLAN.replace("x_th = 0.003", "x_th = 0.0035"), "o.toml")
+        with pytest.raises(ConfigError, match=r"wood_cube_000\.press\.npz was pressed at "
+                                              r"x_th 0\.003, the plan .* says 0\.0035"):
+            await collect_plan(cfg, load_plan(other), out, None)
+
+
+@pytest.mark.asyncio
+async def test_failed_presses_are_retried_then_the_class_is_skipped(tmp_path, monkeypatch):
+    monkeypatch.setattr(collect_mod, "MAX_FAILED_IN_A_ROW", 3)
+    plan = load_plan(write_plan(tmp_path, PLAN.replace("photo = true", "photo = false")))
+    out = tmp_path / "data"
+    async with SimRobot("otedama", seed=14, cfg=base_config()) as robot:
+        cfg = robot.runtime_config(base_config())
+        report = CollectReport()
+
+        async def stream(silent_until) -> None:
+            robot.xela.fault = Fault.SILENT
+            while not silent_until():
+                await asyncio.sleep(0.01)
+            robot.xela.fault = Fault.NONE
+
+        # Two stale presses of the first class, then the stream comes back: retried, kept.
+        server = asyncio.create_task(stream(lambda: report.failed >= 2))
+        await asyncio.sleep(0.5)  # stale by now
+        await collect_plan(cfg, plan, out, None, report=report)
+        await server
+        assert report.complete and report.failed == 2 and not report.skipped
+        index = json.loads((out / "dataset.json").read_text())
+        failed = {c["label"]: c["failed"] for c in index["classes"]}
+        print("failed presses:", failed)
+        assert [f["result"] for f in failed["otedama"]] == ["stale", "stale"]
+        assert failed["wood_cube"] == []
+
+        # A stream that stays silent: the first class is skipped after 3, the run goes on.
+        more = load_plan(write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3")
+                                    .replace("photo = true", "photo = false"), "more.toml"))
+        report = CollectReport()
+        server = asyncio.create_task(stream(lambda: "otedama" in report.skipped))
+        await asyncio.sleep(0.5)
+        await collect_plan(cfg, more, out, None, report=report)
+        await server
+        print(f"skipped {report.skipped}, have {report.have}, failed {report.failed}")
+        assert report.skipped == ["otedama"] and not report.complete
+        assert report.have == {"otedama": 2, "wood_cube": 3}
+        assert len(list((out / "otedama").glob("*.press.npz"))) == 2
 
 
 @pytest.mark.asyncio
