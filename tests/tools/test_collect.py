@@ -210,3 +210,125 @@ async def test_teach_stores_the_pose_and_keeps_the_rest_of_the_file(tmp_path):
     loaded = load_config(path)
     assert loaded.poses["above"] == joints
     assert loaded.poses["rest"] == cfg.poses["rest"] and loaded.press.x_th == 0.003
+
+
+class Output:
+    """A process's stdout as it comes (prompts end without a newline)."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.text = ""
+        self._proc = proc
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while chunk := self._proc.stdout.read1(4096):  # type: ignore[union-attr]
+            self.text += chunk.decode(errors="replace")
+
+    def wait_for(self, needle: str, timeout_s: float = COMMAND_TIMEOUT_S) -> None:
+        wait_for(lambda: needle in self.text, timeout_s, f"{needle!r} in the output\n"
+                 f"{self.text}", self._proc)
+
+
+@pytest.fixture(scope="module")
+def sim_serve(tmp_path_factory):
+    """``vt-edge sim serve`` and its runtime configuration (quicker arm moves)."""
+    tmp = tmp_path_factory.mktemp("sim")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for key in ("VTZERO_VLM_URL", "VTZERO_VLM_MODEL", "NOTIFY_SOCKET", "VTZERO_LOG_LEVEL"):
+        env.pop(key, None)
+    config = tmp / "run.toml"
+    sim = subprocess.Popen([*VT_EDGE, "sim", "serve", "--config", "configs/sim.toml",
+                            "--object", "otedama", "--write-config", str(config)],
+                           cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+    try:
+        wait_for(config.exists, 60, "emulated robot", sim)
+        tomledit.update(config, config, {"sensor": {"stale_timeout_s": 0.25},
+                                         "runtime": {"move_time_s": 0.2}})
+        yield config, env
+    finally:
+        stop(sim, "emulated robot")
+
+
+def start_collect(config: Path, env: dict, *args: str) -> tuple[subprocess.Popen, Output]:
+    proc = subprocess.Popen([*VT_EDGE, "collect", "--config", str(config), *args], cwd=ROOT,
+                            env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    return proc, Output(proc)
+
+
+def test_ctrl_c_mid_plan_keeps_what_was_pressed_and_the_rerun_goes_on(sim_serve, tmp_path):
+    config, env = sim_serve
+    plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3")
+                      .replace("photo = true", "photo = true\npresses = 4"))
+    out = tmp_path / "data"
+    args = ("--plan", str(plan), "--out", str(out), "--no-prompt")
+    proc, output = start_collect(config, env, *args)
+    output.wait_for("otedama press 2/4:")
+    proc.send_signal(signal.SIGINT)  # during the third press (or its photo, or its file)
+    t0 = time.monotonic()
+    rc = proc.wait(30)
+    print(f"exit {rc} {time.monotonic() - t0:.2f} s after SIGINT\n{output.text}")
+    assert rc == 130 and "interrupted: kept" in output.text
+    assert "run the same command again" in output.text
+    control = load_config(config).camera.url.rsplit("/", 1)[0]
+    assert http_json("GET", f"{control}/object")["force_n"] == 0.0  # the gripper let go
+    kept = sorted((out / "otedama").glob("*.press.npz"))
+    assert 2 <= len(kept) <= 3 and not list(out.rglob("*.tmp"))
+    for i, path in enumerate(kept):  # whole, numbered from 0, each with its photo
+        assert path.name == f"otedama_{i:03d}.press.npz" and recording.load(path).label
+        assert (out / "otedama" / f"otedama_{i:03d}.jpg").exists()
+    index = json.loads((out / "dataset.json").read_text())
+    assert [c["label"] for c in index["classes"]] == ["otedama", "wood_cube"]
+    before = digests(out)
+
+    proc, output = start_collect(config, env, *args)
+    assert proc.wait(COMMAND_TIMEOUT_S) == 0, output.text
+    print(output.text)
+    assert f"otedama: {len(kept)}/4 pressed" in output.text
+    for label, n in (("otedama", 4), ("wood_cube", 3)):
+        names = sorted(p.name for p in (out / label).glob("*.press.npz"))
+        assert names == [f"{label}_{i:03d}.press.npz" for i in range(n)]
+    after = digests(out)
+    assert {k: after[k] for k in before if k.endswith(".npz")} == {
+        k: v for k, v in before.items() if k.endswith(".npz")}
+
+
+def test_ctrl_c_at_the_prompt_exits_at_once(sim_serve, tmp_path):
+    config, env = sim_serve
+    proc, output = start_collect(config, env, "--plan", str(write_plan(tmp_path)), "--out",
+                                 str(tmp_path / "data"))
+    output.wait_for("place the otedama")
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rc = proc.wait(30)
+    took = time.monotonic() - t0
+    print(f"exit {rc} {took:.2f} s after SIGINT at the prompt\n{output.text}")
+    assert rc == 130 and "interrupted: kept 0 presses" in output.text
+    assert took < 10.0
+
+
+@pytest.mark.asyncio
+async def test_collect_beside_the_daemon_is_refused_and_the_daemon_unaffected(tmp_path):
+    async with FakeVLM(model="fake-vlm") as fake, \
+            SimRobot("wood_cube", seed=15, cfg=base_config()) as robot:
+        fake.script(Reply(label="raw_kiri_mochi"), Reply(label="raw_kiri_mochi"))
+        async with Daemon(robot, base_config(fake.base_url), tmp_path / "state") as d:
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            assert status == 200 and ep["status"] == "done", ep
+            config = tmp_path / "run.toml"
+            tomledit.update(ROOT / "configs" / "sim.toml", config, {
+                "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port}})
+            proc = await asyncio.create_subprocess_exec(
+                *VT_EDGE, "collect", "--config", str(config), "--label", "wood_cube",
+                "--presses", "1", "--out", str(tmp_path / "data"), "--no-prompt", cwd=ROOT,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            stdout, stderr = await asyncio.wait_for(proc.communicate(), COMMAND_TIMEOUT_S)
+            lines = stderr.decode().strip().splitlines() + stdout.decode().strip().splitlines()
+            print(f"exit {proc.returncode}: {lines}")
+            assert proc.returncode == 2 and len(lines) == 1
+            assert "in use by pid" in lines[0] and "systemctl stop vtzero-edge" in lines[0]
+            assert not (tmp_path / "data").exists()
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            print("the daemon's next recognition:", ep["status"], ep.get("error"))
+            assert status == 200 and ep["status"] == "done", ep
+            assert d.devices.bus.fault is None
