@@ -146,6 +146,15 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_dataset_summary(args: argparse.Namespace) -> int:
+    from edge.tools.dataset import format_summary, summarize
+    from edge.tools.plan import load_plan
+
+    summary = summarize(args.dir, load_plan(args.plan) if args.plan else None)
+    print(format_summary(summary))
+    return 1 if summary.problems else 0
+
+
 def _cmd_pose_teach(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -245,6 +254,16 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--no-prompt", action="store_true",
                      help="do not wait for Enter between presses")
     col.set_defaults(func=_cmd_collect)
+
+    ds = sub.add_parser("dataset", help="collected datasets")
+    dssub = ds.add_subparsers(dest="dataset_command", required=True)
+    summ = dssub.add_parser("summary", help="per class: presses kept and failed, thresholds, "
+                            "peaks, stop latency, what looks wrong; exit 1 on a class that "
+                            "mixes thresholds or has fewer presses than planned")
+    summ.add_argument("dir", help="the dataset directory (vt-edge collect --out)")
+    summ.add_argument("--plan", default=None, help="the plan to compare against (default: "
+                      "the counts dataset.json records)")
+    summ.set_defaults(func=_cmd_dataset_summary)
 
     pose = sub.add_parser("pose", help="arm poses")
     posesub = pose.add_subparsers(dest="pose_command", required=True)

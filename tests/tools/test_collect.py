@@ -332,3 +332,71 @@ async def test_collect_beside_the_daemon_is_refused_and_the_daemon_unaffected(tm
             print("the daemon's next recognition:", ep["status"], ep.get("error"))
             assert status == 200 and ep["status"] == "done", ep
             assert d.devices.bus.fault is None
+
+
+def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp_path,
+                                                                              capsys):
+    from dataclasses import replace
+
+    import numpy as np
+
+    from edge.cli import main
+    from edge.tools import dataset
+    from edge.tools.record import record_press
+
+    out = tmp_path / "data"
+    # Presses of the virtual-clock recorder (the daemon's press controller), as collect
+    # writes them: otedama at 0.004 but one at 0.003 (an earlier --x-th); wood_cube short.
+    recs = [record_press("otedama", seed, x_th=x).recording
+            for seed, x in ((1, 0.004), (2, 0.004), (3, 0.004), (4, 0.003))]
+    for i, rec in enumerate(recs):
+        recording.save(rec, dataset.press_path(out, "otedama", i))
+    gap = recs[1]
+    keep = ~((gap.recv_time > gap.t_stop + 0.1) & (gap.recv_time < gap.t_stop + 0.2))
+    recording.save(replace(gap, frames=gap.frames[keep], recv_time=gap.recv_time[keep],
+                           sensor_time=gap.sensor_time[keep], seq=gap.seq[keep]),
+                   dataset.press_path(out, "otedama", 1))
+    late = recs[2]
+    loud = late.tare + 40.0 * (late.frames - late.tare)
+    recording.save(replace(late, frames=np.clip(loud, 0, 65535).astype(np.uint16)),
+                   dataset.press_path(out, "otedama", 2))
+    cube = record_press("wood_cube", 5).recording
+    recording.save(cube, dataset.press_path(out, "wood_cube", 0))
+    index = dataset.new_index("lab_food", "test", {"kind": "emulated", "recorder": "test",
+                                                   "robot": None, "sensor": None}, "0" * 64)
+    index["classes"] = [
+        {"label": "otedama", "split": "train", "description": "otedama", "x_th": 0.004,
+         "presses": 4, "photo": False, "failed": [{"result": "stale", "message": "x"}]},
+        {"label": "wood_cube", "split": "val", "description": "wood cube", "x_th": 0.004,
+         "presses": 2, "photo": False, "failed": []}]
+    dataset.write_index(out, index)
+
+    summary = dataset.summarize(out)
+    print(dataset.format_summary(summary))
+    oted = summary.classes[0]
+    assert oted.thresholds == [0.003, 0.004] and oted.failed == {"stale": 1}
+    assert summary.problems == [
+        "otedama: mixes thresholds 0.003, 0.004 (otedama_003.press.npz unlike the class's "
+        "0.004)", "wood_cube: 1 of 2 planned presses"]
+    flags = {p.path.name: p.flags for p in oted.presses}
+    assert flags["otedama_000.press.npz"] == ()
+    assert len(flags["otedama_001.press.npz"]) == 1
+    assert flags["otedama_001.press.npz"][0].startswith("stream gap of 1")
+    assert "stopped late" in flags["otedama_002.press.npz"][0]
+    assert "unlike the class's 0.004" in flags["otedama_003.press.npz"][0]
+    peaks = [p.peak for p in oted.presses]
+    assert all(0.003 < p < 0.02 for i, p in enumerate(peaks) if i != 2)
+    assert all(p.stop_latency_ms > 0 for p in oted.presses)
+    assert main(["dataset", "summary", str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "origin: the emulated robot, pressed by test" in text and "problems:" in text
+
+    # Made whole (the odd press pressed again at 0.004, wood_cube once more): exit 0; a
+    # plan asking for more makes it short again.
+    recording.save(record_press("otedama", 7).recording, dataset.press_path(out, "otedama", 3))
+    recording.save(record_press("wood_cube", 6).recording,
+                   dataset.press_path(out, "wood_cube", 1))
+    assert main(["dataset", "summary", str(out)]) == 0
+    plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
+    assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
+    assert "wood_cube: 2 of 3 planned presses" in capsys.readouterr().out
