@@ -26,6 +26,7 @@ from edge.tools.collect import CollectReport, collect, collect_plan, teach_pose
 from edge.tools.plan import load_plan
 from edge.tools.stack import http_json, stop, wait_for
 from tests.support.daemon import CUBE, ROOT, Daemon, base_config
+from tests.support.waits import wait_until
 
 PLAN = """
 [dataset]
@@ -142,8 +143,7 @@ async def test_failed_presses_are_retried_then_the_class_is_skipped(tmp_path, mo
 
         async def stream(silent_until) -> None:
             robot.xela.fault = Fault.SILENT
-            while not silent_until():
-                await asyncio.sleep(0.01)
+            await wait_until(silent_until, 60, "the failed presses")
             robot.xela.fault = Fault.NONE
 
         # Two stale presses of the first class, then the stream comes back: retried, kept.
@@ -400,3 +400,39 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
     assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
     assert "wood_cube: 2 of 3 planned presses" in capsys.readouterr().out
+
+
+def test_the_shipped_paper_plan_and_the_readme_examples_load(tmp_path):
+    import re
+
+    plan = load_plan(ROOT / "configs" / "plan-paper-reference.toml")
+    ref = DATASETS["reference"]
+    assert [(c.label, c.description, c.split, c.x_th, c.presses) for c in plan.classes] == [
+        (o.name, o.description, o.split, o.x_th, 10) for o in ref]
+    assert sum(c.split == "val" for c in plan.classes) == 5 and len(plan.classes) == 32
+    blocks = re.findall(r"```toml\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    examples = [load_plan(write_plan(tmp_path, b, f"readme{i}.toml"))
+                for i, b in enumerate(blocks) if "[dataset]" in b]
+    assert [p.name for p in examples] == ["lab_reference", "lab_food"]
+    assert {c.split for c in examples[1].classes} == {"test"}
+    assert all(c.photo for c in examples[1].classes)
+    assert examples[0].get("gelatin_soft").x_th == 0.003
+
+
+@pytest.mark.parametrize("change, message", [
+    (("presses = 2", "presses = 0"), "[dataset]: presses = 0: must be 1..1000"),
+    (("x_th = 0.003", "x_th = 2.0"), "class 'wood_cube': x_th = 2.0: must be in (0, 1)"),
+    (("x_th = 0.003", "x_th = 0.003\nfoo = 1"), "class 'wood_cube': unknown key(s) foo"),
+    (('description = "wood cube"', 'description = "hard wood cube"'),
+     "description of 'wood_cube' 'hard wood cube' says how the object feels (hard)"),
+    (('val = ["wood_cube"]', 'val = ["wood"]'), "val names wood, which no [[class]] has"),
+    (('val = ["wood_cube"]', 'val = ["wood_cube"]\ntest = true'), "a test set"),
+    (('label = "otedama"', 'label = "wood_cube"'), "class 'wood_cube': listed twice"),
+    (('photo = true', 'photo = "yes"'), "class 'otedama': photo = 'yes': must be true or"),
+])
+def test_a_bad_plan_is_refused_naming_the_field_and_the_class(tmp_path, change, message):
+    path = write_plan(tmp_path, PLAN.replace(*change))
+    with pytest.raises(ConfigError) as caught:
+        load_plan(path)
+    print(caught.value)
+    assert message in str(caught.value) and str(path) in str(caught.value)
