@@ -859,8 +859,8 @@ class DynamixelBus:
                 raise DeviceError(f"cannot lock Dynamixel port {port}: {exc}") from exc
             raise BusInUseError(
                 f"Dynamixel port {port} is in use by {holder or 'another process'}: one bus, "
-                f"one owner; stop the daemon first (systemctl stop {SERVICE_NAME}) or the "
-                "other program, then run this again") from None
+                f"one owner; stop it first (the daemon: systemctl stop {SERVICE_NAME}), then "
+                "run this again") from None
         self._lock_fd = fd
         return self._connect_sync()
 

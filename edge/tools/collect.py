@@ -59,7 +59,7 @@ X_TH_RTOL = 1e-9
 
 @dataclass
 class CollectReport:
-    """What a run did; ``interrupted`` when Ctrl-C (or SIGTERM) ended it."""
+    """What a run did (filled as it goes: it says what was kept when Ctrl-C ends it)."""
 
     kept: list[Path] = field(default_factory=list)
     failed: int = 0
