@@ -52,7 +52,7 @@ _PADS_STREAM = 0x7AD5
 # from the first placement's and the pads' noise draws.
 _PLACEMENTS_STREAM = 0x91AC
 # A gripper open this far past the object after touching it has let go of it...
-RELEASE_CLEARANCE_M = 2e-3
+RELEASE_CLEARANCE_M = 0.5e-3
 # ...and one closing this much from its widest gap since starts the next press: on a new
 # placement of the object (a fresh piece), as a person puts it back between presses, not on
 # the piece the last press left (dented, where it lay).
