@@ -177,6 +177,14 @@ def _merge_class(index: dict[str, Any], c: PlanClass, x_th: float, single: bool 
     return entry
 
 
+def _update_index(index: dict[str, Any], plan: Plan, cfg: Config) -> None:
+    index.update(plan_sha256=plan.sha256, software_version=__version__)
+    if not plan.single:
+        index["dataset"] = plan.name
+    for c in plan.classes:
+        _merge_class(index, c, c.threshold(cfg.press.x_th), plan.single)
+
+
 async def _photo(camera: Any) -> bytes:
     from edge.core.images import prepare_image
 
@@ -219,6 +227,12 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
         report.have[c.label] = len(found[c.label])
         report.planned[c.label] = c.presses
     todo = [c for c in plan.classes if len(found[c.label]) < c.presses]
+    if not todo and index is not None:
+        # Nothing to press: the robot is not needed (the daemon may hold it).
+        _update_index(index, plan, cfg)
+        dataset.write_index(out, index)
+        print(f"every class of {plan.source} has its presses in {out}", flush=True)
+        return report
     camera = make_camera(cfg) if devices is None else devices.camera
     if any(c.photo for c in todo) and camera is None:
         names = ", ".join(c.label for c in todo if c.photo)
@@ -245,11 +259,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
                 f"run is on {origin}: one dataset, one robot and sensor; use another --out")
         elif index.get("plan_sha256") != plan.sha256:
             log.info("the plan changed since the last run of %s (%s)", out, plan.source)
-        index.update(plan_sha256=plan.sha256, software_version=__version__)
-        if not plan.single:
-            index["dataset"] = plan.name
-        for c in plan.classes:
-            _merge_class(index, c, c.threshold(cfg.press.x_th), plan.single)
+        _update_index(index, plan, cfg)
         dataset.write_index(out, index)
         for c in todo:
             await _collect_class(cfg, c, out, index, found[c.label], sensor, devices, camera,
