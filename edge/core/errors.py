@@ -40,6 +40,11 @@ class StaleSensorError(SensorError, TimeoutError):
     """No fresh tactile frame arrived within the stale timeout: never press on it."""
 
 
+class BusInUseError(DeviceError):
+    """Another process holds the Dynamixel port (the daemon, or a second command): one bus,
+    one owner."""
+
+
 class MotorError(DeviceError):
     """A Dynamixel motor reported an error or did not answer."""
 

@@ -43,8 +43,9 @@ async def open_devices(cfg: Config) -> Devices:
     tactile = XelaClient(cfg.sensor)
     bus = DynamixelBus(cfg.bus)
     try:
-        await tactile.start()
+        # The bus first: a port another process owns is refused before anything else starts.
         await bus.connect()
+        await tactile.start()
         gripper = DynamixelGripper(bus)
         arm = DynamixelArm(bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
         return Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),

@@ -31,6 +31,8 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import errno
+import fcntl
 import logging
 import math
 import os
@@ -45,7 +47,7 @@ from typing import Any
 import dynamixel_sdk as sdk
 
 from edge.core.config import BusConfig
-from edge.core.errors import DeviceError, EdgeError, MotorError
+from edge.core.errors import BusInUseError, DeviceError, EdgeError, MotorError
 from edge.hw.control_table import (
     BUS_WATCHDOG_UNIT_S,
     DRIVE_MODE_REVERSE,
@@ -94,6 +96,8 @@ STOP_STATE_SETTLE_S = 0.01
 # the wire (normally the hand-over plus any transaction already in flight: tens of
 # microseconds to a millisecond). Past it the loop goes on and the stop still goes out.
 STOP_HANDOVER_MAX_S = 0.003
+# What a person stops to free the bus when the daemon holds it (edge.daemon.systemd.UNIT_NAME).
+SERVICE_NAME = "vtzero-edge"
 # Models the driver is written for; others get a warning (their tables may differ).
 XM430_MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}
 
@@ -347,6 +351,8 @@ class DynamixelBus:
         self._latency_timer_dir = latency_timer_dir
         self._ph = CheckedPacketHandler()
         self._port: sdk.PortHandler | None = None
+        # The exclusive flock on the port device held while connected (see _connect_owned).
+        self._lock_fd = -1
         self._lock = threading.Lock()
         self._urgent: collections.deque[_Op] = collections.deque()
         self._normal: collections.deque[_Op] = collections.deque()
@@ -450,7 +456,7 @@ class DynamixelBus:
         self._thread = threading.Thread(target=self._run, name="dxl-bus", daemon=True)
         self._thread.start()
         try:
-            self._motors = await self._call("connect", self._connect_sync)
+            self._motors = await self._call("connect", self._connect_owned)
         except BaseException:
             await self._shutdown_thread()
             raise
@@ -725,6 +731,9 @@ class DynamixelBus:
         if port is not None and port.is_open:
             with contextlib.suppress(OSError):
                 port.closePort()
+        lock_fd, self._lock_fd = self._lock_fd, -1
+        if lock_fd >= 0:
+            os.close(lock_fd)
 
     def _check(self, motor_id: int, what: str, result: int, error: int) -> None:
         if result != sdk.COMM_SUCCESS:
@@ -864,6 +873,32 @@ class DynamixelBus:
             op.on_wire.set()
         if self.on_write is not None:
             self.on_write(t, head)
+
+    def _connect_owned(self) -> dict[int, MotorInfo]:
+        # One bus, one owner: two processes talking on one half-duplex bus garble each
+        # other's replies and turn each other's motors off. The lock is an flock on the port
+        # device itself (what pyserial's exclusive=True takes), on a descriptor of its own so
+        # it is taken before the port is opened: opening a tty flushes its input, which would
+        # eat the replies of the process that owns it. The kernel drops it when this process
+        # dies.
+        port = self._config.port
+        try:
+            fd = os.open(port, os.O_RDONLY | os.O_NOCTTY | os.O_NONBLOCK | os.O_CLOEXEC)
+        except OSError as exc:
+            raise DeviceError(f"cannot open Dynamixel port {port}: {exc}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = _lock_holder(fd)
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN):
+                raise DeviceError(f"cannot lock Dynamixel port {port}: {exc}") from exc
+            raise BusInUseError(
+                f"Dynamixel port {port} is in use by {holder or 'another process'}: one bus, "
+                f"one owner; stop it first (the daemon: systemctl stop {SERVICE_NAME}), then "
+                "run this again") from None
+        self._lock_fd = fd
+        return self._connect_sync()
 
     def _connect_sync(self) -> dict[int, MotorInfo]:
         cfg = self._config
@@ -1071,12 +1106,43 @@ class DynamixelBus:
             if torque[motor_id]:
                 continue
             status = self._read(motor_id, HARDWARE_ERROR_STATUS)
-            why = (f"Hardware Error Status 0x{status:02x}: {describe_hardware_error(status)}"
-                   if status else "no hardware error left")
-            self._torque_fault = (
-                f"motor {motor_id}: torque is off ({why}): the motor shut itself down; "
-                "remove the cause, power-cycle or reboot it, then restart the daemon")
+            if status:
+                self._torque_fault = (
+                    f"motor {motor_id}: torque is off (Hardware Error Status 0x{status:02x}: "
+                    f"{describe_hardware_error(status)}): the motor shut itself down; remove "
+                    "the cause, power-cycle or reboot it, then restart the daemon")
+            else:
+                # A motor that shuts itself down keeps its alert until it is rebooted; with
+                # none, torque was turned off from the bus (a second program on it: the port
+                # lock keeps out only programs that take it) or the motor lost power.
+                self._torque_fault = (
+                    f"motor {motor_id}: torque is off with no hardware error: not a shutdown "
+                    "of the motor; another program on "
+                    f"{self._config.port} turned it off (one bus, one owner: stop it), or the "
+                    "motor was power-cycled or rebooted; then restart the daemon")
             raise MotorError(self._torque_fault, motor_id)
+
+
+def _lock_holder(fd: int) -> str | None:
+    """"pid N (its command line)" of the process holding an flock on ``fd``'s file, from
+    /proc/locks; None where that cannot be told."""
+    st = os.fstat(fd)
+    inode = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    try:
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        fields = line.split()
+        if len(fields) > 5 and fields[1] == "FLOCK" and fields[5] == inode:
+            pid = fields[4]
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                command = " ".join(a.decode(errors="replace") for a in argv if a)
+            except OSError:
+                return f"pid {pid}"
+            return f"pid {pid} ({command[:120]})"
+    return None
 
 
 def _field(reg: Register, data: list[int]) -> int:

@@ -284,6 +284,7 @@ class XelaClient:
         self._cfg = config
         self.stats = StreamStats()
         self.server_layout: str | None = None  # what the server sends, in words
+        self.server_models: tuple[str, ...] | None = None  # the model of each sensor it sends
         self._queue: asyncio.Queue[object] = asyncio.Queue(maxsize=_QUEUE_FRAMES)
         self._task: asyncio.Task[None] | None = None
         self._session: aiohttp.ClientSession | None = None
@@ -519,6 +520,7 @@ class XelaClient:
             return None
         if self.server_layout is None:
             self.server_layout = frame.describe()
+            self.server_models = frame.models
             log.info("XELA server sends %s", self.server_layout)
         if not self._model_warned and any(m != cfg.model for m in frame.models):
             self._model_warned = True

@@ -90,7 +90,8 @@ class SimRobot:
         return web.json_response({"object": self.world.object_name,
                                   "peak_force_n": self.world.peak_force_n,
                                   "force_n": self.world.force_n,
-                                  "gap_m": self.world.gap_m})
+                                  "gap_m": self.world.gap_m,
+                                  "placements": self.world.placements})
 
     async def _place(self, request: web.Request) -> web.Response:
         try:

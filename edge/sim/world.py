@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from edge.sim.catalogue import get
+from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import Skin, SkinDraw
@@ -48,6 +48,15 @@ def gap_from_raw(raw: float) -> float:
 
 # The random stream of a robot's pads, apart from the world's own draws.
 _PADS_STREAM = 0x7AD5
+# The stream of the pieces a person puts back between presses (see SimWorld.load), apart
+# from the first placement's and the pads' noise draws.
+_PLACEMENTS_STREAM = 0x91AC
+# A gripper open this far past the object after touching it has let go of it...
+RELEASE_CLEARANCE_M = 0.5e-3
+# ...and one closing this much from its widest gap since starts the next press: on a new
+# placement of the object (a fresh piece), as a person puts it back between presses, not on
+# the piece the last press left (dented, where it lay).
+RECLOSE_M = 1e-3
 
 
 def robot_pads(seed: int) -> SkinDraw:
@@ -77,6 +86,9 @@ class SimWorld:
                  clock: Callable[[], float] = time.monotonic) -> None:
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
+        self._placements = np.random.default_rng(
+            np.random.SeedSequence([seed, _PLACEMENTS_STREAM]) if isinstance(seed, int)
+            else self._rng.integers(2**63))
         if skin_draw is None:
             skin_draw = robot_pads(seed) if isinstance(seed, int) else SkinDraw.draw(self._rng)
         self._skin_draw = skin_draw
@@ -90,19 +102,41 @@ class SimWorld:
         self._gap = 0.07
         # The contact force behind the last rendered frame (what the pads felt), for benches.
         self.frame_force_n = 0.0
+        # Pieces placed so far (by place() and put back between presses).
+        self.placements = 0
         self.place(object_name)
 
     def place(self, object_name: str) -> None:
         """Put a new draw of ``object_name`` between the fingers (a new press)."""
-        inst = ObjectInstance.draw(get(object_name), self._rng)
+        cls = get(object_name)
         with self._lock:
-            self.object_name = object_name
-            self.instance = inst
-            self._contact = Contact(inst)
-            self._skin = Skin(inst, self._rng, self._skin_draw)
-            self.peak_force_n = 0.0
-            # When the object first pushed on the pads (the world's clock), for benches.
-            self.t_contact: float | None = None
+            self._place(cls, self._rng)
+
+    def _place(self, cls: ObjectClass, rng: np.random.Generator) -> None:
+        # Called with the lock held.
+        inst = ObjectInstance.draw(cls, rng)
+        self.object_name = cls.name
+        self.instance = inst
+        self._contact = Contact(inst)
+        self._skin = Skin(inst, rng, self._skin_draw)
+        self.peak_force_n = 0.0
+        # When the object first pushed on the pads (the world's clock), for benches.
+        self.t_contact: float | None = None
+        # The widest gap since the gripper let go of this piece; None while it has not.
+        self._released_gap: float | None = None
+        self.placements += 1
+
+    def _follow_gripper(self, gap: float) -> None:
+        # Called with the lock held. What the last press left stays until the next one
+        # starts closing: a bench reads the last press's peak force after it opened.
+        if self._released_gap is None:
+            if (self.t_contact is not None and self._contact.force == 0.0
+                    and gap > self.instance.width_m + RELEASE_CLEARANCE_M):
+                self._released_gap = gap
+        elif gap > self._released_gap:
+            self._released_gap = gap
+        elif gap < self._released_gap - RECLOSE_M:
+            self._place(self.instance.cls, self._placements)
 
     def _advance(self, t: float) -> None:
         # Called with the lock held: step the physics up to t at a fixed step.
@@ -125,6 +159,7 @@ class SimWorld:
         with self._lock:
             self._advance(t)
             self._gap = gap_from_raw(position_raw)
+            self._follow_gripper(self._gap)
             return self._contact.force / FORCE_PER_MA_N
 
     def frame(self, t: float) -> np.ndarray:

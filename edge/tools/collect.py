@@ -1,8 +1,14 @@
 """Collect mode: the robot side of adapting the system at low cost.
 
-``vt-edge collect``: press an object N times and write each press in the recordings format
-(the same files the simulator writes and training reads). Between presses the user moves the
-object slightly, so the references vary as they will at recognition time.
+``vt-edge collect --plan plan.toml --out DIR``: walk a collection plan (:mod:`edge.tools.plan`)
+object by object: "place OBJECT, Enter", then its presses with "move it slightly, Enter"
+between them, each kept press written in the recordings format (the files the simulator
+writes and training reads) with its photo beside it where the plan asks, and
+``DIR/dataset.json`` (:mod:`edge.tools.dataset`) rewritten after every kept press. Run again,
+it continues every class up to its planned count: numbers are never reused. A failed press
+(no contact, a stale stream, over the force cap) is shown with its reason and not kept; after
+``MAX_FAILED_IN_A_ROW`` in a row the class is skipped. ``--label NAME --presses N`` is a plan
+of one class.
 """
 
 from __future__ import annotations
@@ -10,72 +16,334 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
+import os
+import socket
+import sys
+import threading
+import time
 from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
+from edge import __version__
 from edge.core import recording
+from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config
-from edge.core.errors import EdgeError
-from edge.daemon.press import PressController, outcome_recording
+from edge.core.errors import ConfigError, EdgeError
+from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
+from edge.tools import dataset
+from edge.tools.plan import Plan, PlanClass, plan_of_one
 
 log = logging.getLogger(__name__)
 
-# Presses that may fail in a row (no contact, a stale stream) before collecting stops, and
-# the pause after each.
+Prompt = Callable[[str], object]
+
+# Presses of one class that may fail in a row (no contact, a stale stream, over the force
+# cap) before the class is skipped, and the pause after each without a prompt.
 MAX_FAILED_IN_A_ROW = 5
 FAILED_PRESS_PAUSE_S = 0.5
 # The ring keeps the last minute of frames (a press and its margins take a few seconds).
 RING_FRAMES = 8000
+# After connecting, the stream's first frames (and the server's sensor models) arrive.
+FIRST_FRAMES_S = 0.5
+# Thresholds closer than this (relative) are one threshold.
+X_TH_RTOL = 1e-9
 
 
-async def collect(cfg: Config, label: str, presses: int, out: str | Path,
-                  prompt: Callable[[str], object] | None = input, devices=None) -> list[Path]:
-    """Record ``presses`` presses of ``label`` into ``out/label/``; returns the files."""
-    from edge.daemon.devices import close_devices, enable_torque, open_devices
+@dataclass
+class CollectReport:
+    """What a run did (filled as it goes: it says what was kept when Ctrl-C ends it)."""
 
-    if not label.replace("_", "").isalnum():
-        raise EdgeError(f"label {label!r}: use letters, digits and underscores")
-    out_dir = Path(out) / label
-    start = len(list(out_dir.glob(f"*{recording.SUFFIX}"))) if out_dir.exists() else 0
+    kept: list[Path] = field(default_factory=list)
+    failed: int = 0
+    skipped: list[str] = field(default_factory=list)
+    # Per class: presses in the directory now, and planned.
+    have: dict[str, int] = field(default_factory=dict)
+    planned: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        return all(self.have.get(k, 0) >= n for k, n in self.planned.items())
+
+
+def read_line(message: str) -> str:
+    """``input()`` that leaves no lock behind: it reads the terminal's file descriptor, so a
+    Ctrl-C while it waits ends the process at once (the waiting thread is a daemon thread
+    holding no Python lock that the exit needs)."""
+    os.write(sys.stdout.fileno(), message.encode())
+    line = bytearray()
+    while not line.endswith(b"\n"):
+        chunk = os.read(sys.stdin.fileno(), 1)
+        if not chunk:
+            raise EOFError
+        line += chunk
+    return line.decode(errors="replace").rstrip("\n")
+
+
+async def ask(prompt: Prompt, message: str) -> None:
+    """``prompt(message)`` in a daemon thread: cancelling the wait (Ctrl-C) does not wait for
+    Enter, as a thread of the default executor would at the loop's shutdown."""
+    loop = asyncio.get_running_loop()
+    answered: asyncio.Future[None] = loop.create_future()
+
+    def settle(exc: BaseException | None) -> None:
+        if not answered.done():
+            if exc is None:
+                answered.set_result(None)
+            else:
+                answered.set_exception(exc)
+
+    def run() -> None:
+        try:
+            prompt(message)
+            exc = None
+        except BaseException as e:  # handed to the waiting task
+            exc = e
+        with contextlib.suppress(RuntimeError):  # the loop has closed: nobody waits
+            loop.call_soon_threadsafe(settle, exc)
+
+    threading.Thread(target=run, name="collect-prompt", daemon=True).start()
+    try:
+        await answered
+    except EOFError:
+        raise EdgeError("no more input at the prompt (stdin closed): run it in a terminal, "
+                        "or pass --no-prompt") from None
+
+
+def _kept_threshold(path: Path) -> float:
+    return recording.load(path).threshold
+
+
+def _check_existing(out: Path, plan: Plan, cfg: Config) -> dict[str, dict[int, Path]]:
+    """The presses already in ``out`` per class; ConfigError naming a file pressed at
+    another threshold than the plan's."""
+    found = {}
+    for c in plan.classes:
+        x_th = c.threshold(cfg.press.x_th)
+        presses = dataset.existing_presses(out, c.label)
+        for path in presses.values():
+            kept = _kept_threshold(path)
+            if not math.isclose(kept, x_th, rel_tol=X_TH_RTOL):
+                raise ConfigError(
+                    f"{path} was pressed at x_th {kept:g}, the plan ({plan.source}) says "
+                    f"{x_th:g} for {c.label!r}: set the class's x_th to {kept:g}, or collect "
+                    "it into another --out")
+        found[c.label] = presses
+    return found
+
+
+def _origin(cfg: Config, plan: Plan, models: tuple[str, ...] | None) -> dict[str, Any]:
+    emulated = cfg.mode == "sim"
+    sensor = None
+    if models:
+        # xela_server sends each sensor's model, not its serial number.
+        sensor = {"model": models[0] if len(set(models)) == 1 else ",".join(models),
+                  "serials": []}
+    return {"kind": "emulated" if emulated else "robot", "recorder": plan.recorder,
+            "robot": plan.robot if plan.robot or emulated else socket.gethostname(),
+            "sensor": sensor}
+
+
+def _recorder_sentence(origin: dict[str, Any]) -> str:
+    where = ("the emulated robot" if origin["kind"] == "emulated"
+             else f"robot {origin['robot']}")
+    sensor = origin.get("sensor") or {}
+    with_sensor = f" with {sensor['model']} pads" if sensor.get("model") else ""
+    return (f"vt-edge collect: {origin['recorder']} placing each object by hand on {where}"
+            f"{with_sensor}, the daemon's press controller pressing")
+
+
+def _merge_class(index: dict[str, Any], c: PlanClass, x_th: float, single: bool = False
+                 ) -> dict[str, Any]:
+    """The class's entry in ``index``, brought up to the plan; a plan of one class keeps
+    the split and description an earlier plan gave it."""
+    for entry in index["classes"]:
+        if entry.get("label") == c.label:
+            break
+    else:
+        entry = {"label": c.label, "split": c.split, "description": c.description}
+        index["classes"].append(entry)
+    if not single:
+        entry.update(split=c.split, description=c.description)
+    entry.update(x_th=x_th, presses=c.presses, photo=c.photo)
+    entry.setdefault("failed", [])
+    return entry
+
+
+def _update_index(index: dict[str, Any], plan: Plan, cfg: Config) -> None:
+    index.update(plan_sha256=plan.sha256, software_version=__version__)
+    if not plan.single:
+        index["dataset"] = plan.name
+    for c in plan.classes:
+        _merge_class(index, c, c.threshold(cfg.press.x_th), plan.single)
+
+
+async def _photo(camera: Any) -> bytes:
+    from edge.core.images import prepare_image
+
+    data = await camera.capture()
+    # Kept as taken where it is a JPEG; a PNG camera's still becomes one (same size).
+    image = await asyncio.to_thread(prepare_image, data, 1 << 16, 1 << 30)
+    return image.data if image.source_format == "JPEG" else (
+        await asyncio.to_thread(_to_jpeg, data))
+
+
+def _to_jpeg(data: bytes) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.open(io.BytesIO(data)).convert("RGB").save(buf, "JPEG", quality=92)
+    return buf.getvalue()
+
+
+def _failure(outcome: PressOutcome) -> dict[str, Any]:
+    return {"result": outcome.result, "message": outcome.message,
+            "peak_level": outcome.peak_level,
+            "at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
+                       prompt: Prompt | None = read_line, devices=None,
+                       report: CollectReport | None = None) -> CollectReport:
+    """Walk ``plan`` into ``out`` (see the module's docstring); ``prompt`` None presses
+    without waiting. ``report`` (filled as it goes) says what was done when it is
+    interrupted."""
+    from edge.daemon.devices import close_devices, enable_torque, make_camera, open_devices
+
+    out = Path(out)
+    report = report if report is not None else CollectReport()
+    found = _check_existing(out, plan, cfg)
+    index = dataset.read_index(out)
+    for c in plan.classes:
+        report.have[c.label] = len(found[c.label])
+        report.planned[c.label] = c.presses
+    todo = [c for c in plan.classes if len(found[c.label]) < c.presses]
+    if not todo and index is not None:
+        # Nothing to press: the robot is not needed (the daemon may hold it).
+        _update_index(index, plan, cfg)
+        dataset.write_index(out, index)
+        print(f"every class of {plan.source} has its presses in {out}", flush=True)
+        return report
+    camera = make_camera(cfg) if devices is None else devices.camera
+    if any(c.photo for c in todo) and camera is None:
+        names = ", ".join(c.label for c in todo if c.photo)
+        raise ConfigError(f"the plan asks for photos ({names}) and the configuration has no "
+                          "[camera]: set [camera] kind, or photo = false")
     own = devices is None
     if own:
         devices = await open_devices(cfg)
     ring = FrameRing(cfg.sensor.channels, RING_FRAMES)
-    controller = PressController(cfg, devices.gripper, devices.arm, ring)
-    task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run(),
-                               name="sensor")
-    written: list[Path] = []
+    sensor = SensorTask(devices.tactile, ring, PressController(cfg, devices.gripper,
+                                                               devices.arm, ring))
+    task = asyncio.create_task(sensor.run(), name="sensor")
     try:
         if own:
             await enable_torque(devices)
-        await asyncio.sleep(0.5)
-        i = failures = 0
-        while i < presses:
-            if prompt is not None and i > 0:
-                await asyncio.to_thread(
-                    prompt, f"press {i + 1}/{presses}: move the {label} slightly, then Enter ")
-            outcome = await controller.run()
-            if not outcome.contact:
-                failures += 1
-                print(f"press {i + 1}: {outcome.result}: {outcome.message}; not kept")
-                if prompt is None or failures >= MAX_FAILED_IN_A_ROW:
-                    raise EdgeError(f"press failed ({failures} in a row): {outcome.message}")
-                # (a stale stream refuses at once: give it time to come back)
-                await asyncio.sleep(FAILED_PRESS_PAUSE_S)
-                continue
-            failures = 0
-            path = out_dir / f"{label}_{start + i:03d}{recording.SUFFIX}"
-            recording.save(outcome_recording(outcome, cfg, label), path)
-            written.append(path)
-            print(f"press {i + 1}/{presses}: stop latency "
-                  f"{(outcome.stop_latency_s or 0) * 1e3:.1f} ms -> {path}")
-            i += 1
+        await asyncio.sleep(FIRST_FRAMES_S)
+        origin = _origin(cfg, plan, getattr(devices.tactile, "server_models", None))
+        if index is None:
+            index = dataset.new_index(plan.name, _recorder_sentence(origin), origin,
+                                      plan.sha256)
+        elif not dataset.same_origin(index.get("origin"), origin):
+            raise ConfigError(
+                f"{out / dataset.DATASET_INDEX}: collected on {index.get('origin')}, this "
+                f"run is on {origin}: one dataset, one robot and sensor; use another --out")
+        elif index.get("plan_sha256") != plan.sha256:
+            log.info("the plan changed since the last run of %s (%s)", out, plan.source)
+        _update_index(index, plan, cfg)
+        dataset.write_index(out, index)
+        for c in todo:
+            await _collect_class(cfg, c, out, index, found[c.label], sensor, devices, camera,
+                                 prompt, report)
+    except (asyncio.CancelledError, KeyboardInterrupt):
+        have = sum(min(report.have[k], n) for k, n in report.planned.items())
+        print(f"\ninterrupted: kept {len(report.kept)} presses in this run, {have} of "
+              f"{sum(report.planned.values())} planned are in {out}; run the same command "
+              "again to go on from there", flush=True)
+        raise
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
         if own:
             await close_devices(devices, cfg.runtime.move_timeout_s)
-    return written
+    return report
 
+
+async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, Any],
+                         presses: dict[int, Path], sensor: SensorTask, devices: Any,
+                         camera: Any, prompt: Prompt | None, report: CollectReport) -> None:
+    ccfg = replace(cfg, press=replace(cfg.press, x_th=c.threshold(cfg.press.x_th)))
+    controller = PressController(ccfg, devices.gripper, devices.arm, sensor.ring)
+    sensor.controller = controller
+    entry = _merge_class(index, c, ccfg.press.x_th, True)
+    next_number = max(presses, default=-1) + 1
+    have = len(presses)
+    print(f"{c.label}: {have}/{c.presses} pressed; x_th {ccfg.press.x_th:g}", flush=True)
+    if prompt is not None:
+        await ask(prompt, f"place the {c.label} ({c.description}) between the fingers, "
+                          "then Enter ")
+    failures = 0
+    first = True
+    while have < c.presses:
+        if prompt is not None and not first:
+            what = "move" if failures == 0 else "check and move"
+            await ask(prompt, f"{c.label} press {have + 1}/{c.presses}: {what} the "
+                              f"{c.label} slightly, then Enter ")
+        first = False
+        outcome = await controller.run()
+        reason = None if outcome.contact else f"{outcome.result}: {outcome.message}"
+        path = dataset.press_path(out, c.label, next_number)
+        photo = None
+        if reason is None and c.photo:
+            try:
+                photo = await _photo(camera)
+            except EdgeError as exc:
+                reason = f"photo: {exc}"
+                outcome = replace(outcome, result="photo", message=str(exc))
+        if reason is not None:
+            failures += 1
+            report.failed += 1
+            entry["failed"].append(_failure(outcome))
+            dataset.write_index(out, index)
+            print(f"{c.label} press {have + 1}/{c.presses} failed ({failures} in a row): "
+                  f"{reason}; not kept", flush=True)
+            if failures >= MAX_FAILED_IN_A_ROW:
+                print(f"{c.label}: skipped after {failures} failed presses in a row; "
+                      f"{have}/{c.presses} kept; run again to go on", flush=True)
+                report.skipped.append(c.label)
+                return
+            if prompt is None:
+                # (a stale stream refuses at once: give it time to come back)
+                await asyncio.sleep(FAILED_PRESS_PAUSE_S)
+            continue
+        failures = 0
+        if photo is not None:
+            # The photo first: a press is kept when its recording exists, and has its photo.
+            atomic_write_bytes(dataset.photo_path(path), photo)
+        recording.save(outcome_recording(outcome, ccfg, c.label), path)
+        next_number += 1
+        have += 1
+        report.have[c.label] = have
+        report.kept.append(path)
+        dataset.write_index(out, index)
+        print(f"{c.label} press {have}/{c.presses}: peak {outcome.peak_level:.4f}, stop "
+              f"latency {(outcome.stop_latency_s or 0) * 1e3:.1f} ms -> {path}"
+              f"{' + photo' if photo is not None else ''}", flush=True)
+
+
+async def collect(cfg: Config, label: str, presses: int, out: str | Path,
+                  prompt: Prompt | None = read_line, devices=None, *,
+                  description: str | None = None, x_th: float | None = None,
+                  photo: bool = False) -> list[Path]:
+    """Press ``label`` up to ``presses`` times in ``out/label/`` (a plan of one class);
+    returns the files written."""
+    plan = plan_of_one(label, presses, description=description, x_th=x_th, photo=photo,
+                       name=Path(out).name or "collected")
+    report = await collect_plan(cfg, plan, out, prompt, devices)
+    return report.kept

@@ -18,7 +18,7 @@ import pytest
 import pytest_asyncio
 
 from edge.core.config import BusConfig
-from edge.core.errors import DeviceError, MotorError
+from edge.core.errors import BusInUseError, DeviceError, MotorError
 from edge.hw.arm import DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import (
     LATENCY_TIMER_UDEV_RULE,
@@ -540,3 +540,21 @@ async def test_stop_is_one_write_from_a_fresh_state_else_it_reads_first(emu, bus
     assert await stop_instructions(0.001) == [INST_READ, INST_WRITE]  # too old to trust
     assert bus.stop_fallbacks == 2 and bus.stops == 3
     print(f"\nfallback reasons: {bus.last_stop.fallback}")
+
+
+@pytest.mark.asyncio
+async def test_a_second_owner_of_the_port_is_refused_until_the_first_closes(emu):
+    async with DynamixelBus(BusConfig(port=emu.port)) as first:
+        await first.set_torque(True)
+        with pytest.raises(BusInUseError) as caught:
+            await DynamixelBus(BusConfig(port=emu.port)).connect()
+        message = str(caught.value)
+        print(message)
+        assert "\n" not in message and f"pid {os.getpid()}" in message
+        assert "systemctl stop vtzero-edge" in message
+        assert "dxl-bus" in {t.name for t in threading.enumerate()}  # the first one's only
+        # The refused one never touched the bus: the owner's motors are as it left them.
+        assert all(emu.get_register(i, "Torque Enable") == 1 for i in first.ids)
+        await first.read_state()
+    async with DynamixelBus(BusConfig(port=emu.port)) as second:  # released on close
+        await second.read_state()

@@ -1,11 +1,175 @@
-"""Collect mode against the emulated robot."""
+"""Collect mode (a collection plan, resumed, interrupted, with failed presses and photos;
+refused beside a running daemon) against the emulated robot."""
+
+import asyncio
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
 
 import pytest
 
-from edge.core import recording
+from edge.core import recording, tomledit
+from edge.core.config import load_config
+from edge.core.errors import ConfigError
+from edge.sim.catalogue import DATASETS
+from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.tools.collect import collect
-from tests.support.daemon import base_config
+from edge.sim.xela_server import Fault
+from edge.tools import collect as collect_mod
+from edge.tools.collect import CollectReport, collect, collect_plan
+from edge.tools.plan import load_plan
+from edge.tools.stack import http_json, stop, wait_for
+from tests.support.daemon import CUBE, ROOT, Daemon, base_config
+from tests.support.waits import wait_until
+
+PLAN = """
+[dataset]
+name = "lab_food"
+recorder = "test"
+presses = 2
+val = ["wood_cube"]
+
+[[class]]
+label = "otedama"
+description = "otedama (a small Japanese cloth beanbag filled with beans)"
+photo = true
+
+[[class]]
+label = "wood_cube"
+description = "wood cube"
+x_th = 0.003
+"""
+# The command line as a user runs it.
+VT_EDGE = [sys.executable, "-m", "edge"]
+COMMAND_TIMEOUT_S = 120
+
+
+def write_plan(tmp_path: Path, text: str = PLAN, name: str = "plan.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def digests(out: Path) -> dict[str, str]:
+    return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.name != "dataset.json"}
+
+
+def person(robot: SimRobot, placed: list[str]):
+    """The prompt's answer: the person puts the object the prompt names in the gripper."""
+    def answer(message: str) -> None:
+        if message.startswith("place the "):
+            name = message.split()[2]
+            robot.world.place(name)
+            placed.append(name)
+    return answer
+
+
+@pytest.mark.asyncio
+async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_path):
+    plan_path = write_plan(tmp_path)
+    out = tmp_path / "data"
+    placed: list[str] = []
+    async with SimRobot("stainless_cube", seed=13, cfg=base_config()) as robot:
+        cfg = robot.runtime_config(base_config())
+        t0 = time.monotonic()
+        report = await collect_plan(cfg, load_plan(plan_path), out, person(robot, placed))
+        elapsed = time.monotonic() - t0
+        print(f"2 classes x 2 presses in {elapsed:.1f} s; pieces placed "
+              f"{robot.world.placements}")
+        assert placed == ["otedama", "wood_cube"] and report.complete and not report.failed
+        # The person placed each object once; the emulated robot put a fresh piece back
+        # before each later press of it.
+        assert robot.world.placements >= 1 + 2 * 2
+        index = json.loads((out / "dataset.json").read_text())
+        assert index["dataset"] == "lab_food"
+        assert index["plan_sha256"] == hashlib.sha256(plan_path.read_bytes()).hexdigest()
+        assert index["origin"]["kind"] == "emulated" and index["origin"]["recorder"] == "test"
+        assert index["origin"]["sensor"]["model"] == "XR1944"
+        assert isinstance(index["recorder"], str) and "test" in index["recorder"]
+        classes = {c["label"]: c for c in index["classes"]}
+        assert classes["otedama"] == {
+            "label": "otedama", "split": "train", "x_th": cfg.press.x_th, "presses": 2,
+            "photo": True, "failed": [],
+            "description": "otedama (a small Japanese cloth beanbag filled with beans)"}
+        assert classes["wood_cube"]["split"] == "val" and classes["wood_cube"]["x_th"] == 0.003
+        for label, x_th in (("otedama", cfg.press.x_th), ("wood_cube", 0.003)):
+            files = sorted((out / label).glob("*.press.npz"))
+            assert [f.name for f in files] == [f"{label}_000.press.npz",
+                                               f"{label}_001.press.npz"]
+            for f in files:
+                rec = recording.load(f)
+                assert rec.label == label and rec.threshold == x_th
+                assert rec.extra["stop_latency_s"] > 0
+        photos = sorted((out / "otedama").glob("*.jpg"))
+        assert [p.name for p in photos] == ["otedama_000.jpg", "otedama_001.jpg"]
+        assert all(p.read_bytes()[:3] == b"\xff\xd8\xff" for p in photos)
+        assert not list((out / "wood_cube").glob("*.jpg"))
+        assert not list(out.rglob("*.tmp"))
+
+        # Run again: nothing to do. Then 3 per class: one more each, numbered on.
+        before = digests(out)
+        again = await collect_plan(cfg, load_plan(plan_path), out, None)
+        assert again.kept == [] and again.complete
+        more = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"), "more.toml")
+        third = await collect_plan(cfg, load_plan(more), out, None)
+        assert [p.name for p in third.kept] == ["otedama_002.press.npz",
+                                                "wood_cube_002.press.npz"]
+        after = digests(out)
+        assert {k: after[k] for k in before} == before  # nothing rewritten
+        assert (out / "otedama" / "otedama_002.jpg").exists()
+
+        # A plan whose threshold differs from the kept presses' is refused, naming a file.
+        other = write_plan(tmp_path, PLAN.replace("x_th = 0.003", "x_th = 0.0035"), "o.toml")
+        with pytest.raises(ConfigError, match=r"wood_cube_000\.press\.npz was pressed at "
+                                              r"x_th 0\.003, the plan .* says 0\.0035"):
+            await collect_plan(cfg, load_plan(other), out, None)
+
+
+@pytest.mark.asyncio
+async def test_failed_presses_are_retried_then_the_class_is_skipped(tmp_path, monkeypatch):
+    monkeypatch.setattr(collect_mod, "MAX_FAILED_IN_A_ROW", 3)
+    plan = load_plan(write_plan(tmp_path, PLAN.replace("photo = true", "photo = false")))
+    out = tmp_path / "data"
+    async with SimRobot("otedama", seed=14, cfg=base_config()) as robot:
+        cfg = robot.runtime_config(base_config())
+        report = CollectReport()
+
+        async def stream(silent_until) -> None:
+            robot.xela.fault = Fault.SILENT
+            await wait_until(silent_until, 60, "the failed presses")
+            robot.xela.fault = Fault.NONE
+
+        # Two stale presses of the first class, then the stream comes back: retried, kept.
+        server = asyncio.create_task(stream(lambda: report.failed >= 2))
+        await asyncio.sleep(0.5)  # stale by now
+        await collect_plan(cfg, plan, out, None, report=report)
+        await server
+        assert report.complete and report.failed == 2 and not report.skipped
+        index = json.loads((out / "dataset.json").read_text())
+        failed = {c["label"]: c["failed"] for c in index["classes"]}
+        print("failed presses:", failed)
+        assert [f["result"] for f in failed["otedama"]] == ["stale", "stale"]
+        assert failed["wood_cube"] == []
+
+        # A stream that stays silent: the first class is skipped after 3, the run goes on.
+        more = load_plan(write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3")
+                                    .replace("photo = true", "photo = false"), "more.toml"))
+        report = CollectReport()
+        server = asyncio.create_task(stream(lambda: "otedama" in report.skipped))
+        await asyncio.sleep(0.5)
+        await collect_plan(cfg, more, out, None, report=report)
+        await server
+        print(f"skipped {report.skipped}, have {report.have}, failed {report.failed}")
+        assert report.skipped == ["otedama"] and not report.complete
+        assert report.have == {"otedama": 2, "wood_cube": 3}
+        assert len(list((out / "otedama").glob("*.press.npz"))) == 2
 
 
 @pytest.mark.asyncio
@@ -15,9 +179,236 @@ async def test_collect_writes_labelled_recordings(tmp_path):
     async with SimRobot("otedama", seed=11, cfg=cfg) as robot:
         files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path,
                               prompt=prompts.append)
-    assert len(files) == 2 and len(prompts) == 1 and "move the otedama" in prompts[0]
+    print(prompts)
+    assert len(files) == 2 and len(prompts) == 2
+    assert "place the otedama" in prompts[0] and "move the otedama" in prompts[1]
     for f in files:
         rec = recording.load(f)
         assert rec.label == "otedama" and rec.source == "sim"
         assert rec.extra["stop_latency_s"] > 0
 
+
+class Output:
+    """A process's stdout as it comes (prompts end without a newline)."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.text = ""
+        self._proc = proc
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        while chunk := self._proc.stdout.read1(4096):  # type: ignore[union-attr]
+            self.text += chunk.decode(errors="replace")
+
+    def wait_for(self, needle: str, timeout_s: float = COMMAND_TIMEOUT_S) -> None:
+        wait_for(lambda: needle in self.text, timeout_s, f"{needle!r} in the output\n"
+                 f"{self.text}", self._proc)
+
+
+@pytest.fixture(scope="module")
+def sim_serve(tmp_path_factory):
+    """``vt-edge sim serve`` and its runtime configuration (quicker arm moves)."""
+    tmp = tmp_path_factory.mktemp("sim")
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    for key in ("VTZERO_VLM_URL", "VTZERO_VLM_MODEL", "NOTIFY_SOCKET", "VTZERO_LOG_LEVEL"):
+        env.pop(key, None)
+    config = tmp / "run.toml"
+    sim = subprocess.Popen([*VT_EDGE, "sim", "serve", "--config", "configs/sim.toml",
+                            "--object", "otedama", "--write-config", str(config)],
+                           cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+    try:
+        wait_for(config.exists, 60, "emulated robot", sim)
+        tomledit.update(config, config, {"sensor": {"stale_timeout_s": 0.25},
+                                         "runtime": {"move_time_s": 0.2}})
+        yield config, env
+    finally:
+        stop(sim, "emulated robot")
+
+
+def start_collect(config: Path, env: dict, *args: str) -> tuple[subprocess.Popen, Output]:
+    proc = subprocess.Popen([*VT_EDGE, "collect", "--config", str(config), *args], cwd=ROOT,
+                            env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    return proc, Output(proc)
+
+
+def test_ctrl_c_mid_plan_keeps_what_was_pressed_and_the_rerun_goes_on(sim_serve, tmp_path):
+    config, env = sim_serve
+    plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3")
+                      .replace("photo = true", "photo = true\npresses = 4"))
+    out = tmp_path / "data"
+    args = ("--plan", str(plan), "--out", str(out), "--no-prompt")
+    proc, output = start_collect(config, env, *args)
+    output.wait_for("otedama press 2/4:")
+    proc.send_signal(signal.SIGINT)  # during the third press (or its photo, or its file)
+    t0 = time.monotonic()
+    rc = proc.wait(30)
+    print(f"exit {rc} {time.monotonic() - t0:.2f} s after SIGINT\n{output.text}")
+    assert rc == 130 and "interrupted: kept" in output.text
+    assert "run the same command again" in output.text
+    control = load_config(config).camera.url.rsplit("/", 1)[0]
+    assert http_json("GET", f"{control}/object")["force_n"] == 0.0  # the gripper let go
+    kept = sorted((out / "otedama").glob("*.press.npz"))
+    assert 2 <= len(kept) <= 3 and not list(out.rglob("*.tmp"))
+    for i, path in enumerate(kept):  # whole, numbered from 0, each with its photo
+        assert path.name == f"otedama_{i:03d}.press.npz" and recording.load(path).label
+        assert (out / "otedama" / f"otedama_{i:03d}.jpg").exists()
+    index = json.loads((out / "dataset.json").read_text())
+    assert [c["label"] for c in index["classes"]] == ["otedama", "wood_cube"]
+    before = digests(out)
+
+    proc, output = start_collect(config, env, *args)
+    assert proc.wait(COMMAND_TIMEOUT_S) == 0, output.text
+    print(output.text)
+    assert f"otedama: {len(kept)}/4 pressed" in output.text
+    for label, n in (("otedama", 4), ("wood_cube", 3)):
+        names = sorted(p.name for p in (out / label).glob("*.press.npz"))
+        assert names == [f"{label}_{i:03d}.press.npz" for i in range(n)]
+    after = digests(out)
+    assert {k: after[k] for k in before if k.endswith(".npz")} == {
+        k: v for k, v in before.items() if k.endswith(".npz")}
+
+
+def test_ctrl_c_at_the_prompt_exits_at_once(sim_serve, tmp_path):
+    config, env = sim_serve
+    proc, output = start_collect(config, env, "--plan", str(write_plan(tmp_path)), "--out",
+                                 str(tmp_path / "data"))
+    output.wait_for("place the otedama")
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rc = proc.wait(30)
+    took = time.monotonic() - t0
+    print(f"exit {rc} {took:.2f} s after SIGINT at the prompt\n{output.text}")
+    assert rc == 130 and "interrupted: kept 0 presses" in output.text
+    assert took < 10.0
+
+
+@pytest.mark.asyncio
+async def test_collect_beside_the_daemon_is_refused_and_the_daemon_unaffected(tmp_path):
+    async with FakeVLM(model="fake-vlm") as fake, \
+            SimRobot("wood_cube", seed=15, cfg=base_config()) as robot:
+        fake.script(Reply(label="raw_kiri_mochi"), Reply(label="raw_kiri_mochi"))
+        async with Daemon(robot, base_config(fake.base_url), tmp_path / "state") as d:
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            assert status == 200 and ep["status"] == "done", ep
+            config = tmp_path / "run.toml"
+            tomledit.update(ROOT / "configs" / "sim.toml", config, {
+                "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port}})
+            proc = await asyncio.create_subprocess_exec(
+                *VT_EDGE, "collect", "--config", str(config), "--label", "wood_cube",
+                "--presses", "1", "--out", str(tmp_path / "data"), "--no-prompt", cwd=ROOT,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+            stdout, stderr = await asyncio.wait_for(proc.communicate(), COMMAND_TIMEOUT_S)
+            lines = stderr.decode().strip().splitlines() + stdout.decode().strip().splitlines()
+            print(f"exit {proc.returncode}: {lines}")
+            assert proc.returncode == 2 and len(lines) == 1
+            assert "in use by pid" in lines[0] and "systemctl stop vtzero-edge" in lines[0]
+            assert not (tmp_path / "data").exists()
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            print("the daemon's next recognition:", ep["status"], ep.get("error"))
+            assert status == 200 and ep["status"] == "done", ep
+            assert d.devices.bus.fault is None
+
+
+def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp_path,
+                                                                              capsys):
+    from dataclasses import replace
+
+    import numpy as np
+
+    from edge.cli import main
+    from edge.tools import dataset
+    from edge.tools.record import record_press
+
+    out = tmp_path / "data"
+    # Presses of the virtual-clock recorder (the daemon's press controller), as collect
+    # writes them: otedama at 0.004 but one at 0.003 (an earlier --x-th); wood_cube short.
+    recs = [record_press("otedama", seed, x_th=x).recording
+            for seed, x in ((1, 0.004), (2, 0.004), (3, 0.004), (4, 0.003))]
+    for i, rec in enumerate(recs):
+        recording.save(rec, dataset.press_path(out, "otedama", i))
+    gap = recs[1]
+    keep = ~((gap.recv_time > gap.t_stop + 0.1) & (gap.recv_time < gap.t_stop + 0.2))
+    recording.save(replace(gap, frames=gap.frames[keep], recv_time=gap.recv_time[keep],
+                           sensor_time=gap.sensor_time[keep], seq=gap.seq[keep]),
+                   dataset.press_path(out, "otedama", 1))
+    late = recs[2]
+    loud = late.tare + 40.0 * (late.frames - late.tare)
+    recording.save(replace(late, frames=np.clip(loud, 0, 65535).astype(np.uint16)),
+                   dataset.press_path(out, "otedama", 2))
+    cube = record_press("wood_cube", 5).recording
+    recording.save(cube, dataset.press_path(out, "wood_cube", 0))
+    index = dataset.new_index("lab_food", "test", {"kind": "emulated", "recorder": "test",
+                                                   "robot": None, "sensor": None}, "0" * 64)
+    index["classes"] = [
+        {"label": "otedama", "split": "train", "description": "otedama", "x_th": 0.004,
+         "presses": 4, "photo": False, "failed": [{"result": "stale", "message": "x"}]},
+        {"label": "wood_cube", "split": "val", "description": "wood cube", "x_th": 0.004,
+         "presses": 2, "photo": False, "failed": []}]
+    dataset.write_index(out, index)
+
+    summary = dataset.summarize(out)
+    print(dataset.format_summary(summary))
+    oted = summary.classes[0]
+    assert oted.thresholds == [0.003, 0.004] and oted.failed == {"stale": 1}
+    assert summary.problems == [
+        "otedama: mixes thresholds 0.003, 0.004 (otedama_003.press.npz unlike the class's "
+        "0.004)", "wood_cube: 1 of 2 planned presses"]
+    flags = {p.path.name: p.flags for p in oted.presses}
+    assert flags["otedama_000.press.npz"] == ()
+    assert len(flags["otedama_001.press.npz"]) == 1
+    assert flags["otedama_001.press.npz"][0].startswith("stream gap of 1")
+    assert "stopped late" in flags["otedama_002.press.npz"][0]
+    assert "unlike the class's 0.004" in flags["otedama_003.press.npz"][0]
+    peaks = [p.peak for p in oted.presses]
+    assert all(0.003 < p < 0.02 for i, p in enumerate(peaks) if i != 2)
+    assert all(p.stop_latency_ms > 0 for p in oted.presses)
+    assert main(["dataset", "summary", str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "origin: the emulated robot, pressed by test" in text and "problems:" in text
+
+    # Made whole (the odd press pressed again at 0.004, wood_cube once more): exit 0; a
+    # plan asking for more makes it short again.
+    recording.save(record_press("otedama", 7).recording, dataset.press_path(out, "otedama", 3))
+    recording.save(record_press("wood_cube", 6).recording,
+                   dataset.press_path(out, "wood_cube", 1))
+    assert main(["dataset", "summary", str(out)]) == 0
+    plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
+    assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
+    assert "wood_cube: 2 of 3 planned presses" in capsys.readouterr().out
+
+
+def test_the_shipped_paper_plan_and_the_readme_examples_load(tmp_path):
+    import re
+
+    plan = load_plan(ROOT / "configs" / "plan-paper-reference.toml")
+    ref = DATASETS["reference"]
+    assert [(c.label, c.description, c.split, c.x_th, c.presses) for c in plan.classes] == [
+        (o.name, o.description, o.split, o.x_th, 10) for o in ref]
+    assert sum(c.split == "val" for c in plan.classes) == 5 and len(plan.classes) == 32
+    blocks = re.findall(r"```toml\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    examples = [load_plan(write_plan(tmp_path, b, f"readme{i}.toml"))
+                for i, b in enumerate(blocks) if "[dataset]" in b]
+    assert [p.name for p in examples] == ["lab_reference", "lab_food"]
+    assert {c.split for c in examples[1].classes} == {"test"}
+    assert all(c.photo for c in examples[1].classes)
+    assert examples[0].get("gelatin_soft").x_th == 0.003
+
+
+@pytest.mark.parametrize("change, message", [
+    (("presses = 2", "presses = 0"), "[dataset]: presses = 0: must be 1..1000"),
+    (("x_th = 0.003", "x_th = 2.0"), "class 'wood_cube': x_th = 2.0: must be in (0, 1)"),
+    (("x_th = 0.003", "x_th = 0.003\nfoo = 1"), "class 'wood_cube': unknown key(s) foo"),
+    (('description = "wood cube"', 'description = "hard wood cube"'),
+     "description of 'wood_cube' 'hard wood cube' says how the object feels (hard)"),
+    (('val = ["wood_cube"]', 'val = ["wood"]'), "val names wood, which no [[class]] has"),
+    (('val = ["wood_cube"]', 'val = ["wood_cube"]\ntest = true'), "a test set"),
+    (('label = "otedama"', 'label = "wood_cube"'), "class 'wood_cube': listed twice"),
+    (('photo = true', 'photo = "yes"'), "class 'otedama': photo = 'yes': must be true or"),
+])
+def test_a_bad_plan_is_refused_naming_the_field_and_the_class(tmp_path, change, message):
+    path = write_plan(tmp_path, PLAN.replace(*change))
+    with pytest.raises(ConfigError) as caught:
+        load_plan(path)
+    print(caught.value)
+    assert message in str(caught.value) and str(path) in str(caught.value)
