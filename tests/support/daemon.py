@@ -179,7 +179,7 @@ def store_consistent(root: Path) -> list[dict[str, Any]]:
         ep = json.loads((entry / EPISODE_FILE).read_text())
         assert ep["id"] == entry.name
         assert ep["status"] in {"pending", "done", "invalid_answer", "not_configured",
-                                "failed", "vlm_error"}, ep["status"]
+                                "failed", "vlm_error", "camera_error"}, ep["status"]
         if ep["status"] != "failed":
             for name in ("press.press.npz", "model_io.npz"):
                 assert (entry / name).is_file(), f"{entry.name} lacks {name}"
