@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from typing import TYPE_CHECKING
 
 from edge.core.config import Config
@@ -45,14 +46,19 @@ async def check_devices(cfg: Config, devices: Devices, vlm_mode: str) -> str | N
     The photo is taken while the first frames are awaited: a good start pays for the
     longer of the two, not their sum.
     """
+    started = time.monotonic()
     camera = None
     if devices.camera is not None and needs_photo(vlm_mode):
         camera = asyncio.create_task(_check_camera(devices.camera, vlm_mode),
                                      name="start-check camera")
     try:
         absent = await _check_sensor(cfg, devices)
+        sensor_ms = (time.monotonic() - started) * 1e3
         if camera is not None:
             await camera
+        log.info("start checks done in %.0f ms (sensor %s after %.0f ms%s)",
+                 (time.monotonic() - started) * 1e3, "absent" if absent else "checked",
+                 sensor_ms, ", one photo taken" if camera is not None else "")
     finally:
         if camera is not None and not camera.done():
             camera.cancel()
@@ -81,4 +87,4 @@ async def _check_camera(camera: Camera, vlm_mode: str) -> None:
         why = " ".join(str(exc).split()) or type(exc).__name__
         raise StartError(f"{why}; [vlm] mode {vlm_mode} needs a photo for every press: fix "
                          '[camera], or set [vlm] mode = "tactile_only"') from None
-    log.info("camera took a %d-byte photo", len(photo))
+    log.debug("camera took a %d-byte photo", len(photo))

@@ -424,12 +424,17 @@ class XelaClient:
                 self._put(exc)
                 return
             except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-                self._last_failure = str(exc) or type(exc).__name__
-                log.warning(
+                why = str(exc) or type(exc).__name__
+                # Said once per outage and reason: a server that stays away must not flood
+                # the log; the attempt that connects says its number.
+                level = logging.DEBUG if why == self._last_failure else logging.WARNING
+                self._last_failure = why
+                log.log(
+                    level,
                     "XELA server %s: attempt %d failed (%s); next try in %.2f s",
                     self._cfg.url,
                     attempt,
-                    str(exc) or type(exc).__name__,
+                    why,
                     backoff_s,
                 )
             except Exception:
@@ -450,6 +455,7 @@ class XelaClient:
                 max_msg_size=MAX_FRAME_CHARS,
             )
         self._connected = True
+        self._last_failure = None
         if self._connections:
             self.stats.reconnects += 1
         self.stats.new_connection()
