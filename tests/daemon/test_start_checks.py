@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import socket
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -19,6 +20,7 @@ from edge.core import tomledit
 from edge.core.config import CameraConfig
 from edge.core.errors import StartError
 from edge.daemon.serve import assemble
+from edge.daemon.systemd import Notifier
 from edge.sim import camera as sim_camera
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
@@ -144,12 +146,30 @@ def degraded_config(vlm_url: str = ""):
                                        reconnect_max_backoff_s=0.1))
 
 
-async def test_a_start_without_xela_server_serves_degraded_until_its_stream_arrives(tmp_path):
+async def listen(sock: socket.socket, said: list[str]) -> None:
+    """systemd's side of sd_notify: every datagram read as it comes (a full queue would
+    block the sender)."""
+    loop = asyncio.get_running_loop()
+    while True:
+        said.append((await loop.sock_recv(sock, 4096)).decode())
+
+
+async def test_a_start_without_xela_server_serves_degraded_until_its_stream_arrives(
+        tmp_path, monkeypatch):
+    # Under systemd: READY=1 and the watchdog fed while degraded (torque off), as documented.
+    monkeypatch.setenv("WATCHDOG_USEC", "100000")
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    systemd = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    systemd.bind(str(tmp_path / "notify.sock"))
+    systemd.setblocking(False)
+    said: list[str] = []
+    listener = asyncio.create_task(listen(systemd, said))
     async with FakeVLM(model="fake-vlm") as fake, \
             SimRobot(QUICK_OBJECT, seed=13, cfg=base_config()) as robot:
         await robot.xela.stop()
         d = Daemon(robot, degraded_config(fake.base_url), tmp_path)
         d.wait_ready = False
+        d.notifier = Notifier(str(tmp_path / "notify.sock"))
         async with d:
             # The user: /healthz 503 naming the sensor server; a press is refused at once.
             status, health = await d.get("/healthz")
@@ -167,6 +187,10 @@ async def test_a_start_without_xela_server_serves_degraded_until_its_stream_arri
                     robot.dxl.true_position(d.cfg.bus.gripper_id)) == before
             assert robot.dxl.torque_enables == 0 and torque_registers(robot, d.cfg) == {0}
             assert store_consistent(d.store.root) == []
+            print(f"sd_notify while degraded: {said}")
+            ready = [m for m in said if m.startswith("READY=1")]
+            assert len(ready) == 1 and "STATUS=degraded: sensor server" in ready[0]
+            assert said.count("WATCHDOG=1") >= 2
             # The sensor comes up: torque on, /healthz 200, and a recognition ends done.
             t0 = asyncio.get_running_loop().time()
             await robot.xela.start()
@@ -175,11 +199,14 @@ async def test_a_start_without_xela_server_serves_degraded_until_its_stream_arri
                   f"{asyncio.get_running_loop().time() - t0:.2f} s")
             assert health["torque_on"] is True and health["sensor_error"] is None
             assert torque_registers(robot, d.cfg) == {1}
+            assert "READY=1\nSTATUS=ready: sim mode" in said
             fake.script(Reply(label=CUBE[0]))
             status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
             assert status == 200 and ep["status"] == "done", ep
             assert ep["label"] == CUBE[0] and ep["press"]["contact"]
             assert gripper_open(robot)
+    listener.cancel()
+    systemd.close()
 
 
 async def test_a_wrong_layout_found_after_a_degraded_start_keeps_torque_off_said_once(
