@@ -169,6 +169,13 @@ def test_the_labs_path_from_a_plan_to_table1(tmp_path):
             assert "no problems" in text
         index = json.loads((reference / "dataset.json").read_text())
         assert index["plan_sha256"] == sha256(tmp_path / "reference.toml")
+        # The test set for LeRobot users: a press an episode, its photo, its label the task.
+        lerobot = tmp_path / "lab_food.lerobot"
+        processes.run([*VT_EDGE, "dataset", "export", str(lab_food), "--out", str(lerobot)],
+                      env)
+        info = json.loads((lerobot / "meta" / "info.json").read_text())
+        assert info["total_episodes"] == 2 * PRESSES and info["total_tasks"] == len(TEST)
+        assert "observation.image" in info["features"]
         lap("collect, resumed; the test set")
 
         # 2. The daemon on today's model; vt-train build into its models_dir; SIGHUP.
