@@ -4,6 +4,7 @@ refused beside a running daemon) against the emulated robot."""
 import asyncio
 import hashlib
 import json
+import re
 import signal
 import subprocess
 import time
@@ -341,6 +342,19 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
     assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
     assert "wood_cube: 2 of 3 planned presses" in capsys.readouterr().out
+
+
+def test_summary_with_a_plan_shows_classes_not_collected_yet_as_the_plan_says(tmp_path):
+    from edge.tools import dataset
+
+    summary = dataset.summarize(tmp_path / "data", load_plan(write_plan(tmp_path)))
+    text = dataset.format_summary(summary)
+    print(text)
+    assert [(c.label, c.split, c.x_th, c.planned, len(c.presses)) for c in summary.classes] == [
+        ("otedama", "train", None, 2, 0), ("wood_cube", "val", 0.003, 2, 0)]
+    assert re.search(r"^wood_cube\s+val\s+0/2\s+0\s+0\.003\s", text, re.M)
+    assert summary.problems == ["otedama: 0 of 2 planned presses",
+                                "wood_cube: 0 of 2 planned presses"]
 
 
 def test_the_shipped_paper_plan_and_the_readme_examples_load(tmp_path):
