@@ -251,7 +251,7 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
         status = Status(args.status) if args.status else None
         for ep in store.list(status=status, limit=args.limit):
             print(f"{ep.id}  {ep.status:15s} {ep.label or '-':28s} "
-                  f"{(ep.description or ep.error or '')[:60]}")
+                  f"{(ep.error or ep.description or '')[:60]}")
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id).to_json(), indent=2))
     elif args.format in ("rosbag2", "lerobot"):

@@ -7,6 +7,7 @@ import contextlib
 import logging
 
 from edge.core.config import Config
+from edge.core.errors import DeviceError, StartError
 from edge.daemon.lifecycle import Devices
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton
@@ -48,8 +49,13 @@ async def open_devices(cfg: Config) -> Devices:
         await tactile.start()
         gripper = DynamixelGripper(bus)
         arm = DynamixelArm(bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
-        return Devices(tactile=tactile, gripper=gripper, arm=arm, camera=make_camera(cfg),
-                       button=make_button(cfg), bus=bus)
+        try:
+            camera, button = make_camera(cfg), make_button(cfg)
+        except DeviceError as exc:
+            # Configured, but never usable this way (no OpenCV, a port without modem lines).
+            raise StartError(str(exc)) from None
+        return Devices(tactile=tactile, gripper=gripper, arm=arm, camera=camera,
+                       button=button, bus=bus)
     except BaseException:
         with contextlib.suppress(Exception):
             await bus.close()

@@ -23,6 +23,7 @@ class Status(StrEnum):
     INVALID_ANSWER = "invalid_answer"  # it answered, but with no candidate, twice
     NOT_CONFIGURED = "not_configured"  # no VLM endpoint configured: the prompt is kept
     VLM_ERROR = "vlm_error"  # the VLM refused the question (asking again will not help)
+    CAMERA_ERROR = "camera_error"  # the press worked, the photo the VLM needs did not; ``error``
     FAILED = "failed"  # the press or its analysis failed; ``error`` says why
 
     @property

@@ -1,11 +1,12 @@
 """The daemon's lifecycle: one asyncio loop, one root TaskGroup, every task named.
 
 Tasks: ``sensor`` (frames -> ring buffer + the threshold on every frame), ``sampler``
-(125 Hz), ``watchdog`` (sd_notify only while frames keep arriving), ``button``, ``vlm-retry``
-(pending episodes), and one ``recognize`` task per request. The bus has its own owner thread
-(:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT stop taking work and make the
-arm safe; SIGHUP reloads configuration, model, database and VLM client between presses;
-SIGUSR1 triggers a recognition with the default candidates.
+(125 Hz), ``watchdog`` (sd_notify only while frames keep arriving, or while torque is off),
+``button``, ``vlm-retry`` (pending episodes), one ``recognize`` task per request, and, after
+a start without the sensor stream, ``power-on`` (torque on when the stream arrives). The bus
+has its own owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT
+stop taking work and make the arm safe; SIGHUP reloads configuration, model, database and
+VLM client between presses; SIGUSR1 triggers a recognition with the default candidates.
 
 Whatever makes the arm safe runs in ``finally`` on every path out of :meth:`Runtime.run`,
 including a task that died: the running press is aborted (its controller opens the
@@ -20,7 +21,7 @@ import contextlib
 import logging
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
@@ -55,6 +56,8 @@ FIRST_FRAME_TIMEOUT_S = 5.0
 DRAIN_TIMEOUT_S = 10.0
 # The stream counts as fresh for /healthz while its last frame is younger than this.
 HEALTH_FRAME_AGE_S = 1.0
+# After a start without the sensor stream: how often the power-on task looks for a frame.
+STREAM_POLL_S = 0.02
 
 
 @dataclass
@@ -95,6 +98,9 @@ class Runtime:
         self._stopping = asyncio.Event()
         self.ready = asyncio.Event()
         self.started_at = time.monotonic()
+        # Set by power_on_with_stream: the start had no sensor stream, torque is still off.
+        self._power_on: Callable[[], Awaitable[None]] | None = None
+        self._no_stream: str | None = None  # why, until the stream arrives
 
     # The configuration, model and VLM client in force (replaced together on reload).
     @property
@@ -147,16 +153,33 @@ class Runtime:
         return self.events.subscribe({"state": self.press.state,
                                       "episode": self.recognizer.current})
 
+    def power_on_with_stream(self, why: str, power_on: Callable[[], Awaitable[None]]) -> None:
+        """Start with torque off and presses refused (``why``: the sensor server is absent);
+        :meth:`run` awaits ``power_on`` (torque on) once the stream's first frame arrived."""
+        self._no_stream = why
+        self._power_on = power_on
+        self.recognizer.refusal = f"not pressing, torque off: {why}"
+
+    @property
+    def sensor_error(self) -> str | None:
+        """What keeps the sensor path from serving presses, beyond a stale stream: a layout
+        the configuration does not match, or no stream since the start."""
+        fatal = self.sensor.fatal
+        return str(fatal) if fatal is not None else self._no_stream
+
     def health(self) -> dict[str, Any]:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
         bus_error = getattr(self.devices.bus, "fault", None)
         store_error = self.store.space_error()
         vlm_error = getattr(self.vlm, "unreachable", None)
-        return {"ok": self.ready.is_set() and fresh and bus_error is None and not store_error
-                and vlm_error is None,
+        sensor_error = self.sensor_error
+        return {"ok": (self.ready.is_set() and fresh and bus_error is None and not store_error
+                       and sensor_error is None and vlm_error is None),
                 "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
-                "store_error": store_error, "vlm_error": vlm_error,
+                "store_error": store_error, "sensor_error": sensor_error,
+                "vlm_error": vlm_error,
+                "torque_on": getattr(self.devices.bus, "torque_on", None),
                 "state": self.press.state, "episode": self.recognizer.current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 # Which model answers: changes when a reload took a new model or database.
@@ -202,11 +225,17 @@ class Runtime:
                 # The model loaded and run once in the compute process: the first press
                 # pays nothing for it.
                 await self.compute.run(warm_up, self.model)
-                await self._wait_first_frame()
-                self.ready.set()
-                self.notifier.ready(f"ready: {self.cfg.mode} mode")
-                log.info("ready (%s mode) in %.2f s", self.cfg.mode,
-                         time.monotonic() - self.started_at)
+                if self._power_on is None:
+                    await self._wait_first_frame()
+                    self._set_ready()
+                else:
+                    tg.create_task(self._power_on_with_stream(), name="power-on")
+                    # READY=1 all the same: the daemon serves (/healthz says why not ok),
+                    # and a start that systemd timed out would only begin the same wait.
+                    self.notifier.ready(f"degraded: {self._no_stream}; torque off until "
+                                        "its stream arrives")
+                    log.warning("%s: serving with torque off; presses are refused until its "
+                                "stream arrives", self._no_stream)
                 await self._stopping.wait()
                 await self._drain()
                 raise _Stop
@@ -216,6 +245,33 @@ class Runtime:
             for sig in installed:
                 loop.remove_signal_handler(sig)
             await _unless_cancelled_twice(self._make_safe())
+
+    def _set_ready(self) -> None:
+        self.ready.set()
+        self.notifier.ready(f"ready: {self.cfg.mode} mode")
+        log.info("ready (%s mode) in %.2f s", self.cfg.mode, time.monotonic() - self.started_at)
+
+    async def _power_on_with_stream(self) -> None:
+        """Torque on with the stream's first frame (whose layout the client checked); a
+        layout refused keeps torque off, as does a motor refusing it."""
+        assert self._power_on is not None
+        while self.ring.count == 0 and self.sensor.fatal is None:  # noqa: ASYNC110
+            await asyncio.sleep(STREAM_POLL_S)  # polled: the sensor task stays as it is
+        if self.sensor.fatal is not None:
+            self._no_stream = None  # (the layout says it now)
+            self.recognizer.refusal = f"not pressing, torque off: {self.sensor.fatal}"
+            return  # (the sensor task has logged it, once)
+        try:
+            await self._power_on()
+        except EdgeError as exc:
+            log.error("torque could not be turned on: %s", exc)
+            self.recognizer.refusal = f"not pressing: torque could not be turned on: {exc}"
+            return
+        self._no_stream = None
+        self._power_on = None
+        self.recognizer.refusal = None
+        log.info("tactile stream arrived: torque on, presses accepted")
+        self._set_ready()
 
     async def _wait_first_frame(self) -> None:
         deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
@@ -245,6 +301,8 @@ class Runtime:
         moves the arm to rest, turns torque off and closes the devices.)"""
         self.recognizer.accepting = False
         self.press.request_abort()
+        if self._power_on is not None:
+            return  # torque never went on: the gripper holds nothing, and cannot move
         try:
             failed = await self.press.open_gripper_retrying()
         except Exception as exc:  # a bug here must not skip the torque-off that follows
@@ -259,8 +317,12 @@ class Runtime:
             return
         while True:
             await asyncio.sleep(period)
-            # WATCHDOG=1 only while the sensor path makes progress.
-            if time.monotonic() - self.ring.latest_time() < max(1.0, period):
+            # WATCHDOG=1 while the sensor path makes progress: a stream that died under a
+            # powered arm gets the daemon restarted. Also while torque is off for want of
+            # the stream (none since the start, or a layout refused): the daemon holds
+            # nothing, says why on /healthz, and a restart would only repeat the wait.
+            if (time.monotonic() - self.ring.latest_time() < max(1.0, period)
+                    or self._power_on is not None):
                 self.notifier.watchdog()
 
     async def _button(self) -> None:

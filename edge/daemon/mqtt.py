@@ -51,7 +51,8 @@ HEALTH_CHECK_S = 1.0
 HEALTH_REFRESH_S = 60.0
 # Episodes remembered (request ids, results already published).
 REMEMBERED = 1000
-_HEALTH_KEYS = ("ok", "ready", "sensor_fresh", "bus_error", "store_error")
+_HEALTH_KEYS = ("ok", "ready", "sensor_fresh", "bus_error", "store_error", "sensor_error",
+                "vlm_error")
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
 # Statuses that are not an episode's outcome yet.
 _NOT_FINAL = {"pending", "running", "accepted"}

@@ -25,6 +25,7 @@ from edge.core.errors import (
     EdgeError,
     ModelError,
     NotFoundError,
+    SensorError,
     StateError,
     StoreError,
     VLMUnavailableError,
@@ -37,6 +38,7 @@ from edge.daemon.episode import Episode, Neighbour, Status
 from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
+from edge.daemon.startcheck import needs_photo
 from edge.daemon.store import EpisodeStore, new_id
 from edge.hw.contracts import Camera
 
@@ -72,6 +74,9 @@ class Recognizer:
         self.lock = asyncio.Lock()  # held while a press runs
         self.current: str | None = None  # the episode whose press runs
         self.accepting = True
+        # Why no press may start although the daemon serves (torque off: no sensor stream
+        # since the start, a layout refused); None when presses are taken.
+        self.refusal: str | None = None
         self.work: set[asyncio.Task] = set()  # recognitions in flight
         self._spawn: Callable[..., asyncio.Task] = asyncio.create_task
         self._retry_wakeup = asyncio.Event()
@@ -89,6 +94,8 @@ class Recognizer:
                         timeout_s: float | None, source: str) -> Episode:
         if not self.accepting:
             raise BusyError("the daemon is shutting down; not starting a press")
+        if self.refusal is not None:
+            raise SensorError(self.refusal)
         full = self.store.space_error()
         if full:
             raise StoreError(f"not pressing: the episode could not be kept: {full}")
@@ -122,7 +129,7 @@ class Recognizer:
         try:
             episode = await self.recognize(candidates, None, False, None, source)
             log.info("%s trigger: episode %s", source, episode.id)
-        except BusyError as exc:
+        except EdgeError as exc:  # busy, refused (no sensor stream), the store full
             log.warning("%s trigger ignored: %s", source, exc)
 
     async def episode(self, episode_id: str) -> Episode:
@@ -154,16 +161,22 @@ class Recognizer:
             finally:
                 self.lock.release()
             self.metrics.observe_press(outcome)
+            camera_error = None
             if camera_task is not None:
                 try:
                     image = await camera_task
-                except EdgeError as exc:
-                    log.warning("camera failed: %s", exc)
+                except (EdgeError, OSError) as exc:
+                    camera_error = " ".join(str(exc).split()) or type(exc).__name__
+                    log.warning("episode %s: camera failed: %s", episode_id, camera_error)
             episode = Episode(episode_id, Status.RUNNING, candidates, source,
                               press=outcome.summary(), software_version=__version__,
                               x_th=setup.cfg.press.x_th, vlm_mode=setup.vlm.mode,
                               timings={"press_s": time.monotonic() - t0})
             episode, files, prepared = await self._analyse(setup, episode, image, outcome)
+            if (camera_error is not None and episode.status == Status.PENDING
+                    and needs_photo(setup.vlm.mode)):
+                # The VLM would refuse the question without its photo: the camera is why.
+                episode = episode.with_(status=Status.CAMERA_ERROR, error=camera_error)
             await _noted(noted)
             if episode.status != Status.PENDING:
                 await asyncio.to_thread(self.store.create, episode, files)

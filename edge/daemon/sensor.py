@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from edge.core.errors import SensorError, StaleSensorError
+from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
 from edge.hw.contracts import TactileFrame, TactileSource
 
 if TYPE_CHECKING:
@@ -163,6 +163,9 @@ class SensorTask:
         self.on_unusable = on_unusable or (lambda why: None)
         self.frames = 0
         self.stale_events = 0
+        # A layout the configuration does not match: reconnecting gives the same one, so
+        # the task reports it once and reads no more.
+        self.fatal: SensorLayoutError | None = None
 
     async def run(self) -> None:
         """Until cancelled: a bug or a dead stream on the sensor path must not take the
@@ -202,8 +205,15 @@ class SensorTask:
                     log.warning("%s", exc)
                 self.stale_events += 1
                 self.controller.sensor_stale(exc)
+            except SensorLayoutError as exc:
+                log.error("tactile sensor unusable until the configuration or xela_server is "
+                          "fixed and the daemon restarted: %s", exc)
+                self.fatal = exc
+                self.controller.sensor_stale(exc)
+                self.on_unusable(f"sensor error: {exc}")
+                return
             except SensorError as exc:
-                # A wrong layout is fatal for pressing; keep serving the API and say why.
+                # A broken stream: no pressing on it; keep serving the API and say why.
                 log.error("tactile sensor unusable: %s", exc)
                 self.controller.sensor_stale(exc)
                 self.on_unusable(f"sensor error: {exc}")

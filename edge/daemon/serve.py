@@ -28,6 +28,7 @@ from edge.daemon.devices import close_devices, enable_torque, open_devices
 from edge.daemon.lifecycle import Devices, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
 from edge.daemon.realtime import Realtime, unpin_thread
+from edge.daemon.startcheck import check_devices
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -118,8 +119,11 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
 
     Checked before any device is opened: the API's token, the model (every file verified
     and the encoder run once in the compute process), the episode store, and the API's
-    port (bound). Then the devices are connected, torque still off; torque is turned on
-    last. Whatever fails raises :class:`StartError` naming what to fix. On exit the API
+    port (bound). Then the devices are connected, torque still off, and checked
+    (:mod:`edge.daemon.startcheck`: the pad layout on the first frames, the camera's
+    photo); torque is turned on last. Whatever fails raises :class:`StartError` naming what
+    to fix. An absent sensor server is no failure: torque stays off until its stream
+    arrives (:meth:`Runtime.power_on_with_stream`). On exit the API
     closes, the arm goes to rest, torque goes off and the devices close, whether the
     daemon ran, failed to start or died. ``devices`` overrides the configured ones (their
     bus is still closed on exit); ``button`` is added to them.
@@ -156,6 +160,8 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         stack.push_async_callback(close_devices, devices, cfg.runtime.move_timeout_s)
         if button is not None:
             devices.button = button
+        notifier.status("starting: checking the pads' layout and the camera")
+        no_stream = await check_devices(cfg, devices, vlm.mode)
 
         def reload() -> tuple[Config, ModelRef, Any]:
             new = load_config(config_path) if config_path else cfg
@@ -168,7 +174,10 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         stack.callback(realtime.disable)
         if cfg.runtime.realtime:
             realtime.enable()  # where refused, it says why and the daemon runs as before
-        await enable_torque(devices)
+        if no_stream is None:
+            await enable_torque(devices)
+        else:
+            runtime.power_on_with_stream(no_stream, lambda: enable_torque(devices))
         # Everything started so far lives as long as the daemon: out of the collector's
         # way, so that its full collections (which stop the loop) walk only what came after.
         gc.freeze()

@@ -76,10 +76,19 @@ class SerialButton(_PolledButton):
             self._serial = serial.Serial(port)
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"button port {port} cannot be opened: {exc}") from None
-        # Drive the output lines high so the switch pulls the input up when closed.
-        self._serial.rts = True
-        self._serial.dtr = True
         attr = "cts" if line == "cts" else "dsr"
+        try:
+            # Drive the output lines high so the switch pulls the input up when closed.
+            self._serial.rts = True
+            self._serial.dtr = True
+            getattr(self._serial, attr)
+        except (serial.SerialException, OSError) as exc:
+            # A port without modem-control lines (a pty, some USB CDC devices) refuses the
+            # ioctl (ENOTTY): no switch could ever be read there.
+            self._serial.close()
+            raise DeviceError(
+                f"button port {port} has no modem lines ({exc}): use a serial port with "
+                "CTS/DSR (a USB-serial adapter), or [button] kind = \"gpio\"") from None
         super().__init__(lambda: getattr(self._serial, attr), f"{port}:{line}")
 
     async def close(self) -> None:

@@ -40,24 +40,29 @@ class CommandCamera:
                 proc = await asyncio.create_subprocess_exec(
                     *argv, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
             except OSError as exc:
-                raise DeviceError(f"camera command {argv[0]!r} cannot start: {exc}") from None
+                raise DeviceError(f"camera command {self.command!r} cannot start: {exc}"
+                                  ) from None
             try:
                 _, err = await asyncio.wait_for(proc.communicate(), self.timeout_s)
             except TimeoutError:
                 with contextlib.suppress(ProcessLookupError):
                     proc.kill()
                 await proc.wait()
-                raise DeviceTimeoutError(
-                    f"camera command did not finish within {self.timeout_s} s") from None
+                raise DeviceTimeoutError(f"camera command {self.command!r} did not finish "
+                                         f"within {self.timeout_s} s") from None
             if proc.returncode != 0:
-                msg = err.decode(errors="replace").strip()[-300:]
-                raise DeviceError(f"camera command failed (exit {proc.returncode}): {msg}")
+                # Its last words on one line: the message goes into one log or status line.
+                msg = " ".join(err.decode(errors="replace").split())[-300:]
+                raise DeviceError(f"camera command {self.command!r} failed (exit "
+                                  f"{proc.returncode}): {msg}")
             try:
                 size = out.stat().st_size
             except FileNotFoundError:
-                raise DeviceError(f"camera command wrote no file at {out}") from None
+                raise DeviceError(f"camera command {self.command!r} wrote no file at {{out}}"
+                                  ) from None
             if not 0 < size <= MAX_IMAGE_BYTES:
-                raise DeviceError(f"camera image has {size} bytes; expected 1..{MAX_IMAGE_BYTES}")
+                raise DeviceError(f"camera command {self.command!r} wrote an image of {size} "
+                                  f"bytes; expected 1..{MAX_IMAGE_BYTES}")
             return await asyncio.to_thread(out.read_bytes)
 
 
@@ -95,7 +100,11 @@ class V4L2Camera:
             cap.release()
 
     async def capture(self) -> bytes:
-        return await asyncio.wait_for(asyncio.to_thread(self._grab), CAPTURE_TIMEOUT_S)
+        try:
+            return await asyncio.wait_for(asyncio.to_thread(self._grab), CAPTURE_TIMEOUT_S)
+        except TimeoutError:
+            raise DeviceTimeoutError(f"camera {self.device!r} gave no frame within "
+                                     f"{CAPTURE_TIMEOUT_S} s") from None
 
 
 class HttpCamera:
@@ -121,5 +130,6 @@ class HttpCamera:
         except aiohttp.ClientError as exc:
             raise DeviceError(f"camera {self.url} unreachable: {exc}") from None
         if not 0 < len(data) <= MAX_IMAGE_BYTES:
-            raise DeviceError(f"camera image has {len(data)} bytes; expected 1..{MAX_IMAGE_BYTES}")
+            raise DeviceError(f"camera {self.url} sent an image of {len(data)} bytes; expected "
+                              f"1..{MAX_IMAGE_BYTES}")
         return data

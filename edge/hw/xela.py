@@ -182,6 +182,13 @@ def parse_frame(
                 f"model {model} with {n} taxels ({frame.describe()}). Set sensor.model and "
                 "sensor.taxels_per_pad to the hardware, or fix xela_server's configuration."
             )
+        # A server that does not name its model ("?") is taken at its layout.
+        if expected_model and model != "?" and model.casefold() != expected_model.casefold():
+            raise SensorLayoutError(
+                f"XELA layout mismatch: {configured} but the server sends sensor {number} "
+                f"model {model} ({frame.describe()}). Set sensor.model to the hardware, or "
+                "fix xela_server's configuration."
+            )
     return frame
 
 
@@ -294,7 +301,9 @@ class XelaClient:
         self._connections = 0
         self._closed = False
         self._stale_reported = False
-        self._model_warned = False
+        # Set by the first fresh frame, or by a layout refused: what wait_first_frame awaits.
+        self._arrived = asyncio.Event()
+        self._last_failure: str | None = None  # why the last connection attempt failed
         # Called with (seq, receive time, time parsed) for each fresh frame: a benchmark's
         # probe (the parse's share of the stop latency); None in production.
         self.on_parsed: Callable[[int, float, float], None] | None = None
@@ -383,6 +392,24 @@ class XelaClient:
             deadline = item.recv_time + to_loop_s + stale_s
             yield item
 
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        """Until the first fresh frame has arrived (its layout checked against the
+        configuration). Raises :class:`SensorLayoutError` for a layout the configuration
+        does not match, and :class:`StaleSensorError` saying whether the server could be
+        reached when no frame came within ``timeout_s``. Consumes no frame."""
+        if self._task is None:
+            raise RuntimeError("XelaClient.wait_first_frame() before start()")
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._arrived.wait(), timeout_s)
+        if self._fatal is not None:
+            raise self._fatal
+        if self._last_fresh is None:
+            if self._connections:
+                why = f"connected, but no data frame within {timeout_s:.1f} s"
+            else:
+                why = f"unreachable ({self._last_failure or f'no connection in {timeout_s:.1f} s'})"
+            raise StaleSensorError(f"sensor server {self._cfg.url} {why}")
+
     def _stale_error(self) -> StaleSensorError:
         age = None if self._last_fresh is None else time.monotonic() - self._last_fresh
         state = "connected" if self._connected else "not connected"
@@ -415,17 +442,24 @@ class XelaClient:
                 if await self._connect_and_read(attempt):
                     backoff_s, attempt = min_backoff_s, 0
             except SensorLayoutError as exc:
-                # Not transient: reconnecting gives the same layout. Stop and tell the consumer.
-                log.error("%s", exc)
+                # Not transient: reconnecting gives the same layout. Stop and tell the consumer
+                # (which reports it: logged here too, it would be said twice).
                 self._fatal = exc
+                self._arrived.set()
                 self._put(exc)
                 return
             except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-                log.warning(
+                why = str(exc) or type(exc).__name__
+                # Said once per outage and reason: a server that stays away must not flood
+                # the log; the attempt that connects says its number.
+                level = logging.DEBUG if why == self._last_failure else logging.WARNING
+                self._last_failure = why
+                log.log(
+                    level,
                     "XELA server %s: attempt %d failed (%s); next try in %.2f s",
                     self._cfg.url,
                     attempt,
-                    str(exc) or type(exc).__name__,
+                    why,
                     backoff_s,
                 )
             except Exception:
@@ -446,6 +480,7 @@ class XelaClient:
                 max_msg_size=MAX_FRAME_CHARS,
             )
         self._connected = True
+        self._last_failure = None
         if self._connections:
             self.stats.reconnects += 1
         self.stats.new_connection()
@@ -522,19 +557,13 @@ class XelaClient:
             self.server_layout = frame.describe()
             self.server_models = frame.models
             log.info("XELA server sends %s", self.server_layout)
-        if not self._model_warned and any(m != cfg.model for m in frame.models):
-            self._model_warned = True
-            log.warning(
-                "XELA server reports models %s, configured %s; the layout matches, going on",
-                ", ".join(frame.models),
-                cfg.model,
-            )
         if not self.stats.observe(frame.seq, frame.time):
             return None
         if self._stale_reported:
             self._stale_reported = False
             log.info("XELA stream fresh again (frame %d)", frame.seq)
         self._last_fresh = recv_time
+        self._arrived.set()
         if self.on_parsed is not None:
             self.on_parsed(frame.seq, recv_time, time.monotonic())
         return TactileFrame(frame.seq, frame.time, recv_time, frame.raw, frame.models,

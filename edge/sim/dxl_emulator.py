@@ -373,6 +373,9 @@ class DxlEmulator:
         self.received: collections.deque[Received] = collections.deque(maxlen=10_000)
         self.stop_checks: collections.deque[StopCheck] = collections.deque(maxlen=10_000)
         self.stops_behind = 0
+        # Torque Enable = 1 writes that took effect, on any motor: the history a start that
+        # must never power the arm is checked against.
+        self.torque_enables = 0
         self.port = ""
         self._master = self._slave = self._wake_r = self._wake_w = -1
         self._thread: threading.Thread | None = None
@@ -643,6 +646,7 @@ class DxlEmulator:
             m.profile = None
             m.vel = 0.0
             if value:
+                self.torque_enables += 1
                 m.put("Goal Position", round(m.pos))
                 m.watchdog_last = t
         elif name == "Goal Position":

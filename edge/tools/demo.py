@@ -82,8 +82,9 @@ def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
     if ep.get("label"):
         print(f"   label ({source}): {ep['label']}  "
               f"({'right' if ep['label'] == name else 'wrong'})")
-    else:
-        print(f"   {source}: {ep.get('status')}")
+    else:  # (camera_error says why in error)
+        print(f"   {source}: {ep.get('status')}"
+              + (f": {ep['error']}" if ep.get("error") else ""))
 
 
 def run_demo(config: str = "configs/sim.toml", objects: tuple[str, ...] = CUBE + FOOD) -> int:

@@ -338,3 +338,17 @@ def test_parse_cost_per_frame(real_text: str) -> None:
         per_frame_us = (time.perf_counter() - t0) / n * 1e6
         print(f"parse {name}: {per_frame_us:.1f} us/frame ({len(text)} chars)")
         assert per_frame_us < 5000  # generous: ~100 us on a laptop core
+
+
+def test_a_model_not_what_the_configuration_says_is_refused_naming_both() -> None:
+    obj = v17_frame(channel_pattern())
+    with pytest.raises(SensorLayoutError) as err:
+        parse_frame(obj, 2, 16, expected_model="uSPa44")
+    print(err.value)
+    for needed in ("configured 2 x uSPa44", "model XR1944", "sensor.model"):
+        assert needed in str(err.value)
+    # The same model in other letters, or a server that names none, is taken at its layout.
+    assert parse_frame(obj, 2, 16, expected_model="xr1944") is not None
+    for n in ("1", "2"):
+        del obj[n]["model"]
+    assert parse_frame(obj, 2, 16, expected_model="uSPa44") is not None

@@ -49,7 +49,8 @@ async function pollHealth() {
     h.className = "badge " + (data.ok ? "ok" : "bad");
     const why = [];
     if (!data.ready) why.push("starting");
-    if (!data.sensor_fresh) why.push(`tactile stream stale (last frame ${data.last_frame_age_s ?? "?"} s ago)`);
+    if (data.sensor_error) why.push(`sensor: ${data.sensor_error}`);
+    else if (!data.sensor_fresh) why.push(`tactile stream stale (last frame ${data.last_frame_age_s ?? "?"} s ago)`);
     if (data.bus_error) why.push(`bus: ${data.bus_error}`);
     if (data.store_error) why.push(`store: ${data.store_error}`);
     if (data.vlm_error) why.push(data.vlm_error);

@@ -1,0 +1,90 @@
+"""What ``vt-edge run`` checks on its devices before torque goes on.
+
+A configuration that would make every press fail stops the start with one line
+(:class:`StartError`, exit 2) and torque never on: a pad layout (pads, taxels per pad,
+sensor model) that is not what ``xela_server`` sends, or a camera that cannot take the photo
+the VLM mode needs. (A serial button without modem lines is refused when it is opened.)
+
+An ``xela_server`` that cannot be reached yet is a condition, not a configuration error:
+the daemon starts with torque off and presses refused, and the runtime turns torque on when
+the stream arrives (:meth:`edge.daemon.lifecycle.Runtime.power_on_with_stream`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from typing import TYPE_CHECKING
+
+from edge.core.config import Config
+from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
+from edge.hw.contracts import Camera
+from edge.hw.xela import XelaClient
+
+if TYPE_CHECKING:  # (the runtime's recognition imports needs_photo from here)
+    from edge.daemon.lifecycle import Devices
+
+log = logging.getLogger(__name__)
+
+# After the handshake (up to [sensor] connect_timeout_s) a server sends ~100 frames a
+# second: this covers a slow first one, and a server that comes up a moment late.
+FIRST_FRAME_GRACE_S = 1.0
+PHOTO_MODES = frozenset({"vision_tactile", "vision_only"})
+
+
+def needs_photo(vlm_mode: str) -> bool:
+    """Whether every recognition in this VLM prompt mode needs the camera's photo."""
+    return vlm_mode in PHOTO_MODES
+
+
+async def check_devices(cfg: Config, devices: Devices, vlm_mode: str) -> str | None:
+    """Raise :class:`StartError` for a configuration that fails every press; return why the
+    sensor stream is absent (the daemon then starts with torque off), or None.
+
+    The photo is taken while the first frames are awaited: a good start pays for the
+    longer of the two, not their sum.
+    """
+    started = time.monotonic()
+    camera = None
+    if devices.camera is not None and needs_photo(vlm_mode):
+        camera = asyncio.create_task(_check_camera(devices.camera, vlm_mode),
+                                     name="start-check camera")
+    try:
+        absent = await _check_sensor(cfg, devices)
+        sensor_ms = (time.monotonic() - started) * 1e3
+        if camera is not None:
+            await camera
+        log.info("start checks done in %.0f ms (sensor %s after %.0f ms%s)",
+                 (time.monotonic() - started) * 1e3, "absent" if absent else "checked",
+                 sensor_ms, ", one photo taken" if camera is not None else "")
+    finally:
+        if camera is not None and not camera.done():
+            camera.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await camera
+    return absent
+
+
+async def _check_sensor(cfg: Config, devices: Devices) -> str | None:
+    tactile = devices.tactile
+    if not isinstance(tactile, XelaClient):
+        return None  # a source given by the caller (a test's fake) is its own business
+    try:
+        await tactile.wait_first_frame(cfg.sensor.connect_timeout_s + FIRST_FRAME_GRACE_S)
+    except SensorLayoutError as exc:
+        raise StartError(str(exc)) from None
+    except StaleSensorError as exc:
+        return str(exc)
+    return None
+
+
+async def _check_camera(camera: Camera, vlm_mode: str) -> None:
+    try:
+        photo = await camera.capture()
+    except (EdgeError, OSError) as exc:
+        why = " ".join(str(exc).split()) or type(exc).__name__
+        raise StartError(f"{why}; [vlm] mode {vlm_mode} needs a photo for every press: fix "
+                         '[camera], or set [vlm] mode = "tactile_only"') from None
+    log.debug("camera took a %d-byte photo", len(photo))
