@@ -122,15 +122,22 @@ def test_the_labs_path_from_a_plan_to_table1(tmp_path):
         config = stack.enter_context(processes.sim_serve(tmp_path, "otedama", env, changes))
         lap("emulated robot up")
 
+        def collect(*args: str):
+            proc, output, person = processes.collect(config, env, *args)
+            stack.callback(proc.kill)  # a run the test gave up on does not outlive it
+            return proc, output, person
+
         # 1. The reference plan, interrupted with Ctrl-C once its second class has a press,
         #    resumed with the same command; then the test plan, a photo per press.
         args = ("--plan", str(tmp_path / "reference.toml"), "--out", str(reference))
-        proc, output, person = processes.collect(config, env, *args)
+        proc, output, person = collect(*args)
         output.wait_for(f"{REFERENCE[1]} press 1/{PRESSES}: peak", COMMAND_TIMEOUT_S)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(COMMAND_TIMEOUT_S) == 130, output.text
         print(output.text)
         assert "interrupted: kept" in output.text and "run the same command again" in output.text
+        control = processes.control_url(config)
+        assert http_json("GET", f"{control}/object")["force_n"] == 0.0  # the gripper let go
         kept = presses_of(reference)
         have = {c: len(list((reference / c).glob("*.press.npz"))) for c in REFERENCE}
         assert have[REFERENCE[0]] == PRESSES and have[REFERENCE[-1]] == 0, have
@@ -140,7 +147,7 @@ def test_the_labs_path_from_a_plan_to_table1(tmp_path):
             assert (f"{label}: {n} of {PRESSES} planned presses" in text) == (n < PRESSES)
         lap("collect, interrupted")
 
-        proc, output, person = processes.collect(config, env, *args)
+        proc, output, person = collect(*args)
         assert proc.wait(COMMAND_TIMEOUT_S) == 0, output.text
         print(output.text)
         unfinished = [c for c in REFERENCE if have[c] < PRESSES]
@@ -157,8 +164,8 @@ def test_the_labs_path_from_a_plan_to_table1(tmp_path):
         lines = (done.stdout + done.stderr).strip().splitlines()
         assert len(lines) == 1 and "collect each plan into its own --out" in lines[0], lines
         assert presses_of(reference) == after
-        proc, output, person = processes.collect(
-            config, env, "--plan", str(tmp_path / "test.toml"), "--out", str(lab_food))
+        proc, output, person = collect("--plan", str(tmp_path / "test.toml"), "--out",
+                                       str(lab_food))
         assert proc.wait(COMMAND_TIMEOUT_S) == 0, output.text
         assert person.placed == list(TEST)
         for label in TEST:
