@@ -217,8 +217,15 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
 
     out = Path(out)
     report = report if report is not None else CollectReport()
-    found = _check_existing(out, plan, cfg)
     index = dataset.read_index(out)
+    if index is not None and not plan.single and index.get("dataset") != plan.name:
+        # dataset.json has one name and one plan hash, which build and table1 report: a
+        # second plan would silently take them over.
+        raise ConfigError(
+            f"{out / dataset.DATASET_INDEX} is dataset {index.get('dataset')!r}, the plan "
+            f"({plan.source}) is {plan.name!r}: collect each plan into its own --out (a test "
+            "set's directory goes to vt-train build --unseen and vt-train table1 --unseen)")
+    found = _check_existing(out, plan, cfg)
     for c in plan.classes:
         report.have[c.label] = len(found[c.label])
         report.planned[c.label] = c.presses

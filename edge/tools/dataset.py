@@ -169,6 +169,8 @@ def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
         entry = entries.get(label, {})
         in_plan = plan is not None and any(c.label == label for c in plan.classes)
         planned = plan.get(label).presses if in_plan else entry.get("presses")
+        # A class of the plan not collected yet: its split and x_th as the plan says.
+        split, x_th = (plan.get(label).split, plan.get(label).x_th) if in_plan else ("?", None)
         presses = tuple(check_press(p) for p in existing_presses(out, label).values())
         failed: dict[str, int] = {}
         for f in entry.get("failed", []):
@@ -186,8 +188,8 @@ def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
                 for p in presses)
         if planned is not None and len(presses) < planned:
             problems.append(f"{len(presses)} of {planned} planned presses")
-        classes.append(ClassSummary(label, entry.get("split", "?"), entry.get("x_th"), planned,
-                                    failed, presses, tuple(problems)))
+        classes.append(ClassSummary(label, entry.get("split", split), entry.get("x_th", x_th),
+                                    planned, failed, presses, tuple(problems)))
     return Summary(out, str(index.get("dataset", out.name)), index.get("origin"),
                    tuple(classes))
 
