@@ -292,18 +292,18 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     recs = [record_press("otedama", seed, x_th=x).recording
             for seed, x in ((1, 0.004), (2, 0.004), (3, 0.004), (4, 0.003))]
     for i, rec in enumerate(recs):
-        recording.save(rec, dataset.press_path(out, "otedama", i))
+        recording.save(rec, recording.press_path(out, "otedama", i))
     gap = recs[1]
     keep = ~((gap.recv_time > gap.t_stop + 0.1) & (gap.recv_time < gap.t_stop + 0.2))
     recording.save(replace(gap, frames=gap.frames[keep], recv_time=gap.recv_time[keep],
                            sensor_time=gap.sensor_time[keep], seq=gap.seq[keep]),
-                   dataset.press_path(out, "otedama", 1))
+                   recording.press_path(out, "otedama", 1))
     late = recs[2]
     loud = late.tare + 40.0 * (late.frames - late.tare)
     recording.save(replace(late, frames=np.clip(loud, 0, 65535).astype(np.uint16)),
-                   dataset.press_path(out, "otedama", 2))
+                   recording.press_path(out, "otedama", 2))
     cube = record_press("wood_cube", 5).recording
-    recording.save(cube, dataset.press_path(out, "wood_cube", 0))
+    recording.save(cube, recording.press_path(out, "wood_cube", 0))
     index = dataset.new_index("lab_food", "test", {"kind": "emulated", "recorder": "test",
                                                    "robot": None, "sensor": None}, "0" * 64)
     index["classes"] = [
@@ -325,6 +325,12 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     assert len(flags["otedama_001.press.npz"]) == 1
     assert flags["otedama_001.press.npz"][0].startswith("stream gap of 1")
     assert "stopped late" in flags["otedama_002.press.npz"][0]
+    # A rigid reference squeezed by the hold far past x_th after a timely stop is no late stop.
+    marble = tmp_path / "marble" / "glass_marble_000.press.npz"
+    recording.save(record_press("glass_marble", 6).recording, marble)
+    checked = dataset.check_press(marble)
+    print(f"glass marble: peak {checked.peak / 0.004:.0f}x x_th over the press")
+    assert checked.flags == ()
     assert "unlike the class's 0.004" in flags["otedama_003.press.npz"][0]
     peaks = [p.peak for p in oted.presses]
     assert all(0.003 < p < 0.02 for i, p in enumerate(peaks) if i != 2)
@@ -335,9 +341,9 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
 
     # Made whole (the odd press pressed again at 0.004, wood_cube once more): exit 0; a
     # plan asking for more makes it short again.
-    recording.save(record_press("otedama", 7).recording, dataset.press_path(out, "otedama", 3))
+    recording.save(record_press("otedama", 7).recording, recording.press_path(out, "otedama", 3))
     recording.save(record_press("wood_cube", 6).recording,
-                   dataset.press_path(out, "wood_cube", 1))
+                   recording.press_path(out, "wood_cube", 1))
     assert main(["dataset", "summary", str(out)]) == 0
     plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
     assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
