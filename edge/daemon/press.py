@@ -346,6 +346,24 @@ class PressController:
         outcome.result = "no_contact"
         outcome.message = (f"no contact: the norm stayed below x_th = {armed.x_th} for "
                            f"{self.cfg.runtime.close_timeout_s} s of closing")
+        # A host stall past the Bus Watchdog stops the gripper short of the object with no
+        # error on any read: ask the motors before calling it no contact.
+        tripped = await self._cleared_watchdog_trips()
+        if tripped:
+            outcome.result = "error"
+            outcome.message = (f"the gripper stopped closing: the Bus Watchdog has tripped on "
+                               f"motors {tripped} (the host was silent on the bus longer than "
+                               "the watchdog allows); cleared, opening")
+
+    async def _cleared_watchdog_trips(self) -> list[int]:
+        if self.recover is None:
+            return []
+        try:
+            tripped = await self.recover()
+        except DeviceError as exc:
+            log.warning("reading the motors' Bus Watchdog failed: %s", exc)
+            return []
+        return list(tripped) if isinstance(tripped, list) else []
 
     def _abort_reason(self, outcome: PressOutcome, armed: _Armed) -> None:
         outcome.peak_level = max(outcome.peak_level, armed.peak)

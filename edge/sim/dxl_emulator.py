@@ -457,6 +457,22 @@ class DxlEmulator:
             self._refresh(motor)
             return motor.get(name)
 
+    @staticmethod
+    def _trip(m: _Motor) -> None:
+        # Torque stays on, the motor holds where it is, goal writes are refused.
+        m.mem[98] = 0xFF
+        m.profile = None
+        m.vel = 0.0
+        m.put("Goal Position", round(m.pos))
+        _log.info("emulated motor %d: Bus Watchdog tripped", m.id)
+
+    def trip_watchdog(self, motor_id: int) -> None:
+        """Trip the motor's Bus Watchdog now, as a host silent past it would: the motor
+        stops where it is, and every read still answers."""
+        with self._lock:
+            self._advance(self._clock())
+            self._trip(self._motors[motor_id])
+
     def set_register(self, motor_id: int, name: str, value: int) -> None:
         """Set a register behind the bus's back (no access rules), e.g. Return Delay Time 0.
 
@@ -512,12 +528,7 @@ class DxlEmulator:
             return
         wd = m.mem[98]
         if 0 < wd <= 127 and t - m.watchdog_last > wd * BUS_WATCHDOG_UNIT_S:
-            # Torque stays on, the motor holds where it is, goal writes are refused.
-            m.mem[98] = 0xFF
-            m.profile = None
-            m.vel = 0.0
-            m.put("Goal Position", round(m.pos))
-            _log.info("emulated motor %d: Bus Watchdog tripped", m.id)
+            self._trip(m)
             return
         profile = m.profile
         if profile is None:

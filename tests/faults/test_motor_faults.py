@@ -11,6 +11,7 @@ import asyncio
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import pytest
 
@@ -25,6 +26,7 @@ from tests.support.daemon import (
     Daemon,
     at_pose,
     base_config,
+    fast_config,
     gripper_open,
     joints,
     sim_daemon,
@@ -223,6 +225,22 @@ async def test_stalled_host_trips_the_watchdog_mid_press_and_the_next_press_reco
         await next_press_works(robot, d)
         assert all(robot.dxl.get_register(i, "Bus Watchdog") == 15
                    for i in (11, 12, 13, 14, 15))
+
+
+async def test_a_watchdog_trip_short_of_the_object_is_named_not_called_no_contact(tmp_path):
+    # The stalled host's other outcome: the stream stays fresh, the gripper stopped by its
+    # watchdog never reaches the object and every read still answers.
+    cfg = fast_config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, close_timeout_s=1.0))
+    async with sim_daemon(tmp_path, "canele", cfg=cfg) as (robot, d):
+        episode = await start_press(d, "closing")
+        robot.dxl.trip_watchdog(GRIPPER)
+        ep = await d.wait_status(episode, {"failed", "not_configured"})
+        print("episode error:", ep["error"])
+        assert ep["status"] == "failed" and ep["press"]["result"] == "error"
+        assert "Bus Watchdog has tripped on motors [15]" in ep["error"]
+        assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
+        await next_press_works(robot, d)
 
 
 async def test_overload_shutdown_is_reported_and_further_presses_refused(tmp_path):
