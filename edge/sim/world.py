@@ -19,7 +19,7 @@ import numpy as np
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.skin import Skin, SkinDraw
+from edge.sim.skin import XR1944, PadLayout, Skin, SkinDraw
 
 # Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
 WIDTH_PER_RAW_M = 1.7626621790e-5
@@ -59,11 +59,12 @@ RELEASE_CLEARANCE_M = 0.5e-3
 RECLOSE_M = 1e-3
 
 
-def robot_pads(seed: int) -> SkinDraw:
-    """The pads of the simulated robot of ``seed``: the daemon's emulated robot
-    (``[sim] seed``) and the dataset recorder of the same seed press with the same pads, as
-    references collected on a robot are recognised by that robot."""
-    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])))
+def robot_pads(seed: int, layout: PadLayout = XR1944) -> SkinDraw:
+    """The pads (of ``layout``) of the simulated robot of ``seed``: the daemon's emulated
+    robot (``[sim] seed``) and the dataset recorder of the same seed press with the same
+    pads, as references collected on a robot are recognised by that robot."""
+    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])),
+                         layout)
 
 
 def robot_motors(world: SimWorld, joint_ids: tuple[int, ...], positions: dict[int, float],
@@ -83,14 +84,17 @@ class SimWorld:
 
     def __init__(self, object_name: str, seed: int | np.random.Generator = 0,
                  gripper_id: int = 15, *, skin_draw: SkinDraw | None = None,
+                 layout: PadLayout = XR1944,
                  clock: Callable[[], float] = time.monotonic) -> None:
+        """``layout``: the pads drawn when ``skin_draw`` gives none."""
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
         self._placements = np.random.default_rng(
             np.random.SeedSequence([seed, _PLACEMENTS_STREAM]) if isinstance(seed, int)
             else self._rng.integers(2**63))
         if skin_draw is None:
-            skin_draw = robot_pads(seed) if isinstance(seed, int) else SkinDraw.draw(self._rng)
+            skin_draw = (robot_pads(seed, layout) if isinstance(seed, int)
+                         else SkinDraw.draw(self._rng, layout))
         self._skin_draw = skin_draw
         self.gripper_id = gripper_id
         # Brings the gripper's motion up to now before the pads are read (the motor model
@@ -163,7 +167,7 @@ class SimWorld:
             return self._contact.force / FORCE_PER_MA_N
 
     def frame(self, t: float) -> np.ndarray:
-        """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
+        """The XELA emulator's source: raw counts (C,) uint16 at monotonic time ``t``."""
         self.sync()
         with self._lock:
             self._advance(t)
@@ -172,7 +176,7 @@ class SimWorld:
                                     self._contact.contact_radius())
 
     def frame_newtons(self) -> np.ndarray:
-        """The taxel forces (N, (96,)) behind the last frame, as a calibrated sensor reports
+        """The taxel forces (N, (C,)) behind the last frame, as a calibrated sensor reports
         them (the XELA emulator's ``calibrated``)."""
         with self._lock:
             return self._skin.forces(self.frame_force_n, self._contact.contact_radius())
