@@ -117,16 +117,16 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
     """Start everything in the order that keeps a failed start harmless, and make the arm
     safe on every way out.
 
-    Checked before any device is opened: the API's token, the model (every file verified
-    and the encoder run once in the compute process), the episode store, and the API's
-    port (bound). Then the devices are connected, torque still off, and checked
-    (:mod:`edge.daemon.startcheck`: the pad layout on the first frames, the camera's
-    photo, the model's input channels against the pads'); torque is turned on last. Whatever fails raises :class:`StartError` naming what
-    to fix. An absent sensor server is no failure: torque stays off until its stream
-    arrives (:meth:`Runtime.power_on_with_stream`). On exit the API
-    closes, the arm goes to rest, torque goes off and the devices close, whether the
-    daemon ran, failed to start or died. ``devices`` overrides the configured ones (their
-    bus is still closed on exit); ``button`` is added to them.
+    Checked before any device is opened: the API's token, the model (every file verified and the
+    encoder run once in the compute process), the episode store, and the API's port (bound).
+    Then the devices are connected, torque still off, and checked
+    (:mod:`edge.daemon.startcheck`: the pad layout on the first frames, the camera's photo, the
+    model's input channels against the pads'); torque is turned on last. Whatever fails raises
+    :class:`StartError` naming what to fix. An absent sensor server is no failure: torque stays
+    off until its stream arrives (:meth:`Runtime.power_on_with_stream`). On exit the API closes,
+    the arm goes to rest, torque goes off and the devices close, whether the daemon ran, failed
+    to start or died. ``devices`` overrides the configured ones (their bus is still closed on
+    exit); ``button`` is added to them.
     """
     started = time.monotonic()
     notifier = notifier or Notifier()

@@ -13,9 +13,9 @@ from dataclasses import replace
 from aiohttp import web
 
 from edge.core.config import Config
+from edge.core.layout import PadLayout
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
-from edge.sim.skin import PadLayout
 from edge.sim.world import SimWorld, raw_from_width, robot_motors, robot_pads
 from edge.sim.xela_replay import Replay
 from edge.sim.xela_server import XelaServerEmulator

@@ -1,13 +1,13 @@
 """The tactile skin: from finger force and contact geometry to raw XELA counts.
 
-Two XR1944 pads (4 x 4 taxels, 4.7 mm pitch, x/y/z per taxel), one per finger, or the pads
-of another layout (:class:`PadLayout`: ``[sensor]`` pads, taxels per pad, taxel rows; e.g.
-4 x 6). The contact pressure is laid on a sub-grid of 4 x 4 points per taxel of each pad (uniform, slightly tilted, over a flat face;
-Hertzian ``sqrt(1 - r^2/a^2)`` over a round object's patch), spread by the silicone skin (a
-Gaussian blur), and summed per taxel. Shear comes from the soft object's lateral bulge,
-limited by friction, plus a common part from imperfect alignment. Counts: gains per newton,
-a little electrical cross-talk from z into x/y, then what the pads do with no load at all
-(:class:`SkinDraw`, :class:`PadNoise`), fitted to real XR1944 recordings
+Two XR1944 pads (4 x 4 taxels, 4.7 mm pitch, x/y/z per taxel), one per finger, or the pads of
+another layout (:class:`edge.core.layout.PadLayout` from ``[sensor]``, e.g. 4 x 6). The contact
+pressure is laid on a sub-grid of 4 x 4 points per taxel of each pad (uniform, slightly tilted,
+over a flat face; Hertzian ``sqrt(1 - r^2/a^2)`` over a round object's patch), spread by the
+silicone skin (a Gaussian blur), and summed per taxel. Shear comes from the soft object's
+lateral bulge, limited by friction, plus a common part from imperfect alignment. Counts: gains
+per newton, a little electrical cross-talk from z into x/y, then what the pads do with no load
+at all (:class:`SkinDraw`, :class:`PadNoise`), fitted to real XR1944 recordings
 (``tests/fixtures/xela/real-xr1944/``, compared by ``tests/sim/test_pad_noise.py``):
 
 - idle offsets: a level per pad and axis (x ~15.9k, y ~16.4k, z ~38k counts) and a spread
@@ -32,18 +32,17 @@ Channel order everywhere: ``(pad * taxels_per_pad + taxel) * 3 + axis`` (``pad *
 from __future__ import annotations
 
 import cmath
-import math
 import functools
+import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from edge.core.layout import XR1944, PadLayout
 from edge.sim.contact import ObjectInstance
 
 _AXES = 3
-
 PADS = 2
 TAXELS = 16
 CHANNELS = PADS * TAXELS * 3
@@ -52,31 +51,10 @@ _SUB = 4  # sub-grid points per taxel per axis
 _CELL_M = TAXEL_PITCH_M / _SUB
 
 
-@dataclass(frozen=True)
-class PadLayout:
-    """How many pads, and each pad's grid of taxels (rows x cols, row-major from the top
-    left). Every layout keeps the XR1944's pitch (docs/hardware.md, 'Other pad layouts')."""
-
-    pads: int = PADS
-    rows: int = 4
-    cols: int = 4
-
-    @property
-    def taxels(self) -> int:
-        return self.rows * self.cols
-
-    @property
-    def channels(self) -> int:
-        return self.pads * self.taxels * _AXES
-
-    @classmethod
-    def of(cls, sensor: Any) -> PadLayout:
-        """The layout of a ``[sensor]`` section (:class:`edge.core.config.SensorConfig`)."""
-        return cls(sensor.pads, sensor.taxel_rows, sensor.taxels_per_pad // sensor.taxel_rows)
-
-    def grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-grid point coordinates (x[row, col], y[row, col]), pad centred on (0, 0)."""
-        return _pad_grid(self.rows, self.cols)
+def pad_grid(layout: PadLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-grid point coordinates (x[row, col], y[row, col]), pad centred on (0, 0). Every
+    layout keeps the XR1944's pitch (docs/hardware.md, 'Other pad layouts')."""
+    return _pad_grid(layout.rows, layout.cols)
 
 
 @functools.cache
@@ -86,8 +64,6 @@ def _pad_grid(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
 
     return np.meshgrid(coord(cols), coord(rows))
 
-
-XR1944 = PadLayout()
 
 # Sensitivity chosen so that x_th = 0.004 (~262 counts of total norm) is a gentle touch, as
 # the paper describes: ~0.37 N per finger spread over a whole flat pad, ~0.13 N concentrated
@@ -248,7 +224,7 @@ class Skin:
         self.draw = draw if draw is not None else SkinDraw.draw(rng)
         self.noise = PadNoise(self.draw, rng)
         self.layout = self.draw.layout
-        self._gx, self._gy = self.layout.grid()
+        self._gx, self._gy = pad_grid(self.layout)
         self._flat_cache: list[np.ndarray | None] = [None] * self.layout.pads
 
     def _pressure(self, pad: int, contact_radius_m: float) -> np.ndarray:

@@ -32,11 +32,12 @@ import numpy as np
 
 from edge.core.config import Config
 from edge.core.errors import DeviceError
+from edge.core.layout import PadLayout
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.contracts import StreamStats, TactileFrame
 from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
 from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.skin import PadLayout, SkinDraw
+from edge.sim.skin import SkinDraw
 from edge.sim.world import SimWorld, raw_from_width, robot_motors
 
 log = logging.getLogger(__name__)

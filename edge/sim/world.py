@@ -16,10 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from edge.core.layout import XR1944, PadLayout
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.skin import XR1944, PadLayout, Skin, SkinDraw
+from edge.sim.skin import Skin, SkinDraw
 
 # Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
 WIDTH_PER_RAW_M = 1.7626621790e-5

@@ -26,7 +26,8 @@ from typing import Literal, Protocol, Self
 import numpy as np
 from aiohttp import WSCloseCode, web
 
-from edge.sim.skin import PadLayout, PadNoise, SkinDraw
+from edge.core.layout import PadLayout
+from edge.sim.skin import PadNoise, SkinDraw
 from edge.sim.xela_replay import Replay, load_replay
 
 log = logging.getLogger(__name__)

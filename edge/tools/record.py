@@ -29,10 +29,11 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.config import Config, load_config
 from edge.core.errors import EdgeError
+from edge.core.layout import PadLayout
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
 from edge.sim.catalogue import DATASETS, ObjectClass, get
-from edge.sim.skin import PadLayout, SkinDraw
+from edge.sim.skin import SkinDraw
 from edge.sim.virtual import Transport, VirtualClockLoop, VirtualRobot
 from edge.sim.world import robot_pads
 
