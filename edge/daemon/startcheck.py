@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from edge.core.config import Config, SensorConfig
 from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
-from edge.core.model import ModelRef
+from edge.core.model import ModelLayout, ModelRef
 from edge.hw.contracts import Camera
 from edge.hw.xela import XelaClient
 
@@ -69,14 +69,23 @@ async def check_devices(cfg: Config, devices: Devices, vlm_mode: str) -> str | N
     return absent
 
 
+BUILD_FOR_THESE_PADS = "build a model from this robot's presses (vt-train build)"
+
+
+def model_mismatch(sensor: SensorConfig, layout: ModelLayout) -> str | None:
+    """Why a model taking ``layout`` cannot recognise with the configured pads, or None."""
+    if layout.channels == sensor.channels:
+        return None
+    return (f"expects {layout.text()}; the sensor [sensor] gives {sensor.channels} "
+            f"({sensor.layout_text()})")
+
+
 def check_model(sensor: SensorConfig, model: ModelRef) -> None:
     """Raise :class:`StartError` for a model whose input is not the configured pads'
     channels: every recognition with it would fail."""
-    if model.layout.channels != sensor.channels:
-        raise StartError(
-            f"model {model.directory} expects {model.layout.text()}; the sensor [sensor] "
-            f"gives {sensor.channels} ({sensor.layout_text()}): build a model from this "
-            "robot's presses (vt-train build)")
+    why = model_mismatch(sensor, model.layout)
+    if why is not None:
+        raise StartError(f"model {model.directory} {why}: {BUILD_FOR_THESE_PADS}")
 
 
 async def _check_sensor(cfg: Config, devices: Devices) -> str | None:
