@@ -170,6 +170,10 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
         if vlm is not None:
             await vlm.close()
     checks = [c for group in groups for c in group]
+    if any(c.part == "xela layout" and c.level is Level.FAIL for c in checks):
+        # [sensor] is not what the server sends: that is the cause, and a model that does
+        # not fit the wrong setting no second one.
+        checks = [c for c in checks if c.part != MODEL_PADS]
     checks += [_check_state_dir(state), _check_api(cfg)]
     return Report(config_path, tuple(checks), time.monotonic() - started)
 
@@ -629,6 +633,9 @@ async def _check_vlm(vlm: OpenAIVLM | None, checks: list[Check]) -> list[Check]:
 # ------------------------------------------------------------------------------ the rest
 
 
+MODEL_PADS = "model pads"
+
+
 def _check_model(cfg: Config) -> list[Check]:
     directory = cfg.runtime.models_dir
     try:
@@ -636,12 +643,12 @@ def _check_model(cfg: Config) -> list[Check]:
     except ModelError as exc:
         return [fail("model", str(exc), "put a released model directory at "
                      f"runtime.models_dir ({directory})")]
-    why = model_mismatch(cfg.sensor, manifest_layout(model.manifest))
-    if why is not None:
-        return [fail("model", f"{Path(directory).resolve()} {why}", BUILD_FOR_THESE_PADS)]
     db = model.database
     checks = [ok("model", f"{Path(directory).resolve()}: every file verified, "
                  f"{len(db.classes)} classes, {len(db)} references", digest=model.digest)]
+    why = model_mismatch(cfg.sensor, manifest_layout(model.manifest))
+    if why is not None:
+        checks.append(fail(MODEL_PADS, f"the model {why}", BUILD_FOR_THESE_PADS))
     origin = model.origin
     data = {"origin": origin.to_json()}
     if origin.emulated:
