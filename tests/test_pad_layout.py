@@ -29,9 +29,11 @@ from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
 from edge.sim.skin import TAXEL_PITCH_M, Skin
 from edge.sim.world import robot_pads
+from edge.sim.xela_replay import load_replay
 from edge.tools.collect import collect_plan
 from edge.tools.doctor import Level, _check_model
 from edge.tools.plan import load_plan
+from edge.tools.record import record_press, sim_config
 from tests.daemon.test_start_checks import torque_registers, vt_edge_run
 from tests.support.daemon import ROOT, Daemon, base_config
 from train.cli import main as train_main
@@ -214,3 +216,26 @@ async def test_the_shipped_4x4_model_on_the_4x6_robot_exits_2_in_one_line_torque
         assert "build a model from this robot's presses (vt-train build)" in lines[0]
         assert robot.dxl.torque_enables == 0
         assert torque_registers(robot, base_config()) == {0}
+
+
+def test_a_4x6_press_recording_names_its_pads_and_replays_as_them(tmp_path):
+    """The virtual recorder on 4 x 6 pads: 144 channels, its layout in the metadata (a 4 x 4
+    recording names none, as before), and `sim serve --replay` serves it as 2 x 24 taxels."""
+    cfg = with_4x6_pads(sim_config())
+    rec = record_press("wood_cube", 4, cfg=cfg).recording
+    assert rec.channels == 144 and rec.extra["layout"] == {
+        "pads": 2, "taxel_rows": 4, "taxels_per_pad": 24}
+    path = recording.save(rec, tmp_path / f"wood_cube_000{recording.SUFFIX}")
+    replay = load_replay(path)
+    assert (replay.sensors, replay.taxels) == (2, 24)
+    four = record_press("wood_cube", 4).recording
+    assert four.channels == 96 and "layout" not in four.extra
+    assert PadLayout.of_recording(four.extra, four.channels) == XR1944
+    # At the press's peak a 25 mm cube loads the 4 x 6 grid's middle (its face spans 5.3 of
+    # the 6 columns, 4.7 mm each): the outer columns less than the inner ones.
+    change = rec.frames.astype(float) - rec.tare
+    z = change[int(np.argmax(np.linalg.norm(change, axis=1)))].reshape(2, 4, 6, 3)[..., 2]
+    print(f"4x6 z change at the peak (counts), pad 0:\n{np.round(z[0])}")
+    for pad in z:
+        assert (pad > 0).sum() >= 20
+        assert pad[:, 2:4].mean() > pad[:, [0, 5]].mean()
