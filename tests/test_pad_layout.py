@@ -34,6 +34,7 @@ from edge.tools.collect import collect_plan
 from edge.tools.doctor import Level, _check_model
 from edge.tools.plan import load_plan
 from edge.tools.record import record_press, sim_config
+from tests.daemon.test_operator_api import sse_frames
 from tests.daemon.test_start_checks import torque_registers, vt_edge_run
 from tests.support.daemon import ROOT, Daemon, base_config
 from train.cli import main as train_main
@@ -159,6 +160,11 @@ async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_it
         run = replace(with_4x6_pads(base_config(fake.base_url)),
                       runtime=replace(base_config().runtime, models_dir=str(models)))
         async with Daemon(robot, run, tmp_path / "state") as d:
+            # The operator page's live view gets the grid to draw: 4 rows of 6.
+            frames = await sse_frames(d.http, d.url + "/v1/tactile", 0.5)
+            last = frames[-1][1]
+            assert (last["rows"], last["cols"]) == (4, 6)
+            assert [len(p[axis]) for p in last["pads"] for axis in "xyz"] == [24] * 6
             robot.world.place("wood_cube")
             fake.script(Reply(label="wood_cube"))
             status, ep = await d.post("/v1/recognize", {"candidates": list(LABELS),
