@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -116,7 +117,7 @@ async def test_the_doctor_fails_a_model_for_other_pads(tmp_path):
 
 @pytest.mark.asyncio
 async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_its_pads(
-        tmp_path):
+        tmp_path, caplog):
     plan = tmp_path / "plan.toml"
     plan.write_text(PLAN)
     data, models = tmp_path / "data-4x6", tmp_path / "models-4x6"
@@ -157,8 +158,9 @@ async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_it
         assert model_ref(models).layout.text() == "144 channels (2 pads x 24 taxels x 3)"
 
         # Recognise: the daemon loads the 4 x 6 model and a recognition ends done.
+        live = Path(shutil.copytree(models, tmp_path / "live-models"))
         run = replace(with_4x6_pads(base_config(fake.base_url)),
-                      runtime=replace(base_config().runtime, models_dir=str(models)))
+                      runtime=replace(base_config().runtime, models_dir=str(live)))
         async with Daemon(robot, run, tmp_path / "state") as d:
             # The operator page's live view gets the grid to draw: 4 rows of 6.
             frames = await sse_frames(d.http, d.url + "/v1/tactile", 0.5)
@@ -189,6 +191,15 @@ async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_it
             info = json.loads((Path(dest) / "meta" / "info.json").read_text())
             names = info["features"]["observation.tactile"]["names"]
             assert len(names) == 144 and names[-1] == "pad1_taxel23_z"
+
+            # The shipped 4 x 4 model put in its place: SIGHUP's reload refuses it, and the
+            # 4 x 6 one goes on answering.
+            shutil.rmtree(live)
+            shutil.copytree(ROOT / "models", live)
+            caplog.set_level(logging.ERROR, "edge.daemon.lifecycle")
+            assert await d.runtime.reload() is False
+            assert "reload refused" in caplog.text and "expects 96 channels" in caplog.text
+            assert d.runtime.model.digest == model_ref(models).digest
 
     # The 4 x 6 model on a robot with 4 x 4 pads: refused at start, torque never on.
     async with SimRobot("stainless_cube", seed=22, cfg=base_config()) as robot4:
