@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 
 from edge.core import logs, recording
 from edge.core.config import Config, load_config
-from edge.core.errors import StartError
+from edge.core.errors import ConfigError, StartError
 from edge.core.layout import XR1944, PadLayout
 from edge.core.model import load_model, model_ref
 from edge.daemon import lerobot, mcaplog
@@ -142,6 +142,11 @@ async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_it
             assert rec.extra["peak_level"] > rec.threshold  # pressed, not idle noise
         index = json.loads((data / "dataset.json").read_text())
         assert index["origin"]["sensor"]["model"] == "XR1946"
+        # More presses into it from 4 x 4 pads: refused before anything moves.
+        with pytest.raises(ConfigError, match=r"wood_cube_000\.press\.npz was pressed with 2 "
+                           r"pads of 4 x 6 taxels, \[sensor\] gives 2 pads of 4 x 4 taxels"):
+            await collect_plan(robot.runtime_config(base_config()), load_plan(plan), data,
+                               None)
 
         # Build: the model's input channels come from the presses.
         t0 = time.perf_counter()
