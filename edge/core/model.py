@@ -497,7 +497,7 @@ class Model:
     window: WindowSpec
 
     def encode(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | int]:
-        """``x`` in tactile units, (25, 96) or (B, 25, 96) -> (z, code).
+        """``x`` in tactile units, (25, C) or (B, 25, C) -> (z, code).
 
         One sequence gives z (D,) float32 and an ``int`` code; a batch gives z (B, D) and
         code (B,) int64. Blocking (about a millisecond): call it off the event loop.

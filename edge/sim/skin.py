@@ -57,6 +57,11 @@ def pad_grid(layout: PadLayout) -> tuple[np.ndarray, np.ndarray]:
     return _pad_grid(layout.rows, layout.cols)
 
 
+def pad_size_m(layout: PadLayout) -> tuple[float, float]:
+    """The face of a pad of ``layout``: (width, height) in metres."""
+    return layout.cols * TAXEL_PITCH_M, layout.rows * TAXEL_PITCH_M
+
+
 @functools.cache
 def _pad_grid(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
     def coord(n: int) -> np.ndarray:

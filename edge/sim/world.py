@@ -20,7 +20,7 @@ from edge.core.layout import XR1944, PadLayout
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.skin import Skin, SkinDraw
+from edge.sim.skin import Skin, SkinDraw, pad_size_m
 
 # Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
 WIDTH_PER_RAW_M = 1.7626621790e-5
@@ -119,7 +119,7 @@ class SimWorld:
 
     def _place(self, cls: ObjectClass, rng: np.random.Generator) -> None:
         # Called with the lock held.
-        inst = ObjectInstance.draw(cls, rng)
+        inst = ObjectInstance.draw(cls, rng, pad_size_m(self._skin_draw.layout))
         self.object_name = cls.name
         self.instance = inst
         self._contact = Contact(inst)
