@@ -2,9 +2,9 @@ import subprocess
 import sys
 
 from edge.core import recording
+from edge.core.recording import DATASET_INDEX
 from edge.daemon.episode import Episode, Status
 from edge.daemon.store import new_id
-from edge.tools.record import DATASET_INDEX
 
 
 def run(*args, **kw):

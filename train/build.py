@@ -40,7 +40,7 @@ from edge.core.atomic import atomic_write_text
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
 from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
-from edge.tools.record import DATASET_INDEX
+from edge.core.recording import DATASET_INDEX
 from train import database, evaluate
 from train.data import PressSet, Splits, load_presses, training_data_of
 from train.export import check_parity, codebook_of, export_onnx, parity

@@ -32,7 +32,7 @@ import numpy as np
 
 from edge.core import preprocess, recording
 from edge.core.errors import RecordingError
-from edge.tools.record import DATASET_INDEX
+from edge.core.recording import DATASET_INDEX
 
 STD_FLOOR_FRACTION = 1.0
 

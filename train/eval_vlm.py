@@ -63,8 +63,8 @@ from edge.core.model import ReferenceDatabase, load_model
 from edge.core.progress import PLAIN_EVERY_S
 from edge.core.progress import Progress as Bar
 from edge.core.prompt import PromptTemplate, load_template
+from edge.core.recording import DATASET_INDEX
 from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
-from edge.tools.record import DATASET_INDEX
 from train.data import PressSet, load_presses
 
 log = logging.getLogger(__name__)

@@ -27,8 +27,9 @@ from edge.core.atomic import atomic_write_bytes
 from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.prompt import MODES, PromptTemplate
+from edge.core.recording import DATASET_INDEX
 from edge.sim.catalogue import DATASETS
-from edge.tools.record import DATASET_INDEX, record_dataset
+from edge.tools.record import record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, Normaliser, PressSet, load_presses, training_data
 from train.export import (

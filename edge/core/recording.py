@@ -27,6 +27,14 @@ from edge.core.errors import RecordingError
 
 SCHEMA_VERSION = 1
 SUFFIX = ".press.npz"
+# A dataset directory's index (classes, splits, descriptions, thresholds, origin), beside
+# DIR/<label>/<label>_NNN.press.npz: written by the recorder and by collect, read by training.
+DATASET_INDEX = "dataset.json"
+
+
+def press_path(out: Path, label: str, index: int) -> Path:
+    """Where press ``index`` of ``label`` lies in the dataset directory ``out``."""
+    return out / label / f"{label}_{index:03d}{SUFFIX}"
 # A recording of a press lasts seconds; anything this large is not one.
 MAX_FRAMES = 1_000_000
 MAX_META_BYTES = 1_000_000

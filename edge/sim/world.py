@@ -90,9 +90,11 @@ class SimWorld:
         """``layout``: the pads drawn when ``skin_draw`` gives none."""
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
+        # Spawned, not drawn, from a given generator: the world's own draws (and so every
+        # recorded dataset of a seed) stay what they were before pieces were put back.
         self._placements = np.random.default_rng(
             np.random.SeedSequence([seed, _PLACEMENTS_STREAM]) if isinstance(seed, int)
-            else self._rng.integers(2**63))
+            else self._rng.bit_generator.seed_seq.spawn(1)[0])
         if skin_draw is None:
             skin_draw = (robot_pads(seed, layout) if isinstance(seed, int)
                          else SkinDraw.draw(self._rng, layout))

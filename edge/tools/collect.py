@@ -221,8 +221,15 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
 
     out = Path(out)
     report = report if report is not None else CollectReport()
-    found = _check_existing(out, plan, cfg)
     index = dataset.read_index(out)
+    if index is not None and not plan.single and index.get("dataset") != plan.name:
+        # dataset.json has one name and one plan hash, which build and table1 report: a
+        # second plan would silently take them over.
+        raise ConfigError(
+            f"{out / recording.DATASET_INDEX} is dataset {index.get('dataset')!r}, the plan "
+            f"({plan.source}) is {plan.name!r}: collect each plan into its own --out (a test "
+            "set's directory goes to vt-train build --unseen and vt-train table1 --unseen)")
+    found = _check_existing(out, plan, cfg)
     for c in plan.classes:
         report.have[c.label] = len(found[c.label])
         report.planned[c.label] = c.presses
@@ -255,7 +262,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
                                       plan.sha256)
         elif not dataset.same_origin(index.get("origin"), origin):
             raise ConfigError(
-                f"{out / dataset.DATASET_INDEX}: collected on {index.get('origin')}, this "
+                f"{out / recording.DATASET_INDEX}: collected on {index.get('origin')}, this "
                 f"run is on {origin}: one dataset, one robot and sensor; use another --out")
         elif index.get("plan_sha256") != plan.sha256:
             log.info("the plan changed since the last run of %s (%s)", out, plan.source)
@@ -302,7 +309,7 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
         first = False
         outcome = await controller.run()
         reason = None if outcome.contact else f"{outcome.result}: {outcome.message}"
-        path = dataset.press_path(out, c.label, next_number)
+        path = recording.press_path(out, c.label, next_number)
         photo = None
         if reason is None and c.photo:
             try:

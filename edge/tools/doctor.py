@@ -433,15 +433,14 @@ def _check_layout(cfg: Config, sample: _Sample) -> Check:
     data = {"sensors": list(frame.sensors), "models": list(frame.models),
             "taxels": list(frame.taxels)}
     try:
-        # The daemon's own check of the first frame.
+        # The daemon's own check of the first frame (pads, taxels and the model the server
+        # names: `vt-edge run` refuses to start on the same).
         parse_frame(sample.first, sc.pads, sc.taxels_per_pad, expected_model=sc.model)
-        refused = False
+        return ok("xela layout", frame.describe(), **data)
     except SensorLayoutError:
-        refused = True
+        pass
     # A server that does not name its model ("?") is taken at its layout.
     other_models = [m for m in frame.models if m != "?" and m.casefold() != sc.model.casefold()]
-    if not refused and not other_models:
-        return ok("xela layout", frame.describe(), **data)
     found = (f"configured {sc.pads} x {sc.model} ({sc.taxels_per_pad} taxels each), the "
              f"server sends {frame.describe()}")
     if len(frame.sensors) != sc.pads:

@@ -30,6 +30,7 @@ from edge.core.atomic import atomic_write_text
 from edge.core.config import Config, load_config
 from edge.core.errors import EdgeError
 from edge.core.layout import PadLayout
+from edge.core.recording import DATASET_INDEX, press_path
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
 from edge.sim.catalogue import DATASETS, ObjectClass, get
@@ -39,7 +40,6 @@ from edge.sim.world import robot_pads
 
 log = logging.getLogger(__name__)
 
-DATASET_INDEX = "dataset.json"
 # The configuration `vt-edge run` uses on the emulated robot: the recorder presses with it.
 SIM_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "sim.toml"
 # The stream runs this long before the press starts, as on a robot that is already up.
@@ -71,10 +71,6 @@ class PressRecord:
     @property
     def overshoot_n(self) -> float:
         return self.peak_force_n - self.force_at_cross_n
-
-
-def press_path(out: Path, label: str, index: int) -> Path:
-    return out / label / f"{label}_{index:03d}{recording.SUFFIX}"
 
 
 def class_config(cfg: Config, cls: ObjectClass, x_th: float | None = None) -> Config:

@@ -4,18 +4,15 @@ refused beside a running daemon) against the emulated robot."""
 import asyncio
 import hashlib
 import json
-import os
+import re
 import signal
 import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from edge.core import recording, tomledit
-from edge.core.config import load_config
 from edge.core.errors import ConfigError
 from edge.sim.catalogue import DATASETS
 from edge.sim.fake_vlm import FakeVLM, Reply
@@ -24,8 +21,10 @@ from edge.sim.xela_server import Fault
 from edge.tools import collect as collect_mod
 from edge.tools.collect import CollectReport, collect, collect_plan
 from edge.tools.plan import load_plan
-from edge.tools.stack import http_json, stop, wait_for
+from edge.tools.stack import http_json
+from tests.support import processes
 from tests.support.daemon import CUBE, ROOT, Daemon, base_config
+from tests.support.processes import COMMAND_TIMEOUT_S, VT_EDGE, Output, clean_env
 from tests.support.waits import wait_until
 
 PLAN = """
@@ -45,9 +44,6 @@ label = "wood_cube"
 description = "wood cube"
 x_th = 0.003
 """
-# The command line as a user runs it.
-VT_EDGE = [sys.executable, "-m", "edge"]
-COMMAND_TIMEOUT_S = 120
 
 
 def write_plan(tmp_path: Path, text: str = PLAN, name: str = "plan.toml") -> Path:
@@ -188,48 +184,18 @@ async def test_collect_writes_labelled_recordings(tmp_path):
         assert rec.extra["stop_latency_s"] > 0
 
 
-class Output:
-    """A process's stdout as it comes (prompts end without a newline)."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        self.text = ""
-        self._proc = proc
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-
-    def _read(self) -> None:
-        while chunk := self._proc.stdout.read1(4096):  # type: ignore[union-attr]
-            self.text += chunk.decode(errors="replace")
-
-    def wait_for(self, needle: str, timeout_s: float = COMMAND_TIMEOUT_S) -> None:
-        wait_for(lambda: needle in self.text, timeout_s, f"{needle!r} in the output\n"
-                 f"{self.text}", self._proc)
-
-
 @pytest.fixture(scope="module")
 def sim_serve(tmp_path_factory):
     """``vt-edge sim serve`` and its runtime configuration (quicker arm moves)."""
-    tmp = tmp_path_factory.mktemp("sim")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    for key in ("VTZERO_VLM_URL", "VTZERO_VLM_MODEL", "NOTIFY_SOCKET", "VTZERO_LOG_LEVEL"):
-        env.pop(key, None)
-    config = tmp / "run.toml"
-    sim = subprocess.Popen([*VT_EDGE, "sim", "serve", "--config", "configs/sim.toml",
-                            "--object", "otedama", "--write-config", str(config)],
-                           cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
-    try:
-        wait_for(config.exists, 60, "emulated robot", sim)
-        tomledit.update(config, config, {"sensor": {"stale_timeout_s": 0.25},
-                                         "runtime": {"move_time_s": 0.2}})
+    env = clean_env()
+    with processes.sim_serve(tmp_path_factory.mktemp("sim"), "otedama", env, {
+            "sensor": {"stale_timeout_s": 0.25}, "runtime": {"move_time_s": 0.2}}) as config:
         yield config, env
-    finally:
-        stop(sim, "emulated robot")
 
 
 def start_collect(config: Path, env: dict, *args: str) -> tuple[subprocess.Popen, Output]:
-    proc = subprocess.Popen([*VT_EDGE, "collect", "--config", str(config), *args], cwd=ROOT,
-                            env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-    return proc, Output(proc)
+    return processes.start([*VT_EDGE, "collect", "--config", str(config), *args], env,
+                           stdin=True)
 
 
 def test_ctrl_c_mid_plan_keeps_what_was_pressed_and_the_rerun_goes_on(sim_serve, tmp_path):
@@ -246,7 +212,7 @@ def test_ctrl_c_mid_plan_keeps_what_was_pressed_and_the_rerun_goes_on(sim_serve,
     print(f"exit {rc} {time.monotonic() - t0:.2f} s after SIGINT\n{output.text}")
     assert rc == 130 and "interrupted: kept" in output.text
     assert "run the same command again" in output.text
-    control = load_config(config).camera.url.rsplit("/", 1)[0]
+    control = processes.control_url(config)
     assert http_json("GET", f"{control}/object")["force_n"] == 0.0  # the gripper let go
     kept = sorted((out / "otedama").glob("*.press.npz"))
     assert 2 <= len(kept) <= 3 and not list(out.rglob("*.tmp"))
@@ -326,18 +292,18 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     recs = [record_press("otedama", seed, x_th=x).recording
             for seed, x in ((1, 0.004), (2, 0.004), (3, 0.004), (4, 0.003))]
     for i, rec in enumerate(recs):
-        recording.save(rec, dataset.press_path(out, "otedama", i))
+        recording.save(rec, recording.press_path(out, "otedama", i))
     gap = recs[1]
     keep = ~((gap.recv_time > gap.t_stop + 0.1) & (gap.recv_time < gap.t_stop + 0.2))
     recording.save(replace(gap, frames=gap.frames[keep], recv_time=gap.recv_time[keep],
                            sensor_time=gap.sensor_time[keep], seq=gap.seq[keep]),
-                   dataset.press_path(out, "otedama", 1))
+                   recording.press_path(out, "otedama", 1))
     late = recs[2]
     loud = late.tare + 40.0 * (late.frames - late.tare)
     recording.save(replace(late, frames=np.clip(loud, 0, 65535).astype(np.uint16)),
-                   dataset.press_path(out, "otedama", 2))
+                   recording.press_path(out, "otedama", 2))
     cube = record_press("wood_cube", 5).recording
-    recording.save(cube, dataset.press_path(out, "wood_cube", 0))
+    recording.save(cube, recording.press_path(out, "wood_cube", 0))
     index = dataset.new_index("lab_food", "test", {"kind": "emulated", "recorder": "test",
                                                    "robot": None, "sensor": None}, "0" * 64)
     index["classes"] = [
@@ -359,6 +325,12 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
     assert len(flags["otedama_001.press.npz"]) == 1
     assert flags["otedama_001.press.npz"][0].startswith("stream gap of 1")
     assert "stopped late" in flags["otedama_002.press.npz"][0]
+    # A rigid reference squeezed by the hold far past x_th after a timely stop is no late stop.
+    marble = tmp_path / "marble" / "glass_marble_000.press.npz"
+    recording.save(record_press("glass_marble", 6).recording, marble)
+    checked = dataset.check_press(marble)
+    print(f"glass marble: peak {checked.peak / 0.004:.0f}x x_th over the press")
+    assert checked.flags == ()
     assert "unlike the class's 0.004" in flags["otedama_003.press.npz"][0]
     peaks = [p.peak for p in oted.presses]
     assert all(0.003 < p < 0.02 for i, p in enumerate(peaks) if i != 2)
@@ -369,13 +341,26 @@ def test_summary_flags_a_mixed_threshold_a_gap_a_late_stop_and_a_short_class(tmp
 
     # Made whole (the odd press pressed again at 0.004, wood_cube once more): exit 0; a
     # plan asking for more makes it short again.
-    recording.save(record_press("otedama", 7).recording, dataset.press_path(out, "otedama", 3))
+    recording.save(record_press("otedama", 7).recording, recording.press_path(out, "otedama", 3))
     recording.save(record_press("wood_cube", 6).recording,
-                   dataset.press_path(out, "wood_cube", 1))
+                   recording.press_path(out, "wood_cube", 1))
     assert main(["dataset", "summary", str(out)]) == 0
     plan = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"))
     assert main(["dataset", "summary", str(out), "--plan", str(plan)]) == 1
     assert "wood_cube: 2 of 3 planned presses" in capsys.readouterr().out
+
+
+def test_summary_with_a_plan_shows_classes_not_collected_yet_as_the_plan_says(tmp_path):
+    from edge.tools import dataset
+
+    summary = dataset.summarize(tmp_path / "data", load_plan(write_plan(tmp_path)))
+    text = dataset.format_summary(summary)
+    print(text)
+    assert [(c.label, c.split, c.x_th, c.planned, len(c.presses)) for c in summary.classes] == [
+        ("otedama", "train", None, 2, 0), ("wood_cube", "val", 0.003, 2, 0)]
+    assert re.search(r"^wood_cube\s+val\s+0/2\s+0\s+0\.003\s", text, re.M)
+    assert summary.problems == ["otedama: 0 of 2 planned presses",
+                                "wood_cube: 0 of 2 planned presses"]
 
 
 def test_the_shipped_paper_plan_and_the_readme_examples_load(tmp_path):
@@ -393,6 +378,29 @@ def test_the_shipped_paper_plan_and_the_readme_examples_load(tmp_path):
     assert {c.split for c in examples[1].classes} == {"test"}
     assert all(c.photo for c in examples[1].classes)
     assert examples[0].get("gelatin_soft").x_th == 0.003
+
+
+@pytest.mark.asyncio
+async def test_a_plan_of_another_dataset_is_refused_before_the_robot_is_opened(tmp_path):
+    """A test plan collected into the reference plan's directory would take over its name and
+    plan hash (what vt-train build and table1 report): refused in one line, nothing written."""
+    from edge.tools import dataset
+
+    out = tmp_path / "data"
+    dataset.write_index(out, dataset.new_index("lab_reference", "test", {
+        "kind": "emulated", "recorder": "test", "robot": None, "sensor": None}, "0" * 64))
+    before = (out / "dataset.json").read_bytes()
+    plan = load_plan(write_plan(tmp_path))  # lab_food
+    # No robot: the refusal comes before the devices open (they would fail on this config).
+    with pytest.raises(ConfigError) as caught:
+        await collect_plan(base_config(), plan, out, None)
+    print(caught.value)
+    assert str(caught.value) == (
+        f"{out / 'dataset.json'} is dataset 'lab_reference', the plan ({plan.source}) is "
+        "'lab_food': collect each plan into its own --out (a test set's directory goes to "
+        "vt-train build --unseen and vt-train table1 --unseen)")
+    assert (out / "dataset.json").read_bytes() == before and sorted(out.iterdir()) == [
+        out / "dataset.json"]
 
 
 @pytest.mark.parametrize("change, message", [

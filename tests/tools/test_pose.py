@@ -73,7 +73,8 @@ async def test_goto_moves_slowly_holds_then_rests_with_torque_off():
     assert "over 0.8 s" in prompts[0] and "'lowered'" in prompts[1]
     assert max(abs(a - b) for a, b in zip(start, target, strict=True)) > 100  # it moved
     assert all(abs(a - b) <= TOLERANCE_RAW for a, b in zip(held, target, strict=True)), held
-    assert all(abs(a - b) <= 2 for a, b in zip(joints, held, strict=True))
+    # (what goto reports is where the arm holds, within the settling a loaded host may see)
+    assert all(abs(a - b) <= TOLERANCE_RAW for a, b in zip(joints, held, strict=True))
     assert torque_held == [1, 1, 1, 1]
     # The profile spreads the move over move_time_s: not a jump.
     assert t1 - t0 >= 0.8 * move_time_s
