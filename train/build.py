@@ -38,6 +38,7 @@ import numpy as np
 
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import ModelError, RecordingError
+from edge.core.layout import XR1944, PadLayout
 from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.recording import DATASET_INDEX
 from train import database, evaluate
@@ -97,6 +98,7 @@ class Dataset:
     x_th: dict[str, float]  # per class, as pressed
     presses: dict[str, int]  # per class
     sha256: str  # of dataset.json and every press file
+    layout: PadLayout = XR1944  # the pads every press was made with
 
 
 def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
@@ -144,13 +146,20 @@ def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
                 declared[label], database.X_TH_DIGITS):
             problems.append(f"class {label!r}: presses at x_th {x_th:g} but dataset.json "
                             f"says {declared[label]:g}")
+    layouts = database.grouped(metas, "layout")
+    mixed_pads = {lay for per_label in layouts.values() for lay in per_label}
+    if len(mixed_pads) > 1:
+        problems.append("presses of different pads: " + "; ".join(
+            f"{lay.channels} channels, {lay.text()} (class "
+            f"{', '.join(label for label, per in layouts.items() if lay in per)})"
+            for lay in sorted(mixed_pads, key=lambda lay: lay.channels)))
     if problems:
         raise RecordingError(f"{directory}: " + "; ".join(problems)
                              + " (re-collect the class, or move the odd presses out)")
     return Dataset(directory, index, origin, splits, test,
                    {c: next(iter(t)) for c, t in thresholds.items()},
                    {c: sum(map(len, t.values())) for c, t in thresholds.items()},
-                   digest.hexdigest())
+                   digest.hexdigest(), next(iter(mixed_pads), XR1944))
 
 
 # --------------------------------------------------------------------------------------
@@ -236,9 +245,11 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
 
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
                        threads=cfg.threads)
+    # The model takes the channels of the pads the presses were made with.
+    model_config = replace(ModelConfig(), channels=ds.layout.channels)
     trained: dict[str, dict[str, Any]] = {}
     for name in ("vq", *cfg.variants):
-        config = replace(base, model=replace(ModelConfig(), **VARIANTS.get(name, {})))
+        config = replace(base, model=replace(model_config, **VARIANTS.get(name, {})))
         where = work / TRAINING_DIR / VARIANT_DIRS[name]
 
         def fit(config: TrainConfig = config, where: Path = where) -> dict[str, Any]:
@@ -302,8 +313,10 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
         "created_by": cfg.command(),
         "origin": ds.origin,
         database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
-        "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], ModelConfig(),
+        "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], model_config,
                                    exported["parity"]),
+        "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
+                          "taxel_rows": ds.layout.rows},
         "training": {
             "dataset": {"simulated": ds.origin["kind"] == "emulated",
                         "directory": str(ds.directory), "sha256": ds.sha256,

@@ -23,6 +23,7 @@ import numpy as np
 from edge.core import recording
 from edge.core.descriptions import check_description
 from edge.core.errors import ModelError, RecordingError
+from edge.core.layout import XR1944, PadLayout
 from edge.core.model import (
     DEFAULT_K,
     ENCODER_FILE,
@@ -157,6 +158,7 @@ class PressMeta:
     label: str
     x_th: float  # rounded to X_TH_DIGITS: one setting written twice is one value
     origin: str  # recording source and sensor model
+    layout: PadLayout = XR1944  # the pads behind its channels
 
 
 def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta]:
@@ -167,7 +169,8 @@ def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta
         for path in files:
             rec = recording.load(path)
             out.append(PressMeta(path, rec.label, round(rec.threshold, X_TH_DIGITS),
-                                 f"source {rec.source}, sensor {rec.sensor_model}"))
+                                 f"source {rec.source}, sensor {rec.sensor_model}",
+                                 PadLayout.of_recording(rec.extra, rec.channels)))
             bar.update()
     return out
 

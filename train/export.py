@@ -1,6 +1,6 @@
 """Encoder -> ONNX, with a parity check against torch.
 
-The graph takes ``x`` (batch, 25, 96) float32 in *tactile units* and normalises it inside
+The graph takes ``x`` (batch, 25, channels) float32 in *tactile units* and normalises it inside
 (``(x - mean) / std``, the training statistics as constants), then runs the bidirectional GRU
 encoder and the nearest-code search: outputs ``z`` (batch, 4) float32 and ``code`` (batch,)
 int64. The robot feeds :func:`edge.core.preprocess.model_input` straight in.

@@ -140,7 +140,7 @@ def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
                     ) -> dict[str, Any]:
     """The manifest's ``encoder``: what the exported graph takes and gives, and its parity."""
     return {
-        "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", 25, 96],
+        "file": ENCODER_FILE, "input": "x", "input_shape": ["batch", model.steps, model.channels],
         "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
         "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
         "mean": norm.mean.tolist(), "std": norm.std.tolist(),

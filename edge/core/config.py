@@ -29,6 +29,9 @@ class SensorConfig:
     model: str = "XR1944"
     pads: int = 2
     taxels_per_pad: int = 16
+    # Rows of each pad's taxel grid (row-major from the top left): 4 x 4 on the XR1944,
+    # 24 taxels in 4 rows on a 4 x 6 pad.
+    taxel_rows: int = 4
     # No fresh frame for this long means the stream is stale: never press on it.
     stale_timeout_s: float = 0.1
     reconnect_max_backoff_s: float = 5.0
@@ -43,6 +46,9 @@ class SensorConfig:
         _require(
             self.taxels_per_pad >= 1, path, "taxels_per_pad", self.taxels_per_pad, "must be >= 1"
         )
+        _require(self.taxel_rows >= 1 and self.taxels_per_pad % self.taxel_rows == 0, path,
+                 "taxel_rows", self.taxel_rows,
+                 f"must divide taxels_per_pad ({self.taxels_per_pad}) into whole rows")
         _require(
             self.stale_timeout_s > 0, path, "stale_timeout_s", self.stale_timeout_s, "must be > 0"
         )
@@ -78,6 +84,14 @@ class SensorConfig:
     @property
     def channels(self) -> int:
         return self.pads * self.taxels_per_pad * 3
+
+    @property
+    def taxel_cols(self) -> int:
+        return self.taxels_per_pad // self.taxel_rows
+
+    def layout_text(self) -> str:
+        """The channels' make-up for messages: ``2 pads x 16 taxels x 3``."""
+        return f"{self.pads} pad{'s' * (self.pads != 1)} x {self.taxels_per_pad} taxels x 3"
 
 
 @dataclass(frozen=True)

@@ -2,12 +2,13 @@
 
 numpy + onnxruntime only (never torch). A model directory holds:
 
-- ``encoder.onnx``: input ``x`` (batch, 25, 96) float32 in *tactile units* (``(raw - tare) /
-  65536``, exactly what :func:`edge.core.preprocess.model_input` returns). The per-channel
-  normalisation computed on the training data is the first operation *inside* the graph, so
-  the robot never applies it by hand and can never apply the wrong one. Outputs ``z``
-  (batch, 4) float32, the continuous embedding, and ``code`` (batch,) int64, the index of the
-  nearest codebook vector.
+- ``encoder.onnx``: input ``x`` (batch, 25, channels) float32 (96 for two 4 x 4 pads; the
+  manifest's ``encoder.input_shape`` says how many, ``sensor_layout`` of which pads) in *tactile
+  units* (``(raw - tare) / 65536``, exactly what :func:`edge.core.preprocess.model_input`
+  returns). The per-channel normalisation computed on the training data is the first operation
+  *inside* the graph, so the robot never applies it by hand and can never apply the wrong one.
+  Outputs ``z`` (batch, 4) float32, the continuous embedding, and ``code`` (batch,) int64, the
+  index of the nearest codebook vector.
 - ``database.npz`` (numpy arrays, loaded with ``allow_pickle=False``) and ``database.json``
   (labels, their descriptions, the retrieval settings): the embeddings of every reference
   sample, grouped by class: every subsampling offset of every reference press (the paper's
@@ -35,7 +36,7 @@ import math
 import zipfile
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -496,7 +497,7 @@ class Model:
     window: WindowSpec
 
     def encode(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | int]:
-        """``x`` in tactile units, (25, 96) or (B, 25, 96) -> (z, code).
+        """``x`` in tactile units, (25, C) or (B, 25, C) -> (z, code).
 
         One sequence gives z (D,) float32 and an ``int`` code; a batch gives z (B, D) and
         code (B,) int64. Blocking (about a millisecond): call it off the event loop.
@@ -541,6 +542,51 @@ class ModelRef:
     window: WindowSpec = DEFAULT_WINDOW
     # Who pressed the reference database (the manifest's origin).
     origin: Origin = EMULATED_ORIGIN
+    # The encoder's input channels and the pads they came from (the manifest's).
+    layout: ModelLayout = field(default_factory=lambda: LEGACY_LAYOUT)
+
+
+@dataclass(frozen=True)
+class ModelLayout:
+    """The tactile channels a model takes: ``encoder.input_shape[2]`` of its manifest, and
+    the pads and taxels per pad behind them (``sensor_layout``) where the manifest says."""
+
+    channels: int
+    pads: int | None = None
+    taxels_per_pad: int | None = None
+
+    def text(self) -> str:
+        """``96 channels (2 pads x 16 taxels x 3)``, for messages."""
+        if self.pads is None or self.taxels_per_pad is None:
+            return f"{self.channels} channels"
+        return (f"{self.channels} channels ({self.pads} pad{'s' * (self.pads != 1)} x "
+                f"{self.taxels_per_pad} taxels x 3)")
+
+
+# A manifest that does not name its pads predates other layouts: every such model was built
+# from presses of two XR1944 pads (4 x 4 taxels).
+LEGACY_LAYOUT = ModelLayout(96, 2, 16)
+
+
+def manifest_layout(manifest: Mapping[str, Any], name: str = MANIFEST) -> ModelLayout:
+    """What the manifest's encoder takes (:class:`ModelLayout`); refuses a malformed one."""
+    shape = manifest.get("encoder", {}).get("input_shape")
+    raw = manifest.get("sensor_layout")
+    if shape is None and raw is None:
+        return LEGACY_LAYOUT
+    if not (isinstance(shape, list) and len(shape) == 3 and type(shape[2]) is int
+            and shape[2] > 0):
+        raise ModelError(f"{name}: encoder.input_shape must be [batch, steps, channels], "
+                         f"got {shape!r}")
+    channels = shape[2]
+    if raw is None:
+        return LEGACY_LAYOUT if channels == LEGACY_LAYOUT.channels else ModelLayout(channels)
+    pads, taxels = (raw.get("pads"), raw.get("taxels_per_pad")) if isinstance(raw, dict) \
+        else (None, None)
+    if not (type(pads) is int and type(taxels) is int and pads * taxels * 3 == channels):
+        raise ModelError(f"{name}: sensor_layout {raw!r} does not give the encoder's "
+                         f"{channels} channels (pads x taxels_per_pad x 3)")
+    return ModelLayout(channels, pads, taxels)
 
 
 def manifest_digest(manifest: Mapping[str, Any]) -> str:
@@ -554,7 +600,7 @@ def model_ref(models_dir: str | Path) -> ModelRef:
     directory = Path(models_dir).resolve()  # absolute: errors and logs say where
     manifest = read_manifest(directory)
     return ModelRef(directory, manifest_digest(manifest), _window(manifest),
-                    manifest_origin(manifest))
+                    manifest_origin(manifest), manifest_layout(manifest, str(directory / MANIFEST)))
 
 
 def _read(path: Path) -> bytes:
@@ -641,6 +687,10 @@ def load_model(models_dir: str | Path, *, threads: int = 1) -> Model:
         data[DATABASE_ARRAYS], data[DATABASE_INDEX],
         (str(directory / DATABASE_ARRAYS), str(directory / DATABASE_INDEX)))
     window = _window(manifest)
+    layout = manifest_layout(manifest, str(directory / MANIFEST))
+    if encoder.channels != layout.channels:
+        raise ModelError(f"{directory / ENCODER_FILE}: takes {encoder.channels} channels but "
+                         f"the manifest says {layout.text()}")
     if encoder.steps != window.n_steps:
         raise ModelError(f"{directory / ENCODER_FILE}: takes {encoder.steps} steps but the "
                          f"manifest window gives {window.n_steps}")

@@ -59,7 +59,8 @@ _ARRAYS: dict[str, tuple[np.dtype, int]] = {
 class Recording:
     """One press. Times are seconds on the recording host's monotonic clock."""
 
-    frames: np.ndarray  # (N, C) uint16 raw counts, channel = pad*48 + taxel*3 + axis
+    # (N, C) uint16 raw counts, channel = (pad * taxels + taxel) * 3 + axis (edge/core/layout.py)
+    frames: np.ndarray
     recv_time: np.ndarray  # (N,) float64
     sensor_time: np.ndarray  # (N,) float64, the sensor server's clock
     seq: np.ndarray  # (N,) int64 server sequence numbers

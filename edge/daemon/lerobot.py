@@ -13,12 +13,13 @@ the parquet types of each feature, ``compute_stats.py`` the statistics)::
 One episode per press, one frame per tactile frame at the sensor's 125 Hz (``timestamp`` =
 ``frame_index`` / 125, as lerobot's readers index frames by it). Features::
 
-    observation.tactile      float32 (96,)  (raw - tare) / 65536, both pads, taxel x axis
-    observation.tactile_raw  float32 (96,)  raw counts (exact in float32)
+    observation.tactile      float32 (C,)   (raw - tare) / 65536, both pads, taxel x axis
+    observation.tactile_raw  float32 (C,)   raw counts (exact in float32)
     observation.state        float32 (2,)   gripper width (m), squeeze current (mA)
     action                   float32 (1,)   the gripper's goal width (m)
     observation.image        image          the photo (every frame of a press: one photo)
 
+``C`` = pads x taxels x 3 (96 on two XR1944 pads; a recording of other pads names its layout).
 ``names`` of the tactile features are ``pad{p}_taxel{tt}_{axis}``. The gripper is read every
 20 ms: each frame carries the last reading at or before it (the first before that). The
 action is the goal the press wrote: the closed limit while closing (before ``t_stop``), the
@@ -47,6 +48,7 @@ from edge import __version__
 from edge.core import preprocess, recording
 from edge.core.atomic import atomic_dir
 from edge.core.errors import EdgeError, StoreError
+from edge.core.layout import PadLayout
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M, GRIPPER_OPEN_WIDTH_M
 
 log = logging.getLogger(__name__)
@@ -63,7 +65,6 @@ CHUNK_FILE = "chunk-{chunk_index:03d}/file-{file_index:03d}"
 DATA_PATH = "data/" + CHUNK_FILE + ".parquet"
 EPISODES_PATH = "meta/episodes/" + CHUNK_FILE + ".parquet"
 QUANTILES = (0.01, 0.10, 0.50, 0.90, 0.99)  # lerobot's DEFAULT_QUANTILES
-AXES = ("x", "y", "z")
 
 
 def require_pyarrow() -> None:
@@ -140,10 +141,6 @@ def from_collection(directory: str | Path) -> list[Press]:
 # Frames
 
 
-def tactile_names(channels: int) -> list[str]:
-    return [f"pad{c // 48}_taxel{c % 48 // 3:02d}_{AXES[c % 3]}" for c in range(channels)]
-
-
 def _hold(t_src: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``values`` (sampled at ``t_src``) as last known at each of ``t``; the first before."""
     if len(t_src) == 0:
@@ -195,8 +192,8 @@ def _image_pixels(data: bytes) -> np.ndarray:
         return np.asarray(im.convert("RGB"), dtype=np.float32).reshape(-1, 3) / 255.0
 
 
-def features(channels: int, image_shape: tuple[int, int, int] | None) -> dict[str, Any]:
-    names = tactile_names(channels)
+def features(layout: PadLayout, image_shape: tuple[int, int, int] | None) -> dict[str, Any]:
+    names, channels = layout.names(), layout.channels
     out: dict[str, Any] = {
         "observation.tactile": {"dtype": "float32", "shape": [channels], "names": names},
         "observation.tactile_raw": {"dtype": "float32", "shape": [channels], "names": names},
@@ -260,16 +257,16 @@ def export_dataset(presses: list[Press], dest: str | Path) -> Path:
     require_pyarrow()
     if not presses:
         raise StoreError("nothing to export: no presses")
-    channels = {p.rec.channels for p in presses}
-    if len(channels) != 1:
-        raise StoreError(f"presses of different sensors ({sorted(channels)} channels) "
-                         "cannot share a dataset")
-    n_channels = channels.pop()
+    layouts = {PadLayout.of_recording(p.rec.extra, p.rec.channels) for p in presses}
+    if len(layouts) != 1:
+        which = "; ".join(sorted(f"{lay.channels} channels, {lay.text()}" for lay in layouts))
+        raise StoreError(f"presses of different sensors ({which}) cannot share a dataset")
+    layout = layouts.pop()
     shapes = {_image_shape(p.image) if p.image is not None else None for p in presses}
     image_shape = shapes.pop() if len(shapes) == 1 else None
     if image_shape is None and any(p.image is not None for p in presses):
         log.warning("the photo is left out: not every press has one of the same size")
-    feats = features(n_channels, image_shape)
+    feats = features(layout, image_shape)
     tasks = list(dict.fromkeys(p.task for p in presses))
     dest = Path(dest)
     try:

@@ -56,6 +56,7 @@ class Batch:
 
     rows: Rows
     events: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
+    pads: int = 2  # [sensor] pads: how the rows' channels split
 
 
 def segment_name(now: float | None = None, fmt: str = "mcap") -> str:
@@ -136,7 +137,7 @@ class McapRecorder:
         self.lost += rows.lost
         events = list(self._events)
         self._events.clear()
-        return Batch(rows, events)
+        return Batch(rows, events, self.runtime.cfg.sensor.pads)
 
     async def _close(self, worker: Any) -> None:
         """What arrived since the last flush, then the segment completed."""
@@ -176,9 +177,8 @@ class _Segment:
         self.lost += rows.lost
         self.frames += len(rows)
         if len(rows):
-            pads = rows.raw.shape[1] // 48 if rows.raw.shape[1] % 48 == 0 else 1
             self.log.tactile("/tactile/raw", rows.recv_time, rows.sensor_time, rows.seq,
-                             np.asarray(rows.raw), pads)
+                             np.asarray(rows.raw), batch.pads)
         for t, event in batch.events:
             if event.get("type") == "state":
                 self.log.add("/press/state", t, {"state": str(event.get("state")),

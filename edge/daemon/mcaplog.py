@@ -44,6 +44,7 @@ from edge import __version__
 from edge.core import preprocess, recording
 from edge.core.atomic import _fsync_dir
 from edge.core.errors import NotFoundError, StoreError
+from edge.core.layout import PadLayout
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ def _tactile_schema(item: str, what: str) -> dict[str, Any]:
     return {
         "title": "vtzero.TactileFrame", "type": "object",
         "description": f"One frame of both XELA pads, {what}; taxel i of a pad is x[i], "
-                       "y[i], z[i] (4x4 row-major)",
+                       "y[i], z[i] (row-major from the top left, 4 x 4 on XR1944 pads)",
         "properties": {"timestamp": {**TIME, "description": "receive time (monotonic)"},
                        "recv_time": {"type": "number", "description": "monotonic s"},
                        "sensor_time": {"type": "number", "description": "sensor server s"},
@@ -171,7 +172,7 @@ class McapLog:
 
     def tactile(self, topic: str, recv_time: np.ndarray, sensor_time: np.ndarray,
                 seq: np.ndarray, values: np.ndarray, pads: int = 2) -> None:
-        """Frames (N, C) with channel = pad * 48 + taxel * 3 + axis, one message each."""
+        """Frames (N, C) with channel = (pad * taxels + taxel) * 3 + axis, one message each."""
         if len(values) == 0:
             return
         per_pad = values.reshape(len(values), pads, -1, 3)
@@ -274,7 +275,7 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
         raise StoreError(f"episode {episode_id}: cannot write {path}: {exc}") from None
     try:
         if rec is not None:
-            pads = rec.channels // 48 if rec.channels % 48 == 0 else 1
+            pads = PadLayout.of_recording(rec.extra, rec.channels).pads
             out.tactile("/tactile/raw", rec.recv_time, rec.sensor_time, rec.seq,
                         rec.frames, pads)
             out.tactile("/tactile/units", rec.recv_time, rec.sensor_time, rec.seq,

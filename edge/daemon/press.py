@@ -26,6 +26,7 @@ import numpy as np
 from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
+from edge.core.layout import PadLayout
 from edge.daemon.sensor import FrameRing, Window
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
@@ -450,4 +451,5 @@ def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"
                # The gripper goals the press wrote, for exports that carry them as actions.
                "t_open": next((t for s, t in outcome.states if s == "opening"), None),
                "gripper_goal_m": {"open": cfg.press.open_width_m,
-                                  "closed": GRIPPER_CLOSED_WIDTH_M}})
+                                  "closed": GRIPPER_CLOSED_WIDTH_M}}
+        | PadLayout.of(cfg.sensor).extra())

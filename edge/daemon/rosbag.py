@@ -16,13 +16,13 @@ Topics::
     /result                    vtzero_msgs/msg/Result              label, top-k, error, JSON
     /events                    std_msgs/msg/String                 (live) each event, JSON
 
-Raw frames use XELA's own ROS 2 messages (``xela_server_ros2``, MIT, as its ROS 2 node
-publishes them on ``/xServTopic``): one ``SensorFull`` per pad, ``sensor_pos`` = pad + 1,
-``message`` = the server's sequence number, ``time`` = the server's time, ``taxels`` 16
-``Taxel`` (uint16 x, y, z) row by row, ``forces`` empty. The tare-subtracted units have no
-XELA message (its ``Forces`` are newtons from XELA's calibration, which ours are not): a
-``Float32MultiArray`` with layout dims ``pad`` (2), ``taxel`` (16), ``axis`` (3). Press
-states and results are ``vtzero_msgs`` messages; their ``.msg`` files ship in
+Raw frames use XELA's own ROS 2 messages (``xela_server_ros2``, MIT, as its ROS 2 node publishes
+them on ``/xServTopic``): one ``SensorFull`` per pad, ``sensor_pos`` = pad + 1, ``message`` =
+the server's sequence number, ``time`` = the server's time, ``taxels`` the pad's ``Taxel``
+(uint16 x, y, z; 16 on an XR1944) row by row, ``forces`` empty. The tare-subtracted units have
+no XELA message (its ``Forces`` are newtons from XELA's calibration, which ours are not): a
+``Float32MultiArray`` with layout dims ``pad`` (2), ``taxel`` (16 on an XR1944), ``axis`` (3).
+Press states and results are ``vtzero_msgs`` messages; their ``.msg`` files ship in
 ``edge/ros2/vtzero_msgs`` (a colcon package) for ``ros2 bag play``.
 
 Time: bag times and header stamps are wall time (ns since the epoch): the robot's monotonic
@@ -52,6 +52,7 @@ from edge import __version__
 from edge.core import preprocess
 from edge.core.atomic import atomic_dir
 from edge.core.errors import EdgeError, StoreError
+from edge.core.layout import PadLayout
 from edge.daemon.mcaplog import result_message
 
 log = logging.getLogger(__name__)
@@ -167,7 +168,7 @@ class RosbagLog:
 
     def tactile(self, topic: str, recv_time: np.ndarray, sensor_time: np.ndarray,
                 seq: np.ndarray, values: np.ndarray, pads: int = 2) -> None:
-        """Frames (N, C), channel = pad * 48 + taxel * 3 + axis: raw counts on the XELA
+        """Frames (N, C), channel = (pad * taxels + taxel) * 3 + axis: raw counts on the XELA
         topic, tactile units as arrays."""
         topic = FROM_MCAP.get(topic, topic)
         per_pad = values.reshape(len(values), pads, -1, 3)
@@ -287,7 +288,7 @@ def export_episodes(store: Any, episode_ids: list[str], dest: str | Path) -> Pat
             out.offset_s, _ = clock_offset(item.episode, item.t_last)
             rec = item.rec
             if rec is not None:
-                pads = rec.channels // 48 if rec.channels % 48 == 0 else 1
+                pads = PadLayout.of_recording(rec.extra, rec.channels).pads
                 out.tactile("/tactile/raw", rec.recv_time, rec.sensor_time, rec.seq,
                             rec.frames, pads)
                 out.tactile("/tactile/units", rec.recv_time, rec.sensor_time, rec.seq,

@@ -28,7 +28,7 @@ from edge.daemon.devices import close_devices, enable_torque, open_devices
 from edge.daemon.lifecycle import Devices, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
 from edge.daemon.realtime import Realtime, unpin_thread
-from edge.daemon.startcheck import check_devices
+from edge.daemon.startcheck import check_devices, check_model
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
 
@@ -117,16 +117,16 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
     """Start everything in the order that keeps a failed start harmless, and make the arm
     safe on every way out.
 
-    Checked before any device is opened: the API's token, the model (every file verified
-    and the encoder run once in the compute process), the episode store, and the API's
-    port (bound). Then the devices are connected, torque still off, and checked
-    (:mod:`edge.daemon.startcheck`: the pad layout on the first frames, the camera's
-    photo); torque is turned on last. Whatever fails raises :class:`StartError` naming what
-    to fix. An absent sensor server is no failure: torque stays off until its stream
-    arrives (:meth:`Runtime.power_on_with_stream`). On exit the API
-    closes, the arm goes to rest, torque goes off and the devices close, whether the
-    daemon ran, failed to start or died. ``devices`` overrides the configured ones (their
-    bus is still closed on exit); ``button`` is added to them.
+    Checked before any device is opened: the API's token, the model (every file verified and the
+    encoder run once in the compute process), the episode store, and the API's port (bound).
+    Then the devices are connected, torque still off, and checked
+    (:mod:`edge.daemon.startcheck`: the pad layout on the first frames, the camera's photo, the
+    model's input channels against the pads'); torque is turned on last. Whatever fails raises
+    :class:`StartError` naming what to fix. An absent sensor server is no failure: torque stays
+    off until its stream arrives (:meth:`Runtime.power_on_with_stream`). On exit the API closes,
+    the arm goes to rest, torque goes off and the devices close, whether the daemon ran, failed
+    to start or died. ``devices`` overrides the configured ones (their bus is still closed on
+    exit); ``button`` is added to them.
     """
     started = time.monotonic()
     notifier = notifier or Notifier()
@@ -162,10 +162,13 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
             devices.button = button
         notifier.status("starting: checking the pads' layout and the camera")
         no_stream = await check_devices(cfg, devices, vlm.mode)
+        check_model(cfg.sensor, model)
 
         def reload() -> tuple[Config, ModelRef, Any]:
             new = load_config(config_path) if config_path else cfg
-            return new, model_ref(new), make_vlm(new, compute)
+            new_model = model_ref(new)
+            check_model(cfg.sensor, new_model)  # the pads stay the ones opened at start
+            return new, new_model, make_vlm(new, compute)
 
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
         runtime.started_at = started

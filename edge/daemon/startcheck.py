@@ -2,7 +2,8 @@
 
 A configuration that would make every press fail stops the start with one line
 (:class:`StartError`, exit 2) and torque never on: a pad layout (pads, taxels per pad,
-sensor model) that is not what ``xela_server`` sends, or a camera that cannot take the photo
+sensor model) that is not what ``xela_server`` sends, a model built for other pads (its
+input channels are not the configured sensor's), or a camera that cannot take the photo
 the VLM mode needs. (A serial button without modem lines is refused when it is opened.)
 
 An ``xela_server`` that cannot be reached yet is a condition, not a configuration error:
@@ -18,8 +19,9 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
-from edge.core.config import Config
+from edge.core.config import Config, SensorConfig
 from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
+from edge.core.model import ModelLayout, ModelRef
 from edge.hw.contracts import Camera
 from edge.hw.xela import XelaClient
 
@@ -65,6 +67,25 @@ async def check_devices(cfg: Config, devices: Devices, vlm_mode: str) -> str | N
             with contextlib.suppress(asyncio.CancelledError):
                 await camera
     return absent
+
+
+BUILD_FOR_THESE_PADS = "build a model from this robot's presses (vt-train build)"
+
+
+def model_mismatch(sensor: SensorConfig, layout: ModelLayout) -> str | None:
+    """Why a model taking ``layout`` cannot recognise with the configured pads, or None."""
+    if layout.channels == sensor.channels:
+        return None
+    return (f"expects {layout.text()}; the sensor [sensor] gives {sensor.channels} "
+            f"({sensor.layout_text()})")
+
+
+def check_model(sensor: SensorConfig, model: ModelRef) -> None:
+    """Raise :class:`StartError` for a model whose input is not the configured pads'
+    channels: every recognition with it would fail."""
+    why = model_mismatch(sensor, model.layout)
+    if why is not None:
+        raise StartError(f"model {model.directory} {why}: {BUILD_FOR_THESE_PADS}")
 
 
 async def _check_sensor(cfg: Config, devices: Devices) -> str | None:

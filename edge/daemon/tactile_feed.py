@@ -131,13 +131,13 @@ class TactileFeed:
         assert self._tare is not None
         units = (rows.raw[0].astype(np.float64) - self._tare) / preprocess.UNITS_SCALE
         norm = float(np.linalg.norm(units))
-        n_pads = units.shape[0] // 48 if units.shape[0] % 48 == 0 else 1
-        pads = (units * 1e6).round().astype(np.int64).reshape(n_pads, -1, 3)
         cfg = self.runtime.cfg
+        pads = (units * 1e6).round().astype(np.int64).reshape(cfg.sensor.pads, -1, 3)
         return json.dumps({
             "seq": int(rows.seq[0]),
             "age_s": round(time.monotonic() - float(rows.recv_time[0]), 4),
             "state": self._state, "norm": round(norm, 7), "x_th": cfg.press.x_th,
+            "rows": cfg.sensor.taxel_rows, "cols": cfg.sensor.taxel_cols,
             "pads": [{"x": p[:, 0].tolist(), "y": p[:, 1].tolist(), "z": p[:, 2].tolist()}
                      for p in pads],
         }, separators=(",", ":")).encode()

@@ -44,14 +44,16 @@ class ObjectInstance:
     common_shear: tuple[float, float]  # tangential/normal ratio from imperfect alignment
 
     @classmethod
-    def draw(cls, obj: ObjectClass, rng: np.random.Generator) -> ObjectInstance:
+    def draw(cls, obj: ObjectClass, rng: np.random.Generator,
+             pad_m: tuple[float, float] = (PAD_SIDE_M, PAD_SIDE_M)) -> ObjectInstance:
+        """``pad_m``: the pad's face (width, height): a flat face larger than it is loaded
+        over the pad only."""
         width = max(obj.width_m + rng.normal(0.0, obj.width_sd_m), 0.3 * obj.width_m)
         youngs = obj.youngs_pa * math.exp(rng.normal(0.0, obj.youngs_cv))
         n = obj.elastic_exponent
         if obj.shape == "flat":
             # Compression of the loaded column: F = E A (2 delta / w).
-            side = min(obj.size_m, PAD_SIDE_M)
-            k = 2.0 * youngs * side * side / width
+            k = 2.0 * youngs * min(obj.size_m, pad_m[0]) * min(obj.size_m, pad_m[1]) / width
             if n != 1.0:
                 # Strain-stiffening foams: same stiffness at 1 mm, steeper beyond.
                 k = k * (1e-3) ** (1.0 - n)

@@ -13,6 +13,7 @@ from dataclasses import replace
 from aiohttp import web
 
 from edge.core.config import Config
+from edge.core.layout import PadLayout
 from edge.sim import camera as sim_camera
 from edge.sim.catalogue import get
 from edge.sim.world import SimWorld, raw_from_width, robot_motors, robot_pads
@@ -30,8 +31,11 @@ class SimRobot:
                  replay: Replay | None = None, replay_loop: bool = True,
                  calibrated: bool = False) -> None:
         get(object_name)
-        bus = (cfg or Config()).bus
-        pads = replace(robot_pads(seed), gain=(cfg or Config()).sim.pad_gain)
+        bus, sensor = (cfg or Config()).bus, (cfg or Config()).sensor
+        # The pads of the configured layout ([sensor] pads, taxels, rows), as xela_server
+        # reports them.
+        pads = replace(robot_pads(seed, PadLayout.of(sensor)),
+                       gain=(cfg or Config()).sim.pad_gain)
         self.world = SimWorld(object_name, seed, gripper_id=bus.gripper_id, skin_draw=pads)
         poses = (cfg or Config()).poses
         positions = {mid: float(v) for mid, v in zip(bus.joint_ids, poses["rest"], strict=True)}
@@ -43,7 +47,8 @@ class SimRobot:
         self.xela = XelaServerEmulator(self.world, port=xela_port, rate_hz=rate_hz,
                                        dialect=dialect,  # type: ignore[arg-type]
                                        replay=replay, loop=replay_loop,
-                                       calibrated=calibrated)
+                                       calibrated=calibrated, sensors=sensor.pads,
+                                       taxels=sensor.taxels_per_pad, model=sensor.model)
         self._control_port = control_port
         self._runner: web.AppRunner | None = None
         self.control_url = ""

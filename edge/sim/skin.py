@@ -1,16 +1,17 @@
 """The tactile skin: from finger force and contact geometry to raw XELA counts.
 
-Two XR1944 pads (4 x 4 taxels, 4.7 mm pitch, x/y/z per taxel), one per finger. The contact
-pressure is laid on a 16 x 16 sub-grid of each pad (uniform, slightly tilted, over a flat face;
-Hertzian ``sqrt(1 - r^2/a^2)`` over a round object's patch), spread by the silicone skin (a
-Gaussian blur), and summed per taxel. Shear comes from the soft object's lateral bulge,
-limited by friction, plus a common part from imperfect alignment. Counts: gains per newton,
-a little electrical cross-talk from z into x/y, then what the pads do with no load at all
-(:class:`SkinDraw`, :class:`PadNoise`), fitted to real XR1944 recordings
+Two XR1944 pads (4 x 4 taxels, 4.7 mm pitch, x/y/z per taxel), one per finger, or the pads of
+another layout (:class:`edge.core.layout.PadLayout` from ``[sensor]``, e.g. 4 x 6). The contact
+pressure is laid on a sub-grid of 4 x 4 points per taxel of each pad (uniform, slightly tilted,
+over a flat face; Hertzian ``sqrt(1 - r^2/a^2)`` over a round object's patch), spread by the
+silicone skin (a Gaussian blur), and summed per taxel. Shear comes from the soft object's
+lateral bulge, limited by friction, plus a common part from imperfect alignment. Counts: gains
+per newton, a little electrical cross-talk from z into x/y, then what the pads do with no load
+at all (:class:`SkinDraw`, :class:`PadNoise`), fitted to real XR1944 recordings
 (``tests/fixtures/xela/real-xr1944/``, compared by ``tests/sim/test_pad_noise.py``):
 
 - idle offsets: a level per pad and axis (x ~15.9k, y ~16.4k, z ~38k counts) and a spread
-  across the 16 taxels of a pad (std ~220 / ~160 / ~500 counts);
+  across the taxels of a pad (std ~220 / ~160 / ~500 counts);
 - noise of three kinds, each per axis: white noise per sample; a per-taxel wander (a damped
   oscillation of a few Hz), which is why the std over a second (~3.4 / ~2.5 / ~6 counts) is
   about twice the sample-to-sample noise (~1.9 / ~1.2 / ~4.2); and a disturbance shared by
@@ -24,30 +25,50 @@ a little electrical cross-talk from z into x/y, then what the pads do with no lo
 The noise is a continuous-time process: a frame at any time ``t`` (any rate, uneven spacing)
 continues the previous one exactly.
 
-Channel order everywhere: ``pad * 48 + taxel * 3 + axis``, taxels row-major from the top left.
+Channel order everywhere: ``(pad * taxels_per_pad + taxel) * 3 + axis`` (``pad * 48 + taxel *
+3 + axis`` on the XR1944), taxels row-major from the top left.
 """
 
 from __future__ import annotations
 
 import cmath
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from edge.core.layout import XR1944, PadLayout
 from edge.sim.contact import ObjectInstance
 
+_AXES = 3
 PADS = 2
 TAXELS = 16
 CHANNELS = PADS * TAXELS * 3
 TAXEL_PITCH_M = 4.7e-3
 _SUB = 4  # sub-grid points per taxel per axis
-_GRID = 4 * _SUB
 _CELL_M = TAXEL_PITCH_M / _SUB
-# Sub-grid point coordinates, pad centred on (0, 0).
-_COORD = (np.arange(_GRID) - (_GRID - 1) / 2.0) * _CELL_M
-_GX, _GY = np.meshgrid(_COORD, _COORD)  # _GX[row, col]
+
+
+def pad_grid(layout: PadLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-grid point coordinates (x[row, col], y[row, col]), pad centred on (0, 0). Every
+    layout keeps the XR1944's pitch (docs/hardware.md, 'Other pad layouts')."""
+    return _pad_grid(layout.rows, layout.cols)
+
+
+def pad_size_m(layout: PadLayout) -> tuple[float, float]:
+    """The face of a pad of ``layout``: (width, height) in metres."""
+    return layout.cols * TAXEL_PITCH_M, layout.rows * TAXEL_PITCH_M
+
+
+@functools.cache
+def _pad_grid(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    def coord(n: int) -> np.ndarray:
+        return (np.arange(n * _SUB) - (n * _SUB - 1) / 2.0) * _CELL_M
+
+    return np.meshgrid(coord(cols), coord(rows))
+
 
 # Sensitivity chosen so that x_th = 0.004 (~262 counts of total norm) is a gentle touch, as
 # the paper describes: ~0.37 N per finger spread over a whole flat pad, ~0.13 N concentrated
@@ -107,9 +128,6 @@ FIELD_HZ = 7.5
 # ~40 / ~300 counts per taxel (std) between recordings hours apart.
 DRIFT_RATE_SD_COUNTS_PER_S = (0.2, 0.2, 2.5)
 DRIFT_TAU_S = 300.0
-_AXES = 3
-
-
 def _per_axis(values: tuple[float, float, float], axis: np.ndarray) -> np.ndarray:
     return np.asarray(values, dtype=float)[axis]
 
@@ -124,10 +142,11 @@ class SkinDraw:
     # Sensitivity to load relative to the XR1944 model above (GAIN_*_COUNTS_PER_N): another
     # pad, or another sensor, reads the same force on another scale with the same idle noise.
     gain: float = 1.0
+    layout: PadLayout = XR1944
 
     @classmethod
-    def draw(cls, rng: np.random.Generator, pads: int = PADS,
-             taxels: int = TAXELS) -> SkinDraw:
+    def draw(cls, rng: np.random.Generator, layout: PadLayout = XR1944) -> SkinDraw:
+        pads, taxels = layout.pads, layout.taxels
         channels = pads * taxels * _AXES
         axis = np.tile(np.arange(_AXES), pads * taxels)
         pad = np.repeat(np.arange(pads), taxels * _AXES)
@@ -140,7 +159,7 @@ class SkinDraw:
         mirror = np.where(pad % 2 == 1, -1.0, 1.0)
         gain = (mirror * _per_axis(FIELD_GAIN_COUNTS, axis)
                 * (1.0 + FIELD_GAIN_CV * rng.normal(0.0, 1.0, channels)))
-        return cls(offsets, drift, gain)
+        return cls(offsets, drift, gain, layout=layout)
 
     def drift(self, t_s: float) -> np.ndarray:
         """Drift in counts at ``t_s`` seconds: ``rate * t`` at first, ``rate * tau`` at most."""
@@ -209,24 +228,27 @@ class Skin:
         self.rng = rng
         self.draw = draw if draw is not None else SkinDraw.draw(rng)
         self.noise = PadNoise(self.draw, rng)
-        self._flat_cache: list[np.ndarray | None] = [None, None]
+        self.layout = self.draw.layout
+        self._gx, self._gy = pad_grid(self.layout)
+        self._flat_cache: list[np.ndarray | None] = [None] * self.layout.pads
 
     def _pressure(self, pad: int, contact_radius_m: float) -> np.ndarray:
         """Normalised pressure on the pad's sub-grid (sums to 1), after the skin's spread."""
-        cx, cy = self.inst.patch_offsets_m[pad]
+        cx, cy = self.inst.patch_offsets_m[pad % 2]
+        gx, gy = self._gx, self._gy
         obj = self.inst.cls
         if obj.shape == "flat":
             cached = self._flat_cache[pad]
             if cached is not None:
                 return cached
             half = obj.size_m / 2.0
-            inside = (np.abs(_GX - cx) <= half) & (np.abs(_GY - cy) <= half)
+            inside = (np.abs(gx - cx) <= half) & (np.abs(gy - cy) <= half)
             tx, ty = self.inst.tilt
-            p = np.where(inside, np.clip(1.0 + tx * (_GX - cx) + ty * (_GY - cy), 0.0, None),
+            p = np.where(inside, np.clip(1.0 + tx * (gx - cx) + ty * (gy - cy), 0.0, None),
                          0.0)
         else:
             a = max(contact_radius_m, 0.6 * _CELL_M)
-            r2 = ((_GX - cx) ** 2 + (_GY - cy) ** 2) / (a * a)
+            r2 = ((gx - cx) ** 2 + (gy - cy) ** 2) / (a * a)
             p = np.sqrt(np.clip(1.0 - r2, 0.0, None))
             if p.sum() <= 0.0:
                 # Patch smaller than a grid cell: load the nearest point.
@@ -239,12 +261,12 @@ class Skin:
         return p
 
     def forces(self, force_n: float, contact_radius_m: float) -> np.ndarray:
-        """Force on each taxel in newtons, x, y, z, shape (96,): what a calibrated sensor
+        """Force on each taxel in newtons, x, y, z, shape (C,): what a calibrated sensor
         reports (xela_server's ``calibrated``), whatever the pads' gain."""
         return self._forces(force_n, contact_radius_m).reshape(-1)
 
     def loads(self, force_n: float, contact_radius_m: float) -> np.ndarray:
-        """Noise-free change in counts, shape (96,), for a per-finger force."""
+        """Noise-free change in counts, shape (C,), for a per-finger force."""
         out = self._forces(force_n, contact_radius_m)
         out[..., 0:2] *= GAIN_XY_COUNTS_PER_N
         out[..., 2] *= GAIN_Z_COUNTS_PER_N
@@ -252,22 +274,23 @@ class Skin:
         return self.draw.gain * out.reshape(-1)
 
     def _forces(self, force_n: float, contact_radius_m: float) -> np.ndarray:
-        out = np.zeros((PADS, TAXELS, 3))
+        lay = self.layout
+        out = np.zeros((lay.pads, lay.taxels, 3))
         if force_n <= 0.0:
             return out
         obj = self.inst.cls
         bulge = min(obj.bulge, obj.mu)
-        for pad in range(PADS):
+        for pad in range(lay.pads):
             p = self._pressure(pad, contact_radius_m) * force_n
-            cx, cy = self.inst.patch_offsets_m[pad]
+            cx, cy = self.inst.patch_offsets_m[pad % 2]
             extent = max(obj.size_m / 2.0 if obj.shape == "flat" else contact_radius_m,
                          _CELL_M)
-            sx = p * (bulge * (_GX - cx) / extent + self.inst.common_shear[0])
-            sy = p * (bulge * (_GY - cy) / extent + self.inst.common_shear[1])
-            if pad == 1:
+            sx = p * (bulge * (self._gx - cx) / extent + self.inst.common_shear[0])
+            sy = p * (bulge * (self._gy - cy) / extent + self.inst.common_shear[1])
+            if pad % 2 == 1:
                 sx = -sx  # the second pad faces the first: its x axis is mirrored
             for axis, field in enumerate((sx, sy, p)):
-                taxel = field.reshape(4, _SUB, 4, _SUB).sum(axis=(1, 3)).reshape(-1)
+                taxel = field.reshape(lay.rows, _SUB, lay.cols, _SUB).sum(axis=(1, 3)).reshape(-1)
                 out[pad, :, axis] = taxel
         return out
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from edge.core.config import Config
 from edge.core.errors import DeviceError
+from edge.core.layout import PadLayout
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.contracts import StreamStats, TactileFrame
 from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
@@ -190,14 +191,14 @@ class VirtualTactileSource:
     the 125 Hz grid (late by the server's jitter), received after the WebSocket hop."""
 
     def __init__(self, world: SimWorld, rate_hz: float, transport: Transport,
-                 rng: np.random.Generator, pads: int = 2, stale_timeout_s: float = 0.1
-                 ) -> None:
+                 rng: np.random.Generator, pads: int = 2, stale_timeout_s: float = 0.1,
+                 model: str = SENSOR_MODEL) -> None:
         self.stats = StreamStats()
         self._world = world
         self._period_s = 1.0 / rate_hz
         self._transport = transport
         self._rng = rng
-        self._models = (SENSOR_MODEL,) * pads
+        self._models = (model,) * pads
         self._seq = int(rng.integers(1000, 100_000))
         self._closed = False
         self._last_recv = -math.inf
@@ -257,7 +258,8 @@ class VirtualRobot:
         clock = loop.time
         bus_cfg = cfg.bus
         self.world = SimWorld(object_name, rng, gripper_id=bus_cfg.gripper_id,
-                              skin_draw=skin_draw, clock=clock)
+                              skin_draw=skin_draw, layout=PadLayout.of(cfg.sensor),
+                              clock=clock)
         positions = {mid: float(v) for mid, v in
                      zip(bus_cfg.joint_ids, cfg.poses["above"], strict=True)}
         positions[bus_cfg.gripper_id] = raw_from_width(cfg.press.open_width_m)
@@ -266,8 +268,9 @@ class VirtualRobot:
         self.gripper = DynamixelGripper(self.bus)
         self.arm = DynamixelArm(self.bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
         self.tactile = VirtualTactileSource(self.world, cfg.sim.sensor_rate_hz, transport, rng,
-                                            pads=cfg.sensor.channels // 48,
-                                            stale_timeout_s=cfg.sensor.stale_timeout_s)
+                                            pads=cfg.sensor.pads,
+                                            stale_timeout_s=cfg.sensor.stale_timeout_s,
+                                            model=cfg.sensor.model)
 
     async def __aenter__(self) -> Self:
         await self.bus.connect()

@@ -16,10 +16,11 @@ from typing import Any
 
 import numpy as np
 
+from edge.core.layout import XR1944, PadLayout
 from edge.sim.catalogue import ObjectClass, get
 from edge.sim.contact import Contact, ObjectInstance
 from edge.sim.dxl_emulator import DxlEmulator
-from edge.sim.skin import Skin, SkinDraw
+from edge.sim.skin import Skin, SkinDraw, pad_size_m
 
 # Gripper geometry (docs/hardware.md, 'Gripper width'): width in metres from the raw position.
 WIDTH_PER_RAW_M = 1.7626621790e-5
@@ -59,11 +60,12 @@ RELEASE_CLEARANCE_M = 0.5e-3
 RECLOSE_M = 1e-3
 
 
-def robot_pads(seed: int) -> SkinDraw:
-    """The pads of the simulated robot of ``seed``: the daemon's emulated robot
-    (``[sim] seed``) and the dataset recorder of the same seed press with the same pads, as
-    references collected on a robot are recognised by that robot."""
-    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])))
+def robot_pads(seed: int, layout: PadLayout = XR1944) -> SkinDraw:
+    """The pads (of ``layout``) of the simulated robot of ``seed``: the daemon's emulated
+    robot (``[sim] seed``) and the dataset recorder of the same seed press with the same
+    pads, as references collected on a robot are recognised by that robot."""
+    return SkinDraw.draw(np.random.default_rng(np.random.SeedSequence([seed, _PADS_STREAM])),
+                         layout)
 
 
 def robot_motors(world: SimWorld, joint_ids: tuple[int, ...], positions: dict[int, float],
@@ -83,7 +85,9 @@ class SimWorld:
 
     def __init__(self, object_name: str, seed: int | np.random.Generator = 0,
                  gripper_id: int = 15, *, skin_draw: SkinDraw | None = None,
+                 layout: PadLayout = XR1944,
                  clock: Callable[[], float] = time.monotonic) -> None:
+        """``layout``: the pads drawn when ``skin_draw`` gives none."""
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
         # Spawned, not drawn, from a given generator: the world's own draws (and so every
@@ -92,7 +96,8 @@ class SimWorld:
             np.random.SeedSequence([seed, _PLACEMENTS_STREAM]) if isinstance(seed, int)
             else self._rng.bit_generator.seed_seq.spawn(1)[0])
         if skin_draw is None:
-            skin_draw = robot_pads(seed) if isinstance(seed, int) else SkinDraw.draw(self._rng)
+            skin_draw = (robot_pads(seed, layout) if isinstance(seed, int)
+                         else SkinDraw.draw(self._rng, layout))
         self._skin_draw = skin_draw
         self.gripper_id = gripper_id
         # Brings the gripper's motion up to now before the pads are read (the motor model
@@ -116,7 +121,7 @@ class SimWorld:
 
     def _place(self, cls: ObjectClass, rng: np.random.Generator) -> None:
         # Called with the lock held.
-        inst = ObjectInstance.draw(cls, rng)
+        inst = ObjectInstance.draw(cls, rng, pad_size_m(self._skin_draw.layout))
         self.object_name = cls.name
         self.instance = inst
         self._contact = Contact(inst)
@@ -165,7 +170,7 @@ class SimWorld:
             return self._contact.force / FORCE_PER_MA_N
 
     def frame(self, t: float) -> np.ndarray:
-        """The XELA emulator's source: raw counts (96,) uint16 at monotonic time ``t``."""
+        """The XELA emulator's source: raw counts (C,) uint16 at monotonic time ``t``."""
         self.sync()
         with self._lock:
             self._advance(t)
@@ -174,7 +179,7 @@ class SimWorld:
                                     self._contact.contact_radius())
 
     def frame_newtons(self) -> np.ndarray:
-        """The taxel forces (N, (96,)) behind the last frame, as a calibrated sensor reports
+        """The taxel forces (N, (C,)) behind the last frame, as a calibrated sensor reports
         them (the XELA emulator's ``calibrated``)."""
         with self._lock:
             return self._skin.forces(self.frame_force_n, self._contact.contact_radius())

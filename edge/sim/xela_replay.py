@@ -10,7 +10,7 @@ formats are read:
   ``robot_state.csv`` (seconds, one row per frame) or, without it, evenly at
   ``meta_data.csv``'s ``frequency_hz``. ``FILE`` may be the directory or one of its files.
 - a vtzero press recording (``.press.npz``, from collect mode or the simulator), timed by its
-  receive times; 16 taxels per pad.
+  receive times; its pads as its metadata names them (two of 16 taxels when it names none).
 
 Anything else, or a file that does not hold what its format says, is refused with a
 :class:`~edge.core.errors.RecordingError` naming the file and the problem.
@@ -28,14 +28,13 @@ import numpy as np
 
 from edge.core import recording
 from edge.core.errors import RecordingError
+from edge.core.layout import PadLayout
 
 SENSOR_FILE = "xela_sensor{}.csv"
 TIME_FILE = "robot_state.csv"
 TIME_COLUMN = "time"
 META_FILE = "meta_data.csv"
 RATE_COLUMN = "frequency_hz"
-# A recording's own press files hold 16 taxels per pad (XR1944); CSV files say theirs.
-NPZ_TAXELS_PER_PAD = 16
 # Anything longer is not a recording to replay (an hour at 125 Hz is 450k frames).
 MAX_FRAMES = recording.MAX_FRAMES
 # More pads than this on one server is a misread directory, not a robot.
@@ -89,15 +88,10 @@ def load_replay(path: str | Path) -> Replay:
 
 def _load_press(path: Path) -> Replay:
     rec = recording.load(path)
-    channels = rec.frames.shape[1]
-    per_pad = NPZ_TAXELS_PER_PAD * 3
-    if channels % per_pad:
-        raise RecordingError(
-            f"replay {path}: {channels} channels is not a whole number of "
-            f"{NPZ_TAXELS_PER_PAD}-taxel pads"
-        )
+    # A press file names its pads when they are not two XR1944 (16 taxels); CSV files say theirs.
+    layout = PadLayout.of_recording(rec.extra, rec.channels)
     times = rec.recv_time - rec.recv_time[0]
-    return Replay(rec.frames, times, channels // per_pad, NPZ_TAXELS_PER_PAD, str(path))
+    return Replay(rec.frames, times, layout.pads, layout.taxels, str(path))
 
 
 def _load_csv_dir(directory: Path) -> Replay:

@@ -26,6 +26,7 @@ from typing import Literal, Protocol, Self
 import numpy as np
 from aiohttp import WSCloseCode, web
 
+from edge.core.layout import PadLayout
 from edge.sim.skin import PadNoise, SkinDraw
 from edge.sim.xela_replay import Replay, load_replay
 
@@ -49,14 +50,15 @@ class FrameSource(Protocol):
 
 
 class IdleSource:
-    """Unloaded XR1944-like pads: the simulator's pad model (:mod:`edge.sim.skin`: idle
+    """Unloaded pads like the XR1944: the simulator's pad model (:mod:`edge.sim.skin`: idle
     offsets per taxel, noise, cross-talk and drift as real pads show them) with no load."""
 
     def __init__(self, channels: int = 96, *, seed: int = 0, taxels: int = 16) -> None:
         if channels % (taxels * 3):
             raise ValueError(f"{channels} channels is not a whole number of {taxels}-taxel pads")
         rng = np.random.default_rng(seed)
-        self._draw = SkinDraw.draw(rng, pads=channels // (taxels * 3), taxels=taxels)
+        # Unloaded, the grid's shape makes no difference: one row of taxels per pad.
+        self._draw = SkinDraw.draw(rng, PadLayout(channels // (taxels * 3), 1, taxels))
         self._noise = PadNoise(self._draw, rng)
         self._t0: float | None = None
 

@@ -32,6 +32,7 @@ from edge.core import recording
 from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config
 from edge.core.errors import ConfigError, EdgeError
+from edge.core.layout import PadLayout
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
 from edge.tools import dataset
@@ -113,19 +114,22 @@ async def ask(prompt: Prompt, message: str) -> None:
                         "or pass --no-prompt") from None
 
 
-def _kept_threshold(path: Path) -> float:
-    return recording.load(path).threshold
-
-
 def _check_existing(out: Path, plan: Plan, cfg: Config) -> dict[str, dict[int, Path]]:
     """The presses already in ``out`` per class; ConfigError naming a file pressed at
-    another threshold than the plan's."""
+    another threshold than the plan's, or with other pads than [sensor]'s."""
     found = {}
+    pads = PadLayout.of(cfg.sensor)
     for c in plan.classes:
         x_th = c.threshold(cfg.press.x_th)
         presses = dataset.existing_presses(out, c.label)
         for path in presses.values():
-            kept = _kept_threshold(path)
+            rec = recording.load(path)
+            kept = rec.threshold
+            theirs = PadLayout.of_recording(rec.extra, rec.channels)
+            if theirs != pads:
+                raise ConfigError(
+                    f"{path} was pressed with {theirs.text()}, [sensor] gives {pads.text()}: "
+                    "one dataset holds one kind of pad; collect into another --out")
             if not math.isclose(kept, x_th, rel_tol=X_TH_RTOL):
                 raise ConfigError(
                     f"{path} was pressed at x_th {kept:g}, the plan ({plan.source}) says "

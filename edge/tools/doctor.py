@@ -42,12 +42,13 @@ from edge.core.errors import (
     VLMHTTPError,
 )
 from edge.core.images import check_image
-from edge.core.model import DEFAULT_WINDOW, Model, load_model, model_ref
+from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
 from edge.core.vlm import OpenAIVLM, _is_loopback, load_api_key
 from edge.daemon.api import load_token
 from edge.daemon.devices import make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
 from edge.daemon.serve import state_dir, vlm_config
+from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
     MIN_FIRMWARE,
@@ -169,6 +170,10 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
         if vlm is not None:
             await vlm.close()
     checks = [c for group in groups for c in group]
+    if any(c.part == "xela layout" and c.level is Level.FAIL for c in checks):
+        # [sensor] is not what the server sends: that is the cause, and a model that does
+        # not fit the wrong setting no second one.
+        checks = [c for c in checks if c.part != MODEL_PADS]
     checks += [_check_state_dir(state), _check_api(cfg)]
     return Report(config_path, tuple(checks), time.monotonic() - started)
 
@@ -442,7 +447,8 @@ def _check_layout(cfg: Config, sample: _Sample) -> Check:
         fix = (f"connect every pad and list it in xela_server's configuration, or set "
                f"sensor.pads = {len(frame.sensors)}")
     elif any(n != sc.taxels_per_pad for n in frame.taxels):
-        fix = (f"set sensor.taxels_per_pad = {frame.taxels[0]} and sensor.model = "
+        fix = (f"set sensor.taxels_per_pad = {frame.taxels[0]} (and sensor.taxel_rows to the "
+               f"rows of its grid) and sensor.model = "
                f"{frame.models[0]!r} if that is the hardware, or fix xela_server's "
                "configuration")
     else:
@@ -626,6 +632,9 @@ async def _check_vlm(vlm: OpenAIVLM | None, checks: list[Check]) -> list[Check]:
 # ------------------------------------------------------------------------------ the rest
 
 
+MODEL_PADS = "model pads"
+
+
 def _check_model(cfg: Config) -> list[Check]:
     directory = cfg.runtime.models_dir
     try:
@@ -636,6 +645,9 @@ def _check_model(cfg: Config) -> list[Check]:
     db = model.database
     checks = [ok("model", f"{Path(directory).resolve()}: every file verified, "
                  f"{len(db.classes)} classes, {len(db)} references", digest=model.digest)]
+    why = model_mismatch(cfg.sensor, manifest_layout(model.manifest))
+    if why is not None:
+        checks.append(fail(MODEL_PADS, f"the model {why}", BUILD_FOR_THESE_PADS))
     origin = model.origin
     data = {"origin": origin.to_json()}
     if origin.emulated:

@@ -29,6 +29,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.config import Config, load_config
 from edge.core.errors import EdgeError
+from edge.core.layout import PadLayout
 from edge.core.recording import DATASET_INDEX, press_path
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
@@ -116,7 +117,7 @@ def record_press(name: str, rng: np.random.Generator | int = 0, *, cfg: Config |
     cls = get(name)
     cfg = class_config(cfg or sim_config(), cls, x_th)
     rng = np.random.default_rng(rng)
-    skin = skin or robot_pads(0)
+    skin = skin or robot_pads(0, PadLayout.of(cfg.sensor))
     # The drivers' start-up lines, once per press, would bury the recorder's own output.
     drivers = logging.getLogger("edge.hw")
     level = drivers.level
@@ -148,7 +149,8 @@ def _record_one(job: tuple[str, int, int, int, str, Config, float | None, Transp
     label, class_index, index, seed, out, cfg, x_th, transport = job
     rng = np.random.default_rng(np.random.SeedSequence([seed, class_index, index]))
     t0 = CLOCK_START_S + CLOCK_SPACING_S * PRESS_TRIES * (class_index * 1000 + index)
-    pressed = record_press(label, rng, cfg=cfg, skin=robot_pads(seed), transport=transport,
+    pressed = record_press(label, rng, cfg=cfg, skin=robot_pads(seed, PadLayout.of(cfg.sensor)),
+                           transport=transport,
                            x_th=x_th, t0=t0)
     recording.save(pressed.recording, press_path(Path(out), label, index))
     return label, index, pressed.tries

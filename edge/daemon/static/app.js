@@ -99,15 +99,20 @@ function colour(v) {
   return `rgb(${c[0]},${c[1]},${c[2]})`;
 }
 
-function drawPad(canvas, pad) {
+// The pad's grid as [sensor] gives it (rows x cols, row-major from the top left); a frame
+// from an older daemon names none: 4 x 4.
+function drawPad(canvas, pad, rows = 4, cols = 4) {
   const ctx = canvas.getContext("2d");
-  const w = canvas.width, n = 4, cell = w / n;
+  const cell = canvas.width / cols;
+  const h = Math.round(cell * rows);
+  if (canvas.height !== h) canvas.height = h;
+  canvas.parentElement.hidden = !pad;
   ctx.fillStyle = "#111";
-  ctx.fillRect(0, 0, w, w);
+  ctx.fillRect(0, 0, canvas.width, h);
   if (!pad) return;
   const shearScale = fullScale * 0.5;
-  for (let i = 0; i < 16; i++) {
-    const r = Math.floor(i / n), c = i % n;
+  for (let i = 0; i < rows * cols; i++) {
+    const r = Math.floor(i / cols), c = i % cols;
     const x0 = c * cell, y0 = r * cell;
     ctx.fillStyle = colour(pad.z[i] / fullScale);
     ctx.fillRect(x0 + 2, y0 + 2, cell - 4, cell - 4);
@@ -139,8 +144,8 @@ function drawFrame(f) {
   let peak = 0;
   for (const p of f.pads) for (const z of p.z) peak = Math.max(peak, Math.abs(z));
   fullScale = Math.max(MIN_SCALE, peak * 1.1, fullScale * 0.995);
-  drawPad($("pad0"), f.pads[0]);
-  drawPad($("pad1"), f.pads[1]);
+  drawPad($("pad0"), f.pads[0], f.rows, f.cols);
+  drawPad($("pad1"), f.pads[1], f.rows, f.cols);
   stats.draws++;
   const now = performance.now();
   stats.times.push(now);
