@@ -7,7 +7,7 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from edge import __version__
+from edge import SERVICE_NAME, __version__
 from edge.core.errors import EdgeError
 from edge.core.logs import setup_logging
 from edge.daemon.episode import Status
@@ -212,7 +212,7 @@ def _cmd_models_install(args: argparse.Namespace) -> int:
     manifest, previous = install_models(args.src, dest)
     kept = f" (the one it replaced is {previous})" if previous else ""
     print(f"installed {args.src} as {dest}{kept}: {describe(manifest)}")
-    print("reload the daemon: systemctl reload vtzero-edge (or kill -HUP its pid)")
+    print(f"reload the daemon: systemctl reload {SERVICE_NAME} (or kill -HUP its pid)")
     return 0
 
 
@@ -514,6 +514,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except EdgeError as exc:
         # (A KeyError's str() quotes its message.)
         log.error("%s", exc.args[0] if isinstance(exc, KeyError) and exc.args else exc)
+        return 2
+    except OSError as exc:
+        # A file or device the command writes or opens (install-udev, install-service,
+        # models install...): one line, not a traceback.
+        hint = " (it needs root: run it with sudo)" if isinstance(exc, PermissionError) else ""
+        log.error("%s%s", exc, hint)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -53,3 +53,17 @@ def test_episodes_list_show_export(tmp_path):
     assert out.returncode == 0 and (tmp_path / f"{eid}.tar.gz").exists()
     out = run("episodes", "--config", "configs/sim.toml", "show", "nope", env=env)
     assert out.returncode == 2 and "no episode" in out.stderr
+
+
+def test_a_file_the_command_cannot_write_is_one_line_not_a_traceback(tmp_path, monkeypatch,
+                                                                      caplog):
+    from edge.cli import main
+    from edge.daemon import udev
+
+    def refused(*_args, **_kw):
+        raise PermissionError(13, "Permission denied", "/etc/udev/rules.d/60-vtzero.rules")
+
+    monkeypatch.setattr(udev, "install", refused)
+    assert main(["install-udev", "--install"]) == 2
+    assert "Permission denied" in caplog.text and "sudo" in caplog.text
+    assert "Traceback" not in caplog.text

@@ -261,3 +261,14 @@ def test_a_4x6_press_recording_names_its_pads_and_replays_as_them(tmp_path):
     for pad in z:
         assert (pad > 0).sum() >= 20
         assert pad[:, 2:4].mean() > pad[:, [0, 5]].mean()
+
+
+def test_a_model_for_other_pads_with_the_same_channel_count_is_refused():
+    from edge.core.model import ModelLayout
+    from edge.daemon.startcheck import model_mismatch
+
+    two_pads = base_config().sensor  # 2 pads x 16 taxels = 96 channels
+    assert model_mismatch(two_pads, ModelLayout(96, 2, 16)) is None
+    assert model_mismatch(two_pads, ModelLayout(96)) is None  # a manifest naming no pads
+    why = model_mismatch(two_pads, ModelLayout(96, 1, 32))
+    assert why is not None and "1 pad x 32 taxels" in why

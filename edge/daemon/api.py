@@ -50,6 +50,8 @@ if TYPE_CHECKING:
     from edge.daemon.store import EpisodeStore
 
 log = logging.getLogger(__name__)
+# Bound beyond loopback, the API asks for a bearer token at least this long.
+MIN_TOKEN_CHARS = 16
 T = TypeVar("T")
 
 MAX_LABEL_CHARS = 80
@@ -98,10 +100,11 @@ def load_token(cfg: ApiConfig) -> str:
             token = Path(cfg.token_file).read_text(encoding="utf-8").strip()
         except OSError as exc:
             raise ConfigError(f"api.token_file {cfg.token_file}: cannot read: {exc}") from None
-    if not cfg.loopback_only and len(token) < 16:
+    if not cfg.loopback_only and len(token) < MIN_TOKEN_CHARS:
         raise ConfigError(
             f"api.host = {cfg.host!r} exposes the API beyond this machine: set a bearer token "
-            "of at least 16 characters (api.token_file or $VTZERO_API_TOKEN), or bind "
+            f"of at least {MIN_TOKEN_CHARS} characters (api.token_file or $VTZERO_API_TOKEN), "
+            "or bind "
             "127.0.0.1")
     return token
 

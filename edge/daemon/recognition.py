@@ -361,6 +361,10 @@ class Recognizer:
         if episode.status not in RE_ASKABLE:
             raise StateError(f"episode {episode_id} is {episode.status}: only "
                              + " or ".join(RE_ASKABLE) + " episodes are asked again")
+        if episode.id in self._asking:
+            # The retry task is asking about it now: its stored status is about to change.
+            raise StateError(f"episode {episode_id} is being asked about now: try again "
+                             "once it has an answer")
         await self._retry(episode)
         return await self.episode(episode_id)
 

@@ -162,6 +162,8 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
             devices.button = button
         notifier.status("starting: checking the pads' layout and the camera")
         no_stream = await check_devices(cfg, devices, vlm.mode)
+        # After the pads are checked against the server, not before: a [sensor] layout
+        # unlike the hardware is the cause to name, not the model that follows from it.
         check_model(cfg.sensor, model)
 
         def reload() -> tuple[Config, ModelRef, Any]:

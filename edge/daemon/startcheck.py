@@ -74,7 +74,11 @@ BUILD_FOR_THESE_PADS = "build a model from this robot's presses (vt-train build)
 
 def model_mismatch(sensor: SensorConfig, layout: ModelLayout) -> str | None:
     """Why a model taking ``layout`` cannot recognise with the configured pads, or None."""
-    if layout.channels == sensor.channels:
+    same_pads = layout.pads in (None, sensor.pads) and layout.taxels_per_pad in (
+        None, sensor.taxels_per_pad)
+    if layout.channels == sensor.channels and same_pads:
+        # (one pad of 32 taxels and two of 16 give the same count: the manifest tells them
+        # apart where it names its pads)
         return None
     return (f"expects {layout.text()}; the sensor [sensor] gives {sensor.channels} "
             f"({sensor.layout_text()})")

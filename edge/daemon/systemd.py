@@ -9,9 +9,11 @@ from collections.abc import Sequence
 from importlib import resources
 from pathlib import Path
 
+from edge import SERVICE_NAME
+
 log = logging.getLogger(__name__)
 
-UNIT_NAME = "vtzero-edge.service"
+UNIT_NAME = f"{SERVICE_NAME}.service"
 
 
 class Notifier:

@@ -46,6 +46,7 @@ from typing import Any
 
 import dynamixel_sdk as sdk
 
+from edge import SERVICE_NAME
 from edge.core.config import BusConfig
 from edge.core.errors import BusInUseError, DeviceError, EdgeError, MotorError
 from edge.hw.control_table import (
@@ -97,7 +98,6 @@ STOP_STATE_SETTLE_S = 0.01
 # microseconds to a millisecond). Past it the loop goes on and the stop still goes out.
 STOP_HANDOVER_MAX_S = 0.003
 # What a person stops to free the bus when the daemon holds it (edge.daemon.systemd.UNIT_NAME).
-SERVICE_NAME = "vtzero-edge"
 # Models the driver is written for; others get a warning (their tables may differ).
 XM430_MODELS = {1020: "XM430-W350", 1030: "XM430-W210"}
 
@@ -1004,9 +1004,9 @@ class DynamixelBus:
         if value != 1:
             _log.warning(
                 "%s: USB latency timer is %d ms, which adds up to %d ms to every reply; set it "
-                "to 1 now with `echo 1 | sudo tee %s`, and for good with the udev rule %s in "
-                "/etc/udev/rules.d/99-dynamixel.rules", self._config.port, value, value, path,
-                LATENCY_TIMER_UDEV_RULE)
+                "to 1 now with `echo 1 | sudo tee %s`, and for good with the udev rule %s "
+                "(`vt-edge install-udev --install` installs it)", self._config.port, value,
+                value, path, LATENCY_TIMER_UDEV_RULE)
 
     def _refuse_if_read_only(self, what: str) -> None:
         if self._read_only:

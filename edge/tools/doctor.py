@@ -28,6 +28,7 @@ from urllib.parse import urlsplit
 import aiohttp
 import numpy as np
 
+from edge import SERVICE_NAME
 from edge.core import preprocess
 from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config, SensorConfig, VLMConfig, load_config
@@ -44,7 +45,7 @@ from edge.core.errors import (
 from edge.core.images import check_image
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
 from edge.core.vlm import OpenAIVLM, _is_loopback, load_api_key
-from edge.daemon.api import load_token
+from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
 from edge.daemon.serve import state_dir, vlm_config
@@ -78,8 +79,6 @@ MIN_RATE_HZ = 50.0
 RATE_WARN_FRACTION = 0.5
 # Free space under which the state directory (episodes, photos, MCAP) is short.
 MIN_FREE_BYTES = 1 << 30
-# The API token the daemon asks for when bound beyond loopback (edge.daemon.api.load_token).
-MIN_TOKEN_CHARS = 16
 SERIAL_BY_ID = Path("/dev/serial/by-id")
 # HTTP statuses of a VLM server that wants another key (or one at all).
 KEY_REFUSED = (401, 403)
@@ -245,7 +244,7 @@ def _check_latency(port: str, timer_dir: Path = LATENCY_TIMER_DIR) -> Check:
         return warn("bus latency", f"USB latency timer {value} ms: up to {value} ms added to "
                     "every reply, the stop included",
                     f"echo 1 | sudo tee {path}; for good: the udev rule "
-                    f"{LATENCY_TIMER_UDEV_RULE} in /etc/udev/rules.d/99-dynamixel.rules",
+                    f"{LATENCY_TIMER_UDEV_RULE} (vt-edge install-udev --install)",
                     latency_timer_ms=value)
     return ok("bus latency", "USB latency timer 1 ms", latency_timer_ms=value)
 
@@ -261,7 +260,7 @@ async def _check_bus(cfg: Config) -> list[Check]:
         await bus.connect(configure=False)
     except DeviceError as exc:
         return [fail("bus port", str(exc), "where another program holds the port, stop it "
-                     "(the daemon: systemctl stop vtzero-edge); else check bus.port and "
+                     f"(the daemon: systemctl stop {SERVICE_NAME}); else check bus.port and "
                      "bus.baudrate (1000000 for the OpenMANIPULATOR-X)")]
     try:
         by_id = _by_id_name(bc.port)
@@ -714,9 +713,12 @@ async def _check_mqtt(cfg: Config) -> list[Check]:
     if not mc.enabled:
         return [ok("mqtt", "disabled")]
     try:
-        check_config(mc)
         import aiomqtt
-
+    except ImportError:
+        return [fail("mqtt", "[mqtt] is enabled but the MQTT client is not installed",
+                     "pip install 'vtzero[mqtt]' (or set mqtt.enabled = false)")]
+    try:
+        check_config(mc)
         # A client ID of its own: the broker would drop a running daemon's session for it.
         client = aiomqtt.Client(mc.host, mc.port, identifier=f"vtzero-doctor-{os.getpid()}",
                                 username=mc.username or None, password=_password(mc),
