@@ -26,7 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import shutil
 import time
 from collections.abc import Callable
@@ -36,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.atomic import atomic_write_text
+from edge.core.atomic import atomic_write_text, swap_in
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
 from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
@@ -53,7 +52,6 @@ from train.trainer import train as train_model
 log = logging.getLogger(__name__)
 
 PARTIAL_SUFFIX = ".partial"
-PREVIOUS_SUFFIX = ".previous"
 STATE_FILE = "build-state.json"
 TRAINING_DIR = "training"
 SHIPPED_PROMPTS = Path(__file__).resolve().parents[1] / "models" / PROMPTS_DIR
@@ -113,16 +111,18 @@ def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
                              "`vt-edge collect --plan`)") from None
     except json.JSONDecodeError as exc:
         raise RecordingError(f"{path}: not valid JSON: {exc}") from None
-    if "origin" in index:
-        # The manifest's own reader: one definition of a well-formed origin.
-        try:
-            origin = Origin.from_json(index["origin"], str(path)).to_json()
-        except ModelError as exc:
-            raise RecordingError(str(exc)) from None
-    else:  # the simulated recorder's datasets say who pressed, not where
+    if index.get("origin") is None:
         log.warning("%s has no 'origin': taken as pressed by the emulated robot", path)
-        origin = {"kind": "emulated", "recorder": index.get("recorder"), "robot": None,
-                  "sensor": None}
+    try:  # the manifest's own reader: one definition of a well-formed origin
+        origin = Origin.of_dataset(index, str(path)).to_json()
+    except ModelError as exc:
+        raise RecordingError(str(exc)) from None
+    unlabelled = [i for i, c in enumerate(index.get("classes", []))
+                  if not isinstance(c, dict) or not isinstance(c.get("label"), str)
+                  or not c["label"]]
+    if unlabelled:
+        raise RecordingError(f"{path}: classes[{unlabelled[0]}] has no 'label' (each class "
+                             "needs one: the name of its presses' directory)")
     splits = Splits.from_file(path)
     declared = {c["label"]: c.get("x_th") for c in index.get("classes", [])}
     test = tuple(c["label"] for c in index.get("classes", []) if c.get("split") == "test")
@@ -179,8 +179,15 @@ class Steps:
 
     def __init__(self, work: Path) -> None:
         self.path = work / STATE_FILE
-        self.state: dict[str, Any] = json.loads(self.path.read_text()) \
-            if self.path.exists() else {}
+        self.state: dict[str, Any] = {}
+        if self.path.exists():
+            try:
+                self.state = json.loads(self.path.read_text())
+            except (OSError, ValueError) as exc:
+                log.warning("%s: unreadable (%s): every step runs again", self.path, exc)
+            if not isinstance(self.state, dict):
+                log.warning("%s: not an object: every step runs again", self.path)
+                self.state = {}
         self.skipped: list[str] = []
         self.ran: list[str] = []
 
@@ -339,22 +346,11 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
         sections["plan_sha256"] = ds.index["plan_sha256"]
     manifest = write_manifest(work, sections,
                               reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
-    _swap_in(work, out)
+    swap_in(work, out)
     log.info("model written to %s in %.0f s (steps run: %s; skipped: %s)", out,
              time.perf_counter() - started, ", ".join(steps.ran) or "none",
              ", ".join(steps.skipped) or "none")
     return manifest
-
-
-def _swap_in(work: Path, out: Path) -> None:
-    """``work`` becomes ``out``; an ``out`` already there becomes ``out.previous``. Each
-    rename is atomic, so ``out`` is always a whole model directory or absent for an instant."""
-    previous = out.with_name(out.name + PREVIOUS_SUFFIX)
-    if out.exists():
-        if previous.exists():
-            shutil.rmtree(previous)
-        os.rename(out, previous)
-    os.rename(work, out)
 
 
 def checkpoints(model_dir: str | Path) -> dict[str, Path]:

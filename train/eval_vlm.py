@@ -59,7 +59,7 @@ from edge.core.atomic import atomic_write_text
 from edge.core.config import VLMConfig
 from edge.core.errors import EdgeError, EvalVLMError, ImageError, ModelError, RecordingError
 from edge.core.images import prepare_image
-from edge.core.model import ReferenceDatabase, load_model
+from edge.core.model import Origin, ReferenceDatabase, load_model, manifest_origin
 from edge.core.progress import PLAIN_EVERY_S
 from edge.core.progress import Progress as Bar
 from edge.core.prompt import PromptTemplate, load_template
@@ -116,8 +116,6 @@ PAPER = {"vision_only": {"foodreplica": 53.6, "cube": 50.0},
          "beta_top3": {"foodreplica": 52.5, "cube": 50.0}}
 DATASET_TITLES = {"foodreplica": "FoodReplica", "cube": "Cube"}
 PAPER_SETS = tuple(DATASET_TITLES)
-# A dataset directory's ``dataset.json`` without "origin": the simulated recorder's.
-EMULATED = {"kind": "emulated", "recorder": None, "robot": None, "sensor": None}
 PHOTO_BESIDE = "photos beside the presses"
 SIM_CAMERA = "simulated camera (edge.sim.camera.render)"
 
@@ -173,7 +171,7 @@ def reference_origin(directory: Path) -> dict[str, Any] | None:
         return None
     except (OSError, ValueError) as exc:
         raise RecordingError(f"{index}: unreadable: {exc}") from None
-    return dict(meta.get("origin") or EMULATED)
+    return Origin.of_dataset(meta, str(index)).to_json()
 
 
 def model_facts(manifest: Mapping[str, Any]) -> dict[str, Any]:
@@ -181,9 +179,10 @@ def model_facts(manifest: Mapping[str, Any]) -> dict[str, Any]:
     it was built from a lab's data (``vt-train build``) or is the simulated release."""
     decoder = manifest.get("training", {}).get("vq", {}).get("config", {}).get(
         "model", {}).get("decoder")
-    origin = manifest.get("origin", EMULATED)
+    origin = manifest_origin(manifest)
     built = str(manifest.get("created_by", "")).startswith("vt-train build")
-    return {"decoder": decoder, "origin": origin, "built": built or origin["kind"] == "robot"}
+    return {"decoder": decoder, "origin": origin.to_json(),
+            "built": built or not origin.emulated}
 
 
 def decoder_title(decoder: str | None) -> str:
@@ -296,7 +295,7 @@ def load_test_set(directory: str | Path, limit: int | None = None,
                 presses = presses.select([str(c["label"]) for c in classes])
             candidates = [str(c["label"]) for c in classes]
             name = str(meta.get("dataset") or name)
-            origin = dict(meta.get("origin") or EMULATED)
+            origin = Origin.of_dataset(meta, str(index)).to_json()
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise RecordingError(f"{index}: cannot read the class list: {exc!r}") from None
     stray = sorted(set(presses.labels) - set(candidates))

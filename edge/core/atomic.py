@@ -15,6 +15,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
 
+# A directory :func:`swap_in` replaces is kept beside it under this suffix.
+PREVIOUS_SUFFIX = ".previous"
+
 
 @contextlib.contextmanager
 def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
@@ -60,18 +63,40 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     try:
         yield stage / path.name
         _fsync_tree(stage / path.name)
-        old = stage / ".old"
-        if path.exists():
-            os.rename(path, old)
-        try:
-            os.rename(stage / path.name, path)
-        except BaseException:
-            if old.exists():
-                os.rename(old, path)
-            raise
-        _fsync_dir(path.parent)
+        _replace_dir(stage / path.name, path, stage / ".old" if path.exists() else None)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+def swap_in(staged: str | Path, dest: str | Path) -> Path | None:
+    """Rename the complete directory ``staged`` (beside ``dest``) to ``dest``, keeping a
+    directory already there as ``dest.previous`` (one generation: an older one is removed).
+
+    Every file is fsynced first and the parent after. If the second rename fails, the old
+    directory is renamed back, so ``dest`` is absent only for the instant between the two
+    renames. Returns where the replaced directory went (None: there was none).
+    """
+    staged, dest = Path(staged), Path(dest)
+    _fsync_tree(staged)
+    previous = dest.with_name(dest.name + PREVIOUS_SUFFIX) if dest.exists() else None
+    if previous is not None and previous.exists():
+        shutil.rmtree(previous)
+    _replace_dir(staged, dest, previous)
+    return previous
+
+
+def _replace_dir(staged: Path, dest: Path, old: Path | None) -> None:
+    """``dest`` (when ``old`` is given) becomes ``old``, then ``staged`` becomes ``dest``; a
+    failure of the second rename puts ``old`` back."""
+    if old is not None:
+        os.rename(dest, old)
+    try:
+        os.rename(staged, dest)
+    except BaseException:
+        if old is not None:
+            os.rename(old, dest)
+        raise
+    _fsync_dir(dest.parent)
 
 
 def _fsync_tree(root: Path) -> None:

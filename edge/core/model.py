@@ -475,6 +475,16 @@ class Origin:
             raise bad('sensor must be null or {"model": str, "serials": [str, ...]}')
         return cls(kind, recorder, robot, sensor["model"], tuple(serials))
 
+    @classmethod
+    def of_dataset(cls, index: Mapping[str, Any], where: str) -> Origin:
+        """A collected dataset's ``dataset.json`` ``origin``. One without it (or with null)
+        was written by the simulated recorder, which says who pressed in its ``recorder``."""
+        raw = index.get("origin")
+        if raw is not None:
+            return cls.from_json(raw, where)
+        recorder = index.get("recorder")
+        return cls("emulated", recorder if isinstance(recorder, str) else "the emulated robot")
+
 
 EMULATED_ORIGIN = Origin("emulated", "the emulated robot (a release older than the manifest's "
                          "origin)")

@@ -19,34 +19,18 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from edge.core.atomic import swap_in
 from edge.core.errors import ModelError
-from edge.core.model import MANIFEST, load_model, read_manifest, verified_files
+from edge.core.model import MANIFEST, load_model, manifest_origin, read_manifest, verified_files
 
 log = logging.getLogger(__name__)
-
-PREVIOUS_SUFFIX = ".previous"
 # Not secrets, and read by the service user: world-readable whatever the source's modes.
 FILE_MODE = 0o644
 DIR_MODE = 0o755
 
 
-def origin_kind(manifest: dict) -> str:
-    """Who pressed the database's references: "emulated" or "robot" (a manifest without
-    "origin" predates it, when every release was pressed by the emulated robot)."""
-    origin = manifest.get("origin")
-    return origin.get("kind", "emulated") if isinstance(origin, dict) else "emulated"
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _copy_tree(src: Path, dst: Path) -> None:
-    """Copy ``src`` into the existing empty ``dst``, each file fsynced, modes normalised."""
+    """Copy ``src`` into the existing empty ``dst``, modes normalised."""
     for root, dirs, files in os.walk(src):
         rel = Path(root).relative_to(src)
         target = dst / rel
@@ -57,10 +41,6 @@ def _copy_tree(src: Path, dst: Path) -> None:
             out = target / name
             shutil.copyfile(Path(root) / name, out, follow_symlinks=True)
             os.chmod(out, FILE_MODE)
-            _fsync(out)
-    # Directories last, deepest first: their entries are durable once the files are.
-    for root, _dirs, _files in sorted(os.walk(dst), key=lambda w: -len(Path(w[0]).parts)):
-        _fsync(Path(root))
 
 
 def install_models(src: str | Path, dest: str | Path) -> tuple[dict, Path | None]:
@@ -79,17 +59,11 @@ def install_models(src: str | Path, dest: str | Path) -> tuple[dict, Path | None
     try:
         _copy_tree(src, tmp)
         verified_files(tmp, read_manifest(tmp))  # what landed on disk, read back
-        previous = dest.with_name(dest.name + PREVIOUS_SUFFIX) if dest.exists() else None
-        if previous is not None:
-            if previous.exists():
-                shutil.rmtree(previous)
-            os.rename(dest, previous)
-        os.rename(tmp, dest)
+        previous = swap_in(tmp, dest)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             shutil.rmtree(tmp)
         raise
-    _fsync(dest.parent)
     log.info("installed %s from %s", dest, src)
     return manifest, previous
 
@@ -97,10 +71,10 @@ def install_models(src: str | Path, dest: str | Path) -> tuple[dict, Path | None
 def describe(manifest: dict) -> str:
     """One line on the installed database: its classes and who pressed them."""
     db = manifest.get("database", {})
-    kind = origin_kind(manifest)
+    emulated = manifest_origin(manifest).emulated
     line = (f"{db.get('classes', '?')} classes, {db.get('references', '?')} references, "
-            f"pressed by the {'emulated robot' if kind == 'emulated' else 'robot'}")
-    if kind == "emulated":
+            f"pressed by the {'emulated robot' if emulated else 'robot'}")
+    if emulated:
         line += ("; on a real robot replace it with the lab's own references "
                  "(vt-edge collect --plan, then vt-train build)")
     return line

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import pytest
 
+from edge.core.atomic import PREVIOUS_SUFFIX
 from edge.core.errors import ModelError
 from edge.core.model import load_model
 from edge.tools import models
-from edge.tools.models import PREVIOUS_SUFFIX, install_models
+from edge.tools.models import install_models
 
 SHIPPED = Path(__file__).resolve().parents[2] / "models"
 
@@ -90,11 +91,14 @@ def test_a_copy_that_lands_damaged_is_never_renamed_into_place(tmp_path, monkeyp
 
 def test_origin_says_who_pressed_the_database():
     shipped = json.loads((SHIPPED / "manifest.json").read_text())
-    assert models.origin_kind(shipped) == "emulated"  # no "origin": an older release
-    assert "replace it with the lab's own references" in models.describe(shipped)
+    # The shipped release, one older than "origin", and "origin": null: the emulated robot.
+    older = {k: v for k, v in shipped.items() if k != "origin"}
+    for manifest in (shipped, older, {**shipped, "origin": None}):
+        assert "by the emulated robot; on a real robot replace it with the lab's own " \
+            "references" in models.describe(manifest)
     robot = {**shipped, "origin": {"kind": "robot", "recorder": "lab", "robot": "arm-3",
                                    "sensor": None}}
-    assert models.origin_kind(robot) == "robot"
+    assert "pressed by the robot" in models.describe(robot)
     assert "replace" not in models.describe(robot)
 
 

@@ -24,7 +24,7 @@ from tests.support.daemon import ROOT, Daemon, base_config
 from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
 from tests.support.waits import wait_until
 from train import evaluate
-from train.build import BuildConfig, build, partial_dir
+from train.build import BuildConfig, Steps, build, partial_dir, read_dataset
 from train.cli import main
 from train.trainer import Progress
 
@@ -152,6 +152,33 @@ def test_mixed_thresholds_or_origins_within_a_class_are_refused_by_name(lab_food
     with pytest.raises(RecordingError,
                        match=r"origin kind must be 'emulated' or 'robot', got 'real'"):
         build(quick(data, tmp_path / "m"), Progress(enabled=False))
+
+
+def test_a_dataset_class_without_a_label_is_refused_naming_the_file(lab_food, tmp_path):
+    data = Path(shutil.copytree(lab_food, tmp_path / "unlabelled"))
+    index = json.loads((data / "dataset.json").read_text())
+    del index["classes"][1]["label"]
+    (data / "dataset.json").write_text(json.dumps(index))
+    with pytest.raises(RecordingError, match=r"dataset\.json: classes\[1\] has no 'label'"):
+        read_dataset(data, progress=False)
+
+
+def test_a_null_origin_reads_as_the_emulated_robot(lab_food, tmp_path):
+    data = Path(shutil.copytree(lab_food, tmp_path / "null_origin"))
+    index = json.loads((data / "dataset.json").read_text())
+    index["origin"] = None
+    (data / "dataset.json").write_text(json.dumps(index))
+    origin = read_dataset(data, progress=False).origin
+    assert origin["kind"] == "emulated" and origin["recorder"] == index["recorder"]
+
+
+def test_a_corrupt_build_state_runs_every_step_again(tmp_path, caplog):
+    (tmp_path / "build-state.json").write_text('{"train vq": {"key": ')  # cut short
+    steps = Steps(tmp_path)
+    assert steps.state == {}
+    assert "build-state.json: unreadable" in caplog.text
+    assert steps.run("export", "k", [], lambda: {"n": 1})["n"] == 1 and steps.ran == ["export"]
+    assert json.loads((tmp_path / "build-state.json").read_text())["export"]["key"] == "k"
 
 
 # --- vt-train db add ----------------------------------------------------------------------

@@ -261,3 +261,17 @@ async def test_a_server_refusing_response_format_is_asked_with_the_robots_fallba
     assert str(err.value).startswith(
         "stopped: cube/raw_kabocha_squash/raw_kabocha_squash_000.press.npz (vision_only): ")
     assert "HTTP 400" in str(err.value) and "image too large for this model" in str(err.value)
+
+
+def test_origin_null_or_absent_reads_as_the_emulated_robot(tmp_path):
+    for raw in ({}, {"origin": None}):
+        facts = eval_vlm.model_facts(raw)
+        assert facts["origin"]["kind"] == "emulated" and not facts["built"]
+    robot = {"kind": "robot", "recorder": "lab", "robot": "arm-3", "sensor": None}
+    assert eval_vlm.model_facts({"origin": robot}) == {"decoder": None, "origin": robot,
+                                                       "built": True}
+    (tmp_path / "dataset.json").write_text(json.dumps(
+        {"classes": [], "recorder": "the simulated recorder", "origin": None}))
+    origin = eval_vlm.reference_origin(tmp_path)
+    assert origin["kind"] == "emulated" and origin["recorder"] == "the simulated recorder"
+    assert "emulated robot" in eval_vlm.describe_origin(origin)
