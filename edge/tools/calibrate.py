@@ -20,7 +20,6 @@ The procedure, on the real drivers (on the emulated robot they talk to the emula
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 from collections.abc import Callable
@@ -32,13 +31,14 @@ import numpy as np
 from edge.core import preprocess, tomledit
 from edge.core.atomic import atomic_write_text
 from edge.core.config import Config
-from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError
+from edge.core.errors import EdgeError, SensorError, SensorLayoutError, StaleSensorError
 from edge.daemon.lifecycle import Devices
 from edge.daemon.press import PressController
 from edge.daemon.sensor import SENSOR_RETRY_S, FrameRing
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
+from edge.tools.prompt import NO_PROMPT, Prompt, ask, in_daemon_thread, read_line, threadable
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +137,15 @@ class Proposal:
     clipped: bool  # raised to the noise floor
 
 
+@dataclass(frozen=True)
+class Measurement:
+    """What the robot part of the procedure found: the report is made from it."""
+
+    proposal: Proposal
+    trace: ProbeTrace
+    idle: IdleNoise
+
+
 class _Stream:
     """Every frame of the tactile source into a ring, reconnecting as the sensor task
     does; :meth:`fresh` raises when nothing arrived for ``stale_s`` (the probe then ends and
@@ -167,7 +176,7 @@ class _Stream:
             except SensorLayoutError as exc:
                 self.error = exc
                 return
-            except StaleSensorError as exc:
+            except SensorError as exc:  # stale or broken: reconnect as the sensor task does
                 self.error = exc
             await asyncio.sleep(SENSOR_RETRY_S)
 
@@ -367,11 +376,26 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
                               force_ma: float | None = FORCE_MA, force_n: float | None = None,
                               max_ma: float = MAX_MA, idle_s: float = IDLE_S,
                               speed_mps: float = PROBE_SPEED_MPS,
-                              prompt: Callable[[str], object] | None = input,
-                              confirm: Callable[[str], str] | None = input,
+                              prompt: Prompt | None = read_line,
+                              confirm: Prompt | None = read_line,
                               devices: Devices | None = None) -> Proposal:
-    """The whole procedure on ``devices`` (by default the configuration's real ones, opened
-    and closed here); ``confirm`` None writes without asking; returns the proposal."""
+    """The whole procedure: :func:`measure_threshold`, then :func:`report` off the event
+    loop once the devices are closed; returns the proposal."""
+    m = await measure_threshold(cfg, force_ma=force_ma, force_n=force_n, max_ma=max_ma,
+                                idle_s=idle_s, speed_mps=speed_mps, prompt=prompt,
+                                devices=devices)
+    # (a daemon thread: a Ctrl-C at the question does not wait for Enter)
+    return await in_daemon_thread(report, m, cfg, config_path, out,
+                                  None if confirm is None else threadable(confirm))
+
+
+async def measure_threshold(cfg: Config, *, force_ma: float | None = FORCE_MA,
+                            force_n: float | None = None, max_ma: float = MAX_MA,
+                            idle_s: float = IDLE_S, speed_mps: float = PROBE_SPEED_MPS,
+                            prompt: Prompt | None = read_line,
+                            devices: Devices | None = None) -> Measurement:
+    """Idle, probe and proposal on ``devices`` (by default the configuration's real ones,
+    opened and closed here)."""
     from edge.daemon.devices import close_devices, enable_torque, open_devices
 
     for name, value, ok, want in (
@@ -404,6 +428,7 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
     press = PressController(cfg, devices.gripper, devices.arm, stream.ring,
                             recover=getattr(devices.bus, "recover_watchdog", None), clock=clock)
     timeout = cfg.runtime.move_timeout_s
+    gripper_stuck = False
     try:
         if own:
             await enable_torque(devices)
@@ -414,8 +439,8 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
         await press.open_gripper()
         await devices.arm.move_to("above", timeout)
         if prompt is not None:
-            await asyncio.to_thread(prompt, "place the reference object where presses happen "
-                                            "(the fingers will close on it), then Enter ")
+            await ask(prompt, "place the reference object where presses happen (the fingers "
+                              "will close on it), then Enter ", NO_PROMPT)
         await devices.arm.move_to("lowered", timeout)
         idle = await measure_idle(stream, cfg, idle_s)
         print(f"idle: {idle.frames} frames over {idle.seconds:.1f} s, norm p50 "
@@ -429,28 +454,42 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
         finally:
             failed = await press.open_gripper_retrying()
             if failed is not None:
+                gripper_stuck = True
                 raise EdgeError(f"GRIPPER MAY STILL BE CLOSED: opening failed ({failed}); "
                                 "free the object by hand")
         await devices.arm.move_to("above", timeout)
     finally:
         reader.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
+        try:
             await reader
+        except asyncio.CancelledError:
+            pass
+        except Exception:  # the outcome above is the one to report
+            log.exception("the tactile reader failed")
         if own:
+            if gripper_stuck and devices.bus is not None:
+                # As a press that could not open leaves it: the arm where it stands (moving
+                # it could drag the gripped object), torque off; then the rest is closed.
+                try:
+                    await devices.bus.close()
+                except Exception as exc:
+                    log.error("bus shutdown: %s", exc)
             await close_devices(devices, timeout)
     print(f"probe: closed {1e3 * trace.closing_m[-1]:.1f} mm in {trace.t[-1]:.1f} s at "
           f"{1e3 * speed_mps:g} mm/s; free closing {trace.free_ma:.1f} mA; contact at "
           f"{trace.t_contact:.2f} s; stopped at {trace.end}")
     proposal = propose(trace, idle, force_ma=None if force_n is not None else force_ma,
                        force_n=force_n)
-    return _report(proposal, trace, idle, cfg, config_path, out, confirm)
+    return Measurement(proposal, trace, idle)
 
 
-def _report(proposal: Proposal, trace: ProbeTrace, idle: IdleNoise, cfg: Config,
-            config_path: str | Path, out: str | Path,
-            confirm: Callable[[str], str] | None) -> Proposal:
+def report(m: Measurement, cfg: Config, config_path: str | Path, out: str | Path,
+           confirm: Prompt | None) -> Proposal:
+    """The curve's PNG and data into ``out``, then x_th into ``config_path`` if ``confirm``
+    says yes (None: without asking). Blocking: run it outside the event loop."""
     from edge.tools.calibrate_png import plot_curve
 
+    proposal, trace, idle = m.proposal, m.trace, m.idle
     out = Path(out)
     a, f = proposal.at_x_th, proposal.at_fragile
     floor_note = (f" (raised to the noise floor {idle.floor:.5f})" if proposal.clipped else "")

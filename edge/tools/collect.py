@@ -17,12 +17,8 @@ import asyncio
 import contextlib
 import logging
 import math
-import os
 import socket
-import sys
-import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -37,10 +33,9 @@ from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.sensor import FrameRing, SensorTask
 from edge.tools import dataset
 from edge.tools.plan import Plan, PlanClass, plan_of_one
+from edge.tools.prompt import NO_PROMPT, Prompt, ask, read_line
 
 log = logging.getLogger(__name__)
-
-Prompt = Callable[[str], object]
 
 # Presses of one class that may fail in a row (no contact, a stale stream, over the force
 # cap) before the class is skipped, and the pause after each without a prompt.
@@ -48,8 +43,9 @@ MAX_FAILED_IN_A_ROW = 5
 FAILED_PRESS_PAUSE_S = 0.5
 # The ring keeps the last minute of frames (a press and its margins take a few seconds).
 RING_FRAMES = 8000
-# After connecting, the stream's first frames (and the server's sensor models) arrive.
-FIRST_FRAMES_S = 0.5
+# How often the start looks for the stream's first frame (which brings the server's sensor
+# models), for at most [sensor] connect_timeout_s.
+FIRST_FRAME_POLL_S = 0.02
 # Thresholds closer than this (relative) are one threshold.
 X_TH_RTOL = 1e-9
 
@@ -68,50 +64,6 @@ class CollectReport:
     @property
     def complete(self) -> bool:
         return all(self.have.get(k, 0) >= n for k, n in self.planned.items())
-
-
-def read_line(message: str) -> str:
-    """``input()`` that leaves no lock behind: it reads the terminal's file descriptor, so a
-    Ctrl-C while it waits ends the process at once (the waiting thread is a daemon thread
-    holding no Python lock that the exit needs)."""
-    os.write(sys.stdout.fileno(), message.encode())
-    line = bytearray()
-    while not line.endswith(b"\n"):
-        chunk = os.read(sys.stdin.fileno(), 1)
-        if not chunk:
-            raise EOFError
-        line += chunk
-    return line.decode(errors="replace").rstrip("\n")
-
-
-async def ask(prompt: Prompt, message: str) -> None:
-    """``prompt(message)`` in a daemon thread: cancelling the wait (Ctrl-C) does not wait for
-    Enter, as a thread of the default executor would at the loop's shutdown."""
-    loop = asyncio.get_running_loop()
-    answered: asyncio.Future[None] = loop.create_future()
-
-    def settle(exc: BaseException | None) -> None:
-        if not answered.done():
-            if exc is None:
-                answered.set_result(None)
-            else:
-                answered.set_exception(exc)
-
-    def run() -> None:
-        try:
-            prompt(message)
-            exc = None
-        except BaseException as e:  # handed to the waiting task
-            exc = e
-        with contextlib.suppress(RuntimeError):  # the loop has closed: nobody waits
-            loop.call_soon_threadsafe(settle, exc)
-
-    threading.Thread(target=run, name="collect-prompt", daemon=True).start()
-    try:
-        await answered
-    except EOFError:
-        raise EdgeError("no more input at the prompt (stdin closed): run it in a terminal, "
-                        "or pass --no-prompt") from None
 
 
 def _check_existing(out: Path, plan: Plan, cfg: Config) -> dict[str, dict[int, Path]]:
@@ -185,6 +137,19 @@ def _update_index(index: dict[str, Any], plan: Plan, cfg: Config) -> None:
         _merge_class(index, c, c.threshold(cfg.press.x_th), plan.single)
 
 
+async def _first_frame(ring: FrameRing, timeout_s: float) -> None:
+    """Until the stream's first frame, for at most ``timeout_s``: the dataset's origin names
+    the sensor models that frame brings."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout_s
+    while ring.count == 0:
+        if loop.time() >= deadline:
+            log.warning("no tactile frame in %.1f s ([sensor] connect_timeout_s): the "
+                        "dataset's origin names no sensor", timeout_s)
+            return
+        await asyncio.sleep(FIRST_FRAME_POLL_S)
+
+
 async def _photo(camera: Any) -> bytes:
     from edge.core.images import prepare_image
 
@@ -255,7 +220,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
     try:
         if own:
             await enable_torque(devices)
-        await asyncio.sleep(FIRST_FRAMES_S)
+        await _first_frame(ring, cfg.sensor.connect_timeout_s)
         origin = _origin(cfg, plan, getattr(devices.tactile, "server_models", None))
         if index is None:
             index = dataset.new_index(plan.name, _recorder_sentence(origin), origin,
@@ -267,7 +232,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
         elif index.get("plan_sha256") != plan.sha256:
             log.info("the plan changed since the last run of %s (%s)", out, plan.source)
         _update_index(index, plan, cfg)
-        dataset.write_index(out, index)
+        await asyncio.to_thread(dataset.write_index, out, index)
         for c in todo:
             await _collect_class(cfg, c, out, index, found[c.label], sensor, devices, camera,
                                  prompt, report)
@@ -298,14 +263,14 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
     print(f"{c.label}: {have}/{c.presses} pressed; x_th {ccfg.press.x_th:g}", flush=True)
     if prompt is not None:
         await ask(prompt, f"place the {c.label} ({c.description}) between the fingers, "
-                          "then Enter ")
+                          "then Enter ", NO_PROMPT)
     failures = 0
     first = True
     while have < c.presses:
         if prompt is not None and not first:
             what = "move" if failures == 0 else "check and move"
             await ask(prompt, f"{c.label} press {have + 1}/{c.presses}: {what} the "
-                              f"{c.label} slightly, then Enter ")
+                              f"{c.label} slightly, then Enter ", NO_PROMPT)
         first = False
         outcome = await controller.run()
         reason = None if outcome.contact else f"{outcome.result}: {outcome.message}"
@@ -321,7 +286,7 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
             failures += 1
             report.failed += 1
             entry["failed"].append(_failure(outcome))
-            dataset.write_index(out, index)
+            await asyncio.to_thread(dataset.write_index, out, index)
             print(f"{c.label} press {have + 1}/{c.presses} failed ({failures} in a row): "
                   f"{reason}; not kept", flush=True)
             if failures >= MAX_FAILED_IN_A_ROW:
@@ -336,13 +301,13 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
         failures = 0
         if photo is not None:
             # The photo first: a press is kept when its recording exists, and has its photo.
-            atomic_write_bytes(dataset.photo_path(path), photo)
-        recording.save(outcome_recording(outcome, ccfg, c.label), path)
+            await asyncio.to_thread(atomic_write_bytes, dataset.photo_path(path), photo)
+        await asyncio.to_thread(recording.save, outcome_recording(outcome, ccfg, c.label), path)
         next_number += 1
         have += 1
         report.have[c.label] = have
         report.kept.append(path)
-        dataset.write_index(out, index)
+        await asyncio.to_thread(dataset.write_index, out, index)
         print(f"{c.label} press {have}/{c.presses}: peak {outcome.peak_level:.4f}, stop "
               f"latency {(outcome.stop_latency_s or 0) * 1e3:.1f} ms -> {path}"
               f"{' + photo' if photo is not None else ''}", flush=True)

@@ -13,13 +13,12 @@ wrong pose shows before it hits anything, the arm holds it until Enter, then goe
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Callable
 from pathlib import Path
 
 from edge.core import tomledit
 from edge.core.config import Config
 from edge.core.errors import EdgeError
+from edge.tools.prompt import Prompt, ask, read_line
 
 # A taught pose is checked at a walking pace: several times the daemon's move time.
 GOTO_MOVE_TIME_S = 4.0
@@ -29,33 +28,25 @@ SUPPORT_PROMPT = ("support the arm: its torque goes off and a raised arm drops; 
                   "Enter to turn torque off ")
 
 
-async def _ask(prompt: Callable[[str], object], message: str) -> None:
-    try:
-        await asyncio.to_thread(prompt, message)
-    except EOFError:
-        raise EdgeError("no answer (standard input is closed): run it at a terminal, "
-                        "where Enter answers each step") from None
-
-
 def _check_name(name: str) -> None:
     if not name.replace("_", "").isalnum():
         raise EdgeError(f"pose name {name!r}: use letters, digits and underscores")
 
 
 async def teach_pose(cfg: Config, config_path: str | Path, name: str,
-                     prompt: Callable[[str], object] = input, bus=None) -> tuple[int, ...]:
+                     prompt: Prompt = read_line, bus=None) -> tuple[int, ...]:
     """Store the arm's present joint positions as pose ``name`` in ``config_path``."""
     from edge.hw.dynamixel import DynamixelBus
 
     _check_name(name)
-    await _ask(prompt, SUPPORT_PROMPT)
+    await ask(prompt, SUPPORT_PROMPT)
     own = bus is None
     bus = bus or DynamixelBus(cfg.bus)
     try:
         if own:
             await bus.connect()
         await bus.set_torque(False)
-        await _ask(prompt, f"move the arm to the '{name}' pose by hand, then press Enter ")
+        await ask(prompt, f"move the arm to the '{name}' pose by hand, then press Enter ")
         state = await bus.read_state()
         joints = tuple(int(state.motors[i].position) for i in cfg.bus.joint_ids)
     finally:
@@ -70,7 +61,7 @@ async def teach_pose(cfg: Config, config_path: str | Path, name: str,
     return joints
 
 
-async def goto_pose(cfg: Config, name: str, prompt: Callable[[str], object] = input,
+async def goto_pose(cfg: Config, name: str, prompt: Prompt = read_line,
                     move_time_s: float = GOTO_MOVE_TIME_S) -> tuple[int, ...]:
     """Move to pose ``name`` over ``move_time_s``, hold it until Enter, then return to
     ``rest`` and turn torque off; returns the joints reached."""
@@ -81,8 +72,8 @@ async def goto_pose(cfg: Config, name: str, prompt: Callable[[str], object] = in
     if name not in cfg.poses:
         raise EdgeError(f"pose {name!r} is not in [poses] (known: {', '.join(cfg.poses)}); "
                         f"teach it with `vt-edge pose teach {name}`")
-    await _ask(prompt, f"the arm moves to '{name}' over {move_time_s:g} s: clear its path and "
-                       "support it (connecting turns torque off for a moment); Enter to start ")
+    await ask(prompt, f"the arm moves to '{name}' over {move_time_s:g} s: clear its path and "
+                      "support it (connecting turns torque off for a moment); Enter to start ")
     bus = DynamixelBus(cfg.bus)
     arm = DynamixelArm(bus, cfg.poses, move_time_s=move_time_s)
     timeout_s = move_time_s + GOTO_SETTLE_S
@@ -92,7 +83,7 @@ async def goto_pose(cfg: Config, name: str, prompt: Callable[[str], object] = in
         await arm.move_to(name, timeout_s)
         joints = tuple(int(j) for j in await arm.joints())
         print(f"at pose {name}: joints {list(joints)} (taught {list(cfg.poses[name])})")
-        await _ask(prompt, f"holding '{name}'; Enter to go back to rest and turn torque off ")
+        await ask(prompt, f"holding '{name}'; Enter to go back to rest and turn torque off ")
     finally:
         # Back to rest as slowly as it came (every way out, Ctrl-C included), torque off.
         await bus.close(safe_pose=lambda: arm.move_to("rest", timeout_s))

@@ -46,7 +46,7 @@ def _calibrate_virtual(config: Path, out: Path, gain: float, obj: str = REFERENC
     cfg = load_config(config)
     skin = replace(robot_pads(cfg.sim.seed), gain=gain)
 
-    async def run() -> calibrate.Proposal:
+    async def run() -> calibrate.Measurement:
         async with VirtualRobot(cfg, obj, np.random.default_rng(seed), skin_draw=skin) as r:
             if silence_after_s is not None:
                 close = r.gripper.close
@@ -60,14 +60,15 @@ def _calibrate_virtual(config: Path, out: Path, gain: float, obj: str = REFERENC
             await r.bus.set_torque(True)
             devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
             try:
-                return await calibrate.calibrate_threshold(
-                    cfg, config, out, prompt=None, confirm=None, devices=devices)
+                return await calibrate.measure_threshold(cfg, prompt=None, devices=devices)
             finally:
                 # Every way out leaves the gripper open.
                 assert (await r.gripper.state()).width_m > cfg.press.open_width_m - 0.001
 
+    # (the report, blocking, after the loop: as calibrate_threshold runs it off the loop)
     with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
-        return runner.run(run())
+        measured = runner.run(run())
+    return calibrate.report(measured, cfg, config, out, None)
 
 
 def _press(gain: float, x_th: float) -> tuple[float, float]:
@@ -190,16 +191,16 @@ def test_answering_no_leaves_the_config_as_it_was(tmp_path):
     asked = []
     cfg = load_config(config)
 
-    async def run() -> None:
+    async def run() -> calibrate.Measurement:
         async with VirtualRobot(cfg, REFERENCE, np.random.default_rng(1)) as r:
             await r.bus.set_torque(True)
             devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
-            await calibrate.calibrate_threshold(
-                cfg, config, tmp_path / "out", prompt=None,
-                confirm=lambda q: asked.append(q) or "n", devices=devices)
+            return await calibrate.measure_threshold(cfg, prompt=None, devices=devices)
 
     with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
-        runner.run(run())
+        measured = runner.run(run())
+    calibrate.report(measured, cfg, config, tmp_path / "out",
+                     lambda q: asked.append(q) or "n")
     assert config.read_text() == before
     assert len(asked) == 1 and "(now 0.004)" in asked[0] and str(config) in asked[0]
 
@@ -230,3 +231,91 @@ def test_the_client_reads_calibrated_newtons_only_when_asked():
     obj = json.loads(frame)
     assert newtons is not None and newtons.shape == (144,)
     assert newtons[0] == obj["1"]["calibrated"][0] and newtons[72] == obj["2"]["calibrated"][0]
+
+
+@pytest.mark.asyncio
+async def test_a_broken_stream_is_reconnected_and_its_error_kept():
+    """A SensorError that is neither stale nor a layout (a bad frame) reconnects, as the
+    sensor task does, instead of ending the reader."""
+    from types import SimpleNamespace
+
+    from edge.core.errors import SensorError
+
+    class Source:
+        connects = 0
+
+        async def frames(self):
+            self.connects += 1
+            if self.connects == 1:
+                raise SensorError("bad frame")
+            for seq in range(3):
+                yield SimpleNamespace(raw=np.zeros(96), recv_time=float(seq),
+                                      sensor_time=float(seq), seq=seq, newtons=None)
+
+    source = Source()
+    stream = calibrate._Stream(source, 96, time.monotonic, 0.1)
+    reader = asyncio.create_task(stream.run())
+    try:
+        await asyncio.wait_for(stream.wait_frames(3), 5.0)
+    finally:
+        reader.cancel()
+    assert source.connects >= 2 and stream.ring.count >= 3
+    assert isinstance(stream.error, SensorError) and "bad frame" in str(stream.error)
+
+
+def test_a_gripper_that_cannot_open_leaves_the_arm_where_it_stands(tmp_path, monkeypatch):
+    """Opening after the probe fails: torque goes off where the arm stands (no move to
+    rest dragging the gripped object), as the press controller leaves it."""
+    from edge.core.errors import DeviceError
+    from edge.daemon import devices as devices_mod
+
+    config = tmp_path / "sim.toml"
+    shutil.copy(ROOT / "configs" / "sim.toml", config)
+    cfg = load_config(config)
+    moves, closes = [], []
+
+    async def run() -> None:
+        async with VirtualRobot(cfg, REFERENCE, np.random.default_rng(1)) as r:
+            devices = Devices(tactile=r.tactile, gripper=r.gripper, arm=r.arm, bus=r.bus)
+            opened, move_to, bus_close = r.gripper.open, r.arm.move_to, r.bus.close
+
+            async def open_until_closed(*args: float) -> None:
+                if r.gripper_closed:
+                    raise DeviceError("gripper: no status packet")
+                await opened(*args)
+
+            async def close(*args: float) -> None:
+                r.gripper_closed = True
+                await closing(*args)
+
+            async def move(pose: str, timeout_s: float) -> None:
+                moves.append(pose)
+                await move_to(pose, timeout_s)
+
+            async def close_bus(safe_pose=None) -> None:
+                # DynamixelBus.close's steps, which the thread-less VirtualBus skips.
+                closes.append(safe_pose)
+                if safe_pose is not None and r.bus._torque_on:
+                    await safe_pose()
+                await r.bus.set_torque(False)
+                await bus_close(safe_pose)
+
+            async def opened_devices(_cfg):
+                return devices
+
+            async def torque_on(d):
+                await d.bus.set_torque(True)
+
+            r.gripper_closed = False
+            closing = r.gripper.close
+            r.gripper.open, r.gripper.close = open_until_closed, close
+            r.arm.move_to, r.bus.close = move, close_bus
+            monkeypatch.setattr(devices_mod, "open_devices", opened_devices)
+            monkeypatch.setattr(devices_mod, "enable_torque", torque_on)
+            with pytest.raises(EdgeError, match="GRIPPER MAY STILL BE CLOSED"):
+                await calibrate.measure_threshold(cfg, prompt=None)
+
+    with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, 100.0)) as runner:
+        runner.run(run())
+    print(f"moves {moves}, bus closes {closes}")
+    assert moves == ["above", "lowered"] and closes and closes[0] is None

@@ -175,7 +175,15 @@ async def test_collect_writes_labelled_recordings(tmp_path):
     async with SimRobot("otedama", seed=11, cfg=cfg) as robot:
         files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path,
                               prompt=prompts.append)
-    print(prompts)
+        # A rerun whose first frame comes late (a second, where the start used to wait a
+        # fixed half second): its origin still names the pads, so it is not refused as
+        # another robot's dataset.
+        robot.xela.fault = Fault.SILENT
+        asyncio.get_running_loop().call_later(1.0, setattr, robot.xela, "fault", Fault.NONE)
+        more = await collect(robot.runtime_config(cfg), "otedama", 3, tmp_path, prompt=None)
+    origin = json.loads((tmp_path / "dataset.json").read_text())["origin"]
+    print(prompts, origin)
+    assert len(more) == 1 and origin["sensor"]["model"] == "XR1944"
     assert len(files) == 2 and len(prompts) == 2
     assert "place the otedama" in prompts[0] and "move the otedama" in prompts[1]
     for f in files:
