@@ -128,8 +128,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from edge.core.config import load_config
-    from edge.tools.collect import CollectReport, collect_plan, read_line
+    from edge.tools.collect import CollectReport, collect_plan
     from edge.tools.plan import load_plan, plan_of_one
+    from edge.tools.prompt import read_line
 
     cfg = load_config(args.config)
     if (args.plan is None) == (args.label is None):
@@ -177,6 +178,7 @@ def _cmd_calibrate_threshold(args: argparse.Namespace) -> int:
 
     from edge.core.config import load_config
     from edge.tools.calibrate import calibrate_threshold
+    from edge.tools.prompt import read_line
 
     # Options left out take the procedure's own defaults.
     given = {k: v for k, v in (("force_ma", args.force_ma), ("max_ma", args.max_ma),
@@ -186,7 +188,8 @@ def _cmd_calibrate_threshold(args: argparse.Namespace) -> int:
         given.update(force_ma=None, force_n=args.force_n)
     asyncio.run(calibrate_threshold(
         load_config(args.config), args.config, args.out, **given,
-        prompt=None if args.no_prompt else input, confirm=None if args.yes else input))
+        prompt=None if args.no_prompt else read_line,
+        confirm=None if args.yes else read_line))
     return 0
 
 

@@ -38,7 +38,7 @@ from edge.daemon.sensor import SENSOR_RETRY_S, FrameRing
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
-from edge.tools.prompt import NO_PROMPT, Prompt, ask, in_daemon_thread, read_line, threadable
+from edge.tools.prompt import NO_PROMPT, Prompt, ask, in_daemon_thread, read_line
 
 log = logging.getLogger(__name__)
 
@@ -385,8 +385,7 @@ async def calibrate_threshold(cfg: Config, config_path: str | Path, out: str | P
                                 idle_s=idle_s, speed_mps=speed_mps, prompt=prompt,
                                 devices=devices)
     # (a daemon thread: a Ctrl-C at the question does not wait for Enter)
-    return await in_daemon_thread(report, m, cfg, config_path, out,
-                                  None if confirm is None else threadable(confirm))
+    return await in_daemon_thread(report, m, cfg, config_path, out, confirm)
 
 
 async def measure_threshold(cfg: Config, *, force_ma: float | None = FORCE_MA,

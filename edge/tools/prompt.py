@@ -65,16 +65,10 @@ async def in_daemon_thread(fn: Callable[..., T], *args: object) -> T:
     return await done
 
 
-def threadable(prompt: Prompt) -> Prompt:
-    """``prompt`` to run in a daemon thread: input() on a pipe holds sys.stdin's lock in the
-    waiting thread, which the exit then needs, so it becomes :func:`read_line`."""
-    return read_line if prompt is input else prompt
-
-
 async def reply(prompt: Prompt, message: str) -> object:
     """The answer to ``prompt(message)`` (see :func:`in_daemon_thread`); EOFError where
     standard input is closed."""
-    return await in_daemon_thread(threadable(prompt), message)
+    return await in_daemon_thread(prompt, message)
 
 
 async def ask(prompt: Prompt, message: str,
