@@ -181,8 +181,11 @@ def model_facts(manifest: Mapping[str, Any]) -> dict[str, Any]:
         "model", {}).get("decoder")
     origin = manifest_origin(manifest)
     built = str(manifest.get("created_by", "")).startswith("vt-train build")
+    # Where a built model's presses came from: the advice names them, not a placeholder.
+    data = manifest.get("training", {}).get("dataset", {}).get("directory")
+    unseen = [u for u in manifest.get("evaluation", {}).get("unseen", []) if u != data]
     return {"decoder": decoder, "origin": origin.to_json(),
-            "built": built or not origin.emulated}
+            "built": built or not origin.emulated, "data": data, "unseen": unseen}
 
 
 def decoder_title(decoder: str | None) -> str:
@@ -196,8 +199,10 @@ def variant_advice(facts: Mapping[str, Any], model_dir: Path, variant: str) -> s
     model came from: ``vt-train build`` for a lab's data, ``vt-train release`` only for the
     simulated set."""
     if facts["built"]:
-        return (f"`vt-train build --data DATASET --out {model_dir} --variant {variant}` "
-                "(the dataset the model was built from; the other steps are kept)")
+        unseen = "".join(f" --unseen {u}" for u in facts.get("unseen") or ())
+        return (f"`vt-train build --data {facts.get('data') or 'DATASET'}{unseen} --out "
+                f"{model_dir} --variant {variant}` (the data the model was built from; the "
+                "steps already done are kept)")
     return "`vt-train release` (the simulated reference set)"
 
 

@@ -246,7 +246,8 @@ def test_the_labs_path_from_a_plan_to_table1(tmp_path):
         assert "trained on simulated presses by the emulated robot" in md
         assert f"lab_food is {2 * PRESSES} simulated presses by the emulated robot" in md
         assert "images: lab_food: photos beside the presses" in md
-        assert f"`vt-train build --data DATASET --out {models} --variant beta`" in md
+        assert (f"`vt-train build --data {reference} --unseen {lab_food} --out {models} "
+                "--variant beta`") in md
         assert "vt-train release" not in md and "real presses" not in md
         assert "simulated camera" not in md
 

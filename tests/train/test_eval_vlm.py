@@ -269,7 +269,8 @@ def test_origin_null_or_absent_reads_as_the_emulated_robot(tmp_path):
         assert facts["origin"]["kind"] == "emulated" and not facts["built"]
     robot = {"kind": "robot", "recorder": "lab", "robot": "arm-3", "sensor": None}
     assert eval_vlm.model_facts({"origin": robot}) == {"decoder": None, "origin": robot,
-                                                       "built": True}
+                                                       "built": True, "data": None,
+                                                       "unseen": []}
     (tmp_path / "dataset.json").write_text(json.dumps(
         {"classes": [], "recorder": "the simulated recorder", "origin": None}))
     origin = eval_vlm.reference_origin(tmp_path)
