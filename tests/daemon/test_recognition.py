@@ -52,7 +52,7 @@ class ScriptedPress:
         self.gate: asyncio.Event | None = None
         self.state = "idle"
 
-    async def run(self) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future | None = None) -> PressOutcome:
         self.state = "closing"
         if self.gate is not None:
             await self.gate.wait()
