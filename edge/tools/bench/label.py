@@ -69,11 +69,12 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
             api = f"http://127.0.0.1:{daemon.api.port}"
             after_s = ctl.window.after_s
             async with aiohttp.ClientSession() as http:
-                for i in range(presses):
+                # One press more, first and not counted: it loads the encoder.
+                for i in range(-1, presses):
                     async with http.post(f"{robot['control_url']}/object",
                                          json={"name": OBJECTS[i % len(OBJECTS)]}) as r:
                         r.raise_for_status()
-                    marker = f"label_{i:03d}"
+                    marker = f"label_{i + 1:03d}"
                     with runtime.subscribe() as events:
                         t_trigger = time.monotonic()
                         async with http.post(f"{api}/v1/recognize",
@@ -97,11 +98,14 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                         progress(f"label press {i + 1}: {outcome.result}: {outcome.message}")
                         continue
                     t_window = outcome.t_stop + after_s + RECORD_MARGIN_S
-                    rows.append({"label_after_window_ms": 1e3 * (t_vlm - t_window),
-                                 "trigger_to_label_s": t_label - t_trigger})
+                    row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
+                           "trigger_to_label_s": t_label - t_trigger}
                     progress(f"label press {i + 1}/{presses}: request "
-                             f"{rows[-1]['label_after_window_ms']:.1f} ms after the window, "
-                             f"label {rows[-1]['trigger_to_label_s']:.2f} s after the trigger")
+                             f"{row['label_after_window_ms']:.1f} ms after the window, "
+                             f"label {row['trigger_to_label_s']:.2f} s after the trigger"
+                             + (" (warm-up, not counted)" if i < 0 else ""))
+                    if i >= 0:
+                        rows.append(row)
                     await asyncio.sleep(0.2)  # the arm settles; the lock is free
         finally:
             runtime.stop()
@@ -137,7 +141,7 @@ def measure(s: Settings, tmp: Path, presses: int) -> tuple[list[dict[str, float]
 
 
 def label_phase(s: Settings, tmp: Path) -> PhaseResult:
-    presses = s.quiet_presses + 1
+    presses = s.label_presses
     rows, move_time_s = measure(s, tmp, presses)
     figs = {
         "label_after_window_ms": figure(
