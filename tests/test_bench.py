@@ -19,7 +19,8 @@ from edge.tools import bench
 from edge.tools.bench.settings import CONTROLLERS
 from train import bench as train_bench
 
-TINY = replace(bench.QUICK, presses=2, quiet_presses=1, load_min_s=2.0, daemon_runs=1,
+TINY = replace(bench.QUICK, presses=2, quiet_presses=1, load_min_s=2.0, label_presses=1,
+               daemon_runs=1,
                rss_samples=1, encode_n=30, retrieval_queries=10, brute_queries_1m=2)
 TINY_TRAIN = replace(train_bench.QUICK, encode_n=30, train_presses=1, train_max_epochs=1)
 
@@ -58,6 +59,9 @@ def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
     assert 20 < results["daemon_rss_mb"]["p50"] < 2000
     assert results["sampler_period_error_ms"]["ticks"] > 100
     assert 0 <= results["overhead_ms"]["p50"] < 5000
+    # The VLM request leaves after the window is complete, well before the arm is back.
+    assert 0 < results["label_after_window_ms"]["p50"] < 500
+    assert results["trigger_to_label_s"]["move_time_s"] > 0
     assert results["retrieval_ms_1m"]["references"] == 1_000_000
     raw_before = (tmp_path / "raw.json").read_bytes()
     raw = json.loads(raw_before)

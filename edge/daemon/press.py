@@ -218,7 +218,10 @@ class PressController:
             # at this step instead of going on to close on the object.
             raise _AbortRequested
 
-    async def run(self) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
+                  ) -> PressOutcome:
+        """One press; ``window_ready`` gets the outcome as soon as the model's window is
+        complete, while the gripper opens and the arm returns (the press goes on after)."""
         outcome = PressOutcome()
         self._outcome = outcome
         self._user_abort.clear()
@@ -280,32 +283,49 @@ class PressController:
             # Lifting a gripper that may still hold the object would drag or lift it.
             log.error("the gripper may still be closed: the arm stays where it stands")
             outcome.message += "; arm left where it stands: free the object by hand"
-        elif moved:
-            try:
-                self._enter(outcome, "returning")
-                await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-            except EdgeError as exc:
-                log.error("arm did not return above the object: %s", exc)
-                if outcome.result == "ok":
-                    outcome.result, outcome.message = "error", f"return failed: {exc}"
-        if outcome.t_stop is not None:
-            # The window reaches 0.6 s past the stop; normally the opening took that long.
-            spec = self.window
-            end = outcome.t_stop + spec.after_s + RECORD_MARGIN_S
-            wait = end - self.clock()
-            if wait > 0:
-                await asyncio.sleep(wait)
-            # A stream that paused after the stop (a server hiccup, a busy host) catches up.
-            give_up = self.clock() + STREAM_CATCH_UP_S
-            while self.ring.latest_time() < end and self.clock() < give_up:  # noqa: ASYNC110
-                await asyncio.sleep(0.01)
-            outcome.window = self.ring.window(outcome.t_stop - spec.before_s - RECORD_MARGIN_S,
-                                              end)
+        returning: asyncio.Task | None = None
+        if moved and opened:
+            self._enter(outcome, "returning")
+            # The window completes while the arm returns: whoever waits for it starts on it
+            # at once, not once the arm is back.
+            returning = asyncio.create_task(self._return(outcome), name="press-return")
+        try:
+            if outcome.t_stop is not None:
+                outcome.window = await self._window(outcome.t_stop)
+                if window_ready is not None and not window_ready.done():
+                    window_ready.set_result(outcome)
+            if returning is not None:
+                await returning
+        finally:
+            if returning is not None and not returning.done():
+                returning.cancel()
         self._enter(outcome, "idle")
         self._outcome = None
         if self.on_outcome is not None:
             self.on_outcome(outcome)
         return outcome
+
+    async def _return(self, outcome: PressOutcome) -> None:
+        try:
+            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+        except EdgeError as exc:
+            log.error("arm did not return above the object: %s", exc)
+            if outcome.result == "ok":
+                outcome.result, outcome.message = "error", f"return failed: {exc}"
+
+    async def _window(self, t_stop: float) -> Window:
+        """The recording's window around the stop, once the stream covers it."""
+        # The window reaches 0.6 s past the stop; normally the opening took most of that.
+        spec = self.window
+        end = t_stop + spec.after_s + RECORD_MARGIN_S
+        wait = end - self.clock()
+        if wait > 0:
+            await asyncio.sleep(wait)
+        # A stream that paused after the stop (a server hiccup, a busy host) catches up.
+        give_up = self.clock() + STREAM_CATCH_UP_S
+        while self.ring.latest_time() < end and self.clock() < give_up:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
+        return self.ring.window(t_stop - spec.before_s - RECORD_MARGIN_S, end)
 
     def _check_fresh(self) -> None:
         age = self.clock() - self.ring.latest_time()

@@ -149,6 +149,7 @@ class Recognizer:
         # is kept leaves it "interrupted" after the restart, not unknown.
         noted = asyncio.get_running_loop().run_in_executor(
             None, self.store.accept, episode_id, candidates, source)
+        asking: asyncio.Task | None = None
         try:
             self.events.publish({"type": "episode", "episode": episode_id,
                                  "status": "running"})
@@ -156,52 +157,80 @@ class Recognizer:
             if image is None and self.camera is not None:
                 # The photo is taken while the arm moves.
                 camera_task = asyncio.create_task(self.camera.capture(), name="camera")
+            loop = asyncio.get_running_loop()
+            window: asyncio.Future[PressOutcome] = loop.create_future()
+            pressing = self._start_press(window)
             try:
-                outcome = await self._press().run()
-            finally:
-                self.lock.release()
+                # The press as of its complete window (it goes on: the gripper opens, the arm
+                # returns), or as it ended without one.
+                await asyncio.wait({window, pressing}, return_when=asyncio.FIRST_COMPLETED)
+                outcome = window.result() if window.done() else pressing.result()
+                camera_error = None
+                if camera_task is not None:
+                    try:
+                        image = await camera_task
+                    except (EdgeError, OSError) as exc:
+                        camera_error = " ".join(str(exc).split()) or type(exc).__name__
+                        log.warning("episode %s: camera failed: %s", episode_id, camera_error)
+                episode = Episode(episode_id, Status.RUNNING, candidates, source,
+                                  software_version=__version__, x_th=setup.cfg.press.x_th,
+                                  vlm_mode=setup.vlm.mode)
+                episode, files, prepared = await self._analyse(setup, episode, image, outcome)
+                if (camera_error is not None and episode.status == Status.PENDING
+                        and needs_photo(setup.vlm.mode)):
+                    # The VLM would refuse the question without its photo: the camera is why.
+                    episode = episode.with_(status=Status.CAMERA_ERROR, error=camera_error)
+                stored: asyncio.Future[Episode] = loop.create_future()
+                if episode.status == Status.PENDING:
+                    # Asked while the arm returns; the answer is stored once the episode is.
+                    asking = asyncio.create_task(self._ask(
+                        episode, prepared if prepared is not None else image, setup.vlm,
+                        stored), name=f"ask {episode_id}")
+                outcome = await pressing
+            except asyncio.CancelledError:
+                pressing.cancel()
+                raise
             self.metrics.observe_press(outcome)
-            camera_error = None
-            if camera_task is not None:
-                try:
-                    image = await camera_task
-                except (EdgeError, OSError) as exc:
-                    camera_error = " ".join(str(exc).split()) or type(exc).__name__
-                    log.warning("episode %s: camera failed: %s", episode_id, camera_error)
-            episode = Episode(episode_id, Status.RUNNING, candidates, source,
-                              press=outcome.summary(), software_version=__version__,
-                              x_th=setup.cfg.press.x_th, vlm_mode=setup.vlm.mode,
-                              timings={"press_s": time.monotonic() - t0})
-            episode, files, prepared = await self._analyse(setup, episode, image, outcome)
-            if (camera_error is not None and episode.status == Status.PENDING
-                    and needs_photo(setup.vlm.mode)):
-                # The VLM would refuse the question without its photo: the camera is why.
-                episode = episode.with_(status=Status.CAMERA_ERROR, error=camera_error)
+            episode = episode.with_(press=outcome.summary(),
+                                    timings={"press_s": time.monotonic() - t0,
+                                             **episode.timings})
+            if asking is not None and not outcome.contact:
+                # The return failed after the window: said on the episode, as without a label.
+                episode = episode.with_(status=Status.FAILED, error=outcome.message)
             await _noted(noted)
-            if episode.status != Status.PENDING:
+            if asking is None:
                 await asyncio.to_thread(self.store.create, episode, files)
                 return
-            # The durable write and the VLM request overlap (the write takes ~10 ms of
-            # fsyncs); the answer is stored only once the episode is. A crash before the
-            # write completes loses the press, as it would have a moment earlier.
-            stored = asyncio.get_running_loop().run_in_executor(
-                None, self.store.create, episode, files)  # submitted now, not next turn
-            stored.add_done_callback(self._tactile_event(episode))
-            try:
-                await self._ask(episode, prepared if prepared is not None else image,
-                                setup.vlm, stored)
-            finally:
-                await stored
+            # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before
+            # the write completes loses the press, as it would have a moment earlier.
+            created = loop.run_in_executor(None, self.store.create, episode, files)
+            created.add_done_callback(self._tactile_event(episode))
+            await created
+            stored.set_result(episode)
+            await asking
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
             await self._keep_failure(episode_id, candidates, source, exc, noted)
         finally:
+            if asking is not None and not asking.done():
+                asking.cancel()  # its episode was never stored
             if self.current == episode_id:
                 self.current = None
             if not done.done():
                 done.set_result(None)
             self.events.publish({"type": "episode", "episode": episode_id,
                                  "status": "finished"})
+
+    def _start_press(self, window: asyncio.Future[PressOutcome]) -> asyncio.Task:
+        """The press as a task that releases the lock once it has ended: the arm is back
+        (or left where it stands), whatever the recognition does meanwhile."""
+        try:
+            pressing = asyncio.create_task(self._press().run(window), name="press")
+        except BaseException:
+            self.lock.release()
+            raise
+        pressing.add_done_callback(lambda _: self.lock.release())
+        return pressing
 
     async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
                             exc: Exception, noted: asyncio.Future) -> None:
@@ -273,9 +302,9 @@ class Recognizer:
 
     # --- the VLM ------------------------------------------------------------------------
     async def _ask(self, episode: Episode, image: bytes | VLMImage | None, vlm: VLMClient,
-                   stored: asyncio.Future | None = None) -> None:
-        """Ask about ``episode``; ``stored`` (its first write, still under way) is awaited
-        before any update. Never two questions about one episode at once."""
+                   stored: asyncio.Future[Episode] | None = None) -> None:
+        """Ask about ``episode``; ``stored`` (the episode as first written, once it is) is
+        awaited before any update. Never two questions about one episode at once."""
         if episode.id in self._asking:
             return
         self._asking.add(episode.id)
@@ -292,8 +321,14 @@ class Recognizer:
             answer = await vlm.ask(image, episode.description or "", episode.candidates or [])
         except EdgeError as exc:
             if stored is not None:
-                await stored
+                episode = await stored
             self.metrics.vlm_errors += 1
+            if episode.status == Status.FAILED:
+                # The press failed after its window (the arm did not return): that stays
+                # the episode's status; asking again would not fix it.
+                await asyncio.to_thread(self.store.update, episode.id, attempts=attempts,
+                                        last_error=str(exc))
+                return
             if not isinstance(exc, VLMUnavailableError):
                 # Refused (4xx), a broken answer or a bad image: asking again will not help.
                 log.error("episode %s: VLM error: %s", episode.id, exc)
@@ -317,9 +352,11 @@ class Recognizer:
             return
         latency = time.monotonic() - t
         if stored is not None:
-            await stored
+            episode = await stored
         self.metrics.observe_vlm(latency, answer.structured_output)
         status = Status.DONE if answer.status == "ok" else Status(answer.status)
+        if episode.status == Status.FAILED:
+            status = Status.FAILED  # the label is kept; the failed return stays said
         await asyncio.to_thread(self.store.update, episode.id, status=status,
                                 label=answer.label, vlm=answer.to_dict(), attempts=attempts,
                                 structured_output=answer.structured_output,

@@ -45,19 +45,25 @@ def pressed(seed: int = 3) -> PressOutcome:
 
 
 class ScriptedPress:
-    """Returns the next outcome; ``gate`` (when set) holds the press until released."""
+    """Returns the next outcome; ``gate`` (when set) holds the press until released, after
+    handing its outcome over as the window is complete when ``hand_over`` is set."""
 
     def __init__(self, *outcomes: PressOutcome) -> None:
         self.outcomes = list(outcomes)
         self.gate: asyncio.Event | None = None
+        self.hand_over = False
         self.state = "idle"
 
-    async def run(self) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future | None = None) -> PressOutcome:
         self.state = "closing"
+        outcome = self.outcomes.pop(0)
+        if self.hand_over and window_ready is not None:
+            self.state = "returning"
+            window_ready.set_result(outcome)
         if self.gate is not None:
             await self.gate.wait()
         self.state = "idle"
-        return self.outcomes.pop(0)
+        return outcome
 
 
 class InProcessCompute:
@@ -218,3 +224,30 @@ async def test_after_shutdown_begins_no_press_starts(tmp_path):
     with pytest.raises(BusyError, match="shutting down"):
         await rec.recognize(CANDIDATES, None, False, None, "api")
     assert len(press.outcomes) == 1
+
+
+async def test_the_vlm_is_asked_at_the_window_while_the_arm_returns(tmp_path):
+    press = ScriptedPress(pressed())
+    press.gate, press.hand_over = asyncio.Event(), True
+    vlm = ScriptedVLM(["macaron"])
+    rec, events = recognizer(tmp_path, press, vlm)
+    with events.subscribe({}) as sub:
+        running = await rec.recognize(CANDIDATES, image_bytes(), False, None, "api")
+        for _ in range(200):
+            if vlm.asked:
+                break
+            await asyncio.sleep(0.01)
+        # Asked while the arm returns; the next press waits for the arm, the episode for
+        # the press.
+        assert vlm.asked and press.state == "returning"
+        with pytest.raises(BusyError):
+            await rec.recognize(CANDIDATES, image_bytes(), False, None, "api")
+        assert not [e for e in await drain(sub) if e["type"] in ("tactile", "result")]
+        press.gate.set()
+        await asyncio.gather(*rec.work)
+        seen = await drain(sub)
+    episode = await rec.episode(running.id)
+    assert episode.status == Status.DONE and episode.label == "macaron"
+    assert not rec.lock.locked() and len(vlm.asked) == 1
+    kinds = [e["type"] for e in seen]
+    assert kinds.index("tactile") < kinds.index("result")

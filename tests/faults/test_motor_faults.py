@@ -8,6 +8,7 @@ For each: what the robot did (emulator positions, world force), what the user wa
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import subprocess
 import sys
 import time
@@ -287,3 +288,51 @@ async def test_one_lost_reply_to_a_sync_read_or_a_write_is_retried(tmp_path):
         await asyncio.sleep(0.3)  # the watchdog feed reads meanwhile
         assert bus.fault is None
         await wait_health(d, True)
+
+
+async def test_a_return_failure_while_the_vlm_is_asked_is_said_on_the_episode(tmp_path):
+    from edge.sim.fake_vlm import FakeVLM
+    from tests.support.waits import wait_until
+
+    # The VLM answers after 0.6 s; the arm takes 1.0 s to return: the question leaves once
+    # the window is complete, while the arm returns, and the joint drops out meanwhile.
+    async with FakeVLM(choose=lambda _req: QUICK_OBJECT, latency_s=0.6) as fake:
+        cfg = base_config(fake.base_url, move_time_s=1.0, tare_s=0.15)
+        async with sim_daemon(tmp_path, cfg=cfg) as (robot, d):
+            events: list[dict] = []
+
+            async def follow():
+                with d.runtime.subscribe() as subscription:
+                    async for event in subscription:
+                        events.append(event)
+
+            follower = asyncio.create_task(follow())
+            try:
+                episode = await start_press(d, "closing")
+                await wait_until(lambda: fake.chat_requests, 10.0, "the VLM request")
+                # Asked while the arm returns; the next press waits for the arm.
+                assert d.runtime.press.state == "returning"
+                status, busy = await d.post("/v1/recognize", {"candidates": FOOD})
+                assert status == 409, busy
+                robot.dxl.set_missing(JOINT)
+                await d.wait_status(episode, {"failed"})
+                await wait_until(lambda: any(e.get("type") == "result" for e in events), 5.0,
+                                 "the result event")
+                ep = await d.wait_status(episode, {"failed"})
+            finally:
+                follower.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await follower
+            print("episode error:", ep["error"], "label:", ep.get("label"))
+            # The return failure is said on the episode; the label that came meanwhile kept.
+            assert "return failed" in ep["error"] and "motor 12" in ep["error"]
+            assert ep["press"]["result"] == "error" and ep["label"] == QUICK_OBJECT
+            assert [s for s, _ in ep["press"]["states"]][-2:] == ["returning", "idle"]
+            assert len(fake.chat_requests) == 1 and ep["attempts"] == 1
+            # The order the page, MQTT and MCAP see: press states, tactile, then the label.
+            kinds = [e["type"] if e["type"] != "state" else e["state"] for e in events]
+            assert kinds.index("idle") < kinds.index("tactile") < kinds.index("result")
+            (kept,) = store_consistent(d.store.root)
+            assert kept["status"] == "failed" and kept["label"] == QUICK_OBJECT
+            robot.dxl.set_missing(JOINT, False)
+            await wait_health(d, True)

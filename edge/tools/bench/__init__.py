@@ -8,9 +8,11 @@ printed on stderr as it runs:
 1. **runtime** (:mod:`.runtime`): the daemon's runtime in this process against the emulated
    robot, with and without load; presses alternate between the production controller and
    two comparison controllers (:mod:`.controllers`); helper processes in :mod:`.load`.
-2. **daemon** (:mod:`.daemon`): ``vt-edge run`` as a process: start to ``READY=1``, memory,
+2. **label** (:mod:`.label`): trigger to label with the arm's real move time and a fake VLM
+   at a fixed latency; how soon after the crop window the VLM request leaves.
+3. **daemon** (:mod:`.daemon`): ``vt-edge run`` as a process: start to ``READY=1``, memory,
    torch never mapped.
-3. **encode**, **retrieval** (:mod:`.encoder`): onnxruntime on one sequence; top-k on the
+4. **encode**, **retrieval** (:mod:`.encoder`): onnxruntime on one sequence; top-k on the
    shipped database and on 1,000,000 synthetic references against numpy brute force.
 
 The training side adds its phases to the same files (``vt-train bench --merge-into
@@ -37,7 +39,7 @@ from edge.tools.bench.settings import FULL, QUICK, Settings
 
 __all__ = ["FIGURES", "FULL", "PHASES", "QUICK", "Settings", "bench", "run_bench"]
 
-PHASES = ("runtime", "daemon", "encode", "retrieval")
+PHASES = ("runtime", "label", "daemon", "encode", "retrieval")
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -54,6 +56,7 @@ def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES,
     # need none of the phases.
     from edge.tools.bench.daemon import daemon_phase
     from edge.tools.bench.encoder import encode_phase, retrieval_phase
+    from edge.tools.bench.label import label_phase
     from edge.tools.bench.runtime import runtime_phase
 
     results = Results.start("vt-edge bench" + (" --quick" if s.quick else ""), s.quick,
@@ -65,6 +68,7 @@ def bench(out: Path, s: Settings, phases: Sequence[str] = PHASES,
         tmp = Path(tmp_name)
         measure = {
             "runtime": lambda: runtime_phase(s, tmp),
+            "label": lambda: label_phase(s, tmp),
             "daemon": lambda: daemon_phase(s, tmp),
             "encode": lambda: encode_phase(s),
             "retrieval": lambda: retrieval_phase(s),

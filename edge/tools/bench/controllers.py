@@ -49,10 +49,11 @@ class TickedController(RecordingController):
     async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
         self.latest = (raw, recv_time)
 
-    async def run(self) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
+                  ) -> PressOutcome:
         ticker = asyncio.create_task(self.tick(), name=f"bench-{self.name}-ticker")
         try:
-            return await super().run()
+            return await super().run(window_ready)
         finally:
             ticker.cancel()
             with contextlib.suppress(asyncio.CancelledError):

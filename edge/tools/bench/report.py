@@ -19,7 +19,7 @@ FIGURES = (
     "stop_latency_ms_no_load", "stop_floor_ms_no_load", "stop_latency_ratio_floor_no_load",
     "sampler_period_error_ms_two_pages", "stop_latency_ms_two_pages", "operator_page_feed_fps",
     *(f"force_overshoot_n_{o}_{c}" for o in OBJECTS for c in CONTROLLERS),
-    "overhead_ms", "overhead_ms_under_load",
+    "overhead_ms", "overhead_ms_under_load", "label_after_window_ms", "trigger_to_label_s",
     "startup_to_ready_s", "daemon_rss_mb", "daemon_torch_mapped",
     "encode_ms",
     "retrieval_ms_shipped", "retrieval_numpy_ms_shipped", "retrieval_speedup_shipped",
