@@ -34,6 +34,7 @@ from tests.support.daemon import (
     store_consistent,
     wait_health,
 )
+from tests.support.waits import wait_until
 
 pytestmark = pytest.mark.asyncio
 GRIPPER, JOINT = 15, 12
@@ -235,6 +236,11 @@ async def test_a_watchdog_trip_short_of_the_object_is_named_not_called_no_contac
     cfg = replace(cfg, runtime=replace(cfg.runtime, close_timeout_s=1.0))
     async with sim_daemon(tmp_path, "canele", cfg=cfg) as (robot, d):
         episode = await start_press(d, "closing")
+        # Once the close goal is in and the fingers move (tripped before it, the write itself
+        # is refused: the other, already tested, way the trip shows).
+        start = robot.dxl.true_position(GRIPPER)
+        await wait_until(lambda: abs(robot.dxl.true_position(GRIPPER) - start) > 5, 5.0,
+                         "the gripper closing")
         robot.dxl.trip_watchdog(GRIPPER)
         ep = await d.wait_status(episode, {"failed", "not_configured"})
         print("episode error:", ep["error"])
@@ -292,7 +298,6 @@ async def test_one_lost_reply_to_a_sync_read_or_a_write_is_retried(tmp_path):
 
 async def test_a_return_failure_while_the_vlm_is_asked_is_said_on_the_episode(tmp_path):
     from edge.sim.fake_vlm import FakeVLM
-    from tests.support.waits import wait_until
 
     # The VLM answers after 0.6 s; the arm takes 1.0 s to return: the question leaves once
     # the window is complete, while the arm returns, and the joint drops out meanwhile.
