@@ -32,3 +32,21 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
             if IN_CI:
                 pytest.fail(f"{reason}; under CI this test must run", pytrace=False)
             pytest.skip(reason)
+
+
+@pytest.fixture
+def logging_as_found():
+    """A CLI's ``main`` configures logging once, onto the stderr of the test that first
+    calls it: undo that afterwards, so later tests' captured stderr still gets the log
+    lines."""
+    import logging
+
+    from edge.core import logs
+
+    root = logging.getLogger()
+    handlers, level, configured = list(root.handlers), root.level, logs._configured
+    yield
+    for handler in [h for h in root.handlers if h not in handlers]:
+        root.removeHandler(handler)
+    root.setLevel(level)
+    logs._configured = configured

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from edge.core import logs, recording
+from edge.core import recording
 from edge.core.config import Config, load_config
 from edge.core.errors import ConfigError, StartError
 from edge.core.layout import XR1944, PadLayout
@@ -62,17 +62,7 @@ def with_4x6_pads(cfg: Config) -> Config:
                                        taxel_rows=pads.taxel_rows))
 
 
-@pytest.fixture(autouse=True)
-def _logging_as_found():
-    """``vt-train`` configures logging once, onto the stderr of the test that first calls
-    it: undo that, so later modules' captured stderr still gets the log lines."""
-    root = logging.getLogger()
-    handlers, level, configured = list(root.handlers), root.level, logs._configured
-    yield
-    for handler in [h for h in root.handlers if h not in handlers]:
-        root.removeHandler(handler)
-    root.setLevel(level)
-    logs._configured = configured
+pytestmark = pytest.mark.usefixtures("logging_as_found")
 
 
 @pytest.mark.parametrize("layout", [XR1944, LAYOUT_4X6], ids=["4x4", "4x6"])

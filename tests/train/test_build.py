@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import logging
 import os
 import shutil
 import signal
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.core import logs, recording
+from edge.core import recording
 from edge.core.errors import RecordingError
 from edge.core.model import load_model, model_ref
 from edge.sim.robot import SimRobot
@@ -34,17 +33,7 @@ TEST = {"raw_kiri_mochi": ("test", 3, True), "boiled_kiri_mochi": ("test", 3, Tr
 EPOCHS = 3
 
 
-@pytest.fixture(autouse=True)
-def _logging_as_found():
-    """``main`` configures logging once, onto the stderr of the test that first calls it:
-    undo that, so later modules' captured stderr still gets the log lines."""
-    root = logging.getLogger()
-    handlers, level, configured = list(root.handlers), root.level, logs._configured
-    yield
-    for handler in [h for h in root.handlers if h not in handlers]:
-        root.removeHandler(handler)
-    root.setLevel(level)
-    logs._configured = configured
+pytestmark = pytest.mark.usefixtures("logging_as_found")
 
 
 @pytest.fixture(scope="module")
