@@ -85,10 +85,6 @@ class SensorConfig:
     def channels(self) -> int:
         return self.pads * self.taxels_per_pad * 3
 
-    @property
-    def taxel_cols(self) -> int:
-        return self.taxels_per_pad // self.taxel_rows
-
     def layout_text(self) -> str:
         """The channels' make-up for messages: ``2 pads x 16 taxels x 3``."""
         return f"{self.pads} pad{'s' * (self.pads != 1)} x {self.taxels_per_pad} taxels x 3"

@@ -53,7 +53,7 @@ from edge.core import preprocess
 from edge.core.atomic import atomic_dir
 from edge.core.errors import EdgeError, StoreError
 from edge.core.layout import PadLayout
-from edge.daemon.mcaplog import result_message
+from edge.daemon.mcaplog import ns, result_message
 
 log = logging.getLogger(__name__)
 
@@ -109,10 +109,6 @@ def typestore() -> Any:
     for name, text in {**XELA_MSGS, **vtzero_msgs()}.items():
         store.register(get_types_from_msg(text, name))
     return store
-
-
-def ns(t: float) -> int:
-    return max(0, round(t * 1e9))
 
 
 class RosbagLog:

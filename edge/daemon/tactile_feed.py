@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from edge.core import preprocess
+from edge.core.layout import PadLayout
 from edge.daemon.taps import newest
 
 log = logging.getLogger(__name__)
@@ -132,12 +133,13 @@ class TactileFeed:
         units = (rows.raw[0].astype(np.float64) - self._tare) / preprocess.UNITS_SCALE
         norm = float(np.linalg.norm(units))
         cfg = self.runtime.cfg
+        layout = PadLayout.of(cfg.sensor)
         pads = (units * 1e6).round().astype(np.int64).reshape(cfg.sensor.pads, -1, 3)
         return json.dumps({
             "seq": int(rows.seq[0]),
             "age_s": round(time.monotonic() - float(rows.recv_time[0]), 4),
             "state": self._state, "norm": round(norm, 7), "x_th": cfg.press.x_th,
-            "rows": cfg.sensor.taxel_rows, "cols": cfg.sensor.taxel_cols,
+            "rows": layout.rows, "cols": layout.cols,
             "pads": [{"x": p[:, 0].tolist(), "y": p[:, 1].tolist(), "z": p[:, 2].tolist()}
                      for p in pads],
         }, separators=(",", ":")).encode()

@@ -216,11 +216,12 @@ async def measure_idle(stream: _Stream, cfg: Config, idle_s: float) -> IdleNoise
     await asyncio.sleep(idle_s)
     stream.fresh()
     t, raw, _ = stream.since(t0)
-    after = t >= t0 + cfg.press.tare_s
+    # (the tare's frames as preprocess.tared_norms takes them, as doctor measures too)
+    after = t >= t[0] + cfg.press.tare_s if len(t) else np.zeros(0, dtype=bool)
     if after.sum() < MIN_IDLE_FRAMES or (~after).sum() < 3:
         raise StaleSensorError(f"only {len(t)} tactile frames in {idle_s} s of idle: the "
                                "stream is too slow to measure its noise")
-    norms = preprocess.norm(preprocess.to_units(raw[after], preprocess.tare(raw[~after])))
+    norms = preprocess.tared_norms(t, raw, cfg.press.tare_s)
     return IdleNoise(int(after.sum()), float(t[after][-1] - t[after][0]),
                      float(np.median(norms)), float(np.percentile(norms, 99.9)),
                      float(norms.max()))

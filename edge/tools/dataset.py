@@ -22,10 +22,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from edge import __version__
-from edge.core import recording
+from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import ConfigError
-from edge.core.preprocess import DEFAULT_WINDOW, UNITS_SCALE, WindowSpec
+from edge.core.preprocess import DEFAULT_WINDOW, WindowSpec
 from edge.core.recording import DATASET_INDEX
 
 if TYPE_CHECKING:
@@ -131,7 +131,7 @@ class Summary:
 
 def check_press(path: Path, window: WindowSpec = DEFAULT_WINDOW) -> PressCheck:
     rec = recording.load(path)
-    norms = np.linalg.norm(rec.frames.astype(np.float64) - rec.tare, axis=1) / UNITS_SCALE
+    norms = preprocess.norm(preprocess.recording_units(rec))
     peak = float(norms.max()) if len(norms) else 0.0
     flags = []
     # Late is judged up to the stop: the hold's squeeze goes on pressing a rigid object far

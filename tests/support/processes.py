@@ -8,9 +8,11 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -67,6 +69,16 @@ def start(command: list[str], env: dict[str, str], *, stdin: bool = False
     proc = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stdin=subprocess.PIPE if stdin else subprocess.DEVNULL)
     return proc, Output(proc)
+
+
+def interrupt(proc: subprocess.Popen, output: Output) -> tuple[int, float]:
+    """Ctrl-C to ``proc``: its exit code and the seconds it took to exit (printed)."""
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    rc = proc.wait(30)
+    took = time.monotonic() - t0
+    print(f"exit {rc} {took:.2f} s after SIGINT\n{output.text}")
+    return rc, took
 
 
 def run(command: list[str], env: dict[str, str], timeout_s: float = COMMAND_TIMEOUT_S,

@@ -248,11 +248,7 @@ def test_ctrl_c_at_the_prompt_exits_at_once(sim_serve, tmp_path):
     proc, output = start_collect(config, env, "--plan", str(write_plan(tmp_path)), "--out",
                                  str(tmp_path / "data"))
     output.wait_for("place the otedama")
-    t0 = time.monotonic()
-    proc.send_signal(signal.SIGINT)
-    rc = proc.wait(30)
-    took = time.monotonic() - t0
-    print(f"exit {rc} {took:.2f} s after SIGINT at the prompt\n{output.text}")
+    rc, took = processes.interrupt(proc, output)
     assert rc == 130 and "interrupted: kept 0 presses" in output.text
     assert took < 10.0
 

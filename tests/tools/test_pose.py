@@ -111,7 +111,6 @@ async def test_closed_stdin_is_a_one_line_error_and_the_arm_goes_back_to_rest():
 
 def test_ctrl_c_at_the_prompt_exits_at_once(tmp_path):
     """The first prompt comes before the bus is opened: no robot is needed to reach it."""
-    import signal
 
     from tests.support import processes
     from tests.support.processes import VT_EDGE, clean_env
@@ -121,10 +120,6 @@ def test_ctrl_c_at_the_prompt_exits_at_once(tmp_path):
     proc, output = processes.start([*VT_EDGE, "pose", "teach", "above", "--config",
                                     str(config)], clean_env(), stdin=True)
     output.wait_for("support the arm")
-    t0 = time.monotonic()
-    proc.send_signal(signal.SIGINT)
-    rc = proc.wait(30)
-    took = time.monotonic() - t0
-    print(f"exit {rc} {took:.2f} s after SIGINT at the prompt\n{output.text}")
+    rc, took = processes.interrupt(proc, output)
     assert rc == 130 and took < 10.0
     proc.stdin.close()  # type: ignore[union-attr]
