@@ -162,16 +162,15 @@ def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
     out = Path(out)
     index = read_index(out) or {"classes": []}
     entries = {c["label"]: c for c in index["classes"] if isinstance(c, dict) and "label" in c}
-    labels = list(entries)
-    if plan is not None:
-        labels += [c.label for c in plan.classes if c.label not in entries]
+    planned_classes = {c.label: c for c in plan.classes} if plan is not None else {}
+    labels = list(entries) + [label for label in planned_classes if label not in entries]
     classes = []
     for label in labels:
         entry = entries.get(label, {})
-        in_plan = plan is not None and any(c.label == label for c in plan.classes)
-        planned = plan.get(label).presses if in_plan else entry.get("presses")
+        pc = planned_classes.get(label)
+        planned = pc.presses if pc is not None else entry.get("presses")
         # A class of the plan not collected yet: its split and x_th as the plan says.
-        split, x_th = (plan.get(label).split, plan.get(label).x_th) if in_plan else ("?", None)
+        split, x_th = (pc.split, pc.x_th) if pc is not None else ("?", None)
         presses = tuple(check_press(p) for p in existing_presses(out, label).values())
         failed: dict[str, int] = {}
         for f in entry.get("failed", []):

@@ -64,16 +64,16 @@ class Plan:
     sha256: str  # of the plan file (of the plan's content for a plan of one class)
     source: str  # the file, or "--label ..." for a plan of one class
 
-    @property
-    def single(self) -> bool:
-        """A plan of one class from the command line (``--label``)."""
-        return self.source.startswith("--label")
-
     def get(self, label: str) -> PlanClass:
         for c in self.classes:
             if c.label == label:
                 return c
         raise KeyError(label)
+
+    @property
+    def single(self) -> bool:
+        """A plan of one class from the command line (``--label``)."""
+        return self.source.startswith("--label")
 
 
 def _login() -> str:

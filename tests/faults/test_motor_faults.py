@@ -8,7 +8,6 @@ For each: what the robot did (emulator positions, world force), what the user wa
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import subprocess
 import sys
 import time
@@ -30,6 +29,7 @@ from tests.support.daemon import (
     fast_config,
     gripper_open,
     joints,
+    recording_events,
     sim_daemon,
     store_consistent,
     wait_health,
@@ -303,31 +303,19 @@ async def test_a_return_failure_while_the_vlm_is_asked_is_said_on_the_episode(tm
     # the window is complete, while the arm returns, and the joint drops out meanwhile.
     async with FakeVLM(choose=lambda _req: QUICK_OBJECT, latency_s=0.6) as fake:
         cfg = base_config(fake.base_url, move_time_s=1.0, tare_s=0.15)
-        async with sim_daemon(tmp_path, cfg=cfg) as (robot, d):
-            events: list[dict] = []
-
-            async def follow():
-                with d.runtime.subscribe() as subscription:
-                    async for event in subscription:
-                        events.append(event)
-
-            follower = asyncio.create_task(follow())
-            try:
-                episode = await start_press(d, "closing")
-                await wait_until(lambda: fake.chat_requests, 10.0, "the VLM request")
-                # Asked while the arm returns; the next press waits for the arm.
-                assert d.runtime.press.state == "returning"
-                status, busy = await d.post("/v1/recognize", {"candidates": FOOD})
-                assert status == 409, busy
-                robot.dxl.set_missing(JOINT)
-                await d.wait_status(episode, {"failed"})
-                await wait_until(lambda: any(e.get("type") == "result" for e in events), 5.0,
-                                 "the result event")
-                ep = await d.wait_status(episode, {"failed"})
-            finally:
-                follower.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await follower
+        async with sim_daemon(tmp_path, cfg=cfg) as (robot, d), \
+                recording_events(d) as events:
+            episode = await start_press(d, "closing")
+            await wait_until(lambda: fake.chat_requests, 10.0, "the VLM request")
+            # Asked while the arm returns; the next press waits for the arm.
+            assert d.runtime.press.state == "returning"
+            status, busy = await d.post("/v1/recognize", {"candidates": FOOD})
+            assert status == 409, busy
+            robot.dxl.set_missing(JOINT)
+            await d.wait_status(episode, {"failed"})
+            await wait_until(lambda: any(e.get("type") == "result" for e in events), 5.0,
+                             "the result event")
+            ep = await d.wait_status(episode, {"failed"})
             print("episode error:", ep["error"], "label:", ep.get("label"))
             # The return failure is said on the episode; the label that came meanwhile kept.
             assert "return failed" in ep["error"] and "motor 12" in ep["error"]

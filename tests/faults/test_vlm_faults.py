@@ -6,7 +6,6 @@ a label the VLM did not give as one of the candidates."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from dataclasses import replace
 from typing import Any
 
@@ -14,11 +13,11 @@ import pytest
 
 from edge.sim.fake_vlm import FakeVLM, Reply
 from tests.support.daemon import (
-    FOOD,
     QUICK_OBJECT,
-    Daemon,
     fast_config,
     gripper_open,
+    recognize,
+    recording_events,
     sim_daemon,
     store_consistent,
 )
@@ -35,33 +34,6 @@ def truth(_req) -> str:
 def vlm_config(url: str, **vlm: Any):
     cfg = fast_config(url)
     return replace(cfg, vlm=replace(cfg.vlm, **vlm))
-
-
-@contextlib.asynccontextmanager
-async def recording_events(d: Daemon):
-    """Collect the daemon's events (what an SSE client of /v1/events sees)."""
-    events: list[dict] = []
-
-    async def follow():
-        with d.runtime.subscribe() as subscription:
-            async for event in subscription:
-                events.append(event)
-
-    task = asyncio.create_task(follow())
-    await asyncio.sleep(0)
-    try:
-        yield events
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-
-
-async def recognize(d: Daemon) -> dict:
-    status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
-    assert status == 200, ep
-    assert ep["press"]["contact"], ep
-    return ep
 
 
 def labels_given(events: list[dict]) -> set:

@@ -25,6 +25,7 @@ from tests.support.daemon import (
     Daemon,
     base_config,
     fast_config,
+    recognize,
     sim_daemon,
     wait_health,
 )
@@ -36,12 +37,6 @@ OBJECT = QUICK_OBJECT
 
 def truth(_req) -> str:
     return OBJECT
-
-
-async def recognize(d) -> dict:
-    status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
-    assert status == 200 and ep["press"]["contact"], ep
-    return ep
 
 
 async def metric(d, name: str) -> float:

@@ -214,3 +214,31 @@ async def wait_health(d: Daemon, ok: bool, timeout_s: float = 5.0) -> dict[str, 
         return health if health["ok"] is ok else None
 
     return await wait_until(matches, timeout_s, f"/healthz ok={ok}", interval_s=0.05)
+
+
+@contextlib.asynccontextmanager
+async def recording_events(d: Daemon) -> AsyncIterator[list[dict[str, Any]]]:
+    """Collect the daemon's events (what an SSE client of /v1/events sees)."""
+    events: list[dict[str, Any]] = []
+
+    async def follow():
+        with d.runtime.subscribe() as subscription:
+            async for event in subscription:
+                events.append(event)
+
+    task = asyncio.create_task(follow())
+    await asyncio.sleep(0)
+    try:
+        yield events
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
+async def recognize(d: Daemon) -> dict[str, Any]:
+    """One recognition of the FOOD candidates, waited for; its press must have touched."""
+    status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
+    assert status == 200, ep
+    assert ep["press"]["contact"], ep
+    return ep
