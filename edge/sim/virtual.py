@@ -86,6 +86,14 @@ class VirtualClockLoop(asyncio.SelectorEventLoop):
         self._virtual_now += max(seconds, 0.0)
 
 
+# The daemon's stop (one WRITE) as the bench measures it: `make bench`, row `stop_latency_ms`
+# (first frame over x_th received -> stop packet at the port, under load), on a quiet host:
+# p50 0.22 / p99 0.84 ms (issue 19). The recorder presses with it, so the datasets' presses
+# overshoot as the daemon's do.
+STOP_LATENCY_P50_S = 0.00022
+STOP_LATENCY_P99_S = 0.00084
+
+
 @dataclass(frozen=True)
 class Transport:
     """Transport timing of the emulated robot, which the virtual clock would otherwise make
@@ -94,8 +102,8 @@ class Transport:
     dataset's)."""
 
     # Frame that crosses x_th -> stop packet at the port: log-normal through these two points.
-    stop_latency_p50_s: float = 0.0013
-    stop_latency_p99_s: float = 0.0024
+    stop_latency_p50_s: float = STOP_LATENCY_P50_S
+    stop_latency_p99_s: float = STOP_LATENCY_P99_S
     # One bus transaction (instruction out, status back) on the pty.
     transaction_s: float = 0.0004
     # xela_server's tick lateness past its 8 ms grid (half-normal sd), then the WebSocket hop

@@ -49,6 +49,7 @@ STREAM_WARMUP_S = 0.3
 PRESS_TRIES = 3
 # Frames kept: a press with its arm moves takes ~12 s.
 RING_FRAMES = 4000
+# The daemon's stop as `make bench` measures it (edge.sim.virtual.STOP_LATENCY_P50_S, _P99_S).
 DEFAULT_TRANSPORT = Transport()
 # Where each press's virtual clock starts, and how far apart presses lie on it.
 CLOCK_START_S = 100.0
