@@ -44,7 +44,7 @@ from train import database, evaluate
 from train.data import PressSet, Splits, load_presses, training_data_of
 from train.export import check_parity, codebook_of, export_onnx, parity
 from train.manifest import PROMPTS_DIR, dumps, versions, write_manifest
-from train.model import ModelConfig
+from train.model import PAPER, ModelConfig
 from train.release import EVAL_DIR, encode_timing, encoder_section, prompt_hashes
 from train.trainer import CHECKPOINT, Progress, TrainConfig, embed, load_checkpoint
 from train.trainer import train as train_model
@@ -55,17 +55,17 @@ PARTIAL_SUFFIX = ".partial"
 STATE_FILE = "build-state.json"
 TRAINING_DIR = "training"
 SHIPPED_PROMPTS = Path(__file__).resolve().parents[1] / "models" / PROMPTS_DIR
-# The comparison variants `--variant` adds: name -> what changes from the paper's VQ-VAE.
-VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}}
+# The comparison variants `--variant` adds: name -> what changes from the shipped VQ-VAE.
+VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}, "paper": PAPER}
 # Checkpoint directories under training/, as release names them (vt-train table1 --beta/--zeros).
-VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros"}
+VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros", "paper": "vq_paper"}
 
 
 @dataclass(frozen=True)
 class BuildConfig:
     data: Path
     out: Path
-    variants: tuple[str, ...] = ()  # comparison variants besides the paper's: beta, zeros
+    variants: tuple[str, ...] = ()  # comparison variants: beta, zeros, paper
     unseen: tuple[Path, ...] = ()  # further test sets for the evaluation
     prompts: Path = SHIPPED_PROMPTS
     seed: int = 0

@@ -111,6 +111,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))
     codebook = model.database.codebook
     embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook)}
+    if args.paper:
+        paper, paper_norm, _ = load_checkpoint(args.paper)
+        assert paper.quantiser is not None
+        embedders["vq_paper"] = ((lambda x: embed(paper, paper_norm, x)),
+                                 paper.quantiser.codebook.detach().numpy().copy())
     if args.zeros:
         zeros, zeros_norm, _ = load_checkpoint(args.zeros)
         assert zeros.quantiser is not None
@@ -275,7 +280,7 @@ def _cmd_release(args: argparse.Namespace) -> int:
                         presses=args.presses, unseen_presses=args.unseen_presses,
                         max_epochs=args.max_epochs, patience=args.patience,
                         beta=not args.no_beta, zeros=not args.no_zeros,
-                        workers=args.workers)
+                        paper=not args.no_paper, workers=args.workers)
     manifest = release(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     print(f"released {cfg.out}: kiri mochi AUC {m['kiri_mochi_auc']}, LOO 1-NN "
@@ -389,6 +394,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--beta", help="beta-VAE checkpoint for the comparison")
     p.add_argument("--zeros", help="checkpoint of the VQ-VAE with the zero-input decoder, "
                    "for the comparison")
+    p.add_argument("--paper", help="checkpoint of the VQ-VAE in the paper's configuration "
+                   "(z of 4, no metric term), for the comparison")
     p.add_argument("--splits")
     p.add_argument("--k", type=int, default=3)
     p.add_argument("--seed", type=int, default=0)
@@ -518,6 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-beta", action="store_true", help="skip the beta-VAE comparison")
     p.add_argument("--no-zeros", action="store_true",
                    help="skip the zero-input decoder comparison")
+    p.add_argument("--no-paper", action="store_true",
+                   help="skip the paper's configuration (z of 4, no metric term)")
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)
@@ -533,9 +542,10 @@ def build_parser() -> argparse.ArgumentParser:
         "kept as OUT.previous).")
     p.add_argument("--data", required=True, help="dataset directory (vt-edge collect --plan)")
     p.add_argument("--out", required=True, help="model directory to write")
-    p.add_argument("--variant", action="append", choices=["beta", "zeros"],
+    p.add_argument("--variant", action="append", choices=["beta", "zeros", "paper"],
                    help="also train this comparison variant (repeatable): the beta-VAE, the "
-                   "zero-input decoder; their rows join the evaluation and Table I")
+                   "zero-input decoder, the paper's configuration (z of 4, no metric term); "
+                   "their rows join the evaluation (beta, zeros: and Table I)")
     p.add_argument("--unseen", nargs="+", help="further test sets for the evaluation")
     p.add_argument("--prompts", help="prompt templates to ship (default: models/prompts)")
     p.add_argument("--seed", type=int, default=0)

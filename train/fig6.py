@@ -15,7 +15,7 @@ classes every draw holds the same classes and differs only in its training seed.
 
 Resumable and cached: each training is kept in ``WORK/n<size>_d<draw>/`` (checkpoint,
 ``train.jsonl``, ``result.json`` with the key it was made for: classes, seed, epochs,
-decoder and a digest of the reference data); a rerun loads it instead of training again.
+model configuration and a digest of the reference data); a rerun loads it instead of training again.
 Answers go to ``WORK/<model>/answers.jsonl`` (:class:`train.eval_vlm.AnswerCache`): a question
 already answered (the same prompt and photo) is never asked again, whichever draw asks it.
 With no ``--url`` the simulated VLM answers (``simulated-vlm``).
@@ -134,15 +134,15 @@ class Draw:
     trained_now: bool = False
 
 
-def _trained(cfg: Fig6Config, presses: PressSet, splits: Splits, decoder: str, digest: str,
-             size: int, index: int, bars: Progress) -> tuple[Draw, Any, Any]:
+def _trained(cfg: Fig6Config, presses: PressSet, splits: Splits, model_config: ModelConfig,
+             digest: str, size: int, index: int, bars: Progress) -> tuple[Draw, Any, Any]:
     """One draw's encoder: loaded from its run directory when made for the same key, else
     trained now."""
     classes = draw_classes(splits.train, size, cfg.seed, index)
     seed = draw_seed(cfg.seed, size, index)
     run_dir = cfg.work / f"n{size:02d}_d{index}"
     key = {"format": RESULT_FORMAT, "classes": list(classes), "val": list(splits.val),
-           "seed": seed, "decoder": decoder, "max_epochs": cfg.max_epochs,
+           "seed": seed, "model": model_config.to_dict(), "max_epochs": cfg.max_epochs,
            "patience": cfg.patience, "data": digest}
     result_path = run_dir / RESULT
     if result_path.exists() and (run_dir / CHECKPOINT).exists():
@@ -156,9 +156,8 @@ def _trained(cfg: Fig6Config, presses: PressSet, splits: Splits, decoder: str, d
             return (Draw(size, index, classes, run_dir, saved.get("seconds"),
                          saved.get("epochs")), model, norm)
     sub = Splits(classes, splits.val, splits.descriptions)
-    config = TrainConfig(model=ModelConfig(decoder=decoder), seed=seed,  # type: ignore[arg-type]
-                         max_epochs=cfg.max_epochs, patience=cfg.patience,
-                         threads=cfg.threads)
+    config = TrainConfig(model=model_config, seed=seed, max_epochs=cfg.max_epochs,
+                         patience=cfg.patience, threads=cfg.threads)
     result = train(training_data_of(presses, sub), config, run_dir, bars)
     atomic_write_text(result_path, json.dumps(
         {"key": key, "epochs": result.epochs, "best_epoch": result.best_epoch,
@@ -176,21 +175,22 @@ def _cache_path(cfg: Fig6Config) -> Path:
     return cfg.work / name / eval_vlm.ANSWERS_FILE
 
 
-def _window(model_dir: Path) -> tuple[WindowSpec, str]:
-    """The shipped model's window and decoder (what the retrained encoders copy)."""
+def _window(model_dir: Path) -> tuple[WindowSpec, ModelConfig]:
+    """The shipped model's window and model configuration (what the retrained encoders
+    copy)."""
     manifest = read_manifest(model_dir)
     spec = manifest.get("encoder", {}).get("window")
     window = WindowSpec(**spec) if spec else DEFAULT_WINDOW
-    decoder = manifest.get("training", {}).get("vq", {}).get("config", {}).get(
-        "model", {}).get("decoder", "teacher")
-    return window, decoder
+    model = manifest.get("training", {}).get("vq", {}).get("config", {}).get("model")
+    return window, ModelConfig.from_dict(model) if model else ModelConfig()
 
 
 async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
     """Train (or load) every draw's encoder, ask what is not cached, write the report."""
     started = time.perf_counter()
-    window, shipped_decoder = await asyncio.to_thread(_window, cfg.model_dir)
-    decoder = cfg.decoder or shipped_decoder
+    window, shipped = await asyncio.to_thread(_window, cfg.model_dir)
+    model_config = dataclasses.replace(shipped, decoder=cfg.decoder or shipped.decoder)
+    decoder = model_config.decoder
     presses, splits = await asyncio.to_thread(eval_vlm.load_reference, cfg.reference, window)
     cfg.validate(len(splits.train))
     sets = await asyncio.to_thread(eval_vlm.load_sets, cfg.unseen, cfg.limit, window)
@@ -214,7 +214,7 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
             continue
         for d in range(cfg.draws):
             draw, model, norm = await asyncio.to_thread(
-                _trained, cfg, presses, splits, decoder, digest, n, d, train_bars)
+                _trained, cfg, presses, splits, model_config, digest, n, d, train_bars)
             draws.append(draw)
             chosen = presses.select(draw.classes)
             tactile = eval_vlm.torch_tactile(

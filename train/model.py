@@ -2,9 +2,18 @@
 
 Encoder: 2-layer bidirectional GRU (hidden 32) over the normalised X (B, 25, 96); the last
 layer's final forward and backward states, concatenated (64), go through a Linear to
-z in R^4 (the beta-VAE's Linear gives a mean and a log-variance instead).
+z in R^latent (the beta-VAE's Linear gives a mean and a log-variance instead).
 
-Bottleneck: VQ with a codebook of K = 32 vectors of dim 4; nearest code by L2, straight-through
+Shipped configuration and the paper's (``PAPER``, trained beside it for the comparison):
+the paper's z is 4 numbers and its loss reconstruction only. With the paper's decoder the
+reconstruction barely needs z (the decoder sees X[t-1]), so z kept little of what tells
+objects apart and lost to a trivial baseline (each channel's mean over the window) on every
+retrieval figure. The shipped model keeps the paper's encoder, bottleneck and decoder, with
+z of 16 numbers and a metric term on z over the training classes (``metric_loss``): presses
+of one class nearer each other than other classes' presses, in the L2 distance retrieval
+uses. models/eval/eval.md measures both.
+
+Bottleneck: VQ with a codebook of K = 32 vectors of dim latent; nearest code by L2, straight-through
 gradient; loss ``MSE(sg[z], z_q) + 0.25 * MSE(z, sg[z_q])``. Codes no sample chose during an
 epoch are counted (``dead``) and, if ``revive_dead``, moved onto encoder outputs of random
 training samples at the end of the epoch (a seeded draw).
@@ -20,7 +29,8 @@ initial state is tanh(Linear(z)) and the GRU's inputs are zeros, so the whole pr
 pass through the 4 numbers of the bottleneck.
 
 Loss = MSE(X_hat, X_bar) + codebook + commitment (VQ) or + beta_kl * KL / (T * C) (beta-VAE:
-the KL summed over latent dims, scaled like a per-element likelihood).
+the KL summed over latent dims, scaled like a per-element likelihood), + metric * the metric
+term (on z, or the beta-VAE's posterior mean) when labels are given.
 """
 
 from __future__ import annotations
@@ -37,6 +47,10 @@ from torch.nn import functional as F
 Variant = Literal["vq", "beta"]
 DecoderKind = Literal["teacher", "zeros"]
 DECODERS: tuple[str, ...] = ("teacher", "zeros")
+# The triplet margin of the metric term, in z's units.
+METRIC_MARGIN = 1.0
+# What the paper's configuration changes in ModelConfig: z of 4 numbers, no metric term.
+PAPER = {"latent": 4, "metric": 0.0}
 
 
 @dataclass(frozen=True)
@@ -46,24 +60,29 @@ class ModelConfig:
     steps: int = 25
     hidden: int = 32
     layers: int = 2
-    latent: int = 4
+    latent: int = 16
     codebook_size: int = 32
     commitment: float = 0.25
     beta_kl: float = 4.0
     revive_dead: bool = True
     decoder: DecoderKind = "teacher"
+    # Weight of the metric term on z (0: the paper's loss); see ``metric_loss``.
+    metric: float = 1.0
 
     def __post_init__(self) -> None:
         if self.variant not in ("vq", "beta"):
             raise ValueError(f"variant must be 'vq' or 'beta', got {self.variant!r}")
+        if self.metric < 0:
+            raise ValueError(f"metric must be >= 0, got {self.metric}")
         if self.decoder not in DECODERS:
             raise ValueError(f"decoder must be one of {', '.join(DECODERS)}, got "
                              f"{self.decoder!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
-        """A saved configuration; one saved before the decoder had a choice used zeros."""
-        return cls(**({"decoder": "zeros"} | dict(d)))
+        """A saved configuration; one saved before the decoder had a choice used zeros, one
+        saved before the metric term had none."""
+        return cls(**({"decoder": "zeros", "metric": 0.0} | dict(d)))
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -160,7 +179,9 @@ class TactileAutoencoder(nn.Module):
         h = self.encoder(x)
         return h if self.cfg.variant == "vq" else h[:, :self.cfg.latent]
 
-    def forward(self, x: torch.Tensor, x_bar: torch.Tensor) -> Output:
+    def forward(self, x: torch.Tensor, x_bar: torch.Tensor,
+                labels: torch.Tensor | None = None) -> Output:
+        """``labels`` (B,) class indices: needed only for the metric term."""
         h = self.encoder(x)
         cfg = self.cfg
         if self.quantiser is not None:
@@ -170,6 +191,9 @@ class TactileAutoencoder(nn.Module):
             losses["recon"] = F.mse_loss(x_hat, x_bar)
             losses["loss"] = losses["recon"] + losses["codebook"] \
                 + cfg.commitment * losses["commit"]
+            if cfg.metric and labels is not None:
+                losses["metric"] = metric_loss(z, labels)
+                losses["loss"] = losses["loss"] + cfg.metric * losses["metric"]
             return Output(x_hat, z, z_st.detach(), code, losses)
         mu, logvar = h[:, :cfg.latent], h[:, cfg.latent:].clamp(-10.0, 10.0)
         if self.training:
@@ -181,6 +205,9 @@ class TactileAutoencoder(nn.Module):
         recon = F.mse_loss(x_hat, x_bar)
         scale = cfg.steps * cfg.channels
         losses = {"recon": recon, "kl": kl, "loss": recon + cfg.beta_kl * kl / scale}
+        if cfg.metric and labels is not None:
+            losses["metric"] = metric_loss(mu, labels)
+            losses["loss"] = losses["loss"] + cfg.metric * losses["metric"]
         return Output(x_hat, mu, None, None, losses)
 
     @torch.no_grad()
@@ -197,6 +224,23 @@ class TactileAutoencoder(nn.Module):
                                                     generator=generator)
         self.quantiser.codebook[dead] = z_pool[pick] + jitter
         return int(dead.numel())
+
+
+def metric_loss(z: torch.Tensor, labels: torch.Tensor, margin: float = METRIC_MARGIN
+                ) -> torch.Tensor:
+    """Batch-hard triplet loss on z: each sample's farthest same-class sample should lie
+    ``margin`` nearer than its nearest other-class one, in the L2 distance retrieval uses.
+    The margin bounds it (a loss that only rewards spread would blow z up); samples without
+    both a positive and a negative in the batch do not count."""
+    d = torch.cdist(z, z)
+    same = labels[:, None] == labels[None, :]
+    eye = torch.eye(len(z), dtype=torch.bool, device=z.device)
+    pos = torch.where(same & ~eye, d, torch.zeros_like(d)).amax(1)
+    neg = torch.where(same, torch.full_like(d, float("inf")), d).amin(1)
+    valid = (same & ~eye).any(1) & (~same).any(1)
+    if not bool(valid.any()):
+        return z.new_zeros(())
+    return F.relu(pos - neg + margin)[valid].mean()
 
 
 class ExportEncoder(nn.Module):

@@ -2,10 +2,11 @@
 
 One deterministic pipeline for a seed: record (reference, FoodReplica, Cube; reused when the
 work directory already holds the same recording of the same catalogue classes) -> train the
-VQ-VAE (the paper's decoder), the VQ-VAE with the zero-input decoder and the beta-VAE (both
-for the comparison) -> export the VQ encoder to ONNX (parity-checked) -> build the database
-with the ONNX encoder (every offset of every reference press) -> evaluate -> copy into
-``out`` -> write ``manifest.json`` last. ``out/prompts/`` belongs to the prompt templates:
+VQ-VAE (the paper's decoder, the shipped configuration of :mod:`train.model`), the paper's
+configuration of it (``vq_paper``), the VQ-VAE with the zero-input decoder and the beta-VAE
+(all three for the comparison) -> export the VQ encoder to ONNX (parity-checked) -> build
+the database with the ONNX encoder (every offset of every reference press) -> evaluate ->
+copy into ``out`` -> write ``manifest.json`` last. ``out/prompts/`` belongs to the prompt templates:
 never written here, only hashed into the manifest as found (``files``, and ``prompts`` with
 each template's slots).
 """
@@ -17,7 +18,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.prompt import MODES, PromptTemplate
 from edge.core.recording import DATASET_INDEX
 from edge.sim.catalogue import DATASETS
-from edge.tools.record import record_dataset
+from edge.tools.record import DEFAULT_TRANSPORT, record_dataset
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, Normaliser, PressSet, load_presses, training_data
 from train.export import (
@@ -41,7 +42,7 @@ from train.export import (
     parity,
 )
 from train.manifest import versions, write_manifest
-from train.model import ModelConfig
+from train.model import PAPER, ModelConfig
 from train.trainer import Progress, TrainConfig, embed, train
 
 log = logging.getLogger(__name__)
@@ -62,6 +63,7 @@ class ReleaseConfig:
     threads: int = 1
     beta: bool = True  # also train the beta-VAE for the comparison table
     zeros: bool = True  # also train the VQ-VAE with the zero-input decoder (comparison)
+    paper: bool = True  # also train the paper's configuration (model.PAPER) (comparison)
     workers: int | None = None  # recorder processes
 
     def command(self) -> str:
@@ -72,6 +74,8 @@ class ReleaseConfig:
             parts.append("--no-beta")
         if not self.zeros:
             parts.append("--no-zeros")
+        if not self.paper:
+            parts.append("--no-paper")
         return " ".join(parts)
 
 
@@ -81,6 +85,8 @@ def _same_classes(meta: dict[str, Any], dataset: str) -> bool:
     descriptions, per-class thresholds): anything else means recording again."""
     if not meta.get("recorder"):
         return False  # an older recorder's data: another press protocol
+    if meta.get("transport") != asdict(DEFAULT_TRANSPORT):
+        return False  # pressed with another stop latency than the daemon's today
     have = meta.get("classes", [])
     if [(c.get("label"), c.get("split"), c.get("description")) for c in have] != [
             (o.name, o.split, o.description) for o in DATASETS[dataset]]:
@@ -144,7 +150,7 @@ def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
         "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
         "normalisation": "inside the graph: (x - mean) / std, per channel, training stats",
         "mean": norm.mean.tolist(), "std": norm.std.tolist(),
-        "outputs": {"z": ["batch", 4], "code": ["batch"]},
+        "outputs": {"z": ["batch", model.latent], "code": ["batch"]},
         "embedding_dim": model.latent,
         "codebook_size": model.codebook_size,
         "window": {k: getattr(DEFAULT_WINDOW, k) for k in
@@ -170,6 +176,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
                        threads=cfg.threads)
     vq = train(data, base, work / "vq", progress)
+    paper = train(data, replace(base, model=ModelConfig(**PAPER)), work / "vq_paper",
+                  progress) if cfg.paper else None
     zeros = train(data, replace(base, model=ModelConfig(decoder="zeros")), work / "vq_zeros",
                   progress) if cfg.zeros else None
     beta = train(data, replace(base, model=ModelConfig(variant="beta")), work / "beta",
@@ -193,6 +201,10 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     codebook = codebook_of(onnx_bytes)
     embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
         "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
+    if paper is not None:
+        assert paper.model.quantiser is not None
+        embedders["vq_paper"] = ((lambda x: embed(paper.model, paper.norm, x)),
+                                 paper.model.quantiser.codebook.detach().numpy().copy())
     if zeros is not None:
         assert zeros.model.quantiser is not None
         embedders["vq_zeros"] = ((lambda x: embed(zeros.model, zeros.norm, x)),
@@ -212,6 +224,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     metrics = evaluate.summary_metrics(report) | {
         "vq_epochs": vq.epochs, "vq_best_epoch": vq.best_epoch,
         "vq_best_val_loss": vq.best_val,
+        "vq_paper_best_epoch": paper.best_epoch if paper else None,
+        "vq_paper_best_val_loss": paper.best_val if paper else None,
         "vq_zeros_best_epoch": zeros.best_epoch if zeros else None,
         "vq_zeros_best_val_loss": zeros.best_val if zeros else None,
         "beta_best_epoch": beta.best_epoch if beta else None,
@@ -220,6 +234,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "codes_used_by_references": len(np.unique(db.code)),
     }
     timings |= {"record_s": t_rec, "recordings_reused": reused, "train_vq_s": vq.seconds,
+                "train_vq_paper_s": paper.seconds if paper else None,
                 "train_vq_zeros_s": zeros.seconds if zeros else None,
                 "train_beta_s": beta.seconds if beta else None,
                 "release_s": time.perf_counter() - started}
@@ -235,6 +250,8 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                         "recorder": ref_index["recorder"], "press": ref_index["press"],
                         "transport": ref_index["transport"]},
             "vq": {"config": vq.config.to_dict(), "result": vq.summary()},
+            "vq_paper": {"config": paper.config.to_dict(), "result": paper.summary()}
+            if paper else None,
             "vq_zeros": {"config": zeros.config.to_dict(), "result": zeros.summary()}
             if zeros else None,
             "beta": {"config": beta.config.to_dict(), "result": beta.summary()} if beta else None,

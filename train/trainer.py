@@ -123,7 +123,8 @@ def _evaluate(model: TactileAutoencoder, data: Samples, batch: int = 2048) -> di
     with torch.no_grad():
         for i in range(0, len(data), batch):
             x = torch.from_numpy(data.x[i:i + batch])
-            out = model(x, torch.from_numpy(data.x_bar[i:i + batch]))
+            out = model(x, torch.from_numpy(data.x_bar[i:i + batch]),
+                        torch.from_numpy(data.label_index[i:i + batch]))
             for key, value in out.losses.items():
                 totals[key] = totals.get(key, 0.0) + float(value) * x.shape[0]
     return {key: value / len(data) for key, value in totals.items()}
@@ -187,6 +188,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
     classes = {"train": list(data.splits.train), "val": list(data.splits.val)}
     x_all = torch.from_numpy(data.train.x)
     xb_all = torch.from_numpy(data.train.x_bar)
+    labels_all = torch.from_numpy(data.train.label_index)
 
     best_val, best_epoch, best_state, wait = float("inf"), 0, None, 0
     history: list[dict[str, Any]] = []
@@ -203,7 +205,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
         z_pool = []
         for idx in _batches(len(data.train), config.batch_size, rng):
             ti = torch.from_numpy(idx)
-            out_b = model(x_all[ti], xb_all[ti])
+            out_b = model(x_all[ti], xb_all[ti], labels_all[ti])
             optimiser.zero_grad(set_to_none=True)
             out_b.losses["loss"].backward()
             if config.grad_clip:

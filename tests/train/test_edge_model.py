@@ -14,9 +14,9 @@ def test_load_encode_topk_describe(released, cube_dir):
     model = load_model(released)
     x = load_presses(cube_dir).inputs(0)
     z, code = model.encode(x[0])
-    assert z.shape == (4,) and z.dtype == np.float32 and isinstance(code, int)
+    assert z.shape == (16,) and z.dtype == np.float32 and isinstance(code, int)
     zb, codes = model.encode(x)
-    assert zb.shape == (len(x), 4) and codes.shape == (len(x),)
+    assert zb.shape == (len(x), 16) and codes.shape == (len(x),)
     np.testing.assert_allclose(zb[0], z, atol=1e-6)
     top = model.topk(z, k=3)
     assert len(top) == 3 and len({lab for lab, _ in top}) == 3

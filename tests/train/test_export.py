@@ -26,7 +26,7 @@ def test_onnx_matches_torch_batch_1_and_7_random_and_real(trained, data, cube_di
         x = real[:batch]
         z, code = session(x)
         zt, ct = wrapper(torch.from_numpy(x))
-        assert z.shape == (batch, 4) and code.shape == (batch,)
+        assert z.shape == (batch, trained.config.model.latent) and code.shape == (batch,)
         assert np.abs(z - zt.detach().numpy()).max() < PARITY_BOUND
         np.testing.assert_array_equal(code, ct.numpy())
 

@@ -1,7 +1,7 @@
 import numpy as np
 import torch
 
-from train.model import ModelConfig, TactileAutoencoder
+from train.model import METRIC_MARGIN, PAPER, ModelConfig, TactileAutoencoder, metric_loss
 from train.trainer import Progress, TrainConfig, load_checkpoint, save_checkpoint, train
 
 
@@ -44,7 +44,7 @@ def test_straight_through_and_shapes():
     model = TactileAutoencoder(ModelConfig())
     x = torch.randn(3, 25, 96)
     out = model(x, x)
-    assert out.x_hat.shape == (3, 25, 96) and out.z.shape == (3, 4)
+    assert out.x_hat.shape == (3, 25, 96) and out.z.shape == (3, 16)
     assert out.code.shape == (3,)
     assert torch.allclose(out.z_q, model.quantiser.codebook[out.code])
     out.losses["loss"].backward()
@@ -57,7 +57,7 @@ def test_dead_codes_are_revived():
     model = TactileAutoencoder(ModelConfig())
     usage = torch.zeros(32, dtype=torch.long)
     usage[0] = 5
-    pool = torch.randn(10, 4) * 3
+    pool = torch.randn(10, 16) * 3
     moved = model.revive(usage, pool, torch.Generator().manual_seed(0))
     assert moved == 31
     d = torch.cdist(model.quantiser.codebook.detach()[1:], pool).min(1).values
@@ -72,7 +72,7 @@ def test_checkpoint_is_written_atomically(data, tmp_path, trained):
 
 def test_papers_decoder_reads_z_and_the_shifted_input():
     torch.manual_seed(0)
-    model = TactileAutoencoder(ModelConfig()).eval()
+    model = TactileAutoencoder(ModelConfig(**PAPER)).eval()
     dec = model.decoder
     assert dec.kind == "teacher" and dec.gru.input_size == 96 and dec.init.in_features == 4
     z = torch.randn(2, 4)
@@ -99,7 +99,7 @@ def test_zero_input_decoder_is_a_named_variant_and_old_checkpoints_load(data, tm
     cfg = ModelConfig(decoder="zeros")
     model = TactileAutoencoder(cfg).eval()
     assert model.decoder.gru.input_size == 1
-    z = torch.randn(2, 4)
+    z = torch.randn(2, 16)
     # Its output does not depend on X at all.
     assert torch.equal(model.decoder(z, torch.randn(2, 25, 96)),
                        model.decoder(z, torch.randn(2, 25, 96)))
@@ -114,3 +114,25 @@ def test_zero_input_decoder_is_a_named_variant_and_old_checkpoints_load(data, tm
     import pytest
     with pytest.raises(ValueError, match="decoder must be one of teacher, zeros"):
         ModelConfig(decoder="lstm")
+
+
+def test_metric_term_is_zero_once_classes_lie_a_margin_apart_and_pulls_otherwise():
+    labels = torch.tensor([0, 0, 1, 1])
+    apart = torch.tensor([[0.0, 0.0], [0.1, 0.0], [5.0, 0.0], [5.1, 0.0]])
+    assert float(metric_loss(apart, labels)) == 0.0
+    # Each sample's farthest own-class sample 0.1 away, nearest other class 0.5 - 0.1 away.
+    close = torch.tensor([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0], [0.6, 0.0]])
+    loss = metric_loss(close, labels)
+    expected = np.mean([0.1 - 0.5 + METRIC_MARGIN, 0.1 - 0.4 + METRIC_MARGIN,
+                        0.1 - 0.4 + METRIC_MARGIN, 0.1 - 0.5 + METRIC_MARGIN])
+    assert abs(float(loss) - expected) < 1e-6
+    # One class in the batch (no negative): nothing to pull apart.
+    assert float(metric_loss(close, torch.zeros(4, dtype=torch.long))) == 0.0
+    # The paper's configuration has no metric term; a checkpoint saved before it existed
+    # loads as trained (without one).
+    assert ModelConfig(**PAPER).metric == 0.0 and ModelConfig(**PAPER).latent == 4
+    assert ModelConfig.from_dict({"variant": "vq", "decoder": "teacher"}).metric == 0.0
+    model = TactileAutoencoder(ModelConfig())
+    x = torch.randn(4, 25, 96)
+    with_labels = model(x, x, labels).losses
+    assert "metric" in with_labels and "metric" not in model(x, x).losses
