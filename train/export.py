@@ -2,7 +2,7 @@
 
 The graph takes ``x`` (batch, 25, channels) float32 in *tactile units* and normalises it inside
 (``(x - mean) / std``, the training statistics as constants), then runs the bidirectional GRU
-encoder and the nearest-code search: outputs ``z`` (batch, 4) float32 and ``code`` (batch,)
+encoder and the nearest-code search: outputs ``z`` (batch, latent) float32 and ``code`` (batch,)
 int64. The robot feeds :func:`edge.core.preprocess.model_input` straight in.
 
 Exporter: the TorchScript exporter (``dynamo=False``, opset 17) emits the native ONNX ``GRU``

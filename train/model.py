@@ -26,7 +26,7 @@ without using z at all. A Linear(32 -> 96) per step reconstructs the normalised 
 
 Variant ``decoder="zeros"`` (this project's earlier decoder, kept for the comparison): the
 initial state is tanh(Linear(z)) and the GRU's inputs are zeros, so the whole press has to
-pass through the 4 numbers of the bottleneck.
+pass through the bottleneck.
 
 Loss = MSE(X_hat, X_bar) + codebook + commitment (VQ) or + beta_kl * KL / (T * C) (beta-VAE:
 the KL summed over latent dims, scaled like a per-element likelihood), + metric * the metric

@@ -5,6 +5,7 @@ import sys
 import numpy as np
 
 from train import evaluate
+from train.model import PAPER
 from train.release import ReleaseConfig, release
 from train.trainer import Progress
 
@@ -31,9 +32,13 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert set(manifest["files"]) == {"encoder.onnx", "database.npz", "database.json"}
     m = manifest["metrics"]
     assert 0.0 <= m["kiri_mochi_auc"] <= 1.0
-    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "vq_zeros/z", "vq_zeros/z_q", "beta/z",
-                                    "baseline/z"}
+    assert set(m["comparison"]) == {"vq/z", "vq/z_q", "vq_paper/z", "vq_paper/z_q",
+                                    "vq_zeros/z", "vq_zeros/z_q", "beta/z", "baseline/z"}
     assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
+    # The paper's configuration is trained and measured beside the shipped one.
+    assert manifest["training"]["vq"]["config"]["model"] | PAPER \
+        == manifest["training"]["vq_paper"]["config"]["model"]
+    assert manifest["encoder"]["outputs"]["z"] == ["batch", 16]
     assert manifest["training"]["vq_zeros"]["config"]["model"]["decoder"] == "zeros"
     assert manifest["database"]["references"] == 32 * PRESSES * 5
     assert manifest["database"]["offsets"] == [0, 1, 2, 3, 4]
@@ -42,11 +47,12 @@ def test_release_writes_model_eval_files_and_manifest(released):
     assert manifest["origin"] == {"kind": "emulated", "robot": None, "sensor": None,
                                   "recorder": manifest["training"]["dataset"]["recorder"]}
     report = json.loads((released / "eval" / "eval.json").read_text())
-    assert len(report["rows"]) == 6
+    assert len(report["rows"]) == 8
     assert report["references"] == 32 * PRESSES * 5 and report["query_offset"] == 0
     md = (released / "eval" / "eval.md").read_text()
     assert "| vq | z |" in md and "| vq_zeros | z |" in md and "| baseline | z |" in md
     assert "## The encoder against the trivial baseline" in md
+    assert "## The shipped configuration against the paper's" in md
     base = next(r for r in report["rows"] if r["variant"] == "baseline")
     assert set(base["unseen_neighbours"]) == set(report["unseen_classes"])
     assert "`vq`: VQ-VAE, the paper's decoder" in md
