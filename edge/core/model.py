@@ -7,8 +7,8 @@ numpy + onnxruntime only (never torch). A model directory holds:
   units* (``(raw - tare) / 65536``, exactly what :func:`edge.core.preprocess.model_input`
   returns). The per-channel normalisation computed on the training data is the first operation
   *inside* the graph, so the robot never applies it by hand and can never apply the wrong one.
-  Outputs ``z`` (batch, 4) float32, the continuous embedding, and ``code`` (batch,) int64, the
-  index of the nearest codebook vector.
+  Outputs ``z`` (batch, D) float32 (D = 16 as shipped), the continuous embedding, and
+  ``code`` (batch,) int64, the index of the nearest codebook vector.
 - ``database.npz`` (numpy arrays, loaded with ``allow_pickle=False``) and ``database.json``
   (labels, their descriptions, the retrieval settings): the embeddings of every reference
   sample, grouped by class: every subsampling offset of every reference press (the paper's
