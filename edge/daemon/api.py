@@ -39,10 +39,10 @@ from edge.core.errors import (
     NotFoundError,
     StateError,
 )
-from edge.core.images import check_image
 from edge.daemon.episode import Episode
 from edge.daemon.events import Subscription
 from edge.daemon.webui import OperatorPage
+from edge.vlm.images import check_image
 
 if TYPE_CHECKING:
     from edge.core.config import Config

@@ -31,7 +31,6 @@ from edge import __version__
 from edge.core.config import Config
 from edge.core.errors import BusyError, EdgeError
 from edge.core.model import ModelRef
-from edge.core.vlm import VLMClient
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.episode import Episode
 from edge.daemon.events import EventBus, Subscription
@@ -44,6 +43,7 @@ from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
 from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
 from edge.hw.dynamixel import DynamixelBus
+from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

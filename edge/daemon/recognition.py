@@ -30,9 +30,7 @@ from edge.core.errors import (
     StoreError,
     VLMUnavailableError,
 )
-from edge.core.images import VLMImage
 from edge.core.model import ModelRef
-from edge.core.vlm import VLMClient
 from edge.daemon.compute import Analysis, ComputeWorker, analyse_press
 from edge.daemon.episode import Episode, Neighbour, Status
 from edge.daemon.events import EventBus
@@ -41,6 +39,8 @@ from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.startcheck import needs_photo
 from edge.daemon.store import EpisodeStore, new_id
 from edge.hw.contracts import Camera
+from edge.vlm.client import VLMClient
+from edge.vlm.images import VLMImage
 
 log = logging.getLogger(__name__)
 

@@ -90,7 +90,7 @@ def vlm_config(cfg: Config):
 
 def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
     """The configured VLM client; with ``compute``, images are prepared in that process."""
-    from edge.core.vlm import make_vlm as _make
+    from edge.vlm.client import make_vlm as _make
 
     return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 

@@ -42,9 +42,7 @@ from edge.core.errors import (
     SensorLayoutError,
     VLMHTTPError,
 )
-from edge.core.images import check_image
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
-from edge.core.vlm import OpenAIVLM, _is_loopback, load_api_key
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
@@ -67,6 +65,8 @@ from edge.hw.dynamixel import (
 )
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.tools.calibrate import NOISE_FLOOR_FACTOR
+from edge.vlm.client import OpenAIVLM, _is_loopback, load_api_key
+from edge.vlm.images import check_image
 
 log = logging.getLogger(__name__)
 

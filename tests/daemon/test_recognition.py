@@ -18,7 +18,6 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.core.model import model_ref
-from edge.core.vlm import VLMAnswer
 from edge.daemon.episode import Status
 from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
@@ -26,6 +25,7 @@ from edge.daemon.press import PressOutcome
 from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import Window
 from edge.daemon.store import EpisodeStore
+from edge.vlm.client import VLMAnswer
 from tests.support.daemon import ROOT
 from tests.support.fakes import FakeCamera
 from tests.support.presses import recording_of

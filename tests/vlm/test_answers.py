@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.core.vlm import (
+from edge.vlm.client import (
     MAX_ANSWER_CHARS,
     backoff_delay,
     match_label,

@@ -37,10 +37,9 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.figures import figure, finish, ratio_figure, stats, target
 from edge.core.progress import Progress
-from edge.core.results import PhaseResult, progress
 from edge.tools.bench.controllers import RecordingController, TickedController
+from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
 from edge.tools.bench.probes import (
@@ -52,6 +51,7 @@ from edge.tools.bench.probes import (
     stop_parts,
 )
 from edge.tools.bench.report import READING, load_text
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import (
     CONTROLLER_TEXT,
     CONTROLLERS,
@@ -298,8 +298,8 @@ class RuntimeBench:
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
         from edge.core.errors import EdgeError
-        from edge.core.vlm import OpenAIVLM
         from edge.daemon.serve import vlm_config
+        from edge.vlm.client import OpenAIVLM
 
         s = self.s
         runtime = self.runtime

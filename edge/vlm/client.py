@@ -64,8 +64,8 @@ from edge.core.errors import (
     VLMTimeoutError,
     VLMUnavailableError,
 )
-from edge.core.images import PreparedImage, VLMImage, prepare_for_vlm
-from edge.core.prompt import (
+from edge.vlm.images import PreparedImage, VLMImage, prepare_for_vlm
+from edge.vlm.prompt import (
     PromptMode,
     PromptTemplate,
     check_candidates,
