@@ -41,8 +41,7 @@ from edge.daemon.sensor import FrameRing, Sampler, SensorTask
 from edge.daemon.services import optional_services
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
-from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
-from edge.hw.dynamixel import DynamixelBus
+from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
 from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
@@ -69,7 +68,7 @@ class Devices:
     arm: Arm
     camera: Camera | None = None
     button: Button | None = None
-    bus: DynamixelBus | None = None  # closed (safe pose, torque off) by the caller
+    bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
@@ -170,7 +169,8 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
-        bus_error = getattr(self.devices.bus, "fault", None)
+        bus = self.devices.bus
+        bus_error = bus.fault if bus is not None else None
         store_error = self.store.space_error()
         vlm_error = getattr(self.vlm, "unreachable", None)
         sensor_error = self.sensor_error
@@ -179,7 +179,7 @@ class Runtime:
                 "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
                 "store_error": store_error, "sensor_error": sensor_error,
                 "vlm_error": vlm_error,
-                "torque_on": getattr(self.devices.bus, "torque_on", None),
+                "torque_on": bus.torque_on if bus is not None else None,
                 "state": self.press.state, "episode": self.recognizer.current,
                 "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
                 # Which model answers: changes when a reload took a new model or database.

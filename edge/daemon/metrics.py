@@ -5,6 +5,8 @@ from __future__ import annotations
 import bisect
 from typing import Any
 
+from edge.hw.contracts import BusStatus
+
 
 class Histogram:
     def __init__(self, buckets: tuple[float, ...]) -> None:
@@ -50,9 +52,10 @@ class Metrics:
         if structured_output is not None:
             self.vlm_answers[structured_output] = self.vlm_answers.get(structured_output, 0) + 1
 
-    def render(self, st: Any, sensor: Any, bus: Any = None, vlm: Any = None) -> str:
+    def render(self, st: Any, sensor: Any, bus: BusStatus | None = None,
+               vlm: Any = None) -> str:
         """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
-        frame and stale counts, with a Dynamixel ``bus`` its stops, and whether the ``vlm``
+        frame and stale counts, with a motor ``bus`` its stops, and whether the ``vlm``
         client reaches its server."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
@@ -98,7 +101,7 @@ class Metrics:
             "# TYPE vtzero_loop_lag_max_seconds gauge",
             f"vtzero_loop_lag_max_seconds {st.max_late_s:.6f}",
         ]
-        if bus is not None and hasattr(bus, "stop_fallbacks"):
+        if bus is not None:
             lines += [
                 "# HELP vtzero_stops_total Stops sent to the gripper.",
                 "# TYPE vtzero_stops_total counter",

@@ -314,6 +314,10 @@ class XelaClient:
         # press's path, which never reads them.
         self.newtons = False
 
+    def set_frame_hook(self, hook: Callable[[TactileFrame], Awaitable[None]] | None) -> bool:
+        self.on_frame = hook
+        return True
+
     @property
     def connected(self) -> bool:
         return self._connected

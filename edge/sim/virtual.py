@@ -34,7 +34,7 @@ from edge.core.config import Config
 from edge.core.errors import DeviceError
 from edge.core.layout import PadLayout
 from edge.hw.arm import DynamixelArm, DynamixelGripper
-from edge.hw.contracts import StreamStats, TactileFrame
+from edge.hw.contracts import FrameHook, StreamStats, TactileFrame
 from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import SkinDraw
@@ -219,6 +219,9 @@ class VirtualTactileSource:
     async def __aexit__(self, exc_type: type[BaseException] | None,
                         exc: BaseException | None, tb: TracebackType | None) -> None:
         await self.close()
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        return False  # no queue to skip: each frame goes straight to frames()
 
     def is_fresh(self) -> bool:
         loop = asyncio.get_running_loop()
