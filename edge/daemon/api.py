@@ -17,7 +17,6 @@ import contextlib
 import hmac
 import json
 import logging
-import os
 import weakref
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -93,8 +92,8 @@ class Runtime(Protocol):
 
 
 def load_token(cfg: ApiConfig) -> str:
-    """The bearer token from the config, its file, or ``$VTZERO_API_TOKEN``."""
-    token = cfg.token or os.environ.get("VTZERO_API_TOKEN", "")
+    """The bearer token from the config (``$VTZERO_API_TOKEN`` applied) or its file."""
+    token = cfg.token
     if cfg.token_file:
         try:
             token = Path(cfg.token_file).read_text(encoding="utf-8").strip()

@@ -46,7 +46,7 @@ from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, 
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
-from edge.daemon.serve import state_dir, vlm_config
+from edge.daemon.serve import vlm_config
 from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
@@ -153,7 +153,7 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
                      noise_window_s: float = NOISE_WINDOW_S) -> Report:
     """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side."""
     started = time.monotonic()
-    state = state_dir(cfg)
+    state = Path(cfg.runtime.state_dir)
     vlm, vlm_checks = _vlm_client(cfg)
     needs_photo = vlm is not None and vlm.template.uses_image
     try:
