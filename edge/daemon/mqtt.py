@@ -28,7 +28,6 @@ import collections
 import contextlib
 import json
 import logging
-import random
 import re
 import socket
 import ssl
@@ -37,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
 from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
 from edge.daemon.api import BadRequest, validate_candidates
@@ -51,6 +51,8 @@ HEALTH_CHECK_S = 1.0
 HEALTH_REFRESH_S = 60.0
 # Episodes remembered (request ids, results already published).
 REMEMBERED = 1000
+# Each reconnect waits 0.8 to 1.2 times the backoff: robots sharing a broker come back apart.
+RECONNECT_SPREAD = (0.8, 1.2)
 _HEALTH_KEYS = ("ok", "ready", "sensor_fresh", "bus_error", "store_error", "sensor_error",
                 "vlm_error")
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
@@ -133,7 +135,8 @@ class MqttBridge:
         password = await asyncio.to_thread(_password, self.cfg)
         tls = _tls(self.cfg)
         pump = asyncio.create_task(self._pump(), name="mqtt-events")
-        delay = self.cfg.reconnect_base_s
+        backoff = Backoff(self.cfg.reconnect_base_s, self.cfg.reconnect_max_backoff_s,
+                          RECONNECT_SPREAD)
         try:
             while True:
                 import aiomqtt
@@ -143,12 +146,11 @@ class MqttBridge:
                 except aiomqtt.MqttError as exc:
                     level = logging.WARNING if self.connections else logging.INFO
                     log.log(level, "MQTT broker %s:%d: %s; retrying in %.1f s", self.cfg.host,
-                            self.cfg.port, exc, delay)
+                            self.cfg.port, exc, backoff.delay_s)
                 if self.connected.is_set():
                     self.connected.clear()
-                    delay = self.cfg.reconnect_base_s  # it was up: start again from the base
-                await asyncio.sleep(delay * random.uniform(0.8, 1.2))
-                delay = min(delay * 2, self.cfg.reconnect_max_backoff_s)
+                    backoff.reset()  # it was up: start again from the base
+                await asyncio.sleep(backoff.next_s())
         finally:
             pump.cancel()
             with contextlib.suppress(asyncio.CancelledError):
