@@ -3,9 +3,9 @@ one press and the daemon's health.
 
 Each crosses a boundary as JSON (the API, MQTT, the store, MCAP and ROS 2 exports, the
 operator page); the enums' values are the strings on the wire, and ``to_json`` gives the
-documented form. A consumer reads the fields, never a key spelt out, so a renamed field fails
-where it is read (a consumer that takes a subset names its keys with
-:meth:`PressSummary.keys`, which refuses an unknown one at import).
+documented form. A consumer reads the fields; one that passes on a subset of the JSON names
+its keys with :meth:`PressSummary.keys`, which refuses an unknown one at import. Either way a
+renamed field fails where it is read, not in a client far away.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class PressSummary:
          "contact": bool,                 # result == "ok"
          "t_cross": float | null,         # receive time of the first frame over x_th (s)
          "t_stop": float | null,          # when the stop write went out (s)
-         "stop_latency_ms": float | null, # t_stop - t_cross
+         "stop_latency_ms": float | null, # t_stop - t_cross, in ms
          "peak_level": float,             # the highest norm over the tare
          "level_at_cross": float,         # the norm of the frame that crossed x_th
          "peak_squeeze_ma": float | null, # the highest gripper current traced
