@@ -40,6 +40,7 @@ from edge.core.errors import (
 )
 from edge.daemon.episode import Episode
 from edge.daemon.events import Subscription
+from edge.daemon.state import Health
 from edge.daemon.webui import OperatorPage
 from edge.vlm.images import check_image
 
@@ -77,7 +78,7 @@ class Runtime(Protocol):
 
     def subscribe(self) -> AbstractContextManager[Subscription]: ...
 
-    def health(self) -> dict[str, Any]: ...
+    def health(self) -> Health: ...
 
     def metrics_text(self) -> str: ...
 
@@ -366,7 +367,7 @@ class Api:
 
     async def healthz(self, request: web.Request) -> web.Response:
         health = self.runtime.health()
-        return web.json_response(health, status=200 if health.get("ok") else 503)
+        return web.json_response(health.to_json(), status=200 if health.ok else 503)
 
     async def metrics(self, request: web.Request) -> web.Response:
         return web.Response(text=self.runtime.metrics_text(),

@@ -39,6 +39,7 @@ from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import FrameRing, Sampler, SensorTask
 from edge.daemon.services import optional_services
+from edge.daemon.state import Health, PressState
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
 from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
@@ -166,7 +167,7 @@ class Runtime:
         fatal = self.sensor.fatal
         return str(fatal) if fatal is not None else self._no_stream
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> Health:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
         bus = self.devices.bus
@@ -174,17 +175,18 @@ class Runtime:
         store_error = self.store.space_error()
         vlm_error = getattr(self.vlm, "unreachable", None)
         sensor_error = self.sensor_error
-        return {"ok": (self.ready.is_set() and fresh and bus_error is None and not store_error
-                       and sensor_error is None and vlm_error is None),
-                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
-                "store_error": store_error, "sensor_error": sensor_error,
-                "vlm_error": vlm_error,
-                "torque_on": bus.torque_on if bus is not None else None,
-                "state": self.press.state, "episode": self.recognizer.current,
-                "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
-                # Which model answers: changes when a reload took a new model or database.
-                "model_digest": self.model.digest,
-                "version": __version__}
+        return Health(ok=(self.ready.is_set() and fresh and bus_error is None and not store_error
+                          and sensor_error is None and vlm_error is None),
+                      ready=self.ready.is_set(), sensor_fresh=fresh, bus_error=bus_error,
+                      store_error=store_error, sensor_error=sensor_error,
+                      vlm_error=vlm_error,
+                      torque_on=bus.torque_on if bus is not None else None,
+                      state=self.press.state, episode=self.recognizer.current,
+                      last_frame_age_s=None if not np.isfinite(age) else round(age, 4),
+                      # Which model answers: changes when a reload took a new model or
+                      # database.
+                      model_digest=self.model.digest,
+                      version=__version__)
 
     def metrics_text(self) -> str:
         return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm)
@@ -193,7 +195,7 @@ class Runtime:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
         return await self.compute.run(fn, *args)
 
-    def _on_press_state(self, state: str) -> None:
+    def _on_press_state(self, state: PressState) -> None:
         self.events.publish({"type": "state", "state": state,
                              "episode": self.recognizer.current})
 

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import bisect
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from edge.daemon.state import PressResult
 from edge.hw.contracts import BusStatus
+
+if TYPE_CHECKING:
+    from edge.daemon.press import PressOutcome
 
 
 class Histogram:
@@ -36,13 +40,13 @@ class Metrics:
     def __init__(self) -> None:
         self.vlm_errors = 0
         self.discarded_partial = 0
-        self.presses: dict[str, int] = {}
+        self.presses: dict[PressResult, int] = {}
         self.stop_latency = Histogram((0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05))
         self.vlm_latency = Histogram((0.25, 0.5, 1, 2, 5, 10, 30, 60))
         # Answers by the structured-output mode that answered.
         self.vlm_answers: dict[str, int] = {}
 
-    def observe_press(self, outcome: Any) -> None:
+    def observe_press(self, outcome: PressOutcome) -> None:
         self.presses[outcome.result] = self.presses.get(outcome.result, 0) + 1
         if outcome.stop_latency_s is not None:
             self.stop_latency.observe(outcome.stop_latency_s)
@@ -61,7 +65,7 @@ class Metrics:
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
         ]
-        for result in sorted(self.presses) or ["ok"]:
+        for result in sorted(self.presses) or [PressResult.OK]:
             lines.append(f'vtzero_presses_total{{result="{result}"}} '
                          f"{self.presses.get(result, 0)}")
         lines += self.stop_latency.render(

@@ -40,6 +40,7 @@ from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
 from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
 from edge.daemon.api import BadRequest, validate_candidates
+from edge.daemon.state import Health, PressSummary
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +54,11 @@ HEALTH_REFRESH_S = 60.0
 REMEMBERED = 1000
 # Each reconnect waits 0.8 to 1.2 times the backoff: robots sharing a broker come back apart.
 RECONNECT_SPREAD = (0.8, 1.2)
-_HEALTH_KEYS = ("ok", "ready", "sensor_fresh", "bus_error", "store_error", "sensor_error",
-                "vlm_error")
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
 # Statuses that are not an episode's outcome yet.
 _NOT_FINAL = {"pending", "running", "accepted"}
+# What of the press a result carries.
+_RESULT_PRESS = PressSummary.keys("result", "message", "stop_latency_ms")
 
 
 class CommandError(EdgeError, ValueError):
@@ -70,6 +71,13 @@ class Outgoing:
     payload: bytes
     retain: bool = False
     result: bool = False  # a result (kept before press states when the outbox is full)
+
+
+def _health_key(health: Health) -> tuple[object, ...]:
+    """The part of the health published as soon as it changes: the verdict and its reasons
+    (not the frame's age, which changes at every check)."""
+    return (health.ok, health.ready, health.sensor_fresh, health.bus_error, health.store_error,
+            health.sensor_error, health.vlm_error)
 
 
 def topic_safe(name: str) -> str:
@@ -220,10 +228,10 @@ class MqttBridge:
         sent = 0.0
         while True:
             health = self.runtime.health()
-            key = tuple(health.get(k) for k in _HEALTH_KEYS)
+            key = _health_key(health)
             if key != last or time.monotonic() - sent >= HEALTH_REFRESH_S:
                 payload = json.dumps({"status": "online", "client_id": self.client_id,
-                                      **health}, default=str).encode()
+                                      **health.to_json()}, default=str).encode()
                 await client.publish(self.topic("health"), payload, qos=1, retain=True,
                                      timeout=self.cfg.publish_timeout_s)
                 last, sent = key, time.monotonic()
@@ -280,8 +288,7 @@ class MqttBridge:
             "candidates": episode.get("candidates"), "topk": episode.get("topk"),
             "description": episode.get("description"), "timings": episode.get("timings"),
             "source": episode.get("source"),
-            "press": {k: (episode.get("press") or {}).get(k)
-                      for k in ("result", "message", "stop_latency_ms")},
+            "press": {k: (episode.get("press") or {}).get(k) for k in _RESULT_PRESS},
         }, result=True)
 
     # --- commands ---------------------------------------------------------------------

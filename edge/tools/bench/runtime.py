@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from edge.core.progress import Progress
+from edge.daemon.state import PressState
 from edge.tools.bench.controllers import RecordingController, TickedController
 from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
@@ -218,9 +219,9 @@ class RuntimeBench:
         rec = PressRecord(phase, name, obj, marker, outcome.result, t_trigger,
                           message=outcome.message, realtime=self.realtime.active)
         states = dict(outcome.states)
-        if "above" in states and "idle" in states:
-            rec.press_s = states["idle"] - states["above"]
-            rec.pre_press_ms = 1e3 * (states["above"] - t_trigger)
+        if PressState.ABOVE in states and PressState.IDLE in states:
+            rec.press_s = states[PressState.IDLE] - states[PressState.ABOVE]
+            rec.pre_press_ms = 1e3 * (states[PressState.ABOVE] - t_trigger)
         if outcome.stop_latency_s is not None:
             rec.controller_latency_ms = 1e3 * outcome.stop_latency_s
         crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
