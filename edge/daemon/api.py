@@ -46,7 +46,7 @@ from edge.daemon.webui import OperatorPage
 
 if TYPE_CHECKING:
     from edge.core.config import Config
-    from edge.daemon.sensor import FrameRing
+    from edge.daemon.ring import FrameRing
     from edge.daemon.store import EpisodeStore
 
 log = logging.getLogger(__name__)

@@ -38,7 +38,8 @@ from edge.daemon.events import EventBus, Subscription
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler, SensorTask
 from edge.daemon.services import optional_services
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s

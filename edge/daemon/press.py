@@ -27,7 +27,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.core.layout import PadLayout
-from edge.daemon.sensor import FrameRing, Window
+from edge.daemon.ring import FrameRing, Window
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT

@@ -30,7 +30,8 @@ from edge.core.config import Config
 from edge.core.errors import ConfigError, EdgeError
 from edge.core.layout import PadLayout
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
-from edge.daemon.sensor import FrameRing, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SensorTask
 from edge.tools import dataset
 from edge.tools.plan import Plan, PlanClass, plan_of_one
 from edge.tools.prompt import NO_PROMPT, Prompt, ask, read_line

@@ -14,7 +14,7 @@ from edge.core import preprocess
 from edge.core.config import Config
 from edge.core.errors import DeviceError, StaleSensorError
 from edge.daemon.press import OPEN_TRIES, PressController, PressOutcome
-from edge.daemon.sensor import FrameRing
+from edge.daemon.ring import FrameRing
 from tests.support.fakes import FakeArm, FakeGripper
 
 pytestmark = pytest.mark.asyncio

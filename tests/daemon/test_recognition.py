@@ -24,7 +24,7 @@ from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressOutcome
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import Window
+from edge.daemon.ring import Window
 from edge.daemon.store import EpisodeStore
 from tests.support.daemon import ROOT
 from tests.support.fakes import FakeCamera

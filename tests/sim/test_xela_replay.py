@@ -22,7 +22,8 @@ import pytest
 from edge.core import recording
 from edge.core.config import SensorConfig
 from edge.core.errors import RecordingError, StaleSensorError
-from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler, SensorTask
 from edge.hw.contracts import TactileFrame
 from edge.hw.xela import XelaClient
 from edge.sim.robot import SimRobot
