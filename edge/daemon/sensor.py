@@ -98,7 +98,7 @@ class SensorTask:
     A source that can run a step in its own task before queueing a frame (``on_frame``: the
     XELA client) gets the threshold check there: the stop leaves without the frame's hop
     through the source's queue to this task. Other sources (fakes, replays) are checked
-    here. ``controller`` may be replaced between presses (a benchmark compares controllers).
+    here.
     """
 
     def __init__(self, source: TactileSource, ring: FrameRing, controller: PressController,
@@ -129,7 +129,7 @@ class SensorTask:
         """The threshold check on the source's own task (see the class docstring)."""
         controller = self.controller
         try:
-            await controller.on_frame(frame.raw, frame.recv_time)
+            await controller.check(frame.raw, frame.recv_time)
         except Exception as exc:
             log.exception("threshold check failed on frame %d", frame.seq)
             controller.sensor_stale(exc)
@@ -142,7 +142,7 @@ class SensorTask:
                     self.frames += 1
                     controller = self.controller
                     if not inline:
-                        await controller.on_frame(frame.raw, frame.recv_time)
+                        await controller.check(frame.raw, frame.recv_time)
                     if controller.sensor_is_stale:
                         controller.sensor_fresh()
                         log.info("tactile stream fresh again")

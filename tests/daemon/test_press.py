@@ -60,7 +60,7 @@ class Pads:
                 self.seq += 1
                 self.ring.push(raw, now, now, self.seq)
                 if self.controller is not None:
-                    await self.controller.on_frame(raw, now)
+                    await self.controller.check(raw, now)
             await asyncio.sleep(FRAME_PERIOD_S)
 
 

@@ -119,7 +119,7 @@ async def drain(sub) -> list[dict]:
 def recognizer(tmp_path, press, vlm, compute=None, camera=None, cfg: Config | None = None):
     cfg = cfg or Config()
     events = EventBus()
-    rec = Recognizer(Recognition(cfg, MODEL, vlm), lambda: press,
+    rec = Recognizer(Recognition(cfg, MODEL, vlm), press,
                      compute or InProcessCompute(), EpisodeStore(tmp_path / "episodes"),
                      events, Metrics(), camera)
     return rec, events

@@ -217,7 +217,7 @@ class Watch:
         self.frames = 0
         self.went_stale = asyncio.Event()
 
-    async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
+    async def check(self, raw: np.ndarray, recv_time: float) -> None:
         self.frames += 1
 
     def sensor_stale(self, exc: BaseException) -> None:
