@@ -262,10 +262,11 @@ class Api:
         await self._runner.setup()
         for sock in sockets:
             await web.SockSite(self._runner, sock).start()
-        self.port = sockets[0].getsockname()[1]
-        log.info("API listening on http://%s:%s%s", self.cfg.host, self.port,
+        port: int = sockets[0].getsockname()[1]
+        self.port = port
+        log.info("API listening on http://%s:%s%s", self.cfg.host, port,
                  " (bearer token required)" if self.token else "")
-        return self.port or 0
+        return port
 
     async def _end_event_streams(self, app: web.Application) -> None:
         for task in list(self._event_streams):

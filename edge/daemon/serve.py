@@ -265,8 +265,8 @@ async def serve(cfg: Config, config_path: str | None = None,
                 devices: Devices | None = None) -> None:
     """Run the daemon until SIGTERM; ``devices`` overrides the configured ones (tests)."""
     async with assemble(cfg, config_path, devices=devices) as daemon, \
-            running(daemon) as stopped:
-        await stopped
+            running(daemon) as task:
+        await task  # until SIGTERM/SIGINT, or the error of a task that died
 
 
 def run(config_path: str) -> int:
