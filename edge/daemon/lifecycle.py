@@ -29,7 +29,7 @@ import numpy as np
 
 from edge import __version__
 from edge.core.config import Config
-from edge.core.errors import BusyError, EdgeError
+from edge.core.errors import EdgeError
 from edge.core.model import ModelRef
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.episode import Episode
@@ -37,7 +37,8 @@ from edge.daemon.events import EventBus, Subscription
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler, SensorTask
 from edge.daemon.services import optional_services
 from edge.daemon.state import Health, PressState
 from edge.daemon.store import EpisodeStore
@@ -74,12 +75,16 @@ class Devices:
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
 Reloader = Callable[[], tuple[Config, ModelRef, VLMClient]]
+# Makes the daemon's one press controller from PressController's arguments: PressController
+# itself, or a benchmark's controller (edge/tools/bench/controllers.py).
+ControllerFactory = Callable[..., PressController]
 
 
 class Runtime:
     def __init__(self, cfg: Config, devices: Devices, model: ModelRef, vlm: VLMClient,
                  store: EpisodeStore, compute: ComputeWorker,
-                 notifier: Notifier | None = None, reload: Reloader | None = None) -> None:
+                 notifier: Notifier | None = None, reload: Reloader | None = None,
+                 controller_factory: ControllerFactory = PressController) -> None:
         self.devices = devices
         self.store = store
         self.compute = compute
@@ -89,10 +94,14 @@ class Runtime:
         self.metrics = Metrics()
         self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * SAMPLE_RATE_HZ * 1.5))
         self.sampler = Sampler(self.ring, SAMPLE_RATE_HZ)
-        self.recognizer = Recognizer(Recognition(cfg, model, vlm), lambda: self.press,
-                                     compute, store, self.events, self.metrics,
-                                     devices.camera)
-        self.press = self.make_press_controller()
+        bus = devices.bus
+        # One press controller for the daemon's life: the sensor task checks every frame
+        # with it, the recognizer presses with it.
+        self.press = controller_factory(
+            cfg, devices.gripper, devices.arm, self.ring, on_state=self._on_press_state,
+            recover=bus.recover_watchdog if bus is not None else None, window=model.window)
+        self.recognizer = Recognizer(Recognition(cfg, model, vlm), self.press, compute, store,
+                                     self.events, self.metrics, devices.camera)
         self.sensor = SensorTask(devices.tactile, self.ring, self.press,
                                  on_unusable=self.notifier.status)
         self._stopping = asyncio.Event()
@@ -114,26 +123,6 @@ class Runtime:
     @property
     def vlm(self) -> VLMClient:
         return self.recognizer.setup.vlm
-
-    # --- public hooks -------------------------------------------------------------------
-    def make_press_controller(self, cls: type[PressController] = PressController,
-                              **kwargs: Any) -> PressController:
-        """A press controller on this runtime's devices, ring and events (``cls`` may be a
-        comparison controller of a benchmark)."""
-        bus = self.devices.bus
-        return cls(self.cfg, self.devices.gripper, self.devices.arm, self.ring,
-                   on_state=self._on_press_state,
-                   recover=bus.recover_watchdog if bus is not None else None,
-                   window=self.model.window, **kwargs)
-
-    def use_press_controller(self, controller: PressController) -> None:
-        """Presses from now on run with ``controller``; refused while a press runs."""
-        if self.recognizer.lock.locked():
-            raise BusyError("a press is running; swap the controller between presses")
-        if self.press.sensor_is_stale:
-            controller.sensor_stale(EdgeError("stale before the swap"))
-        self.press = controller
-        self.sensor.controller = controller
 
     # --- what the API uses --------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,

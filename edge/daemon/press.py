@@ -4,7 +4,7 @@ idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -
 
 The gripper is opened before the arm moves to ``above`` (it may have been left closed).
 
-The threshold is checked on every arriving frame by the sensor task (:meth:`on_frame`),
+The threshold is checked on every arriving frame by the sensor task (:meth:`check`),
 which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
 closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
 (``abort_factor * x_th``) opens at once (``aborted``); a stale sensor opens and fails the
@@ -26,7 +26,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.core.layout import PadLayout
-from edge.daemon.sensor import FrameRing, Window
+from edge.daemon.ring import FrameRing, Window
 from edge.daemon.state import PressResult, PressState, PressSummary
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
@@ -142,7 +142,8 @@ class PressController:
         return self._armed is not None
 
     async def check(self, raw: np.ndarray, recv_time: float) -> None:
-        """The threshold check on one frame; on the first crossing, the stop."""
+        """The threshold check on one frame; on the first crossing, the stop. The sensor task
+        calls it with every arriving frame: the fastest reaction the stream allows."""
         armed = self._armed
         if armed is None:
             return
@@ -175,11 +176,6 @@ class PressController:
         armed.checked += 1
         if armed.checked % GRIPPER_TRACE_FRAMES == 0:
             armed.trace_due.set()
-
-    # The sensor task calls this with every arriving frame: the threshold checked on each
-    # (the fastest reaction the stream allows), with no extra call on the per-frame path. A
-    # comparison controller overrides it and calls :meth:`check` less often.
-    on_frame = check
 
     def sensor_stale(self, exc: BaseException) -> None:
         self._stale.set()

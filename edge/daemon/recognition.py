@@ -62,11 +62,11 @@ class Recognition:
 
 
 class Recognizer:
-    def __init__(self, setup: Recognition, press: Callable[[], PressController],
+    def __init__(self, setup: Recognition, press: PressController,
                  compute: ComputeWorker, store: EpisodeStore, events: EventBus,
                  metrics: Metrics, camera: Camera | None = None) -> None:
         self.setup = setup
-        self._press = press  # the current controller (a benchmark may swap it)
+        self.press = press
         self.compute = compute
         self.store = store
         self.events = events
@@ -226,7 +226,7 @@ class Recognizer:
         """The press as a task that releases the lock once it has ended: the arm is back
         (or left where it stands), whatever the recognition does meanwhile."""
         try:
-            pressing = asyncio.create_task(self._press().run(window), name="press")
+            pressing = asyncio.create_task(self.press.run(window), name="press")
         except BaseException:
             self.lock.release()
             raise

@@ -80,11 +80,6 @@ class OperatorPage:
         self._static: dict[str, bytes] = {}
         self._traces: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
 
-    def attach(self, runtime: Any) -> None:
-        """The runtime to serve, once the daemon has one."""
-        self.runtime = runtime
-        self.feed.runtime = runtime
-
     def install(self, app: web.Application) -> None:
         """The routes, and the end of the live feed when the server stops (its streams
         would otherwise hold the API's shutdown)."""

@@ -34,7 +34,8 @@ from edge.core.config import Config
 from edge.core.errors import EdgeError, SensorError, SensorLayoutError, StaleSensorError
 from edge.daemon.lifecycle import Devices
 from edge.daemon.press import PressController
-from edge.daemon.sensor import SENSOR_RETRY_S, FrameRing
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SENSOR_RETRY_S
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT

@@ -30,7 +30,8 @@ from edge.core.config import Config
 from edge.core.errors import ConfigError, EdgeError
 from edge.core.layout import PadLayout
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
-from edge.daemon.sensor import FrameRing, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SensorTask
 from edge.tools import dataset
 from edge.tools.plan import Plan, PlanClass, plan_of_one
 from edge.tools.prompt import NO_PROMPT, Prompt, ask, read_line
@@ -255,8 +256,10 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
                          presses: dict[int, Path], sensor: SensorTask, devices: Any,
                          camera: Any, prompt: Prompt | None, report: CollectReport) -> None:
     ccfg = replace(cfg, press=replace(cfg.press, x_th=c.threshold(cfg.press.x_th)))
-    controller = PressController(ccfg, devices.gripper, devices.arm, sensor.ring)
-    sensor.controller = controller
+    # The sensor task's one controller, with this class's threshold from its next press on
+    # (as a reload sets the daemon's).
+    controller = sensor.controller
+    controller.cfg = ccfg
     entry = _merge_class(index, c, ccfg.press.x_th, True)
     next_number = max(presses, default=-1) + 1
     have = len(presses)

@@ -23,7 +23,7 @@ from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressOutcome
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import Window
+from edge.daemon.ring import Window
 from edge.daemon.state import PressResult, PressState
 from edge.daemon.store import EpisodeStore
 from edge.vlm.client import VLMAnswer
@@ -120,7 +120,7 @@ async def drain(sub) -> list[dict]:
 def recognizer(tmp_path, press, vlm, compute=None, camera=None, cfg: Config | None = None):
     cfg = cfg or Config()
     events = EventBus()
-    rec = Recognizer(Recognition(cfg, MODEL, vlm), lambda: press,
+    rec = Recognizer(Recognition(cfg, MODEL, vlm), press,
                      compute or InProcessCompute(), EpisodeStore(tmp_path / "episodes"),
                      events, Metrics(), camera)
     return rec, events

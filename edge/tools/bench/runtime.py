@@ -19,8 +19,8 @@ phase's figure takes its samples from the phase's time window. Each production s
 split into its parts (:class:`StopParts`).
 
 Every press is triggered over the HTTP API; the bench reads the daemon only through its
-public hooks (:mod:`edge.tools.bench.probes`) and swaps controllers with
-``Runtime.use_press_controller``.
+public hooks (:mod:`edge.tools.bench.probes`); its press controller is the bench's
+(``assemble(..., controller_factory=BenchController)``), switched between presses.
 """
 
 from __future__ import annotations
@@ -35,11 +35,9 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from edge.core.progress import Progress
 from edge.daemon.state import PressState
-from edge.tools.bench.controllers import RecordingController, TickedController
+from edge.tools.bench.controllers import BenchController
 from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
@@ -70,6 +68,7 @@ ROBOT_NICE = -10
 # to this many times, so that every controller gets its presses; failures are counted.
 PRESS_ATTEMPTS = 3
 PRESS_TIMEOUT_S = 60.0
+READY_TIMEOUT_S = 30.0
 # Operator pages kept open during the pages phase.
 PAGES = 2
 # Targets of the stop (issue: the stop at the floor): p99 under the load, and the median
@@ -150,10 +149,10 @@ class RuntimeBench:
     async def run(self) -> None:
         import aiohttp
 
-        from edge.daemon.serve import assemble
+        from edge.daemon.serve import assemble, running
 
         cfg = self.config()
-        async with assemble(cfg) as daemon:
+        async with assemble(cfg, controller_factory=BenchController) as daemon:
             runtime, compute = daemon.runtime, daemon.compute
             self.compute = compute
             worker = compute.pid()
@@ -164,18 +163,9 @@ class RuntimeBench:
             self.bus = daemon.devices.bus
             self.realtime = daemon.realtime
             self.runtime = runtime
-            rng = np.random.default_rng(0)
-            self.controllers: dict[str, RecordingController] = {
-                "per_frame": runtime.make_press_controller(RecordingController),
-                "tick125": runtime.make_press_controller(
-                    TickedController, name="tick125", period_s=1 / 125.0, rng=rng),
-                "loop100": runtime.make_press_controller(
-                    TickedController, name="loop100", period_s=1 / 100.0, rng=rng),
-            }
-            runtime.use_press_controller(self.controllers["per_frame"])
-            task = asyncio.create_task(runtime.run(), name="bench-runtime")
-            try:
-                await asyncio.wait_for(runtime.ready.wait(), 30)
+            assert isinstance(runtime.press, BenchController)
+            self.controller = runtime.press
+            async with running(daemon, READY_TIMEOUT_S):
                 self.api_url = f"http://127.0.0.1:{daemon.api.port}"
                 floor = await asyncio.to_thread(Helper, "floor", "--url",
                                                 self.robot["xela_url"])
@@ -190,19 +180,15 @@ class RuntimeBench:
                     out = await asyncio.to_thread(floor.stop)
                     with contextlib.suppress(ValueError, IndexError, KeyError):
                         self.floor_samples = json.loads(out.strip().splitlines()[-1])["samples"]
-            finally:
-                runtime.stop()
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(task, 30)
 
     # ----- one press
 
     async def _press(self, phase: str, name: str, obj: str) -> PressRecord:
         http, runtime = self.http, self.runtime
-        ctl = self.controllers[name]
+        ctl = self.controller
         async with http.post(f"{self.robot['control_url']}/object", json={"name": obj}) as r:
             r.raise_for_status()
-        runtime.use_press_controller(ctl)
+        ctl.use(name)
         marker = f"bench_{len(self.records):04d}"
         while True:
             t_trigger = time.monotonic()
