@@ -94,3 +94,45 @@ def test_importing_train_loads_no_press_machinery():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout.strip()
     assert out == "[]", f"importing train loaded {out}"
+
+
+def _runtime_imports(path: Path) -> set[str]:
+    """The project modules ``path`` loads when it runs: any depth, lazy imports included,
+    ``if TYPE_CHECKING:`` blocks left out (they never run)."""
+    tree = ast.parse(path.read_text(), str(path))
+    skipped = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+               and getattr(node.test, "id", None) == "TYPE_CHECKING"
+               for child in node.body for n in ast.walk(child)}
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found |= {f"{node.module}.{a.name}" for a in node.names}
+    return found
+
+
+def test_no_import_cycle():
+    paths = {_module(p): p for p in [*ROOT.glob("edge/**/*.py"), *ROOT.glob("train/**/*.py")]}
+    graph = {m: {t for t in _runtime_imports(p) if t in paths and t != m}
+             for m, p in paths.items()}
+    cycles: set[tuple[str, ...]] = set()
+
+    def visit(m: str, trail: list[str]) -> None:
+        for t in sorted(graph[m]):
+            if t in trail:
+                cycle = trail[trail.index(t):]
+                start = cycle.index(min(cycle))
+                cycles.add(tuple(cycle[start:] + cycle[:start]))
+            elif t not in done:
+                visit(t, [*trail, t])
+        done.add(m)
+
+    done: set[str] = set()
+    for m in sorted(graph):
+        if m not in done:
+            visit(m, [m])
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in sorted(cycles))

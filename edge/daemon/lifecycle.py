@@ -22,7 +22,7 @@ import logging
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
@@ -43,7 +43,7 @@ from edge.daemon.services import optional_services
 from edge.daemon.state import Health, PressState
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
-from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
+from edge.hw.contracts import Devices
 from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
@@ -59,18 +59,6 @@ DRAIN_TIMEOUT_S = 10.0
 HEALTH_FRAME_AGE_S = 1.0
 # After a start without the sensor stream: how often the power-on task looks for a frame.
 STREAM_POLL_S = 0.02
-
-
-@dataclass
-class Devices:
-    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
-
-    tactile: TactileSource
-    gripper: Gripper
-    arm: Arm
-    camera: Camera | None = None
-    button: Button | None = None
-    bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.

@@ -25,13 +25,14 @@ from edge.core.model import model_ref as _model_ref
 from edge.daemon.api import Api, listen, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.devices import close_devices, enable_torque, open_devices
-from edge.daemon.lifecycle import ControllerFactory, Devices, Runtime
+from edge.daemon.lifecycle import ControllerFactory, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
 from edge.daemon.press import PressController
 from edge.daemon.realtime import Realtime, unpin_thread
 from edge.daemon.startcheck import check_devices, check_model
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
+from edge.hw.contracts import Devices
 
 log = logging.getLogger(__name__)
 

@@ -17,16 +17,12 @@ import asyncio
 import contextlib
 import logging
 import time
-from typing import TYPE_CHECKING
 
 from edge.core.config import Config, SensorConfig
 from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
 from edge.core.model import ModelLayout, ModelRef
-from edge.hw.contracts import Camera
+from edge.hw.contracts import Camera, Devices
 from edge.hw.xela import XelaClient
-
-if TYPE_CHECKING:  # (the runtime's recognition imports needs_photo from here)
-    from edge.daemon.lifecycle import Devices
 
 log = logging.getLogger(__name__)
 

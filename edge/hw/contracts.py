@@ -290,3 +290,18 @@ class Button(Protocol):
         ...
 
     async def close(self) -> None: ...
+
+
+# --- all of them ---------------------------------------------------------------------------
+
+
+@dataclass
+class Devices:
+    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
+
+    tactile: TactileSource
+    gripper: Gripper
+    arm: Arm
+    camera: Camera | None = None
+    button: Button | None = None
+    bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller

@@ -32,12 +32,11 @@ from edge.core import preprocess, tomledit
 from edge.core.atomic import atomic_write_text
 from edge.core.config import Config
 from edge.core.errors import EdgeError, SensorError, SensorLayoutError, StaleSensorError
-from edge.daemon.lifecycle import Devices
 from edge.daemon.press import PressController
 from edge.daemon.ring import FrameRing
 from edge.daemon.sensor import SENSOR_RETRY_S
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
-from edge.hw.contracts import GripperState
+from edge.hw.contracts import Devices, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 from edge.tools.prompt import NO_PROMPT, Prompt, ask, in_daemon_thread, read_line
 

@@ -25,7 +25,7 @@ from edge import cli
 from edge.core import tomledit
 from edge.core.config import load_config
 from edge.core.errors import ConfigError, EdgeError, StaleSensorError
-from edge.daemon.lifecycle import Devices
+from edge.hw.contracts import Devices
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
 from edge.sim.virtual import VirtualClockLoop, VirtualRobot
