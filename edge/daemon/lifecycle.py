@@ -98,6 +98,8 @@ class Runtime:
         # Set by power_on_with_stream: the start had no sensor stream, torque is still off.
         self._power_on: Callable[[], Awaitable[None]] | None = None
         self._no_stream: str | None = None  # why, until the stream arrives
+        # Why torque stayed off when the stream arrived: the bus's trouble then, not the sensor's.
+        self._torque_error: str | None = None
 
     # The configuration, model and VLM client in force (replaced together on reload).
     @property
@@ -148,9 +150,9 @@ class Runtime:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
         bus = self.devices.bus
-        bus_error = bus.fault if bus is not None else None
+        bus_error = (bus.fault if bus is not None else None) or self._torque_error
         store_error = self.store.space_error()
-        vlm_error = getattr(self.vlm, "unreachable", None)
+        vlm_error = self.vlm.unreachable
         sensor_error = self.sensor_error
         return Health(ok=(self.ready.is_set() and fresh and bus_error is None and not store_error
                           and sensor_error is None and vlm_error is None),
@@ -244,7 +246,9 @@ class Runtime:
             await self._power_on()
         except EdgeError as exc:
             log.error("torque could not be turned on: %s", exc)
-            self.recognizer.refusal = f"not pressing: torque could not be turned on: {exc}"
+            self._no_stream = None  # the stream is here: what is wrong now is the bus
+            self._torque_error = f"torque could not be turned on: {exc}"
+            self.recognizer.refusal = f"not pressing: {self._torque_error}"
             return
         self._no_stream = None
         self._power_on = None

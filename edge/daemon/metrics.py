@@ -10,6 +10,7 @@ from edge.hw.contracts import BusStatus
 
 if TYPE_CHECKING:
     from edge.daemon.press import PressOutcome
+    from edge.vlm.client import VLMClient
 
 
 class Histogram:
@@ -57,7 +58,7 @@ class Metrics:
             self.vlm_answers[structured_output] = self.vlm_answers.get(structured_output, 0) + 1
 
     def render(self, st: Any, sensor: Any, bus: BusStatus | None = None,
-               vlm: Any = None) -> str:
+               vlm: VLMClient | None = None) -> str:
         """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
         frame and stale counts, with a motor ``bus`` its stops, and whether the ``vlm``
         client reaches its server."""
@@ -84,7 +85,7 @@ class Metrics:
             "# HELP vtzero_vlm_reachable 0 after attempts in a row got no answer from the VLM "
             "server (see /healthz), else 1.",
             "# TYPE vtzero_vlm_reachable gauge",
-            f"vtzero_vlm_reachable {0 if getattr(vlm, 'unreachable', None) else 1}",
+            f"vtzero_vlm_reachable {0 if vlm is not None and vlm.unreachable else 1}",
             "# HELP vtzero_store_discarded_partial_total Episodes found half-written at start "
             "(a crash while writing) and discarded.",
             "# TYPE vtzero_store_discarded_partial_total counter",

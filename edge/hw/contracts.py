@@ -127,6 +127,8 @@ class TactileSource(Protocol):
     """
 
     stats: StreamStats
+    # The model of each sensor the source sends, in pad order; None until its first frame.
+    server_models: tuple[str, ...] | None
 
     def set_frame_hook(self, hook: FrameHook | None) -> bool:
         """Run ``hook`` on each fresh frame in the source's own task, before the frame is
@@ -151,6 +153,15 @@ class TactileSource(Protocol):
     def frames(self) -> AsyncIterator[TactileFrame]: ...
 
     def is_fresh(self) -> bool: ...
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        """Until the first fresh frame has arrived, its layout checked; consumes no frame.
+        Raises :class:`~edge.core.errors.SensorLayoutError` for a layout the configuration
+        does not match, and :class:`~edge.core.errors.StaleSensorError` saying why (the
+        server unreachable, or silent) when no frame came within ``timeout_s``. A source
+        whose frames are made in this process (a fake, a replay, the virtual robot's stream)
+        has them from its start and returns at once."""
+        ...
 
 
 # --- arm and gripper -----------------------------------------------------------------------

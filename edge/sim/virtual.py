@@ -199,6 +199,7 @@ class VirtualTactileSource:
         self._transport = transport
         self._rng = rng
         self._models = (model,) * pads
+        self.server_models: tuple[str, ...] | None = self._models
         self._seq = int(rng.integers(1000, 100_000))
         self._closed = False
         self._last_recv = -math.inf
@@ -222,6 +223,9 @@ class VirtualTactileSource:
 
     def set_frame_hook(self, hook: FrameHook | None) -> bool:
         return False  # no queue to skip: each frame goes straight to frames()
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        return None  # rendered in this process on the next tick: there from the start
 
     def is_fresh(self) -> bool:
         loop = asyncio.get_running_loop()

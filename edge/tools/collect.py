@@ -222,7 +222,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
         if own:
             await enable_torque(devices)
         await _first_frame(ring, cfg.sensor.connect_timeout_s)
-        origin = _origin(cfg, plan, getattr(devices.tactile, "server_models", None))
+        origin = _origin(cfg, plan, devices.tactile.server_models)
         if index is None:
             index = dataset.new_index(plan.name, _recorder_sentence(origin), origin,
                                       plan.sha256)

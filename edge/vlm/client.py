@@ -198,6 +198,12 @@ class VLMClient(Protocol):
         when no image is sent."""
         ...
 
+    @property
+    def unreachable(self) -> str | None:
+        """Why the server counts as unreachable now (``/healthz``, ``/metrics``), else None
+        (always None without a server)."""
+        ...
+
     async def close(self) -> None: ...
 
 
@@ -833,6 +839,10 @@ class NoVLM:
 
     def image_limits(self) -> tuple[int, int] | None:
         return None
+
+    @property
+    def unreachable(self) -> str | None:
+        return None  # no server to reach
 
     async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:

@@ -89,6 +89,7 @@ class ScriptedVLM:
     asked: list[tuple[Any, str, list[str]]] = field(default_factory=list)
     closed: bool = False
     mode: str = "vision_tactile"
+    unreachable: str | None = None
 
     def image_limits(self) -> tuple[int, int]:
         return 512, 200_000

@@ -242,6 +242,36 @@ async def test_a_wrong_layout_found_after_a_degraded_start_keeps_torque_off_said
         assert robot.dxl.torque_enables == 0
 
 
+async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_path):
+    async with SimRobot(QUICK_OBJECT, seed=15, cfg=base_config()) as robot:
+        await robot.xela.stop()
+        d = Daemon(robot, degraded_config(), tmp_path)
+        d.wait_ready = False
+        async with d:
+            health = await wait_health(d, False)
+            assert f"sensor server {robot.xela.url} unreachable" in health["sensor_error"]
+            # The gripper unplugged while the daemon waits: torque-on fails on the stream.
+            gripper = d.cfg.bus.gripper_id
+            robot.dxl.set_missing(gripper)
+            try:
+                await robot.xela.start()
+                await wait_until(lambda: d.runtime.health().bus_error, 10,
+                                 "the torque-on failure said")
+                status, health = await d.get("/healthz")
+                print(f"after the stream: sensor_error={health['sensor_error']!r} "
+                      f"bus_error={health['bus_error']!r}")
+                assert status == 503 and not health["ready"]
+                assert health["sensor_error"] is None and health["sensor_fresh"]
+                assert health["bus_error"].startswith("torque could not be turned on: ")
+                assert f"motor {gripper}" in health["bus_error"]
+                assert health["torque_on"] is False
+                status, refused = await d.post("/v1/recognize", {"candidates": CUBE})
+                assert status == 503 and "torque could not be turned on" in refused["error"]
+                assert robot.xela.url not in refused["error"]
+            finally:
+                robot.dxl.set_missing(gripper, False)
+
+
 async def test_a_camera_failing_at_recognition_ends_camera_error_with_its_message(
         tmp_path, monkeypatch, capsys):
     still = tmp_path / "still.jpg"

@@ -62,6 +62,7 @@ class FakeTactileSource:
         self._last_recv: float | None = None
         self._closed = False
         self.stats = StreamStats()
+        self.server_models: tuple[str, ...] | None = self._models
 
     async def start(self) -> None:
         pass
@@ -99,6 +100,9 @@ class FakeTactileSource:
 
     def set_frame_hook(self, hook: FrameHook | None) -> bool:
         return False  # frames go straight to frames(): the consumer runs its step
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        return None  # its frames are in memory: there from the start
 
     def is_fresh(self) -> bool:
         if self._closed or self._last_recv is None:
