@@ -252,6 +252,7 @@ async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_p
             assert f"sensor server {robot.xela.url} unreachable" in health["sensor_error"]
             # The gripper unplugged while the daemon waits: torque-on fails on the stream.
             gripper = d.cfg.bus.gripper_id
+            before = joints(robot, d.cfg), robot.dxl.true_position(gripper)
             robot.dxl.set_missing(gripper)
             try:
                 await robot.xela.start()
@@ -268,6 +269,8 @@ async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_p
                 status, refused = await d.post("/v1/recognize", {"candidates": CUBE})
                 assert status == 503 and "torque could not be turned on" in refused["error"]
                 assert robot.xela.url not in refused["error"]
+                assert (joints(robot, d.cfg), robot.dxl.true_position(gripper)) == before
+                assert store_consistent(d.store.root) == []
             finally:
                 robot.dxl.set_missing(gripper, False)
 

@@ -17,6 +17,9 @@ from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
 from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.xela import XelaClient
+from edge.sim.virtual import Transport, VirtualTactileSource
+from edge.sim.world import SimWorld
+from tests.support.daemon import QUICK_OBJECT
 from tests.support.fakes import FakeArm, FakeButton, FakeCamera, FakeGripper, FakeTactileSource
 
 HARDWARE_LIBRARIES = ("dynamixel_sdk", "serial", "aiohttp", "cv2", "gpiod")
@@ -109,3 +112,12 @@ def test_drivers_that_need_their_device_to_be_built_satisfy_their_contract(cls, 
     # methods only, so the class itself can be checked.
     assert issubclass(cls, contract)
     assert not _signature_mismatches(cls, contract)
+
+
+def test_the_virtual_robots_stream_satisfies_the_tactile_contract():
+    # Built on a world, not started: its frames are made on the virtual clock when read.
+    rng = np.random.default_rng(0)
+    source = VirtualTactileSource(SimWorld(QUICK_OBJECT, rng), 125.0, Transport(), rng)
+    assert isinstance(source, TactileSource)
+    assert not _signature_mismatches(source, TactileSource)
+    assert source.server_models == ("XR1944", "XR1944")
