@@ -249,6 +249,7 @@ class Runtime:
             self._no_stream = None  # the stream is here: what is wrong now is the bus
             self._torque_error = f"torque could not be turned on: {exc}"
             self.recognizer.refusal = f"not pressing: {self._torque_error}"
+            self.notifier.status(f"degraded: {self._torque_error}")  # no longer the sensor
             return
         self._no_stream = None
         self._power_on = None

@@ -243,10 +243,16 @@ async def test_a_wrong_layout_found_after_a_degraded_start_keeps_torque_off_said
 
 
 async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_path):
+    systemd = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    systemd.bind(str(tmp_path / "notify.sock"))
+    systemd.setblocking(False)
+    said: list[str] = []
+    listener = asyncio.create_task(listen(systemd, said))
     async with SimRobot(QUICK_OBJECT, seed=15, cfg=base_config()) as robot:
         await robot.xela.stop()
         d = Daemon(robot, degraded_config(), tmp_path)
         d.wait_ready = False
+        d.notifier = Notifier(str(tmp_path / "notify.sock"))
         async with d:
             health = await wait_health(d, False)
             assert f"sensor server {robot.xela.url} unreachable" in health["sensor_error"]
@@ -271,8 +277,13 @@ async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_p
                 assert robot.xela.url not in refused["error"]
                 assert (joints(robot, d.cfg), robot.dxl.true_position(gripper)) == before
                 assert store_consistent(d.store.root) == []
+                # systemctl status says it too, no longer the sensor server.
+                statuses = [m for m in said if m.startswith("STATUS=")]
+                assert statuses[-1] == f"STATUS=degraded: {health['bus_error']}", said
             finally:
                 robot.dxl.set_missing(gripper, False)
+    listener.cancel()
+    systemd.close()
 
 
 async def test_a_camera_failing_at_recognition_ends_camera_error_with_its_message(
