@@ -88,12 +88,12 @@ def test_daemon_presses_sit_with_the_dataset_presses_of_their_object(tmp_path):
                              models=ROOT / "models", config=ROOT / "configs" / "sim.toml",
                              out=tmp_path)
     print(report.markdown("test"))
-    # Generous bounds for 2 presses per object (the full report's ratios for these three:
-    # 0.4-1.5): a second copy of the press protocol put the daemon's presses 3-4 times the
-    # dataset's spread away.
-    assert all(run.median_ratio <= 2.5 for run in report.runs)
-    assert all(run.reid_daemon >= run.loo_dataset - 0.5 for run in report.runs)
+    # Generous bounds for 2 presses per object and run (the full report's ratios for these
+    # three: 0.4-1.5): a second copy of the press protocol put the daemon's presses 3-4 times
+    # the dataset's spread away.
     doc = json.loads((tmp_path / "consistency.json").read_text())
+    assert report.median_ratio <= 2.5
+    assert doc["reid_daemon"] >= doc["loo_dataset"] - 0.34
     assert [r["seed"] for r in doc["runs"]] == [0, 1]
     for obj in doc["objects"]:
         assert len(obj["ratio_runs"]) == 2
