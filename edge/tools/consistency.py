@@ -30,7 +30,7 @@ import logging
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +121,9 @@ class Report:
     wall_s: float  # the whole measurement
     daemon_failed_tries: int = 0  # daemon presses that failed and were pressed again
     daemon_left_out: int = 0  # daemon presses that failed every try
+    # The recorder against itself: run k's dataset presses against the next run's in place
+    # of the daemon's, the ratios noise alone gives (empty with one run).
+    recorder_null: list[Run] = field(default_factory=list)
 
     @property
     def names(self) -> list[str]:
@@ -160,6 +163,10 @@ class Report:
                 "stop_latency_ms": self.stop_latency_ms,
                 "daemon_failed_tries": self.daemon_failed_tries,
                 "daemon_left_out": self.daemon_left_out,
+                "recorder_null": {
+                    "median_ratio_runs": [r.median_ratio for r in self.recorder_null],
+                    "max_object_ratio_runs": [max(x.ratio for x in r.rows)
+                                              for r in self.recorder_null]},
                 "wall_s": self.wall_s,
                 "targets": {"median_ratio_max": RATIO_TARGET,
                             "object_ratio_max": OBJECT_RATIO_MAX,
@@ -218,6 +225,15 @@ class Report:
             f"pressed again; {self.daemon_left_out} failed every try and are left out.",
             "",
         ]
+        if self.recorder_null:
+            lines[-1:-1] = [
+                "",
+                "What noise alone gives: the recorder's presses of the next run in place of "
+                "the daemon's, median ratio "
+                + " / ".join(f"{r.median_ratio:.2f}" for r in self.recorder_null)
+                + ", largest object ratio "
+                + " / ".join(f"{max(x.ratio for x in r.rows):.2f}" for r in self.recorder_null)
+                + "."]
         return "\n".join(lines)
 
 
@@ -363,11 +379,13 @@ def run_consistency(objects: Sequence[str] | None = None, daemon_presses: int = 
                  for r in recs if r.extra.get("stop_latency_s") is not None]
     stop_ms = {"p50": float(np.percentile(latencies, 50)),
                "p99": float(np.percentile(latencies, 99))}
-    results = [compare({n: embed(ref, r) for n, r in dm.items()},
-                       {n: embed(ref, r) for n, r in ds.items()}, s)
-               for dm, ds, s in zip(daemon, dataset, seeds, strict=True)]
+    ds_z = [{n: embed(ref, r) for n, r in ds.items()} for ds in dataset]
+    results = [compare({n: embed(ref, r) for n, r in dm.items()}, zs, s)
+               for dm, zs, s in zip(daemon, ds_z, seeds, strict=True)]
+    null = [compare({n: z[:daemon_presses] for n, z in ds_z[(k + 1) % runs].items()}, ds_z[k],
+                    seeds[k]) for k in range(runs)] if runs > 1 else []
     report = Report(results, daemon_presses, dataset_presses, stop_ms,
-                    time.monotonic() - started, failed, left_out)
+                    time.monotonic() - started, failed, left_out, null)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

@@ -101,4 +101,8 @@ def test_daemon_presses_sit_with_the_dataset_presses_of_their_object(tmp_path):
     # New presses in each run: the dataset's spreads differ between the runs.
     spreads = [[o["dataset_spread"] for o in r["objects"]] for r in doc["runs"]]
     assert spreads[0] != spreads[1]
-    assert "ratio per run" in (tmp_path / "consistency.md").read_text()
+    md = (tmp_path / "consistency.md").read_text()
+    assert "ratio per run" in md and "What noise alone gives" in md
+    # The recorder against itself: one ratio per run, and near one.
+    null = doc["recorder_null"]["median_ratio_runs"]
+    assert len(null) == 2 and all(0.3 < x < 2.5 for x in null)
