@@ -14,7 +14,9 @@ objects, the objects above :data:`OBJECT_RATIO_MAX`, and how often a daemon pres
 dataset press is of its own object, against the dataset's own leave-one-out 1-NN among the
 same objects. The measurement is repeated ``runs`` times with new presses on both sides (run
 ``k``: dataset seed ``seed + k``, the emulated robot's next draws), so each object's ratio
-comes with its spread between runs, and the targets must hold in every run.
+comes with its spread between runs, and the targets must hold in every run. Beside them, what
+noise alone gives: each run's dataset presses against the next run's recorder presses in place
+of the daemon's.
 
 How many presses: on the shipped model, subsets of one 3-run measurement gave the median
 ratio a standard deviation of 0.23 at 5 daemon against 10 dataset presses (5-95 % 0.96-1.71:
