@@ -152,8 +152,9 @@ class VirtualExecutor:
     queue and takes a drawn stop latency."""
 
     # Nothing runs between the loop's steps: a stop never waits for a transaction in flight
-    # (the measured stop latency already holds that wait).
+    # (the measured stop latency already holds that wait). The loop's thread is the owner.
     busy = False
+    thread_id = native_thread_id = None
 
     def __init__(self, transport: Transport, rng: np.random.Generator) -> None:
         self._transport = transport

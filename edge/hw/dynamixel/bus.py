@@ -126,12 +126,12 @@ class DynamixelBus:
     @property
     def thread_id(self) -> int | None:
         """``threading.get_ident()`` of the bus thread (the only one calling the SDK)."""
-        return getattr(self._executor, "thread_id", None)
+        return self._executor.thread_id
 
     @property
     def native_thread_id(self) -> int | None:
         """The kernel's thread ID of the bus thread (for its scheduling policy and CPU)."""
-        return getattr(self._executor, "native_thread_id", None)
+        return self._executor.native_thread_id
 
     def seen(self, motor_id: int) -> SeenState | None:
         """The motor's position and velocity as last read (by any sync read), or None."""

@@ -53,6 +53,14 @@ class Executor(Protocol):
     def busy(self) -> bool:
         """An operation is running now (a stop submitted now waits for it)."""
 
+    @property
+    def thread_id(self) -> int | None:
+        """``threading.get_ident()`` of the owner thread; None without one."""
+
+    @property
+    def native_thread_id(self) -> int | None:
+        """The kernel's thread ID of the owner thread; None without one."""
+
     def on_wire(self) -> None:
         """Called by the owner when the running operation's packet is written."""
 
