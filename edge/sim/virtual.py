@@ -178,7 +178,7 @@ class VirtualExecutor:
         last()
 
     def on_wire(self) -> None:
-        pass
+        pass  # a stop's hand-over waits for nothing here: see ``busy``
 
 
 class VirtualTactileSource:
