@@ -238,14 +238,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
+    from pathlib import Path
 
     from edge.core.config import load_config
     from edge.daemon.episode import Status
-    from edge.daemon.serve import state_dir
     from edge.daemon.store import EpisodeStore
 
     cfg = load_config(args.config)
-    store = EpisodeStore(state_dir(cfg) / "episodes")
+    store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
     if args.episodes_command == "retry":
         from edge.tools.episode_retry import run_retry
 

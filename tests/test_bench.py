@@ -13,9 +13,9 @@ from dataclasses import replace
 
 import pytest
 
-from edge.core.figures import figure, ratio_figure, target
-from edge.core.results import markdown
 from edge.tools import bench
+from edge.tools.bench.figures import figure, ratio_figure, target
+from edge.tools.bench.results import markdown
 from edge.tools.bench.settings import CONTROLLERS
 from train import bench as train_bench
 

@@ -17,7 +17,6 @@ import contextlib
 import hmac
 import json
 import logging
-import os
 import weakref
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -39,10 +38,11 @@ from edge.core.errors import (
     NotFoundError,
     StateError,
 )
-from edge.core.images import check_image
 from edge.daemon.episode import Episode
 from edge.daemon.events import Subscription
+from edge.daemon.state import Health
 from edge.daemon.webui import OperatorPage
+from edge.vlm.images import check_image
 
 if TYPE_CHECKING:
     from edge.core.config import Config
@@ -78,7 +78,7 @@ class Runtime(Protocol):
 
     def subscribe(self) -> AbstractContextManager[Subscription]: ...
 
-    def health(self) -> dict[str, Any]: ...
+    def health(self) -> Health: ...
 
     def metrics_text(self) -> str: ...
 
@@ -93,8 +93,8 @@ class Runtime(Protocol):
 
 
 def load_token(cfg: ApiConfig) -> str:
-    """The bearer token from the config, its file, or ``$VTZERO_API_TOKEN``."""
-    token = cfg.token or os.environ.get("VTZERO_API_TOKEN", "")
+    """The bearer token from the config (``$VTZERO_API_TOKEN`` applied) or its file."""
+    token = cfg.token
     if cfg.token_file:
         try:
             token = Path(cfg.token_file).read_text(encoding="utf-8").strip()
@@ -367,7 +367,7 @@ class Api:
 
     async def healthz(self, request: web.Request) -> web.Response:
         health = self.runtime.health()
-        return web.json_response(health, status=200 if health.get("ok") else 503)
+        return web.json_response(health.to_json(), status=200 if health.ok else 503)
 
     async def metrics(self, request: web.Request) -> web.Response:
         return web.Response(text=self.runtime.metrics_text(),

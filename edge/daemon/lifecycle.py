@@ -31,7 +31,6 @@ from edge import __version__
 from edge.core.config import Config
 from edge.core.errors import BusyError, EdgeError
 from edge.core.model import ModelRef
-from edge.core.vlm import VLMClient
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.episode import Episode
 from edge.daemon.events import EventBus, Subscription
@@ -40,10 +39,11 @@ from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
 from edge.daemon.sensor import FrameRing, Sampler, SensorTask
 from edge.daemon.services import optional_services
+from edge.daemon.state import Health, PressState
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
-from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
-from edge.hw.dynamixel import DynamixelBus
+from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
+from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -69,7 +69,7 @@ class Devices:
     arm: Arm
     camera: Camera | None = None
     button: Button | None = None
-    bus: DynamixelBus | None = None  # closed (safe pose, torque off) by the caller
+    bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
@@ -167,24 +167,26 @@ class Runtime:
         fatal = self.sensor.fatal
         return str(fatal) if fatal is not None else self._no_stream
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> Health:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
-        bus_error = getattr(self.devices.bus, "fault", None)
+        bus = self.devices.bus
+        bus_error = bus.fault if bus is not None else None
         store_error = self.store.space_error()
         vlm_error = getattr(self.vlm, "unreachable", None)
         sensor_error = self.sensor_error
-        return {"ok": (self.ready.is_set() and fresh and bus_error is None and not store_error
-                       and sensor_error is None and vlm_error is None),
-                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
-                "store_error": store_error, "sensor_error": sensor_error,
-                "vlm_error": vlm_error,
-                "torque_on": getattr(self.devices.bus, "torque_on", None),
-                "state": self.press.state, "episode": self.recognizer.current,
-                "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
-                # Which model answers: changes when a reload took a new model or database.
-                "model_digest": self.model.digest,
-                "version": __version__}
+        return Health(ok=(self.ready.is_set() and fresh and bus_error is None and not store_error
+                          and sensor_error is None and vlm_error is None),
+                      ready=self.ready.is_set(), sensor_fresh=fresh, bus_error=bus_error,
+                      store_error=store_error, sensor_error=sensor_error,
+                      vlm_error=vlm_error,
+                      torque_on=bus.torque_on if bus is not None else None,
+                      state=self.press.state, episode=self.recognizer.current,
+                      last_frame_age_s=None if not np.isfinite(age) else round(age, 4),
+                      # Which model answers: changes when a reload took a new model or
+                      # database.
+                      model_digest=self.model.digest,
+                      version=__version__)
 
     def metrics_text(self) -> str:
         return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm)
@@ -193,7 +195,7 @@ class Runtime:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
         return await self.compute.run(fn, *args)
 
-    def _on_press_state(self, state: str) -> None:
+    def _on_press_state(self, state: PressState) -> None:
         self.events.publish({"type": "state", "state": state,
                              "episode": self.recognizer.current})
 

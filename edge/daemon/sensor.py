@@ -149,10 +149,11 @@ class SensorTask:
     controller, which checks the threshold on it (and sends the stop) before the next frame
     is read; reconnects after a failure and tells the controller while the stream is stale.
 
-    A source that can run a step in its own task before queueing a frame (``on_frame``: the
-    XELA client) gets the threshold check there: the stop leaves without the frame's hop
-    through the source's queue to this task. Other sources (fakes, replays) are checked
-    here. ``controller`` may be replaced between presses (a benchmark compares controllers).
+    A source that runs the per-frame hook in its own task before queueing a frame
+    (:meth:`TactileSource.set_frame_hook`: the XELA client) gets the threshold check there:
+    the stop leaves without the frame's hop through the source's queue to this task. Other
+    sources (fakes, replays) are checked here. ``controller`` may be replaced between presses
+    (a benchmark compares controllers).
     """
 
     def __init__(self, source: TactileSource, ring: FrameRing, controller: PressController,
@@ -170,14 +171,12 @@ class SensorTask:
     async def run(self) -> None:
         """Until cancelled: a bug or a dead stream on the sensor path must not take the
         daemon (and the arm) down."""
-        inline = hasattr(self.source, "on_frame")
-        if inline:
-            self.source.on_frame = self._check  # type: ignore[attr-defined]
+        inline = self.source.set_frame_hook(self._check)
         try:
             await self._run(inline)
         finally:
             if inline:
-                self.source.on_frame = None  # type: ignore[attr-defined]
+                self.source.set_frame_hook(None)
 
     async def _check(self, frame: TactileFrame) -> None:
         """The threshold check on the source's own task (see the class docstring)."""

@@ -62,35 +62,22 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
     return loop
 
 
-def state_dir(cfg: Config) -> Path:
-    # Under systemd, StateDirectory= gives the daemon its writable place.
-    return Path(os.environ.get("VTZERO_STATE_DIR") or cfg.runtime.state_dir)
-
-
 def model_ref(cfg: Config) -> ModelRef:
     """The configured model by its manifest; the compute process loads and verifies it."""
     return _model_ref(cfg.runtime.models_dir)
 
 
 def vlm_config(cfg: Config):
-    """The ``[vlm]`` section with ``$VTZERO_VLM_URL`` / ``$VTZERO_VLM_MODEL`` applied, and
-    the prompt templates of the configured models directory."""
+    """The ``[vlm]`` section with the prompt templates of the configured models directory."""
     vlm = cfg.vlm
-    url = os.environ.get("VTZERO_VLM_URL", "").strip()
-    model = os.environ.get("VTZERO_VLM_MODEL", "").strip()
-    if url:
-        vlm = replace(vlm, base_url=url.rstrip("/"))
-    if model:
-        vlm = replace(vlm, model=model)
     if vlm.prompt_dir is None:
         vlm = replace(vlm, prompt_dir=Path(cfg.runtime.models_dir) / "prompts")
-    vlm.validate("vlm (with $VTZERO_VLM_URL/$VTZERO_VLM_MODEL)")
     return vlm
 
 
 def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
     """The configured VLM client; with ``compute``, images are prepared in that process."""
-    from edge.core.vlm import make_vlm as _make
+    from edge.vlm.client import make_vlm as _make
 
     return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 
@@ -146,7 +133,7 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         runtime: Runtime | None = None
         # The client in use at the end (a reload replaces it, and closes the old one).
         stack.push_async_callback(_close_vlm, lambda: runtime.vlm if runtime else vlm)
-        store = EpisodeStore(state_dir(cfg) / "episodes")
+        store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
         api = Api(None, cfg.api)
         try:
             await api.start()

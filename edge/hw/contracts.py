@@ -15,7 +15,7 @@ Motor positions are raw Dynamixel counts (4096 per turn) unless a name says metr
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
@@ -112,6 +112,10 @@ class StreamStats:
         self._new_link = True
 
 
+# The per-frame hook: awaited with each fresh frame (the daemon's threshold check).
+FrameHook = Callable[[TactileFrame], Awaitable[None]]
+
+
 @runtime_checkable
 class TactileSource(Protocol):
     """Anything that yields :class:`TactileFrame` s: the XELA client, a fake, a replay.
@@ -123,6 +127,13 @@ class TactileSource(Protocol):
     """
 
     stats: StreamStats
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        """Run ``hook`` on each fresh frame in the source's own task, before the frame is
+        handed on (``None``: no more); True if this source does so. A source that hands its
+        frames straight to ``frames()`` (a fake, the virtual robot's stream) returns False
+        and the consumer runs the step on each frame it gets."""
+        ...
 
     async def start(self) -> None: ...
 
@@ -213,6 +224,52 @@ class Arm(Protocol):
 
     async def joints(self) -> JointPose:
         """Present raw joint positions."""
+        ...
+
+
+# --- the motor bus ------------------------------------------------------------------------
+
+
+@runtime_checkable
+class BusStatus(Protocol):
+    """What the daemon reports of the motor bus (``/healthz``, ``/metrics``)."""
+
+    @property
+    def fault(self) -> str | None:
+        """What is wrong with the bus now (a motor that does not answer...), or None."""
+        ...
+
+    @property
+    def torque_on(self) -> bool: ...
+
+    @property
+    def stops(self) -> int:
+        """Stops sent to the gripper."""
+        ...
+
+    @property
+    def stop_fallbacks(self) -> int:
+        """Stops that read Present Position first (no gripper state fresh enough)."""
+        ...
+
+
+@runtime_checkable
+class MotorBus(BusStatus, Protocol):
+    """The motor bus as the daemon drives it, beside the arm and gripper on it."""
+
+    @property
+    def native_thread_id(self) -> int | None:
+        """The thread that calls the SDK (for real-time scheduling), None without one."""
+        ...
+
+    async def set_torque(self, enabled: bool) -> None: ...
+
+    async def recover_watchdog(self) -> list[int]:
+        """Before a press: check torque is on everywhere and clear watchdog trips."""
+        ...
+
+    async def close(self, safe_pose: Callable[[], Awaitable[object]] | None = None) -> None:
+        """With torque on, ``safe_pose`` first; then torque off and the port released."""
         ...
 
 

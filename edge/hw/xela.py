@@ -23,6 +23,7 @@ from typing import Any, Self
 import aiohttp
 import numpy as np
 
+from edge.core.backoff import Backoff
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
 from edge.hw.contracts import StreamStats, TactileFrame
@@ -314,6 +315,10 @@ class XelaClient:
         # press's path, which never reads them.
         self.newtons = False
 
+    def set_frame_hook(self, hook: Callable[[TactileFrame], Awaitable[None]] | None) -> bool:
+        self.on_frame = hook
+        return True
+
     @property
     def connected(self) -> bool:
         return self._connected
@@ -433,14 +438,15 @@ class XelaClient:
         self._queue.put_nowait(item)
 
     async def _run(self) -> None:
-        min_backoff_s = min(_RECONNECT_MIN_BACKOFF_S, self._cfg.reconnect_max_backoff_s)
-        backoff_s = min_backoff_s
+        cap_s = self._cfg.reconnect_max_backoff_s
+        backoff = Backoff(min(_RECONNECT_MIN_BACKOFF_S, cap_s), cap_s)
         attempt = 0
         while True:
             attempt += 1
             try:
                 if await self._connect_and_read(attempt):
-                    backoff_s, attempt = min_backoff_s, 0
+                    attempt = 0
+                    backoff.reset()
             except SensorLayoutError as exc:
                 # Not transient: reconnecting gives the same layout. Stop and tell the consumer
                 # (which reports it: logged here too, it would be said twice).
@@ -460,15 +466,15 @@ class XelaClient:
                     self._cfg.url,
                     attempt,
                     why,
-                    backoff_s,
+                    backoff.delay_s,
                 )
             except Exception:
                 # A bug here must not silently end the sensor path: log loudly, keep trying.
-                log.exception("XELA client: unexpected error; next try in %.2f s", backoff_s)
+                log.exception("XELA client: unexpected error; next try in %.2f s",
+                              backoff.delay_s)
             finally:
                 self._connected = False
-            await asyncio.sleep(backoff_s)
-            backoff_s = min(backoff_s * 2, self._cfg.reconnect_max_backoff_s)
+            await asyncio.sleep(backoff.next_s())
 
     async def _connect_and_read(self, attempt: int) -> bool:
         """One connection; returns whether it delivered a fresh frame."""

@@ -522,10 +522,6 @@ async def _serve(args: argparse.Namespace) -> None:
     choose: Chooser = first_candidate
     if args.choose == "description":
         choose = choose_by_description
-    elif args.choose == "standin":
-        from edge.sim.standin_vlm import StandIn
-
-        choose = StandIn()
     elif args.choose.startswith("label:"):
         fixed = args.choose.removeprefix("label:")
 
@@ -553,8 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8011)
     parser.add_argument("--model", default="fake-vlm", help="model name to accept ('' = any)")
     parser.add_argument("--choose", default="first",
-                        help="first | description | standin (the simulated VLM's choice) | "
-                        "label:<name> (default first)")
+                        help="first | description | label:<name> (default first)")
     parser.add_argument("--latency-s", type=float, default=0.0)
     parser.add_argument("--structured", choices=STRUCTURED, default="any",
                         help="the response formats it supports, like a real server's "

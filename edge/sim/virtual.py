@@ -33,7 +33,7 @@ import numpy as np
 from edge.core.config import Config
 from edge.core.layout import PadLayout
 from edge.hw.arm import DynamixelArm, DynamixelGripper
-from edge.hw.contracts import StreamStats, TactileFrame
+from edge.hw.contracts import FrameHook, StreamStats, TactileFrame
 from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import SkinDraw
@@ -214,6 +214,9 @@ class VirtualTactileSource:
     async def __aexit__(self, exc_type: type[BaseException] | None,
                         exc: BaseException | None, tb: TracebackType | None) -> None:
         await self.close()
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        return False  # no queue to skip: each frame goes straight to frames()
 
     def is_fresh(self) -> bool:
         loop = asyncio.get_running_loop()

@@ -151,7 +151,7 @@ async def _first_frame(ring: FrameRing, timeout_s: float) -> None:
 
 
 async def _photo(camera: Any) -> bytes:
-    from edge.core.images import prepare_image
+    from edge.vlm.images import prepare_image
 
     data = await camera.capture()
     # Kept as taken where it is a JPEG; a PNG camera's still becomes one (same size).

@@ -14,7 +14,7 @@ from edge.core.config import BusConfig, SensorConfig
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton, _PolledButton
 from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
-from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
+from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.xela import XelaClient
 from tests.support.fakes import FakeArm, FakeButton, FakeCamera, FakeGripper, FakeTactileSource
@@ -83,13 +83,15 @@ async def test_each_fake_satisfies_its_contract(make, contract):
     ("make", "contract"),
     [
         (lambda: XelaClient(SensorConfig()), TactileSource),
+        (lambda: DynamixelBus(BusConfig()), MotorBus),
         (lambda: DynamixelGripper(DynamixelBus(BusConfig())), Gripper),
         (lambda: DynamixelArm(DynamixelBus(BusConfig()), POSES), Arm),
         (lambda: CommandCamera("fswebcam {out}"), Camera),
         (lambda: HttpCamera("http://127.0.0.1:9/still.jpg"), Camera),
         (lambda: _PolledButton(lambda: False, "test"), Button),
     ],
-    ids=["xela", "dxl-gripper", "dxl-arm", "command-camera", "http-camera", "polled-button"],
+    ids=["xela", "dxl-bus", "dxl-gripper", "dxl-arm", "command-camera", "http-camera",
+         "polled-button"],
 )
 async def test_each_real_driver_satisfies_its_contract(make, contract):
     # Built, not started: no port, server or camera is touched.

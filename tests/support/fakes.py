@@ -17,6 +17,7 @@ from edge.core.errors import StaleSensorError
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M, GRIPPER_OPEN_WIDTH_M, gripper_raw
 from edge.hw.contracts import (
     DEFAULT_MOVE_TIMEOUT_S,
+    FrameHook,
     GripperState,
     GripperStop,
     JointPose,
@@ -95,6 +96,9 @@ class FakeTactileSource:
     def finish(self) -> None:
         """End iteration after what is already queued."""
         self._queue.put_nowait(_END)
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        return False  # frames go straight to frames(): the consumer runs its step
 
     def is_fresh(self) -> bool:
         if self._closed or self._last_recv is None:

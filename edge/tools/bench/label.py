@@ -22,10 +22,10 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from edge.core.figures import figure, target
-from edge.core.results import PhaseResult, progress
 from edge.tools.bench.controllers import RecordingController
+from edge.tools.bench.figures import figure, target
 from edge.tools.bench.load import Helper
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
 
 ROBOT_CONFIG = ROOT / "configs" / "robot.toml"

@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.figures import figure, finish, ratio_figure, stats, target
 from edge.core.progress import Progress
-from edge.core.results import PhaseResult, progress
+from edge.daemon.state import PressState
 from edge.tools.bench.controllers import RecordingController, TickedController
+from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
 from edge.tools.bench.probes import (
@@ -52,6 +52,7 @@ from edge.tools.bench.probes import (
     stop_parts,
 )
 from edge.tools.bench.report import READING, load_text
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import (
     CONTROLLER_TEXT,
     CONTROLLERS,
@@ -218,9 +219,9 @@ class RuntimeBench:
         rec = PressRecord(phase, name, obj, marker, outcome.result, t_trigger,
                           message=outcome.message, realtime=self.realtime.active)
         states = dict(outcome.states)
-        if "above" in states and "idle" in states:
-            rec.press_s = states["idle"] - states["above"]
-            rec.pre_press_ms = 1e3 * (states["above"] - t_trigger)
+        if PressState.ABOVE in states and PressState.IDLE in states:
+            rec.press_s = states[PressState.IDLE] - states[PressState.ABOVE]
+            rec.pre_press_ms = 1e3 * (states[PressState.ABOVE] - t_trigger)
         if outcome.stop_latency_s is not None:
             rec.controller_latency_ms = 1e3 * outcome.stop_latency_s
         crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
@@ -298,8 +299,8 @@ class RuntimeBench:
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
         from edge.core.errors import EdgeError
-        from edge.core.vlm import OpenAIVLM
         from edge.daemon.serve import vlm_config
+        from edge.vlm.client import OpenAIVLM
 
         s = self.s
         runtime = self.runtime
