@@ -388,7 +388,7 @@ def test_frame_words_match_per_sensor_checks(taxels: list[int], style: str, seed
 
 
 @pytest.mark.parametrize("text", [
-    # What orjson refuses and the standard decoder reads: parsed as before.
+    # What msgspec refuses and the standard decoder reads: parsed as before.
     '{"message": 1, "time": 1.0, "1": {"data": "0001,00\n02,0003"}}',  # a raw newline
     '{"message": 1, "time": 1.0, "1": {"data": [1, 2, 3], "note": "\\ud800"}}',  # lone surrogate
     '{"message": 1, "time": 1.0, "1": {"data": [1, 2, 3], "gain": 1e999}}',  # a float over range
@@ -401,7 +401,7 @@ def test_lenient_frames_still_parse(text: str) -> None:
 
 
 @pytest.mark.parametrize(("text", "match"), [
-    # orjson reads these integers as floats; the faults are said with the frame's numbers.
+    # Integers beyond 64 bits: the faults are said with the frame's numbers.
     ('{"message": 1, "time": 1.0, "1": {"data": [0, 123456789012345678901234567890, 0]}}',
      r"0\.\.65535, got 0\.\.123456789012345678901234567890$"),
     ('{"message": 123456789012345678901234567890, "time": 1.0, "1": {"data": [0, 0, 0]}}',
