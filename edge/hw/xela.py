@@ -271,22 +271,25 @@ def _frame_words(sensors: list[Any]) -> tuple[np.ndarray, list[int]] | None:
             return None  # (a bool is no int here)
         return np.array(joined, dtype=np.uint16), [len(v) for v in values]
     if all(type(v) is str for v in values):
-        # One pass over the words of every sensor: commas exactly every 5th character, so
-        # each word is 4 characters; fromhex then refuses non-hex, and a short result
-        # means whitespace inside a word.
-        text = ",".join(values)
-        n = text.count(",") + 1
-        if len(text) != 5 * n - 1 or text[4::5] != "," * (n - 1):
-            return None
-        try:
-            packed = bytes.fromhex(text.replace(",", ""))
-        except ValueError:
-            return None
-        if len(packed) != 2 * n:
-            return None
-        return (np.frombuffer(packed, dtype=">u2").astype(np.uint16),
-                [(len(v) + 1) // 5 for v in values])
+        words = _usual_hex(",".join(values))  # one pass over the words of every sensor
+        return None if words is None else (words, [(len(v) + 1) // 5 for v in values])
     return None
+
+
+def _usual_hex(text: str) -> np.ndarray | None:
+    """The words of the usual "8125,81B2,...", else None: commas exactly every 5th
+    character, so every word is 4 characters; fromhex then refuses non-hex, and a short
+    result means whitespace inside a word."""
+    n = text.count(",") + 1
+    if len(text) != 5 * n - 1 or text[4::5] != "," * (n - 1):
+        return None
+    try:
+        packed = bytes.fromhex(text.replace(",", ""))
+    except ValueError:
+        return None
+    if len(packed) != 2 * n:
+        return None
+    return np.frombuffer(packed, dtype=">u2").astype(np.uint16)
 
 
 def _sensor_words(sensor: Any, seq: int, number: str) -> np.ndarray:
@@ -309,16 +312,9 @@ def _sensor_words(sensor: Any, seq: int, number: str) -> np.ndarray:
 
 
 def _hex_words(text: str, seq: int, number: str) -> np.ndarray:
-    n = text.count(",") + 1
-    # Fast path for the usual "8125,81B2,...": commas exactly every 5th character, so every
-    # word is 4 characters; fromhex then rejects non-hex, and a short result means whitespace.
-    if len(text) == 5 * n - 1 and text[4::5] == "," * (n - 1):
-        try:
-            packed = bytes.fromhex(text.replace(",", ""))
-        except ValueError:
-            packed = b""
-        if len(packed) == 2 * n:
-            return np.frombuffer(packed, dtype=">u2").astype(np.uint16)
+    usual = _usual_hex(text)
+    if usual is not None:
+        return usual
     words = []
     for i, part in enumerate(text.split(",")):
         # Whitespace inside a word too: a wrapped capture may break a line mid-word.
