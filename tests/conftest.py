@@ -1,7 +1,10 @@
 """Shared pytest set-up: tests marked ``slow`` are deselected unless ``--run-slow``; tests
 marked ``needs_program(present, reason)`` skip, saying why, where a system program is
 missing, and fail instead under CI (``CI=true``), which installs them: a skip there would
-hide a test that never ran."""
+hide a test that never ran. Under pytest-xdist (``-n N --dist loadgroup``, as ``make test``
+runs), the tests that share one of our module- or session-wide fixtures are put in one
+``xdist_group``, so that fixture (a daemon, a recorded dataset, a trained model) is built
+once, on one worker; every other test goes to whichever worker is free."""
 
 from __future__ import annotations
 
@@ -16,13 +19,44 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--run-slow", action="store_true", help="also run tests marked slow")
 
 
+# Before xdist's own hook, which reads the groups into the test ids.
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if config.getoption("--run-slow"):
-        return
-    slow = [item for item in items if "slow" in item.keywords]
-    if slow:
-        config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if "slow" not in item.keywords]
+    if not config.getoption("--run-slow"):
+        slow = [item for item in items if "slow" in item.keywords]
+        if slow:
+            config.hook.pytest_deselected(items=slow)
+            items[:] = [item for item in items if "slow" not in item.keywords]
+    _group_shared_fixtures(items)
+
+
+SHARED_SCOPES = ("class", "module", "package", "session")
+
+
+def _group_shared_fixtures(items: list[pytest.Item]) -> None:
+    """One ``xdist_group`` per set of tests joined by a wide-scoped fixture defined in tests/
+    (a test using two joins their users): named after the fixtures' owners, sorted."""
+    parent: dict[str, str] = {}
+
+    def find(owner: str) -> str:
+        while parent.setdefault(owner, owner) != owner:
+            owner = parent[owner]
+        return owner
+
+    owners_of: dict[pytest.Item, list[str]] = {}
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        owners = sorted({f"{d.baseid}::{d.argname}" for name in item.fixturenames
+                         for d in info.name2fixturedefs.get(name, ())
+                         if d.scope in SHARED_SCOPES and d.baseid.startswith("tests")})
+        for other in owners[1:]:
+            parent[find(other)] = find(owners[0])
+        if owners:
+            owners_of[item] = owners
+    for item, owners in owners_of.items():
+        item.add_marker(pytest.mark.xdist_group(find(owners[0]).split("::")[0]))
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

@@ -1,10 +1,13 @@
 """The robot's presses embed where the dataset's do: a reduced `vt-edge sim consistency`
 (the full one, 8 objects, writes models/eval/consistency.md)."""
 
+import pytest
+
 from edge.tools.consistency import run_consistency
 from tests.support.daemon import ROOT
 
 
+@pytest.mark.slow
 def test_daemon_presses_sit_with_the_dataset_presses_of_their_object(tmp_path):
     report = run_consistency(("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash"),
                              daemon_presses=3, dataset_presses=10, models=ROOT / "models",
