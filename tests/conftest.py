@@ -28,9 +28,20 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             config.hook.pytest_deselected(items=slow)
             items[:] = [item for item in items if "slow" not in item.keywords]
     _group_shared_fixtures(items)
+    if hasattr(config, "workerinput"):  # an xdist worker: hand the long tests out first
+        items.sort(key=_long_first)
 
 
 SHARED_SCOPES = ("class", "module", "package", "session")
+# The directories of the long end-to-end tests (collect, train, the lab's path, processes
+# killed and restarted). xdist hands out the groups, largest first, then single tests in
+# this order: a long test handed out last would run on alone while the other workers idle.
+LONG_FIRST = ("tests/tools/", "tests/faults/", "tests/daemon/")
+
+
+def _long_first(item: pytest.Item) -> int:
+    return next((i for i, d in enumerate(LONG_FIRST) if item.nodeid.startswith(d)),
+                len(LONG_FIRST))
 
 
 def _group_shared_fixtures(items: list[pytest.Item]) -> None:
