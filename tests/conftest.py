@@ -79,11 +79,11 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
             pytest.skip(reason)
 
 
-@pytest.fixture
+@pytest.fixture(autouse=True)
 def logging_as_found():
     """A CLI's ``main`` configures logging once, onto the stderr of the test that first
     calls it: undo that afterwards, so later tests' captured stderr still gets the log
-    lines."""
+    lines. For every test: under xdist any test may follow one that called a ``main``."""
     import logging
 
     from edge.core import logs
