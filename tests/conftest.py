@@ -45,8 +45,9 @@ def _long_first(item: pytest.Item) -> int:
 
 
 def _group_shared_fixtures(items: list[pytest.Item]) -> None:
-    """One ``xdist_group`` per set of tests joined by a wide-scoped fixture defined in tests/
-    (a test using two joins their users): named after the fixtures' owners, sorted."""
+    """One ``xdist_group`` per set of tests joined by a wide-scoped fixture defined under
+    tests/ (a test using two such fixtures joins both sets), named after the module or
+    conftest directory that defines one of them."""
     parent: dict[str, str] = {}
 
     def find(owner: str) -> str:
