@@ -20,7 +20,7 @@ run: $(STAMP)
 # The behaviour tier on TEST_WORKERS workers (pytest-xdist). The tests mostly wait on the
 # emulated robot, so more workers than cores pays; tests sharing a module- or session-wide
 # fixture stay on one worker (tests/conftest.py).
-TEST_WORKERS ?= 4
+TEST_WORKERS ?= 3
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
