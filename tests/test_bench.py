@@ -36,6 +36,8 @@ def check_figure(key, fig):
     assert 0 <= fig["host_cores_busy"] <= 64, (key, fig)
 
 
+# Slow: a whole (tiny) bench run, with its load generators busy on every core.
+@pytest.mark.slow
 def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
     results_json = tmp_path / "results.json"
     assert bench.bench(tmp_path, TINY) == 0

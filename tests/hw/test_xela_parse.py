@@ -289,12 +289,14 @@ def _only_sensor_errors(msg: object) -> None:
     assert frame is None or frame.raw.dtype == np.uint16
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=200) | st.binary(max_size=200))
 def test_random_text_only_raises_sensor_error(text: str | bytes) -> None:
     _only_sensor_errors(text)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(json_values)
 def test_random_json_only_raises_sensor_error(value: object) -> None:
@@ -303,6 +305,7 @@ def test_random_json_only_raises_sensor_error(value: object) -> None:
         _only_sensor_errors(value)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(
     st.sampled_from(["message", "time", "1", "2", "data", "integer", "taxels", "model"]),

@@ -82,6 +82,7 @@ def test_bad_counts_are_refused_before_anything_starts(capsys):
     assert "--runs must be at least 1, got 0" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_daemon_presses_sit_with_the_dataset_presses_of_their_object(tmp_path):
     report = run_consistency(("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash"),
                              daemon_presses=2, dataset_presses=8, runs=2,

@@ -99,6 +99,7 @@ labels = st.lists(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(text=st.text(max_size=300), candidates=labels)
 def test_any_answer_never_crashes_and_never_invents(text, candidates):
