@@ -1,11 +1,12 @@
 # Two commands: `make run` (the main job) and `make test`. Each creates .venv if missing and
 # installs what it needs; the install is skipped while pyproject.toml is unchanged.
+# `make test-slow` runs the slow tier (soak and measurement tests); CI runs both.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench lint clean
+.PHONY: run test test-slow bench lint clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -16,9 +17,18 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(PY) -m edge demo
 
+# The behaviour tier on TEST_WORKERS workers (pytest-xdist). The tests mostly wait on the
+# emulated robot, so more workers than cores pays; tests sharing a module- or session-wide
+# fixture stay on one worker (tests/conftest.py).
+TEST_WORKERS ?= 3
+
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+
+# The slow tier, one test at a time: its measurements must not share the cores with others.
+test-slow: $(STAMP)
+	$(PY) -m pytest -q --run-slow -m slow
 
 # The runtime's figures (vt-edge bench, no torch), then the torch and training ones added to
 # the same bench/results.json and results.md (vt-train bench); results.md compares each

@@ -57,7 +57,8 @@ def _cmd_sim_consistency(args: argparse.Namespace) -> int:
     command = "vt-edge sim consistency " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else (
         "vt-edge sim consistency")
     report = run_consistency(args.objects, args.presses, args.dataset_presses, args.seed,
-                             args.models, args.config, args.out, command=command.strip())
+                             args.models, args.config, args.out, command=command.strip(),
+                             runs=args.runs)
     print(report.markdown(command.strip()))
     return 0 if report.passed else 1
 
@@ -238,14 +239,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_episodes(args: argparse.Namespace) -> int:
     import json
+    from pathlib import Path
 
     from edge.core.config import load_config
     from edge.daemon.episode import Status
-    from edge.daemon.serve import state_dir
     from edge.daemon.store import EpisodeStore
 
     cfg = load_config(args.config)
-    store = EpisodeStore(state_dir(cfg) / "episodes")
+    store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
     if args.episodes_command == "retry":
         from edge.tools.episode_retry import run_retry
 
@@ -486,8 +487,12 @@ def build_parser() -> argparse.ArgumentParser:
         "consistency", help="the daemon's presses on the emulated robot against the dataset "
         "recorder's, encoded by the shipped model (exit 1 if the targets are missed)")
     cons.add_argument("--objects", nargs="+", default=None, help="default: the 8 of the report")
-    cons.add_argument("--presses", type=int, default=5, help="daemon presses per object")
-    cons.add_argument("--dataset-presses", type=int, default=10)
+    cons.add_argument("--presses", type=int, default=10,
+                      help="daemon presses per object and run")
+    cons.add_argument("--dataset-presses", type=int, default=20,
+                      help="dataset recorder presses per object and run")
+    cons.add_argument("--runs", type=int, default=3, help="repeats with new presses; the "
+                      "targets must hold in each (run k: dataset seed SEED+k)")
     cons.add_argument("--seed", type=int, default=0)
     cons.add_argument("--models", default="models")
     cons.add_argument("--config", default="configs/sim.toml")

@@ -1,7 +1,10 @@
 """Shared pytest set-up: tests marked ``slow`` are deselected unless ``--run-slow``; tests
 marked ``needs_program(present, reason)`` skip, saying why, where a system program is
 missing, and fail instead under CI (``CI=true``), which installs them: a skip there would
-hide a test that never ran."""
+hide a test that never ran. Under pytest-xdist (``-n N --dist loadgroup``, as ``make test``
+runs), the tests that share one of our module- or session-wide fixtures are put in one
+``xdist_group``, so that fixture (a daemon, a recorded dataset, a trained model) is built
+once, on one worker; every other test goes to whichever worker is free."""
 
 from __future__ import annotations
 
@@ -16,13 +19,56 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--run-slow", action="store_true", help="also run tests marked slow")
 
 
+# Before xdist's own hook, which reads the groups into the test ids.
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if config.getoption("--run-slow"):
-        return
-    slow = [item for item in items if "slow" in item.keywords]
-    if slow:
-        config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if "slow" not in item.keywords]
+    if not config.getoption("--run-slow"):
+        slow = [item for item in items if "slow" in item.keywords]
+        if slow:
+            config.hook.pytest_deselected(items=slow)
+            items[:] = [item for item in items if "slow" not in item.keywords]
+    _group_shared_fixtures(items)
+    if hasattr(config, "workerinput"):  # an xdist worker: hand the long tests out first
+        items.sort(key=_long_first)
+
+
+SHARED_SCOPES = ("class", "module", "package", "session")
+# The directories of the long end-to-end tests (collect, train, the lab's path, processes
+# killed and restarted). xdist hands out the groups, largest first, then single tests in
+# this order: a long test handed out last would run on alone while the other workers idle.
+LONG_FIRST = ("tests/tools/", "tests/faults/", "tests/daemon/")
+
+
+def _long_first(item: pytest.Item) -> int:
+    return next((i for i, d in enumerate(LONG_FIRST) if item.nodeid.startswith(d)),
+                len(LONG_FIRST))
+
+
+def _group_shared_fixtures(items: list[pytest.Item]) -> None:
+    """One ``xdist_group`` per set of tests joined by a wide-scoped fixture defined under
+    tests/ (a test using two such fixtures joins both sets), named after the module or
+    conftest directory that defines one of them."""
+    parent: dict[str, str] = {}
+
+    def find(owner: str) -> str:
+        while parent.setdefault(owner, owner) != owner:
+            owner = parent[owner]
+        return owner
+
+    owners_of: dict[pytest.Item, list[str]] = {}
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None:
+            continue
+        owners = sorted({f"{d.baseid}::{d.argname}" for name in item.fixturenames
+                         for d in info.name2fixturedefs.get(name, ())
+                         if d.scope in SHARED_SCOPES and d.baseid.startswith("tests")})
+        for other in owners[1:]:
+            parent[find(other)] = find(owners[0])
+        if owners:
+            owners_of[item] = owners
+    for item, owners in owners_of.items():
+        item.add_marker(pytest.mark.xdist_group(find(owners[0]).split("::")[0]))
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
@@ -34,11 +80,11 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
             pytest.skip(reason)
 
 
-@pytest.fixture
+@pytest.fixture(autouse=True)
 def logging_as_found():
     """A CLI's ``main`` configures logging once, onto the stderr of the test that first
     calls it: undo that afterwards, so later tests' captured stderr still gets the log
-    lines."""
+    lines. For every test: under xdist any test may follow one that called a ``main``."""
     import logging
 
     from edge.core import logs

@@ -13,9 +13,9 @@ from dataclasses import replace
 
 import pytest
 
-from edge.core.figures import figure, ratio_figure, target
-from edge.core.results import markdown
 from edge.tools import bench
+from edge.tools.bench.figures import figure, ratio_figure, target
+from edge.tools.bench.results import markdown
 from edge.tools.bench.settings import CONTROLLERS
 from train import bench as train_bench
 
@@ -36,6 +36,8 @@ def check_figure(key, fig):
     assert 0 <= fig["host_cores_busy"] <= 64, (key, fig)
 
 
+# Slow: a whole (tiny) bench run, with its load generators busy on every core.
+@pytest.mark.slow
 def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
     results_json = tmp_path / "results.json"
     assert bench.bench(tmp_path, TINY) == 0

@@ -1,9 +1,11 @@
 """The layout is the architecture: imports run one way.
 
-edge.core <- edge.hw <- edge.daemon <- edge.tools (and the CLI); edge.sim and train may use
-the core (the simulator also the hardware contracts and tables, train the simulator and the
-dataset recorder, which presses with the daemon's own press controller); nothing in edge
-imports train, and the daemon never loads the simulator.
+edge.core <- edge.hw <- edge.daemon <- edge.tools (and the CLI); the VLM package uses the core
+only and serves the daemon, the tools and training; edge.sim and train may use the core (the
+simulator also the hardware contracts and tables, train the simulator and the tools: the
+dataset recorder, which presses with the daemon's own press controller, and the bench's
+results file); nothing in edge imports train, the daemon never loads the simulator, and
+importing train loads no press machinery until a dataset is recorded.
 """
 
 from __future__ import annotations
@@ -20,18 +22,17 @@ ROOT = Path(__file__).resolve().parents[1]
 # Which packages each layer may import (besides itself and the stdlib/third parties).
 ALLOWED = {
     "edge.core": {"edge", "edge.core"},
+    "edge.vlm": {"edge", "edge.core", "edge.vlm"},
     "edge.hw": {"edge", "edge.core", "edge.hw"},
-    "edge.daemon": {"edge", "edge.core", "edge.hw", "edge.daemon"},
+    "edge.daemon": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon"},
     "edge.sim": {"edge", "edge.core", "edge.hw", "edge.sim"},
-    "edge.tools": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools",
-                   "edge.tools.record"},
-    "edge.cli": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim", "edge.tools",
-                 "edge.tools.record"},
+    "edge.tools": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon", "edge.sim",
+                   "edge.tools"},
+    "edge.cli": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon", "edge.sim",
+                 "edge.tools"},
     "edge.__main__": {"edge", "edge.cli"},
     "edge": {"edge"},
-    "edge.tools.record": {"edge", "edge.core", "edge.hw", "edge.daemon", "edge.sim",
-                          "edge.tools"},
-    "train": {"edge", "edge.core", "edge.sim", "edge.tools.record", "train"},
+    "train": {"edge", "edge.core", "edge.vlm", "edge.sim", "edge.tools", "train"},
 }
 
 
@@ -67,8 +68,6 @@ def test_imports_run_one_way():
     for path in sorted([*ROOT.glob("edge/**/*.py"), *ROOT.glob("train/**/*.py")]):
         layer = _layer(_module(path))
         for line, target in _imports(path):
-            if target in ("edge.__version__",):
-                continue
             if _layer(target) not in ALLOWED[layer]:
                 wrong.append(f"{path.relative_to(ROOT)}:{line} ({layer}) imports {target}")
     assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
@@ -82,3 +81,60 @@ def test_the_daemon_loads_neither_training_nor_the_simulator(module):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout.strip()
     assert out == "[]", f"importing {module} loaded {out}"
+
+
+def test_importing_train_loads_no_press_machinery():
+    """Only recording a dataset (edge.tools.record, imported where it records) loads the
+    daemon's press controller, the drivers and the virtual robot."""
+    code = ("import importlib, pkgutil, sys, train; "
+            "[importlib.import_module(m.name) for m in pkgutil.walk_packages(train.__path__, "
+            "'train.') if not m.name.endswith('__main__')]; "
+            "print(sorted(m for m in sys.modules if m.startswith(('edge.daemon', 'edge.hw', "
+            "'edge.tools.record', 'edge.sim.virtual'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, check=True).stdout.strip()
+    assert out == "[]", f"importing train loaded {out}"
+
+
+def _runtime_imports(path: Path, modules: set[str]) -> set[str]:
+    """The project modules ``path`` loads when it runs: any depth, lazy imports included,
+    ``if TYPE_CHECKING:`` blocks left out (they never run). ``from package import module``
+    needs the module, not the package's own names."""
+    tree = ast.parse(path.read_text(), str(path))
+    skipped = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
+               and getattr(node.test, "id", None) == "TYPE_CHECKING"
+               for child in node.body for n in ast.walk(child)}
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                name = f"{node.module}.{a.name}"
+                found.add(name if name in modules else node.module)
+    return found
+
+
+def test_no_import_cycle():
+    paths = {_module(p): p for p in [*ROOT.glob("edge/**/*.py"), *ROOT.glob("train/**/*.py")]}
+    graph = {m: {t for t in _runtime_imports(p, set(paths)) if t in paths and t != m}
+             for m, p in paths.items()}
+    cycles: set[tuple[str, ...]] = set()
+
+    def visit(m: str, trail: list[str]) -> None:
+        for t in sorted(graph[m]):
+            if t in trail:
+                cycle = trail[trail.index(t):]
+                start = cycle.index(min(cycle))
+                cycles.add(tuple(cycle[start:] + cycle[:start]))
+            elif t not in done:
+                visit(t, [*trail, t])
+        done.add(m)
+
+    done: set[str] = set()
+    for m in sorted(graph):
+        if m not in done:
+            visit(m, [m])
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in sorted(cycles))

@@ -11,7 +11,7 @@ Phases:
 
 ``vt-train bench --merge-into bench/results.json`` adds these figures to the results file
 that ``vt-edge bench`` wrote (and renders its ``results.md`` again); ``--out DIR`` starts a
-file of its own. One format for both: :mod:`edge.core.results`. ``make bench`` runs
+file of its own. One format for both: :mod:`edge.tools.bench.results`. ``make bench`` runs
 ``vt-edge bench`` then this.
 """
 
@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.figures import figure, ratio_figure, target, timed_in_blocks
 from edge.core.model import load_model, read_manifest, synthetic_inputs
-from edge.core.results import PhaseResult, Results, progress, version
+from edge.tools.bench.figures import figure, ratio_figure, target, timed_in_blocks
+from edge.tools.bench.results import PhaseResult, Results, progress, version
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 PHASES = ("encode_torch", "train")

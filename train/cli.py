@@ -158,7 +158,7 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
         limit=args.limit, concurrency=args.concurrency,
         paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:  # one INFO line per answer from the client is too much here
-        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
     if args.dry_run:
         plan = eval_vlm.prepare(cfg, endpoint=False)
         cache = eval_vlm.AnswerCache(out / eval_vlm.ANSWERS_FILE)
@@ -243,7 +243,7 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
-        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
     asyncio.run(table1.run(cfg, progress=not args.quiet))
     print((cfg.out / table1.REPORT_MD).read_text())
     return 0
@@ -264,7 +264,7 @@ def _cmd_fig6(args: argparse.Namespace) -> int:
         limit=args.limit, concurrency=args.concurrency,
         paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
     if not args.verbose:
-        logging.getLogger("edge.core.vlm").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
     asyncio.run(fig6.run(cfg, progress=not args.quiet))
     print((cfg.out / fig6.REPORT_MD).read_text())
     return 0

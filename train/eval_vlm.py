@@ -4,8 +4,8 @@ For every press of each unseen test set (FoodReplica: 22 classes, Cube: 4) the V
 once per condition to name the object among that set's labels, exactly as the robot asks it:
 the offset-0 input through the shipped encoder and reference database
 (:func:`edge.core.model.load_model`), the description of the nearest distinct classes, the
-shipped prompt templates (:mod:`edge.core.prompt`, ``models/prompts``) and the robot's own client
-(:class:`edge.core.vlm.OpenAIVLM`: data-URL image, temperature 0, seed, ``[vlm]
+shipped prompt templates (:mod:`edge.vlm.prompt`, ``models/prompts``) and the robot's own client
+(:class:`edge.vlm.client.OpenAIVLM`: data-URL image, temperature 0, seed, ``[vlm]
 structured_output`` with the robot's fallback when a server refuses it, answer checked
 against the candidates with one corrective retry, transport retries with backoff). The
 picture is :func:`edge.sim.camera.render` of the press's label (a real food and its replica
@@ -58,13 +58,13 @@ import numpy as np
 from edge.core.atomic import atomic_write_text
 from edge.core.config import VLMConfig
 from edge.core.errors import EdgeError, EvalVLMError, ImageError, ModelError, RecordingError
-from edge.core.images import prepare_image
 from edge.core.model import Origin, ReferenceDatabase, load_model, manifest_origin
 from edge.core.progress import PLAIN_EVERY_S
 from edge.core.progress import Progress as Bar
-from edge.core.prompt import PromptTemplate, load_template
 from edge.core.recording import DATASET_INDEX
-from edge.core.vlm import OpenAIVLM, VLMAnswer, VLMClient
+from edge.vlm.client import OpenAIVLM, VLMAnswer, VLMClient
+from edge.vlm.images import prepare_image
+from edge.vlm.prompt import PromptTemplate, load_template
 from train.data import PressSet, load_presses
 
 log = logging.getLogger(__name__)

@@ -46,7 +46,7 @@ from edge.core.errors import EvalVLMError
 from edge.core.model import read_manifest
 from edge.core.preprocess import DEFAULT_WINDOW, WindowSpec
 from edge.core.progress import Progress as Bar
-from edge.core.prompt import load_template
+from edge.vlm.prompt import load_template
 from train import eval_vlm
 from train.data import PressSet, Splits, training_data_of
 from train.eval_vlm import CONDITIONS, AnswerCache, EvalVLMConfig, Job

@@ -27,10 +27,9 @@ import numpy as np
 from edge.core.atomic import atomic_write_bytes
 from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.preprocess import DEFAULT_WINDOW
-from edge.core.prompt import MODES, PromptTemplate
 from edge.core.recording import DATASET_INDEX
 from edge.sim.catalogue import DATASETS
-from edge.tools.record import DEFAULT_TRANSPORT, record_dataset
+from edge.vlm.prompt import MODES, PromptTemplate
 from train import database, evaluate
 from train.data import STD_FLOOR_FRACTION, Normaliser, PressSet, load_presses, training_data
 from train.export import (
@@ -85,6 +84,8 @@ def _same_classes(meta: dict[str, Any], dataset: str) -> bool:
     descriptions, per-class thresholds): anything else means recording again."""
     if not meta.get("recorder"):
         return False  # an older recorder's data: another press protocol
+    from edge.tools.record import DEFAULT_TRANSPORT
+
     if meta.get("transport") != asdict(DEFAULT_TRANSPORT):
         return False  # pressed with another stop latency than the daemon's today
     have = meta.get("classes", [])
@@ -106,6 +107,9 @@ def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: i
             log.info("reusing %s recordings in %s", dataset, directory)
             return True
         shutil.rmtree(directory)
+    # The recorder loads the press controller and the virtual robot: only when recording.
+    from edge.tools.record import record_dataset
+
     log.info("recording %s: %d presses per class (seed %d)", dataset, presses, seed)
     record_dataset(dataset, presses, directory, seed=seed, workers=workers)
     return False

@@ -2,18 +2,22 @@
 
 Every section is a frozen dataclass with safe defaults; :func:`load_config` reads a TOML file,
 refuses unknown keys and wrong types, and names the offending field (``press.x_th``) and value
-in the error. Sections that later parts of the runtime need are added here, next to these.
+in the error, then applies the environment's overrides (:func:`apply_environment`): the one
+place the environment changes a configured value. Sections that later parts of the runtime
+need are added here, next to these.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
 import tomllib
 import types
 import typing
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
@@ -490,7 +494,28 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(f"config file {path} cannot be read: {exc}") from None
     except ValueError as exc:  # TOMLDecodeError, or an integer Python will not parse
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
-    return config_from_dict(raw, source=str(path))
+    return apply_environment(config_from_dict(raw, source=str(path)))
+
+
+def apply_environment(cfg: Config, environ: Mapping[str, str] | None = None) -> Config:
+    """``cfg`` with the environment's overrides, which win over the file so that a
+    supervisor need not edit it: ``$VTZERO_STATE_DIR`` (``runtime.state_dir``: systemd's
+    StateDirectory=), ``$VTZERO_VLM_URL`` and ``$VTZERO_VLM_MODEL`` (``vlm.base_url``,
+    ``vlm.model``), and ``$VTZERO_API_TOKEN`` (``api.token``, where neither it nor
+    ``api.token_file`` is set)."""
+    env = os.environ if environ is None else environ
+    runtime, vlm, api = cfg.runtime, cfg.vlm, cfg.api
+    if state_dir := env.get("VTZERO_STATE_DIR"):
+        runtime = replace(runtime, state_dir=state_dir)
+    if url := env.get("VTZERO_VLM_URL", "").strip():
+        vlm = replace(vlm, base_url=url.rstrip("/"))
+    if model := env.get("VTZERO_VLM_MODEL", "").strip():
+        vlm = replace(vlm, model=model)
+    if vlm is not cfg.vlm:
+        vlm.validate("vlm (with $VTZERO_VLM_URL/$VTZERO_VLM_MODEL)")
+    if (token := env.get("VTZERO_API_TOKEN")) and not (api.token or api.token_file):
+        api = replace(api, token=token)
+    return replace(cfg, runtime=runtime, vlm=vlm, api=api)
 
 
 def config_from_dict(raw: dict[str, Any], source: str = "<config>") -> Config:

@@ -17,7 +17,7 @@ import contextlib
 import hmac
 import json
 import logging
-import os
+import socket
 import weakref
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -39,14 +39,15 @@ from edge.core.errors import (
     NotFoundError,
     StateError,
 )
-from edge.core.images import check_image
 from edge.daemon.episode import Episode
 from edge.daemon.events import Subscription
+from edge.daemon.state import Health
 from edge.daemon.webui import OperatorPage
+from edge.vlm.images import check_image
 
 if TYPE_CHECKING:
     from edge.core.config import Config
-    from edge.daemon.sensor import FrameRing
+    from edge.daemon.ring import FrameRing
     from edge.daemon.store import EpisodeStore
 
 log = logging.getLogger(__name__)
@@ -55,6 +56,8 @@ MIN_TOKEN_CHARS = 16
 T = TypeVar("T")
 
 MAX_LABEL_CHARS = 80
+# Connections the listening socket queues until they are accepted (aiohttp's own default).
+LISTEN_BACKLOG = 128
 SSE_KEEPALIVE_S = 15.0
 _RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
@@ -78,7 +81,7 @@ class Runtime(Protocol):
 
     def subscribe(self) -> AbstractContextManager[Subscription]: ...
 
-    def health(self) -> dict[str, Any]: ...
+    def health(self) -> Health: ...
 
     def metrics_text(self) -> str: ...
 
@@ -93,8 +96,8 @@ class Runtime(Protocol):
 
 
 def load_token(cfg: ApiConfig) -> str:
-    """The bearer token from the config, its file, or ``$VTZERO_API_TOKEN``."""
-    token = cfg.token or os.environ.get("VTZERO_API_TOKEN", "")
+    """The bearer token from the config (``$VTZERO_API_TOKEN`` applied) or its file."""
+    token = cfg.token
     if cfg.token_file:
         try:
             token = Path(cfg.token_file).read_text(encoding="utf-8").strip()
@@ -107,6 +110,30 @@ def load_token(cfg: ApiConfig) -> str:
             "or bind "
             "127.0.0.1")
     return token
+
+
+def listen(cfg: ApiConfig) -> list[socket.socket]:
+    """The API's listening sockets, bound now: the daemon binds its port before it opens any
+    device (a taken port fails the start before any motor has torque) and serves on them
+    once it has its runtime (:meth:`Api.start`). One per address of ``cfg.host``, as
+    asyncio's ``create_server`` binds them; raises :class:`OSError`."""
+    sockets: list[socket.socket] = []
+    try:
+        for family, kind, proto, _, address in socket.getaddrinfo(
+                cfg.host or None, cfg.port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE):
+            sock = socket.socket(family, kind, proto)
+            sockets.append(sock)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            sock.bind(address)
+            sock.listen(LISTEN_BACKLOG)
+            sock.setblocking(False)
+    except OSError:
+        for sock in sockets:
+            sock.close()
+        raise
+    return sockets
 
 
 def _error(status: int, message: str, **extra: Any) -> web.Response:
@@ -162,9 +189,7 @@ class _Parsed:
 
 
 class Api:
-    def __init__(self, runtime: Runtime | None, cfg: ApiConfig) -> None:
-        # None while the daemon starts: the port is bound first (a taken port fails the
-        # start before any motor has torque), requests get 503 until the runtime is set.
+    def __init__(self, runtime: Runtime, cfg: ApiConfig) -> None:
         self.runtime = runtime
         self.cfg = cfg
         self.token = load_token(cfg)
@@ -229,25 +254,19 @@ class Api:
                     return web.json_response({"error": "missing or wrong bearer token"},
                                              status=401,
                                              headers={"WWW-Authenticate": "Bearer"})
-        if self.runtime is None:
-            return _error(503, "the daemon is starting; try again in a moment")
         return await handler(request)
 
-    def attach(self, runtime: Runtime) -> None:
-        """The runtime the routes serve, once the daemon has one (503 until then)."""
-        self.runtime = runtime
-        self.ui.attach(runtime)
-
-    async def start(self) -> int:
+    async def start(self, sockets: list[socket.socket]) -> int:
+        """Serve on ``sockets`` (bound by :func:`listen`)."""
         self._runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.cfg.host, self.cfg.port)
-        await site.start()
-        server = site._server
-        self.port = server.sockets[0].getsockname()[1] if server and server.sockets else None
-        log.info("API listening on http://%s:%s%s", self.cfg.host, self.port,
+        for sock in sockets:
+            await web.SockSite(self._runner, sock).start()
+        port: int = sockets[0].getsockname()[1]
+        self.port = port
+        log.info("API listening on http://%s:%s%s", self.cfg.host, port,
                  " (bearer token required)" if self.token else "")
-        return self.port or 0
+        return port
 
     async def _end_event_streams(self, app: web.Application) -> None:
         for task in list(self._event_streams):
@@ -367,7 +386,7 @@ class Api:
 
     async def healthz(self, request: web.Request) -> web.Response:
         health = self.runtime.health()
-        return web.json_response(health, status=200 if health.get("ok") else 503)
+        return web.json_response(health.to_json(), status=200 if health.ok else 503)
 
     async def metrics(self, request: web.Request) -> web.Response:
         return web.Response(text=self.runtime.metrics_text(),

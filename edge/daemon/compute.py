@@ -35,10 +35,11 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from edge.core import images, preprocess, recording
+from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ImageError, ModelError
-from edge.core.images import VLMImage
 from edge.core.model import Model, ModelRef, load_model
+from edge.vlm import images
+from edge.vlm.images import VLMImage
 
 log = logging.getLogger(__name__)
 

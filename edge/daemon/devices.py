@@ -8,10 +8,10 @@ import logging
 
 from edge.core.config import Config
 from edge.core.errors import DeviceError, StartError
-from edge.daemon.lifecycle import Devices
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton
 from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
+from edge.hw.contracts import Devices
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.xela import XelaClient
 

@@ -14,6 +14,7 @@ from enum import StrEnum
 from typing import Any
 
 from edge.core.errors import StoreError
+from edge.daemon.state import PressSummary
 
 
 class Status(StrEnum):
@@ -49,7 +50,7 @@ class Episode:
     error: str | None = None
     note: str | None = None
     # The press and its analysis.
-    press: dict[str, Any] | None = None
+    press: PressSummary | None = None
     x_th: float | None = None
     software_version: str | None = None
     vlm_mode: str | None = None
@@ -82,6 +83,8 @@ class Episode:
                 value = str(value)
             elif f.name == "topk" and value is not None:
                 value = [{"label": n.label, "distance": n.distance} for n in value]
+            elif f.name == "press" and value is not None:
+                value = value.to_json()
             elif value is None and not (f.name in _ALWAYS
                                         or (f.name == "label" and self.vlm is not None)):
                 continue  # not reached yet (a failed press has no analysis, ...)
@@ -111,6 +114,8 @@ class Episode:
             except (TypeError, KeyError, ValueError):
                 raise StoreError(f"{where}: 'topk' must be a list of "
                                  "{{label, distance}}") from None
+        if kwargs.get("press") is not None:
+            kwargs["press"] = PressSummary.from_json(kwargs["press"], f"{where}: 'press'")
         if kwargs.get("timings") is None:
             kwargs["timings"] = {}
         return cls(**kwargs, extra={k: v for k, v in data.items() if k not in known})

@@ -22,28 +22,29 @@ import logging
 import signal
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
 
 from edge import __version__
 from edge.core.config import Config
-from edge.core.errors import BusyError, EdgeError
+from edge.core.errors import EdgeError
 from edge.core.model import ModelRef
-from edge.core.vlm import VLMClient
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.episode import Episode
 from edge.daemon.events import EventBus, Subscription
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressController
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler, SensorTask
 from edge.daemon.services import optional_services
+from edge.daemon.state import Health, PressState
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier, watchdog_period_s
-from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
-from edge.hw.dynamixel import DynamixelBus
+from edge.hw.contracts import Devices
+from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -60,26 +61,18 @@ HEALTH_FRAME_AGE_S = 1.0
 STREAM_POLL_S = 0.02
 
 
-@dataclass
-class Devices:
-    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
-
-    tactile: TactileSource
-    gripper: Gripper
-    arm: Arm
-    camera: Camera | None = None
-    button: Button | None = None
-    bus: DynamixelBus | None = None  # closed (safe pose, torque off) by the caller
-
-
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
 Reloader = Callable[[], tuple[Config, ModelRef, VLMClient]]
+# Makes the daemon's one press controller from PressController's arguments: PressController
+# itself, or a benchmark's controller (edge/tools/bench/controllers.py).
+ControllerFactory = Callable[..., PressController]
 
 
 class Runtime:
     def __init__(self, cfg: Config, devices: Devices, model: ModelRef, vlm: VLMClient,
                  store: EpisodeStore, compute: ComputeWorker,
-                 notifier: Notifier | None = None, reload: Reloader | None = None) -> None:
+                 notifier: Notifier | None = None, reload: Reloader | None = None,
+                 controller_factory: ControllerFactory = PressController) -> None:
         self.devices = devices
         self.store = store
         self.compute = compute
@@ -89,10 +82,14 @@ class Runtime:
         self.metrics = Metrics()
         self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * SAMPLE_RATE_HZ * 1.5))
         self.sampler = Sampler(self.ring, SAMPLE_RATE_HZ)
-        self.recognizer = Recognizer(Recognition(cfg, model, vlm), lambda: self.press,
-                                     compute, store, self.events, self.metrics,
-                                     devices.camera)
-        self.press = self.make_press_controller()
+        bus = devices.bus
+        # One press controller for the daemon's life: the sensor task checks every frame
+        # with it, the recognizer presses with it.
+        self.press = controller_factory(
+            cfg, devices.gripper, devices.arm, self.ring, on_state=self._on_press_state,
+            recover=bus.recover_watchdog if bus is not None else None, window=model.window)
+        self.recognizer = Recognizer(Recognition(cfg, model, vlm), self.press, compute, store,
+                                     self.events, self.metrics, devices.camera)
         self.sensor = SensorTask(devices.tactile, self.ring, self.press,
                                  on_unusable=self.notifier.status)
         self._stopping = asyncio.Event()
@@ -101,6 +98,8 @@ class Runtime:
         # Set by power_on_with_stream: the start had no sensor stream, torque is still off.
         self._power_on: Callable[[], Awaitable[None]] | None = None
         self._no_stream: str | None = None  # why, until the stream arrives
+        # Why torque stayed off when the stream arrived: the bus's trouble then, not the sensor's.
+        self._torque_error: str | None = None
 
     # The configuration, model and VLM client in force (replaced together on reload).
     @property
@@ -114,26 +113,6 @@ class Runtime:
     @property
     def vlm(self) -> VLMClient:
         return self.recognizer.setup.vlm
-
-    # --- public hooks -------------------------------------------------------------------
-    def make_press_controller(self, cls: type[PressController] = PressController,
-                              **kwargs: Any) -> PressController:
-        """A press controller on this runtime's devices, ring and events (``cls`` may be a
-        comparison controller of a benchmark)."""
-        bus = self.devices.bus
-        return cls(self.cfg, self.devices.gripper, self.devices.arm, self.ring,
-                   on_state=self._on_press_state,
-                   recover=bus.recover_watchdog if bus is not None else None,
-                   window=self.model.window, **kwargs)
-
-    def use_press_controller(self, controller: PressController) -> None:
-        """Presses from now on run with ``controller``; refused while a press runs."""
-        if self.recognizer.lock.locked():
-            raise BusyError("a press is running; swap the controller between presses")
-        if self.press.sensor_is_stale:
-            controller.sensor_stale(EdgeError("stale before the swap"))
-        self.press = controller
-        self.sensor.controller = controller
 
     # --- what the API uses --------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
@@ -167,24 +146,26 @@ class Runtime:
         fatal = self.sensor.fatal
         return str(fatal) if fatal is not None else self._no_stream
 
-    def health(self) -> dict[str, Any]:
+    def health(self) -> Health:
         age = time.monotonic() - self.ring.latest_time()
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
-        bus_error = getattr(self.devices.bus, "fault", None)
+        bus = self.devices.bus
+        bus_error = (bus.fault if bus is not None else None) or self._torque_error
         store_error = self.store.space_error()
-        vlm_error = getattr(self.vlm, "unreachable", None)
+        vlm_error = self.vlm.unreachable
         sensor_error = self.sensor_error
-        return {"ok": (self.ready.is_set() and fresh and bus_error is None and not store_error
-                       and sensor_error is None and vlm_error is None),
-                "ready": self.ready.is_set(), "sensor_fresh": fresh, "bus_error": bus_error,
-                "store_error": store_error, "sensor_error": sensor_error,
-                "vlm_error": vlm_error,
-                "torque_on": getattr(self.devices.bus, "torque_on", None),
-                "state": self.press.state, "episode": self.recognizer.current,
-                "last_frame_age_s": None if not np.isfinite(age) else round(age, 4),
-                # Which model answers: changes when a reload took a new model or database.
-                "model_digest": self.model.digest,
-                "version": __version__}
+        return Health(ok=(self.ready.is_set() and fresh and bus_error is None and not store_error
+                          and sensor_error is None and vlm_error is None),
+                      ready=self.ready.is_set(), sensor_fresh=fresh, bus_error=bus_error,
+                      store_error=store_error, sensor_error=sensor_error,
+                      vlm_error=vlm_error,
+                      torque_on=bus.torque_on if bus is not None else None,
+                      state=self.press.state, episode=self.recognizer.current,
+                      last_frame_age_s=None if not np.isfinite(age) else round(age, 4),
+                      # Which model answers: changes when a reload took a new model or
+                      # database.
+                      model_digest=self.model.digest,
+                      version=__version__)
 
     def metrics_text(self) -> str:
         return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm)
@@ -193,7 +174,7 @@ class Runtime:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
         return await self.compute.run(fn, *args)
 
-    def _on_press_state(self, state: str) -> None:
+    def _on_press_state(self, state: PressState) -> None:
         self.events.publish({"type": "state", "state": state,
                              "episode": self.recognizer.current})
 
@@ -265,7 +246,10 @@ class Runtime:
             await self._power_on()
         except EdgeError as exc:
             log.error("torque could not be turned on: %s", exc)
-            self.recognizer.refusal = f"not pressing: torque could not be turned on: {exc}"
+            self._no_stream = None  # the stream is here: what is wrong now is the bus
+            self._torque_error = f"torque could not be turned on: {exc}"
+            self.recognizer.refusal = f"not pressing: {self._torque_error}"
+            self.notifier.status(f"degraded: {self._torque_error}")  # no longer the sensor
             return
         self._no_stream = None
         self._power_on = None

@@ -45,6 +45,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import _fsync_dir
 from edge.core.errors import NotFoundError, StoreError
 from edge.core.layout import PadLayout
+from edge.daemon.state import PressState, PressSummary
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +124,9 @@ TOPICS: dict[str, str] = {
 }
 EPISODE_TOPICS = tuple(t for t in TOPICS if t != "/events")
 LIVE_TOPICS = ("/tactile/raw", "/press/state", "/events")
+# What of the press the result message carries.
+_RESULT_PRESS = PressSummary.keys("result", "message", "t_cross", "t_stop", "stop_latency_ms",
+                                  "peak_level")
 
 
 def ns(t: float) -> int:
@@ -234,16 +238,18 @@ class EpisodeFiles:
     """A stored episode as the exports read it."""
 
     episode: dict[str, Any]
+    press: PressSummary | None
     rec: recording.Recording | None
     image: bytes | None
     image_format: str  # jpeg | png | ""
-    states: list[tuple[str, float]]
+    states: list[tuple[PressState, float]]
     t_first: float  # the press's first state (monotonic s): the photo's stamp
     t_last: float  # its last: the result's
 
 
 def episode_files(store: Any, episode_id: str) -> EpisodeFiles:
-    episode = store.get(episode_id).to_json()
+    stored = store.get(episode_id)
+    episode = stored.to_json()
     rec = None
     npz = _optional_file(store, episode_id, "press.press.npz")
     if npz is not None:
@@ -254,11 +260,11 @@ def episode_files(store: Any, episode_id: str) -> EpisodeFiles:
         if found is not None:
             image, image_format = found.read_bytes(), fmt
             break
-    press = episode.get("press") or {}
-    states = [(str(s), float(t)) for s, t in press.get("states") or []]
+    press = stored.press
+    states = list(press.states) if press is not None else []
     t_first = states[0][1] if states else (float(rec.recv_time[0]) if rec else 0.0)
     t_last = states[-1][1] if states else (float(rec.recv_time[-1]) if rec else 0.0)
-    return EpisodeFiles(episode, rec, image, image_format, states, t_first, t_last)
+    return EpisodeFiles(episode, press, rec, image, image_format, states, t_first, t_last)
 
 
 def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
@@ -267,7 +273,6 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
     path = episode_mcap_path(episode_id, dest)
     item = episode_files(store, episode_id)
     episode, rec, image, image_format = item.episode, item.rec, item.image, item.image_format
-    press = episode.get("press") or {}
     states, t_first, t_last = item.states, item.t_first, item.t_last
     try:
         out = McapLog(path)
@@ -296,7 +301,8 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
             "episode_software_version": episode.get("software_version"),
             "clock": "monotonic (seconds since the robot booted)",
             "created_unix_s": episode.get("created"), "x_th": episode.get("x_th"),
-            "t_stop": press.get("t_stop"), "t_cross": press.get("t_cross"),
+            "t_stop": item.press.t_stop if item.press is not None else None,
+            "t_cross": item.press.t_cross if item.press is not None else None,
             "sensor_model": rec.sensor_model if rec is not None else None})
         out.attach("episode.json", "application/json",
                    json.dumps(episode, indent=2, sort_keys=True, default=str).encode(), t_last)
@@ -320,7 +326,6 @@ def result_message(episode: dict[str, Any]) -> dict[str, Any]:
         "error": episode.get("error") or episode.get("last_error"),
         "timings": {k: float(v) for k, v in (episode.get("timings") or {}).items()
                     if isinstance(v, int | float)},
-        "press": {k: press.get(k) for k in ("result", "message", "t_cross", "t_stop",
-                                            "stop_latency_ms", "peak_level")},
+        "press": {k: press.get(k) for k in _RESULT_PRESS},
         "vlm_mode": episode.get("vlm_mode"), "created": episode.get("created"),
     }

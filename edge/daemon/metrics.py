@@ -3,7 +3,14 @@
 from __future__ import annotations
 
 import bisect
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from edge.daemon.state import PressResult
+from edge.hw.contracts import BusStatus
+
+if TYPE_CHECKING:
+    from edge.daemon.press import PressOutcome
+    from edge.vlm.client import VLMClient
 
 
 class Histogram:
@@ -34,13 +41,13 @@ class Metrics:
     def __init__(self) -> None:
         self.vlm_errors = 0
         self.discarded_partial = 0
-        self.presses: dict[str, int] = {}
+        self.presses: dict[PressResult, int] = {}
         self.stop_latency = Histogram((0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05))
         self.vlm_latency = Histogram((0.25, 0.5, 1, 2, 5, 10, 30, 60))
         # Answers by the structured-output mode that answered.
         self.vlm_answers: dict[str, int] = {}
 
-    def observe_press(self, outcome: Any) -> None:
+    def observe_press(self, outcome: PressOutcome) -> None:
         self.presses[outcome.result] = self.presses.get(outcome.result, 0) + 1
         if outcome.stop_latency_s is not None:
             self.stop_latency.observe(outcome.stop_latency_s)
@@ -50,15 +57,16 @@ class Metrics:
         if structured_output is not None:
             self.vlm_answers[structured_output] = self.vlm_answers.get(structured_output, 0) + 1
 
-    def render(self, st: Any, sensor: Any, bus: Any = None, vlm: Any = None) -> str:
+    def render(self, st: Any, sensor: Any, bus: BusStatus | None = None,
+               vlm: VLMClient | None = None) -> str:
         """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
-        frame and stale counts, with a Dynamixel ``bus`` its stops, and whether the ``vlm``
+        frame and stale counts, with a motor ``bus`` its stops, and whether the ``vlm``
         client reaches its server."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
         ]
-        for result in sorted(self.presses) or ["ok"]:
+        for result in sorted(self.presses) or [PressResult.OK]:
             lines.append(f'vtzero_presses_total{{result="{result}"}} '
                          f"{self.presses.get(result, 0)}")
         lines += self.stop_latency.render(
@@ -77,7 +85,7 @@ class Metrics:
             "# HELP vtzero_vlm_reachable 0 after attempts in a row got no answer from the VLM "
             "server (see /healthz), else 1.",
             "# TYPE vtzero_vlm_reachable gauge",
-            f"vtzero_vlm_reachable {0 if getattr(vlm, 'unreachable', None) else 1}",
+            f"vtzero_vlm_reachable {0 if vlm is not None and vlm.unreachable else 1}",
             "# HELP vtzero_store_discarded_partial_total Episodes found half-written at start "
             "(a crash while writing) and discarded.",
             "# TYPE vtzero_store_discarded_partial_total counter",
@@ -98,7 +106,7 @@ class Metrics:
             "# TYPE vtzero_loop_lag_max_seconds gauge",
             f"vtzero_loop_lag_max_seconds {st.max_late_s:.6f}",
         ]
-        if bus is not None and hasattr(bus, "stop_fallbacks"):
+        if bus is not None:
             lines += [
                 "# HELP vtzero_stops_total Stops sent to the gripper.",
                 "# TYPE vtzero_stops_total counter",

@@ -28,7 +28,6 @@ import collections
 import contextlib
 import json
 import logging
-import random
 import re
 import socket
 import ssl
@@ -37,9 +36,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
 from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
 from edge.daemon.api import BadRequest, validate_candidates
+from edge.daemon.state import Health, PressSummary
 
 log = logging.getLogger(__name__)
 
@@ -51,11 +52,13 @@ HEALTH_CHECK_S = 1.0
 HEALTH_REFRESH_S = 60.0
 # Episodes remembered (request ids, results already published).
 REMEMBERED = 1000
-_HEALTH_KEYS = ("ok", "ready", "sensor_fresh", "bus_error", "store_error", "sensor_error",
-                "vlm_error")
+# Each reconnect waits 0.8 to 1.2 times the backoff: robots sharing a broker come back apart.
+RECONNECT_SPREAD = (0.8, 1.2)
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
 # Statuses that are not an episode's outcome yet.
 _NOT_FINAL = {"pending", "running", "accepted"}
+# What of the press a result carries.
+_RESULT_PRESS = PressSummary.keys("result", "message", "stop_latency_ms")
 
 
 class CommandError(EdgeError, ValueError):
@@ -68,6 +71,13 @@ class Outgoing:
     payload: bytes
     retain: bool = False
     result: bool = False  # a result (kept before press states when the outbox is full)
+
+
+def _health_key(health: Health) -> tuple[object, ...]:
+    """The part of the health published as soon as it changes: the verdict and its reasons
+    (not the frame's age, which changes at every check)."""
+    return (health.ok, health.ready, health.sensor_fresh, health.bus_error, health.store_error,
+            health.sensor_error, health.vlm_error)
 
 
 def topic_safe(name: str) -> str:
@@ -133,7 +143,8 @@ class MqttBridge:
         password = await asyncio.to_thread(_password, self.cfg)
         tls = _tls(self.cfg)
         pump = asyncio.create_task(self._pump(), name="mqtt-events")
-        delay = self.cfg.reconnect_base_s
+        backoff = Backoff(self.cfg.reconnect_base_s, self.cfg.reconnect_max_backoff_s,
+                          RECONNECT_SPREAD)
         try:
             while True:
                 import aiomqtt
@@ -143,12 +154,11 @@ class MqttBridge:
                 except aiomqtt.MqttError as exc:
                     level = logging.WARNING if self.connections else logging.INFO
                     log.log(level, "MQTT broker %s:%d: %s; retrying in %.1f s", self.cfg.host,
-                            self.cfg.port, exc, delay)
+                            self.cfg.port, exc, backoff.delay_s)
                 if self.connected.is_set():
                     self.connected.clear()
-                    delay = self.cfg.reconnect_base_s  # it was up: start again from the base
-                await asyncio.sleep(delay * random.uniform(0.8, 1.2))
-                delay = min(delay * 2, self.cfg.reconnect_max_backoff_s)
+                    backoff.reset()  # it was up: start again from the base
+                await asyncio.sleep(backoff.next_s())
         finally:
             pump.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -218,10 +228,10 @@ class MqttBridge:
         sent = 0.0
         while True:
             health = self.runtime.health()
-            key = tuple(health.get(k) for k in _HEALTH_KEYS)
+            key = _health_key(health)
             if key != last or time.monotonic() - sent >= HEALTH_REFRESH_S:
                 payload = json.dumps({"status": "online", "client_id": self.client_id,
-                                      **health}, default=str).encode()
+                                      **health.to_json()}, default=str).encode()
                 await client.publish(self.topic("health"), payload, qos=1, retain=True,
                                      timeout=self.cfg.publish_timeout_s)
                 last, sent = key, time.monotonic()
@@ -278,8 +288,7 @@ class MqttBridge:
             "candidates": episode.get("candidates"), "topk": episode.get("topk"),
             "description": episode.get("description"), "timings": episode.get("timings"),
             "source": episode.get("source"),
-            "press": {k: (episode.get("press") or {}).get(k)
-                      for k in ("result", "message", "stop_latency_ms")},
+            "press": {k: (episode.get("press") or {}).get(k) for k in _RESULT_PRESS},
         }, result=True)
 
     # --- commands ---------------------------------------------------------------------

@@ -4,7 +4,7 @@ idle -> above -> lowered -> tare -> closing -> holding -> opening -> returning -
 
 The gripper is opened before the arm moves to ``above`` (it may have been left closed).
 
-The threshold is checked on every arriving frame by the sensor task (:meth:`on_frame`),
+The threshold is checked on every arriving frame by the sensor task (:meth:`check`),
 which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
 closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
 (``abort_factor * x_th``) opens at once (``aborted``); a stale sensor opens and fails the
@@ -16,10 +16,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -27,7 +27,8 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.core.layout import PadLayout
-from edge.daemon.sensor import FrameRing, Window
+from edge.daemon.ring import FrameRing, Window
+from edge.daemon.state import PressResult, PressState, PressSummary
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
@@ -54,7 +55,7 @@ STREAM_CATCH_UP_S = 1.0
 
 @dataclass
 class PressOutcome:
-    result: str = "error"  # ok | no_contact | aborted | stale | error
+    result: PressResult = PressResult.ERROR
     message: str = ""
     t_cross: float | None = None  # receive time of the first frame over x_th
     t_stop: float | None = None  # when the stop write went out
@@ -65,33 +66,35 @@ class PressOutcome:
     tare: np.ndarray | None = None
     window: Window | None = None
     gripper_trace: list[GripperState] = field(default_factory=list)
-    states: list[tuple[str, float]] = field(default_factory=list)
+    states: list[tuple[PressState, float]] = field(default_factory=list)
 
     @property
     def contact(self) -> bool:
-        return self.result == "ok"
+        return self.result == PressResult.OK
 
-    def summary(self) -> dict[str, Any]:
-        return {
-            "result": self.result,
-            "message": self.message,
-            "contact": self.contact,
-            "t_cross": self.t_cross,
-            "t_stop": self.t_stop,
-            "stop_latency_ms": None if self.stop_latency_s is None
+    def summary(self) -> PressSummary:
+        return PressSummary(
+            result=self.result,
+            message=self.message,
+            contact=self.contact,
+            t_cross=self.t_cross,
+            t_stop=self.t_stop,
+            stop_latency_ms=None if self.stop_latency_s is None
             else self.stop_latency_s * 1e3,
-            "peak_level": self.peak_level,
-            "level_at_cross": self.level_at_cross,
-            "peak_squeeze_ma": max((s.squeeze_ma for s in self.gripper_trace), default=None),
-            "states": self.states,
-        }
+            peak_level=self.peak_level,
+            level_at_cross=self.level_at_cross,
+            peak_squeeze_ma=max((s.squeeze_ma for s in self.gripper_trace), default=None),
+            states=tuple(self.states),
+        )
 
 
 class _Armed:
     """Threshold state while closing/holding; touched only on the event loop."""
 
     def __init__(self, tare: np.ndarray, x_th: float, abort_level: float) -> None:
-        self.tare = tare
+        # As floats: math.dist on a list is the cheapest norm on the per-frame path, where
+        # numpy's code is out of the caches (np.linalg.norm costs about 2.5x as much there).
+        self.tare = tare.tolist()
         self.x_th = x_th
         self.abort_level = abort_level
         self.crossed = asyncio.Event()
@@ -113,7 +116,7 @@ class PressController:
     recording covers it)."""
 
     def __init__(self, cfg: Config, gripper: Gripper, arm: Arm, ring: FrameRing,
-                 on_state: Callable[[str], None] | None = None,
+                 on_state: Callable[[PressState], None] | None = None,
                  recover: Callable[[], Awaitable[object]] | None = None,
                  on_outcome: Callable[[PressOutcome], None] | None = None,
                  window: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW,
@@ -129,7 +132,7 @@ class PressController:
         self.arm = arm
         self.ring = ring
         self.on_state = on_state or (lambda state: None)
-        self.state = "idle"
+        self.state = PressState.IDLE
         self._armed: _Armed | None = None
         self._outcome: PressOutcome | None = None
         self._stale = asyncio.Event()
@@ -142,12 +145,13 @@ class PressController:
         return self._armed is not None
 
     async def check(self, raw: np.ndarray, recv_time: float) -> None:
-        """The threshold check on one frame; on the first crossing, the stop."""
+        """The threshold check on one frame; on the first crossing, the stop. The sensor task
+        calls it with every arriving frame: the fastest reaction the stream allows."""
         armed = self._armed
         if armed is None:
             return
         t_check = self.clock()
-        level = float(np.linalg.norm(raw - armed.tare)) / preprocess.UNITS_SCALE
+        level = math.dist(raw.tolist(), armed.tare) / preprocess.UNITS_SCALE
         if level > armed.peak:
             armed.peak = level
         if armed.t_cross is None and level > armed.x_th:
@@ -176,11 +180,6 @@ class PressController:
         if armed.checked % GRIPPER_TRACE_FRAMES == 0:
             armed.trace_due.set()
 
-    # The sensor task calls this with every arriving frame: the threshold checked on each
-    # (the fastest reaction the stream allows), with no extra call on the per-frame path. A
-    # comparison controller overrides it and calls :meth:`check` less often.
-    on_frame = check
-
     def sensor_stale(self, exc: BaseException) -> None:
         self._stale.set()
         if self._armed is not None:
@@ -194,7 +193,7 @@ class PressController:
         return self._stale.is_set()
 
     def request_abort(self) -> bool:
-        if self.state in ("idle", "returning"):
+        if self.state in (PressState.IDLE, PressState.RETURNING):
             return False
         self._user_abort.set()
         if self._armed is not None:
@@ -209,7 +208,7 @@ class PressController:
         return self.cfg.bus.gripper_goal_current * CURRENT_MA_PER_UNIT
 
     # --- the press ------------------------------------------------------------------------
-    def _enter(self, outcome: PressOutcome, state: str) -> None:
+    def _enter(self, outcome: PressOutcome, state: PressState) -> None:
         self.state = state
         outcome.states.append((state, self.clock()))
         self.on_state(state)
@@ -232,44 +231,44 @@ class PressController:
             self._check_fresh()
             if self.recover is not None:
                 await self.recover()
-            self._enter(outcome, "above")
+            self._enter(outcome, PressState.ABOVE)
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.
             touched = True
             await self.open_gripper()
             moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-            self._enter(outcome, "lowered")
+            self._enter(outcome, PressState.LOWERED)
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
-            self._enter(outcome, "tare")
+            self._enter(outcome, PressState.TARE)
             outcome.tare = await self._tare()
             press = self.cfg.press
             armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
             self._armed = armed
-            self._enter(outcome, "closing")
+            self._enter(outcome, PressState.CLOSING)
             trace_task = asyncio.create_task(self._trace(outcome, armed), name="gripper-trace")
             goal_ma = self._current_cap_ma()
             # Both fingers move: each closes at half the gap speed.
             await self.gripper.close(press.close_speed_mps / 2, goal_ma)
             await self._wait_closing(armed, outcome)
-            if outcome.result == "ok" and outcome.t_stop is not None:
-                self._enter(outcome, "holding")
+            if outcome.result == PressResult.OK and outcome.t_stop is not None:
+                self._enter(outcome, PressState.HOLDING)
                 hold_left = outcome.t_stop + press.dt_stopping_s - self.clock()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
                 if armed.abort.is_set():
                     self._abort_reason(outcome, armed)
         except _AbortRequested:
-            outcome.result, outcome.message = "aborted", "aborted on request"
+            outcome.result, outcome.message = PressResult.ABORTED, "aborted on request"
         except StaleSensorError as exc:
-            outcome.result, outcome.message = "stale", str(exc)
+            outcome.result, outcome.message = PressResult.STALE, str(exc)
         except EdgeError as exc:
-            outcome.result, outcome.message = "error", str(exc)
+            outcome.result, outcome.message = PressResult.ERROR, str(exc)
             log.error("press failed: %s", exc)
         except Exception as exc:
             # A bug must still end in an open gripper and a press that says what went wrong.
             log.exception("press failed on an unexpected error")
-            outcome.result = "error"
+            outcome.result = PressResult.ERROR
             outcome.message = f"internal error: {type(exc).__name__}: {exc}"
         finally:
             self._armed = None
@@ -285,7 +284,7 @@ class PressController:
             outcome.message += "; arm left where it stands: free the object by hand"
         returning: asyncio.Task | None = None
         if moved and opened:
-            self._enter(outcome, "returning")
+            self._enter(outcome, PressState.RETURNING)
             # The window completes while the arm returns: whoever waits for it starts on it
             # at once, not once the arm is back.
             returning = asyncio.create_task(self._return(outcome), name="press-return")
@@ -299,7 +298,7 @@ class PressController:
         finally:
             if returning is not None and not returning.done():
                 returning.cancel()
-        self._enter(outcome, "idle")
+        self._enter(outcome, PressState.IDLE)
         self._outcome = None
         if self.on_outcome is not None:
             self.on_outcome(outcome)
@@ -310,8 +309,8 @@ class PressController:
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
         except EdgeError as exc:
             log.error("arm did not return above the object: %s", exc)
-            if outcome.result == "ok":
-                outcome.result, outcome.message = "error", f"return failed: {exc}"
+            if outcome.result == PressResult.OK:
+                outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
 
     async def _window(self, t_stop: float) -> Window:
         """The recording's window around the stop, once the stream covers it."""
@@ -359,19 +358,19 @@ class PressController:
         if armed.crossed.is_set():  # (set only once the stop went out)
             outcome.t_cross = armed.t_cross
             outcome.level_at_cross = armed.level_at_cross
-            outcome.result = "ok"
+            outcome.result = PressResult.OK
             return
         if armed.abort.is_set():
             self._abort_reason(outcome, armed)
             return
-        outcome.result = "no_contact"
+        outcome.result = PressResult.NO_CONTACT
         outcome.message = (f"no contact: the norm stayed below x_th = {armed.x_th} for "
                            f"{self.cfg.runtime.close_timeout_s} s of closing")
         # A host stall past the Bus Watchdog stops the gripper short of the object with no
         # error on any read: ask the motors before calling it no contact.
         tripped = await self._cleared_watchdog_trips()
         if tripped:
-            outcome.result = "error"
+            outcome.result = PressResult.ERROR
             outcome.message = (f"the gripper stopped closing: the Bus Watchdog has tripped on "
                                f"motors {tripped} (the host was silent on the bus longer than "
                                "the watchdog allows); cleared, opening")
@@ -389,28 +388,28 @@ class PressController:
     def _abort_reason(self, outcome: PressOutcome, armed: _Armed) -> None:
         outcome.peak_level = max(outcome.peak_level, armed.peak)
         if armed.stop_error is not None:
-            outcome.result = "error"
+            outcome.result = PressResult.ERROR
             outcome.message = (f"the stop at the threshold failed ({armed.stop_error}): "
                                "opening the gripper")
         elif self._stale.is_set():
-            outcome.result = "stale"
+            outcome.result = PressResult.STALE
             outcome.message = "tactile stream went stale during the press: gripper opened"
         elif self._user_abort.is_set():
-            outcome.result, outcome.message = "aborted", "aborted on request"
+            outcome.result, outcome.message = PressResult.ABORTED, "aborted on request"
         else:
-            outcome.result = "aborted"
+            outcome.result = PressResult.ABORTED
             outcome.message = (f"force far past the threshold (norm {armed.peak:.4f} > "
                                f"{armed.abort_level:.4f}): gripper opened")
 
     async def _open_safely(self, outcome: PressOutcome) -> bool:
         """Open the gripper (see :meth:`open_gripper_retrying`); False, and said in the
         outcome, if it failed."""
-        self._enter(outcome, "opening")
+        self._enter(outcome, PressState.OPENING)
         failed = await self.open_gripper_retrying()
         if failed is None:
             return True
-        if outcome.result == "ok":
-            outcome.result = "error"
+        if outcome.result == PressResult.OK:
+            outcome.result = PressResult.ERROR
         outcome.message = (outcome.message + "; " if outcome.message else "") + (
             f"GRIPPER MAY STILL BE CLOSED: opening failed {OPEN_TRIES} times (last: {failed})")
         return False
@@ -444,7 +443,7 @@ class PressController:
 
 
 # The states a press can be stopped at by an abort request before the threshold is armed.
-_ABORTABLE = frozenset({"lowered", "tare", "closing"})
+_ABORTABLE = frozenset({PressState.LOWERED, PressState.TARE, PressState.CLOSING})
 
 
 class _AbortRequested(Exception):
@@ -469,7 +468,7 @@ def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"
         extra={"stop_latency_s": outcome.stop_latency_s, "t_cross": outcome.t_cross,
                "peak_level": outcome.peak_level, "result": outcome.result,
                # The gripper goals the press wrote, for exports that carry them as actions.
-               "t_open": next((t for s, t in outcome.states if s == "opening"), None),
+               "t_open": outcome.summary().entered(PressState.OPENING),
                "gripper_goal_m": {"open": cfg.press.open_width_m,
                                   "closed": GRIPPER_CLOSED_WIDTH_M}}
         | PadLayout.of(cfg.sensor).extra())

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from edge import __version__
 from edge.core import recording
+from edge.core.backoff import backoff_s
 from edge.core.config import Config
 from edge.core.errors import (
     BusyError,
@@ -30,9 +31,7 @@ from edge.core.errors import (
     StoreError,
     VLMUnavailableError,
 )
-from edge.core.images import VLMImage
 from edge.core.model import ModelRef
-from edge.core.vlm import VLMClient
 from edge.daemon.compute import Analysis, ComputeWorker, analyse_press
 from edge.daemon.episode import Episode, Neighbour, Status
 from edge.daemon.events import EventBus
@@ -41,6 +40,8 @@ from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.startcheck import needs_photo
 from edge.daemon.store import EpisodeStore, new_id
 from edge.hw.contracts import Camera
+from edge.vlm.client import VLMClient
+from edge.vlm.images import VLMImage
 
 log = logging.getLogger(__name__)
 
@@ -61,11 +62,11 @@ class Recognition:
 
 
 class Recognizer:
-    def __init__(self, setup: Recognition, press: Callable[[], PressController],
+    def __init__(self, setup: Recognition, press: PressController,
                  compute: ComputeWorker, store: EpisodeStore, events: EventBus,
                  metrics: Metrics, camera: Camera | None = None) -> None:
         self.setup = setup
-        self._press = press  # the current controller (a benchmark may swap it)
+        self.press = press
         self.compute = compute
         self.store = store
         self.events = events
@@ -225,7 +226,7 @@ class Recognizer:
         """The press as a task that releases the lock once it has ended: the arm is back
         (or left where it stands), whatever the recognition does meanwhile."""
         try:
-            pressing = asyncio.create_task(self._press().run(window), name="press")
+            pressing = asyncio.create_task(self.press.run(window), name="press")
         except BaseException:
             self.lock.release()
             raise
@@ -339,7 +340,7 @@ class Recognizer:
                                      "status": Status.VLM_ERROR.value, "error": str(exc)})
                 return
             runtime = self.setup.cfg.runtime
-            delay = min(runtime.vlm_retry_base_s * 2 ** (attempts - 1), runtime.vlm_retry_max_s)
+            delay = backoff_s(attempts - 1, runtime.vlm_retry_base_s, runtime.vlm_retry_max_s)
             log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode.id, exc,
                         delay)
             # (A re-asked vlm_error or invalid_answer episode waits with the pending ones.)

@@ -1,5 +1,5 @@
-"""The sensor path: the task that feeds every tactile frame to the ring buffer and the press
-controller, the ring buffer, and the 125 Hz sampler.
+"""The sensor path: the task that feeds every tactile frame to the ring buffer
+(:mod:`edge.daemon.ring`) and the press controller, and the 125 Hz sampler.
 
 Every arriving frame is written, with its receive time and sequence number, into a
 preallocated ring (no allocation on the per-frame path). The crop around ``t_stop`` is cut
@@ -21,9 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
+from edge.daemon.ring import FrameRing
 from edge.hw.contracts import TactileFrame, TactileSource
 
 if TYPE_CHECKING:
@@ -33,59 +32,6 @@ log = logging.getLogger(__name__)
 
 # After the stream failed: how long before connecting again.
 SENSOR_RETRY_S = 0.2
-
-
-@dataclass(frozen=True)
-class Window:
-    """A copy of the frames received in a time interval."""
-
-    raw: np.ndarray  # (N, C) uint16
-    recv_time: np.ndarray  # (N,)
-    sensor_time: np.ndarray  # (N,)
-    seq: np.ndarray  # (N,)
-
-
-class FrameRing:
-    """Preallocated ring of raw frames with their times; single writer (the sensor task)."""
-
-    def __init__(self, channels: int, capacity: int) -> None:
-        self.capacity = capacity
-        self.raw = np.zeros((capacity, channels), dtype=np.uint16)
-        self.recv_time = np.full(capacity, -np.inf)
-        self.sensor_time = np.zeros(capacity)
-        self.seq = np.zeros(capacity, dtype=np.int64)
-        self.count = 0  # frames ever written
-
-    def push(self, raw: np.ndarray, recv_time: float, sensor_time: float, seq: int) -> None:
-        i = self.count % self.capacity
-        self.raw[i] = raw
-        self.recv_time[i] = recv_time
-        self.sensor_time[i] = sensor_time
-        self.seq[i] = seq
-        self.count += 1
-
-    @property
-    def latest_index(self) -> int:
-        return (self.count - 1) % self.capacity if self.count else -1
-
-    def latest_time(self) -> float:
-        return float(self.recv_time[self.latest_index]) if self.count else -np.inf
-
-    def window(self, t_from: float, t_to: float) -> Window:
-        """Frames with ``t_from <= recv_time <= t_to``, oldest first."""
-        n = min(self.count, self.capacity)
-        start = self.count - n
-        order = (np.arange(start, self.count) % self.capacity)
-        times = self.recv_time[order]
-        keep = order[(times >= t_from) & (times <= t_to)]
-        return Window(self.raw[keep].copy(), self.recv_time[keep].copy(),
-                      self.sensor_time[keep].copy(), self.seq[keep].copy())
-
-    def oldest_time(self) -> float:
-        if self.count == 0:
-            return np.inf
-        return float(self.recv_time[(self.count - min(self.count, self.capacity))
-                                    % self.capacity])
 
 
 @dataclass
@@ -149,10 +95,10 @@ class SensorTask:
     controller, which checks the threshold on it (and sends the stop) before the next frame
     is read; reconnects after a failure and tells the controller while the stream is stale.
 
-    A source that can run a step in its own task before queueing a frame (``on_frame``: the
-    XELA client) gets the threshold check there: the stop leaves without the frame's hop
-    through the source's queue to this task. Other sources (fakes, replays) are checked
-    here. ``controller`` may be replaced between presses (a benchmark compares controllers).
+    A source that runs the per-frame hook in its own task before queueing a frame
+    (:meth:`TactileSource.set_frame_hook`: the XELA client) gets the threshold check there:
+    the stop leaves without the frame's hop through the source's queue to this task. Other
+    sources (fakes, replays) are checked here.
     """
 
     def __init__(self, source: TactileSource, ring: FrameRing, controller: PressController,
@@ -170,20 +116,18 @@ class SensorTask:
     async def run(self) -> None:
         """Until cancelled: a bug or a dead stream on the sensor path must not take the
         daemon (and the arm) down."""
-        inline = hasattr(self.source, "on_frame")
-        if inline:
-            self.source.on_frame = self._check  # type: ignore[attr-defined]
+        inline = self.source.set_frame_hook(self._check)
         try:
             await self._run(inline)
         finally:
             if inline:
-                self.source.on_frame = None  # type: ignore[attr-defined]
+                self.source.set_frame_hook(None)
 
     async def _check(self, frame: TactileFrame) -> None:
         """The threshold check on the source's own task (see the class docstring)."""
         controller = self.controller
         try:
-            await controller.on_frame(frame.raw, frame.recv_time)
+            await controller.check(frame.raw, frame.recv_time)
         except Exception as exc:
             log.exception("threshold check failed on frame %d", frame.seq)
             controller.sensor_stale(exc)
@@ -196,7 +140,7 @@ class SensorTask:
                     self.frames += 1
                     controller = self.controller
                     if not inline:
-                        await controller.on_frame(frame.raw, frame.recv_time)
+                        await controller.check(frame.raw, frame.recv_time)
                     if controller.sensor_is_stale:
                         controller.sensor_fresh()
                         log.info("tactile stream fresh again")

@@ -22,20 +22,25 @@ from edge.core.config import Config, load_config
 from edge.core.errors import StartError
 from edge.core.model import ModelRef
 from edge.core.model import model_ref as _model_ref
-from edge.daemon.api import Api, load_token
+from edge.daemon.api import Api, listen, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.devices import close_devices, enable_torque, open_devices
-from edge.daemon.lifecycle import Devices, Runtime
+from edge.daemon.lifecycle import ControllerFactory, Runtime
 from edge.daemon.mqtt import check_config as check_mqtt
+from edge.daemon.press import PressController
 from edge.daemon.realtime import Realtime, unpin_thread
 from edge.daemon.startcheck import check_devices, check_model
 from edge.daemon.store import EpisodeStore
 from edge.daemon.systemd import Notifier
+from edge.hw.contracts import Devices
 
 log = logging.getLogger(__name__)
 
 # select(2) handles file descriptors below FD_SETSIZE only.
 FD_SETSIZE = 1024
+# Leaving running(): how long the runtime may take to stop (its drain gives each
+# recognition in flight DRAIN_TIMEOUT_S) and make the arm safe.
+STOP_TIMEOUT_S = 30.0
 
 
 def new_event_loop() -> asyncio.AbstractEventLoop:
@@ -62,35 +67,22 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
     return loop
 
 
-def state_dir(cfg: Config) -> Path:
-    # Under systemd, StateDirectory= gives the daemon its writable place.
-    return Path(os.environ.get("VTZERO_STATE_DIR") or cfg.runtime.state_dir)
-
-
 def model_ref(cfg: Config) -> ModelRef:
     """The configured model by its manifest; the compute process loads and verifies it."""
     return _model_ref(cfg.runtime.models_dir)
 
 
 def vlm_config(cfg: Config):
-    """The ``[vlm]`` section with ``$VTZERO_VLM_URL`` / ``$VTZERO_VLM_MODEL`` applied, and
-    the prompt templates of the configured models directory."""
+    """The ``[vlm]`` section with the prompt templates of the configured models directory."""
     vlm = cfg.vlm
-    url = os.environ.get("VTZERO_VLM_URL", "").strip()
-    model = os.environ.get("VTZERO_VLM_MODEL", "").strip()
-    if url:
-        vlm = replace(vlm, base_url=url.rstrip("/"))
-    if model:
-        vlm = replace(vlm, model=model)
     if vlm.prompt_dir is None:
         vlm = replace(vlm, prompt_dir=Path(cfg.runtime.models_dir) / "prompts")
-    vlm.validate("vlm (with $VTZERO_VLM_URL/$VTZERO_VLM_MODEL)")
     return vlm
 
 
 def make_vlm(cfg: Config, compute: ComputeWorker | None = None):
     """The configured VLM client; with ``compute``, images are prepared in that process."""
-    from edge.core.vlm import make_vlm as _make
+    from edge.vlm.client import make_vlm as _make
 
     return _make(vlm_config(cfg), **({"offload": compute.run} if compute else {}))
 
@@ -113,7 +105,9 @@ class Daemon:
 @contextlib.asynccontextmanager
 async def assemble(cfg: Config, config_path: str | None = None, *,
                    devices: Devices | None = None, button: Any = None,
-                   notifier: Notifier | None = None) -> AsyncIterator[Daemon]:
+                   notifier: Notifier | None = None,
+                   controller_factory: ControllerFactory = PressController
+                   ) -> AsyncIterator[Daemon]:
     """Start everything in the order that keeps a failed start harmless, and make the arm
     safe on every way out.
 
@@ -126,7 +120,8 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
     off until its stream arrives (:meth:`Runtime.power_on_with_stream`). On exit the API closes,
     the arm goes to rest, torque goes off and the devices close, whether the daemon ran, failed
     to start or died. ``devices`` overrides the configured ones (their bus is still closed on
-    exit); ``button`` is added to them.
+    exit); ``button`` is added to them. ``controller_factory`` makes the daemon's press
+    controller (a benchmark's; :class:`PressController` by default). :func:`running` runs it.
     """
     started = time.monotonic()
     notifier = notifier or Notifier()
@@ -146,14 +141,17 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         runtime: Runtime | None = None
         # The client in use at the end (a reload replaces it, and closes the old one).
         stack.push_async_callback(_close_vlm, lambda: runtime.vlm if runtime else vlm)
-        store = EpisodeStore(state_dir(cfg) / "episodes")
-        api = Api(None, cfg.api)
+        store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
         try:
-            await api.start()
+            sockets = listen(cfg.api)
         except OSError as exc:
             raise StartError(f"cannot listen on {cfg.api.host}:{cfg.api.port}: "
                              f"{_os_reason(exc)}") from None
-        stack.push_async_callback(api.close)
+        for sock in sockets:
+            stack.callback(sock.close)
+        api: Api | None = None
+        # Closed after the devices (the arm safe first), as its port is bound before them.
+        stack.push_async_callback(_close_api, lambda: api)
         if devices is None:
             notifier.status("starting: connecting devices")
             devices = await open_devices(cfg)
@@ -172,9 +170,11 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
             check_model(cfg.sensor, new_model)  # the pads stay the ones opened at start
             return new, new_model, make_vlm(new, compute)
 
-        runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload)
+        runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload,
+                          controller_factory=controller_factory)
         runtime.started_at = started
-        api.attach(runtime)
+        api = Api(runtime, cfg.api)
+        await api.start(sockets)
         realtime = make_realtime(cfg, devices)
         stack.callback(realtime.disable)
         if cfg.runtime.realtime:
@@ -206,11 +206,55 @@ async def _close_vlm(current: Callable[[], Any]) -> None:
     await current().close()
 
 
+async def _close_api(current: Callable[[], Api | None]) -> None:
+    api = current()
+    if api is not None:
+        await api.close()
+
+
+@contextlib.asynccontextmanager
+async def running(daemon: Daemon, ready_within_s: float | None = None
+                  ) -> AsyncIterator[asyncio.Task[None]]:
+    """The assembled daemon's runtime running in a task of this loop, for ``vt-edge run``,
+    tests and the benchmark alike; yields that task, which ends after SIGTERM/SIGINT (or
+    :meth:`Runtime.stop`) or with the error of a task that died.
+
+    With ``ready_within_s``, entered once the runtime is ready (raises :class:`TimeoutError`
+    if it is not by then, or the runtime's error if it ended first); without, at once (the
+    API serves, ready or not). On exit the runtime is stopped as by SIGTERM and awaited: its
+    drain, the arm made safe, and the error of a task that died raised.
+    """
+    runtime = daemon.runtime
+    task = asyncio.create_task(runtime.run(), name="runtime")
+    try:
+        if ready_within_s is not None:
+            await _until_ready(runtime, task, ready_within_s)
+        yield task
+    finally:
+        runtime.stop()
+        await asyncio.wait_for(task, STOP_TIMEOUT_S)
+
+
+async def _until_ready(runtime: Runtime, task: asyncio.Task[None], timeout_s: float) -> None:
+    ready = asyncio.create_task(runtime.ready.wait(), name="runtime-ready")
+    try:
+        await asyncio.wait({task, ready}, timeout=timeout_s,
+                           return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        ready.cancel()
+    if task.done():
+        await task  # its error
+        raise StartError("the daemon stopped before it was ready")
+    if not runtime.ready.is_set():
+        raise TimeoutError(f"the daemon was not ready within {timeout_s:g} s")
+
+
 async def serve(cfg: Config, config_path: str | None = None,
                 devices: Devices | None = None) -> None:
     """Run the daemon until SIGTERM; ``devices`` overrides the configured ones (tests)."""
-    async with assemble(cfg, config_path, devices=devices) as daemon:
-        await daemon.runtime.run()
+    async with assemble(cfg, config_path, devices=devices) as daemon, \
+            running(daemon) as task:
+        await task  # until SIGTERM/SIGINT, or the error of a task that died
 
 
 def run(config_path: str) -> int:

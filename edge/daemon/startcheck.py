@@ -17,16 +17,11 @@ import asyncio
 import contextlib
 import logging
 import time
-from typing import TYPE_CHECKING
 
 from edge.core.config import Config, SensorConfig
 from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
 from edge.core.model import ModelLayout, ModelRef
-from edge.hw.contracts import Camera
-from edge.hw.xela import XelaClient
-
-if TYPE_CHECKING:  # (the runtime's recognition imports needs_photo from here)
-    from edge.daemon.lifecycle import Devices
+from edge.hw.contracts import Camera, Devices
 
 log = logging.getLogger(__name__)
 
@@ -93,11 +88,9 @@ def check_model(sensor: SensorConfig, model: ModelRef) -> None:
 
 
 async def _check_sensor(cfg: Config, devices: Devices) -> str | None:
-    tactile = devices.tactile
-    if not isinstance(tactile, XelaClient):
-        return None  # a source given by the caller (a test's fake) is its own business
     try:
-        await tactile.wait_first_frame(cfg.sensor.connect_timeout_s + FIRST_FRAME_GRACE_S)
+        await devices.tactile.wait_first_frame(
+            cfg.sensor.connect_timeout_s + FIRST_FRAME_GRACE_S)
     except SensorLayoutError as exc:
         raise StartError(str(exc)) from None
     except StaleSensorError as exc:

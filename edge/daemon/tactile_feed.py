@@ -28,6 +28,7 @@ import numpy as np
 
 from edge.core import preprocess
 from edge.core.layout import PadLayout
+from edge.daemon.state import PressState
 from edge.daemon.taps import newest
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,7 @@ class TactileFeed:
         self._viewers: set[asyncio.Queue[bytes]] = set()
         self._task: asyncio.Task | None = None
         self._tare: np.ndarray | None = None
-        self._state = "idle"
+        self._state = PressState.IDLE
         self._closed = False
         self.frames_sent = 0
 
@@ -148,8 +149,8 @@ class TactileFeed:
         with self.runtime.subscribe() as stream:
             async for event in stream:
                 if event.get("type") in ("state", "hello"):
-                    self._state = str(event.get("state"))
-                    if self._state == "closing":  # the press's own tare window
+                    self._state = PressState(event["state"])
+                    if self._state == PressState.CLOSING:  # the press's own tare window
                         self.tare(self.runtime.cfg.press.tare_s)
-                    elif self._state == "idle" and event.get("type") == "state":
+                    elif self._state == PressState.IDLE and event.get("type") == "state":
                         self.tare()  # back above the object, the gripper open: unloaded

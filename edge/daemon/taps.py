@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edge.daemon.sensor import FrameRing
+from edge.daemon.ring import FrameRing
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from typing import Any
 from aiohttp import web
 
 from edge.core.errors import NotFoundError
+from edge.daemon.state import PressSummary
 from edge.daemon.tactile_feed import TactileFeed
 from edge.daemon.trace import press_trace
 
@@ -41,6 +42,8 @@ UI_HEADER = "X-Vtzero-UI"
 EPISODES_DEFAULT = 10
 EPISODES_MAX = 200
 TRACE_CACHE = 64
+# What of the press the episode list carries (the page reads stop_latency_ms).
+LISTED_PRESS = PressSummary.keys("result", "message", "stop_latency_ms", "peak_level")
 # A wrong token at the login form waits this long (slows guessing a 16+ character token
 # further, and costs a browser nothing).
 LOGIN_DELAY_S = 0.5
@@ -76,11 +79,6 @@ class OperatorPage:
         self.feed = TactileFeed(runtime)
         self._static: dict[str, bytes] = {}
         self._traces: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
-
-    def attach(self, runtime: Any) -> None:
-        """The runtime to serve, once the daemon has one."""
-        self.runtime = runtime
-        self.feed.runtime = runtime
 
     def install(self, app: web.Application) -> None:
         """The routes, and the end of the live feed when the server stops (its streams
@@ -207,8 +205,7 @@ class OperatorPage:
                                              else None),
                 "topk": ep.get("topk"), "description": ep.get("description"),
                 "timings": ep.get("timings"), "vlm_mode": ep.get("vlm_mode"),
-                "press": {k: press.get(k) for k in ("result", "message", "stop_latency_ms",
-                                                    "peak_level")},
+                "press": {k: press.get(k) for k in LISTED_PRESS},
                 "image": f"/v1/episodes/{eid}/image" if files & {"image.jpg", "image.png"}
                 else None,
                 "trace": f"/v1/episodes/{eid}/trace" if "press.press.npz" in files else None,

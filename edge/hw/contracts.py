@@ -15,7 +15,7 @@ Motor positions are raw Dynamixel counts (4096 per turn) unless a name says metr
 from __future__ import annotations
 
 import logging
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
@@ -112,6 +112,10 @@ class StreamStats:
         self._new_link = True
 
 
+# The per-frame hook: awaited with each fresh frame (the daemon's threshold check).
+FrameHook = Callable[[TactileFrame], Awaitable[None]]
+
+
 @runtime_checkable
 class TactileSource(Protocol):
     """Anything that yields :class:`TactileFrame` s: the XELA client, a fake, a replay.
@@ -123,6 +127,15 @@ class TactileSource(Protocol):
     """
 
     stats: StreamStats
+    # The model of each sensor the source sends, in pad order; None until its first frame.
+    server_models: tuple[str, ...] | None
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        """Run ``hook`` on each fresh frame in the source's own task, before the frame is
+        handed on (``None``: no more); True if this source does so. A source that hands its
+        frames straight to ``frames()`` (a fake, the virtual robot's stream) returns False
+        and the consumer runs the step on each frame it gets."""
+        ...
 
     async def start(self) -> None: ...
 
@@ -140,6 +153,15 @@ class TactileSource(Protocol):
     def frames(self) -> AsyncIterator[TactileFrame]: ...
 
     def is_fresh(self) -> bool: ...
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        """Until the first fresh frame has arrived, its layout checked; consumes no frame.
+        Raises :class:`~edge.core.errors.SensorLayoutError` for a layout the configuration
+        does not match, and :class:`~edge.core.errors.StaleSensorError` saying why (the
+        server unreachable, or silent) when no frame came within ``timeout_s``. A source
+        whose frames are made in this process (a fake, a replay, the virtual robot's stream)
+        has them from its start and returns at once."""
+        ...
 
 
 # --- arm and gripper -----------------------------------------------------------------------
@@ -216,6 +238,52 @@ class Arm(Protocol):
         ...
 
 
+# --- the motor bus ------------------------------------------------------------------------
+
+
+@runtime_checkable
+class BusStatus(Protocol):
+    """What the daemon reports of the motor bus (``/healthz``, ``/metrics``)."""
+
+    @property
+    def fault(self) -> str | None:
+        """What is wrong with the bus now (a motor that does not answer...), or None."""
+        ...
+
+    @property
+    def torque_on(self) -> bool: ...
+
+    @property
+    def stops(self) -> int:
+        """Stops sent to the gripper."""
+        ...
+
+    @property
+    def stop_fallbacks(self) -> int:
+        """Stops that read Present Position first (no gripper state fresh enough)."""
+        ...
+
+
+@runtime_checkable
+class MotorBus(BusStatus, Protocol):
+    """The motor bus as the daemon drives it, beside the arm and gripper on it."""
+
+    @property
+    def native_thread_id(self) -> int | None:
+        """The thread that calls the SDK (for real-time scheduling), None without one."""
+        ...
+
+    async def set_torque(self, enabled: bool) -> None: ...
+
+    async def recover_watchdog(self) -> list[int]:
+        """Before a press: check torque is on everywhere and clear watchdog trips."""
+        ...
+
+    async def close(self, safe_pose: Callable[[], Awaitable[object]] | None = None) -> None:
+        """With torque on, ``safe_pose`` first; then torque off and the port released."""
+        ...
+
+
 # --- camera and button ---------------------------------------------------------------------
 
 
@@ -233,3 +301,18 @@ class Button(Protocol):
         ...
 
     async def close(self) -> None: ...
+
+
+# --- all of them ---------------------------------------------------------------------------
+
+
+@dataclass
+class Devices:
+    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
+
+    tactile: TactileSource
+    gripper: Gripper
+    arm: Arm
+    camera: Camera | None = None
+    button: Button | None = None
+    bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller

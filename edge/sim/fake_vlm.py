@@ -522,15 +522,14 @@ async def _serve(args: argparse.Namespace) -> None:
     choose: Chooser = first_candidate
     if args.choose == "description":
         choose = choose_by_description
-    elif args.choose == "standin":
-        from edge.sim.standin_vlm import StandIn
-
-        choose = StandIn()
     elif args.choose.startswith("label:"):
         fixed = args.choose.removeprefix("label:")
 
         def choose(req: FakeRequest) -> str:
             return fixed
+    elif args.choose != "first":
+        raise SystemExit(f"fake_vlm: --choose {args.choose!r}: use first, description or "
+                         "label:<name> (the simulated VLM is vt-edge sim vlm)")
 
     fake = FakeVLM(host=args.host, port=args.port, model=args.model or None,
                    choose=choose, latency_s=args.latency_s, structured=args.structured,
@@ -553,8 +552,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=8011)
     parser.add_argument("--model", default="fake-vlm", help="model name to accept ('' = any)")
     parser.add_argument("--choose", default="first",
-                        help="first | description | standin (the simulated VLM's choice) | "
-                        "label:<name> (default first)")
+                        help="first | description | label:<name> (default first; the "
+                        "simulated VLM is vt-edge sim vlm)")
     parser.add_argument("--latency-s", type=float, default=0.0)
     parser.add_argument("--structured", choices=STRUCTURED, default="any",
                         help="the response formats it supports, like a real server's "

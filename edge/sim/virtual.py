@@ -1,13 +1,13 @@
 """The emulated robot on a virtual clock: what the dataset recorder presses with.
 
 The robot's own drivers run unchanged on it: :class:`edge.hw.arm.DynamixelGripper` and
-``DynamixelArm`` over a :class:`VirtualBus`, which is the real
-:class:`edge.hw.dynamixel.DynamixelBus` (the real ``dynamixel_sdk`` packet handler, every op
-function, the stop, the watchdog feed) with two parts replaced: its port is an in-process
-loopback to the same :class:`~edge.sim.dxl_emulator.DxlEmulator` the daemon talks to over a
-pty, and its bus thread is gone (an op runs on the loop when its modelled transaction time
-has passed). The tactile source renders the same :class:`~edge.sim.world.SimWorld` the XELA
-emulator serves, on the same 125 Hz grid.
+``DynamixelArm`` over the real :class:`edge.hw.dynamixel.DynamixelBus` (the real
+``dynamixel_sdk`` packet handler, every transaction, the stop, the watchdog feed, the close)
+built with two parts of its own: its port is an in-process loopback to the same
+:class:`~edge.sim.dxl_emulator.DxlEmulator` the daemon talks to over a pty, and its executor
+is :class:`VirtualExecutor` (an op runs on the loop when its modelled transaction time has
+passed, not on a thread). The tactile source renders the same
+:class:`~edge.sim.world.SimWorld` the XELA emulator serves, on the same 125 Hz grid.
 
 Everything runs on :class:`VirtualClockLoop`, an asyncio loop whose clock jumps to the next
 timer instead of waiting: a press that takes ten seconds on the robot takes a fraction of one
@@ -23,7 +23,7 @@ import asyncio
 import logging
 import math
 import selectors
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
@@ -31,11 +31,10 @@ from typing import Any, Self
 import numpy as np
 
 from edge.core.config import Config
-from edge.core.errors import DeviceError
 from edge.core.layout import PadLayout
 from edge.hw.arm import DynamixelArm, DynamixelGripper
-from edge.hw.contracts import StreamStats, TactileFrame
-from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus, MotorInfo
+from edge.hw.contracts import FrameHook, StreamStats, TactileFrame
+from edge.hw.dynamixel import BlockingPortHandler, DynamixelBus
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.skin import SkinDraw
 from edge.sim.world import SimWorld, raw_from_width, robot_motors
@@ -155,43 +154,39 @@ class LoopbackPort(BlockingPortHandler):
         return out
 
 
-class VirtualBus(DynamixelBus):
-    """The real bus driver with the loopback port and no thread: an op runs on the loop once
-    the bus is free and its transaction time has passed; the stop jumps the queue and takes a
-    drawn stop latency."""
+class VirtualExecutor:
+    """The bus's executor on the virtual clock: no thread; an operation runs on the loop once
+    the bus is free and its transaction time has passed; an urgent one (the stop) jumps the
+    queue and takes a drawn stop latency."""
 
-    def __init__(self, config: Any, emulator: DxlEmulator, clock: Callable[[], float],
-                 transport: Transport, rng: np.random.Generator) -> None:
-        super().__init__(config, port_handler_factory=lambda name: LoopbackPort(
-            name, emulator, clock), clock=clock)
+    # Nothing runs between the loop's steps: a stop never waits for a transaction in flight
+    # (the measured stop latency already holds that wait). The loop's thread is the owner.
+    busy = False
+    thread_id = native_thread_id = None
+
+    def __init__(self, transport: Transport, rng: np.random.Generator) -> None:
         self._transport = transport
         self._rng = rng
         self._busy_until = 0.0
 
-    async def connect(self) -> Mapping[int, MotorInfo]:
-        self._accepting = True
-        self._motors = await self._call("connect", self._connect_sync)
-        return self._motors
+    def start(self) -> None:
+        self._busy_until = 0.0
 
-    async def _call(self, label: str, fn: Callable[[], Any], *, urgent: bool = False) -> Any:
-        if not self._accepting:
-            raise DeviceError(f"Dynamixel bus on {self._config.port} is not connected")
-        now = self._clock()
+    async def submit(self, label: str, fn: Callable[[], Any], urgent: bool = False) -> Any:
+        now = asyncio.get_running_loop().time()
         if urgent:
-            # The measured stop latency already holds the wait for a transaction in flight.
             due = now + self._transport.stop_latency_s(self._rng)
         else:
             due = max(now, self._busy_until) + self._transport.transaction_s
             self._busy_until = due
         await asyncio.sleep(due - now)
-        value = fn()
-        self._last_op_end = self._last_traffic = self._clock()
-        return value
+        return fn()
 
-    async def _shutdown_thread(self) -> None:
-        await self._stop_feed()
-        self._accepting = False
-        self._torque_on = False
+    async def stop(self, last: Callable[[], None]) -> None:
+        last()
+
+    def on_wire(self) -> None:
+        pass  # a stop's hand-over waits for nothing here: see ``busy``
 
 
 class VirtualTactileSource:
@@ -207,6 +202,7 @@ class VirtualTactileSource:
         self._transport = transport
         self._rng = rng
         self._models = (model,) * pads
+        self.server_models: tuple[str, ...] | None = self._models
         self._seq = int(rng.integers(1000, 100_000))
         self._closed = False
         self._last_recv = -math.inf
@@ -227,6 +223,12 @@ class VirtualTactileSource:
     async def __aexit__(self, exc_type: type[BaseException] | None,
                         exc: BaseException | None, tb: TracebackType | None) -> None:
         await self.close()
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        return False  # no queue to skip: each frame goes straight to frames()
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        return None  # rendered in this process on the next tick: there from the start
 
     def is_fresh(self) -> bool:
         loop = asyncio.get_running_loop()
@@ -272,7 +274,10 @@ class VirtualRobot:
                      zip(bus_cfg.joint_ids, cfg.poses["above"], strict=True)}
         positions[bus_cfg.gripper_id] = raw_from_width(cfg.press.open_width_m)
         self.dxl = robot_motors(self.world, bus_cfg.joint_ids, positions, clock=clock)
-        self.bus = VirtualBus(bus_cfg, self.dxl, clock, transport, rng)
+        self.bus = DynamixelBus(bus_cfg, executor=VirtualExecutor(transport, rng),
+                                port_handler_factory=lambda name: LoopbackPort(
+                                    name, self.dxl, clock),
+                                clock=clock, exclusive=False)
         self.gripper = DynamixelGripper(self.bus)
         self.arm = DynamixelArm(self.bus, cfg.poses, move_time_s=cfg.runtime.move_time_s)
         self.tactile = VirtualTactileSource(self.world, cfg.sim.sensor_rate_hz, transport, rng,

@@ -32,11 +32,11 @@ from edge.core import preprocess, tomledit
 from edge.core.atomic import atomic_write_text
 from edge.core.config import Config
 from edge.core.errors import EdgeError, SensorError, SensorLayoutError, StaleSensorError
-from edge.daemon.lifecycle import Devices
 from edge.daemon.press import PressController
-from edge.daemon.sensor import SENSOR_RETRY_S, FrameRing
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SENSOR_RETRY_S
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
-from edge.hw.contracts import GripperState
+from edge.hw.contracts import Devices, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
 from edge.tools.prompt import NO_PROMPT, Prompt, ask, in_daemon_thread, read_line
 
@@ -425,8 +425,10 @@ async def measure_threshold(cfg: Config, *, force_ma: float | None = FORCE_MA,
     stream = _Stream(devices.tactile, cfg.sensor.channels, clock, cfg.sensor.stale_timeout_s)
     reader = asyncio.create_task(stream.run(), name="calibrate-sensor")
     # The press's own opening: capped at Goal Current, retried, the watchdog cleared.
+    bus = devices.bus
     press = PressController(cfg, devices.gripper, devices.arm, stream.ring,
-                            recover=getattr(devices.bus, "recover_watchdog", None), clock=clock)
+                            recover=bus.recover_watchdog if bus is not None else None,
+                            clock=clock)
     timeout = cfg.runtime.move_timeout_s
     gripper_stuck = False
     try:

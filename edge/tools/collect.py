@@ -30,7 +30,8 @@ from edge.core.config import Config
 from edge.core.errors import ConfigError, EdgeError
 from edge.core.layout import PadLayout
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
-from edge.daemon.sensor import FrameRing, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SensorTask
 from edge.tools import dataset
 from edge.tools.plan import Plan, PlanClass, plan_of_one
 from edge.tools.prompt import NO_PROMPT, Prompt, ask, read_line
@@ -151,7 +152,7 @@ async def _first_frame(ring: FrameRing, timeout_s: float) -> None:
 
 
 async def _photo(camera: Any) -> bytes:
-    from edge.core.images import prepare_image
+    from edge.vlm.images import prepare_image
 
     data = await camera.capture()
     # Kept as taken where it is a JPEG; a PNG camera's still becomes one (same size).
@@ -221,7 +222,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
         if own:
             await enable_torque(devices)
         await _first_frame(ring, cfg.sensor.connect_timeout_s)
-        origin = _origin(cfg, plan, getattr(devices.tactile, "server_models", None))
+        origin = _origin(cfg, plan, devices.tactile.server_models)
         if index is None:
             index = dataset.new_index(plan.name, _recorder_sentence(origin), origin,
                                       plan.sha256)
@@ -255,8 +256,10 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
                          presses: dict[int, Path], sensor: SensorTask, devices: Any,
                          camera: Any, prompt: Prompt | None, report: CollectReport) -> None:
     ccfg = replace(cfg, press=replace(cfg.press, x_th=c.threshold(cfg.press.x_th)))
-    controller = PressController(ccfg, devices.gripper, devices.arm, sensor.ring)
-    sensor.controller = controller
+    # The sensor task's one controller, with this class's threshold from its next press on
+    # (as a reload sets the daemon's).
+    controller = sensor.controller
+    controller.cfg = ccfg
     entry = _merge_class(index, c, ccfg.press.x_th, True)
     next_number = max(presses, default=-1) + 1
     have = len(presses)

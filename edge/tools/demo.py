@@ -18,6 +18,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from edge.daemon.state import PressState, PressSummary
 from edge.sim.catalogue import names
 from edge.tools.stack import Stack, http_json, sim_stack, stop, wait_for
 
@@ -64,15 +65,17 @@ def _start_standin(tmp: Path, env: dict) -> tuple[subprocess.Popen, str]:
 
 
 def _print_episode(name: str, ep: dict, peak_n: float | None) -> None:
-    press = ep.get("press", {})
     print(f"\n== {name}")
     if ep.get("status") == "failed":
         print(f"   press failed: {ep.get('error')}")
         return
-    lat = press.get("stop_latency_ms")
-    closing = dict(press.get("states", [])).get("closing", press["t_stop"])
-    print(f"   press: x_th crossed after {press['t_cross'] - closing:.2f} s of closing, stop sent "
-          f"{lat:.2f} ms after that frame (t_stop), peak norm {press.get('peak_level', 0):.4f}"
+    press = PressSummary.from_json(ep["press"], f"episode {ep.get('id')}: 'press'")
+    closing = press.entered(PressState.CLOSING)
+    if closing is None:
+        closing = press.t_stop
+    print(f"   press: x_th crossed after {press.t_cross - closing:.2f} s of closing, stop sent "
+          f"{press.stop_latency_ms:.2f} ms after that frame (t_stop), peak norm "
+          f"{press.peak_level:.4f}"
           + (f", peak force {peak_n:.2f} N" if peak_n is not None else ""))
     topk = ", ".join(f"{t['label']} ({t['distance']:.3f})" for t in ep.get("topk", []))
     print(f"   touch: top-3 {topk}")

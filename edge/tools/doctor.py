@@ -42,13 +42,11 @@ from edge.core.errors import (
     SensorLayoutError,
     VLMHTTPError,
 )
-from edge.core.images import check_image
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
-from edge.core.vlm import OpenAIVLM, _is_loopback, load_api_key
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
-from edge.daemon.serve import state_dir, vlm_config
+from edge.daemon.serve import vlm_config
 from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
@@ -67,6 +65,8 @@ from edge.hw.dynamixel import (
 )
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.tools.calibrate import NOISE_FLOOR_FACTOR
+from edge.vlm.client import OpenAIVLM, _is_loopback, load_api_key
+from edge.vlm.images import check_image
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +153,7 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
                      noise_window_s: float = NOISE_WINDOW_S) -> Report:
     """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side."""
     started = time.monotonic()
-    state = state_dir(cfg)
+    state = Path(cfg.runtime.state_dir)
     vlm, vlm_checks = _vlm_client(cfg)
     needs_photo = vlm is not None and vlm.template.uses_image
     try:

@@ -32,7 +32,8 @@ from edge.core.errors import EdgeError
 from edge.core.layout import PadLayout
 from edge.core.recording import DATASET_INDEX, press_path
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
-from edge.daemon.sensor import FrameRing, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SensorTask
 from edge.sim.catalogue import DATASETS, ObjectClass, get
 from edge.sim.skin import SkinDraw
 from edge.sim.virtual import Transport, VirtualClockLoop, VirtualRobot

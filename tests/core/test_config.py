@@ -2,7 +2,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.core.config import Config, config_from_dict, load_config
+from edge.core.config import Config, apply_environment, config_from_dict, load_config
 from edge.core.errors import ConfigError, EdgeError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -62,3 +62,43 @@ def test_config_is_frozen():
     cfg = config_from_dict({})
     with pytest.raises(AttributeError):
         cfg.press.x_th = 0.1  # type: ignore[misc]
+
+
+ENVIRONMENT = ("VTZERO_STATE_DIR", "VTZERO_VLM_URL", "VTZERO_VLM_MODEL", "VTZERO_API_TOKEN")
+
+
+def test_the_loader_applies_the_environment_once(tmp_path, monkeypatch):
+    for name in ENVIRONMENT:
+        monkeypatch.delenv(name, raising=False)
+    path = tmp_path / "c.toml"
+    path.write_text('[runtime]\nstate_dir = "here"\n[vlm]\nbase_url = "http://a:1/v1"\n'
+                    'model = "m"\n')
+    plain = load_config(path)
+    assert (plain.runtime.state_dir, plain.vlm.base_url, plain.api.token) == (
+        "here", "http://a:1/v1", "")
+    monkeypatch.setenv("VTZERO_STATE_DIR", "/var/lib/vtzero")
+    monkeypatch.setenv("VTZERO_VLM_URL", " http://b:2/v1/ ")
+    monkeypatch.setenv("VTZERO_VLM_MODEL", "other")
+    monkeypatch.setenv("VTZERO_API_TOKEN", "t" * 20)
+    cfg = load_config(path)
+    assert cfg.runtime.state_dir == "/var/lib/vtzero"
+    assert (cfg.vlm.base_url, cfg.vlm.model) == ("http://b:2/v1", "other")
+    assert cfg.api.token == "t" * 20
+    # Built from a table, a configuration is what the table says.
+    assert config_from_dict({}).runtime.state_dir == "state"
+
+
+def test_a_token_file_wins_over_the_environment(tmp_path):
+    cfg = apply_environment(config_from_dict({"api": {"token_file": str(tmp_path / "t")}}),
+                            {"VTZERO_API_TOKEN": "t" * 20})
+    assert cfg.api.token == "" and cfg.api.token_file == str(tmp_path / "t")
+    given = config_from_dict({"api": {"token": "f" * 20}})
+    assert apply_environment(given, {"VTZERO_API_TOKEN": "t" * 20}).api.token == "f" * 20
+
+
+def test_a_bad_override_names_the_variable():
+    with pytest.raises(ConfigError, match=r"\$VTZERO_VLM_URL.*must name the model"):
+        apply_environment(config_from_dict({}), {"VTZERO_VLM_URL": "http://b:2/v1"})
+    with pytest.raises(ConfigError, match=r"\$VTZERO_VLM_URL.*base_url = 'ftp://b/v1'"):
+        apply_environment(config_from_dict({}), {"VTZERO_VLM_URL": "ftp://b/v1",
+                                                 "VTZERO_VLM_MODEL": "m"})

@@ -11,7 +11,8 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.daemon.devices import enable_torque, open_devices
 from edge.daemon.press import PressController, outcome_recording
-from edge.daemon.sensor import FrameRing, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import SensorTask
 from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
 

@@ -13,9 +13,9 @@ import pytest
 
 from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ImageError, ModelError
-from edge.core.images import check_image
 from edge.core.model import load_model, model_ref
 from edge.daemon.compute import ComputeWorker, analyse_press
+from edge.vlm.images import check_image
 from tests.support.daemon import ROOT
 from tests.support.presses import recording_of
 from tests.vlm.helpers import image_bytes

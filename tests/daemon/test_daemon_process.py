@@ -50,7 +50,8 @@ def test_sigterm_mid_press_opens_the_gripper_and_exits_cleanly(tmp_path):
         assert store.recover() == 0  # nothing half-written
         stored = store.get(ep["id"])
         assert stored.status == "failed" and "abort" in stored.error
-        print(json.dumps(stored.press["states"]))
+        assert stored.press is not None
+        print(json.dumps(stored.press.to_json()["states"]))
     finally:
         if daemon is not None and daemon.poll() is None:
             daemon.kill()

@@ -129,12 +129,14 @@ def check_live(live_dir, episode_dir, states):
 
 def test_a_failed_episode_exports_its_result_only(tmp_path):
     from edge.daemon.episode import Episode, Status
+    from edge.daemon.state import PressResult, PressState, PressSummary
     from edge.daemon.store import EpisodeStore, new_id
 
     store = EpisodeStore(tmp_path / "episodes")
+    press = PressSummary(PressResult.NO_CONTACT, "no contact", False, None, None, None, 0.001,
+                         0.0, None, ((PressState.ABOVE, 10.0), (PressState.IDLE, 12.5)))
     eid = store.create(Episode(new_id(), Status.FAILED, ["a"], error="no contact",
-                               press={"result": "no_contact",
-                                      "states": [["above", 10.0], ["idle", 12.5]]}), {})
+                               press=press), {})
     path = export_episode(store, eid, tmp_path)
     assert path == tmp_path / f"{eid}.mcap"
     messages, summary, _, _ = read_mcap(path)

@@ -14,7 +14,7 @@ from edge.core import preprocess
 from edge.core.config import Config
 from edge.core.errors import DeviceError, StaleSensorError
 from edge.daemon.press import OPEN_TRIES, PressController, PressOutcome
-from edge.daemon.sensor import FrameRing
+from edge.daemon.ring import FrameRing
 from tests.support.fakes import FakeArm, FakeGripper
 
 pytestmark = pytest.mark.asyncio
@@ -60,7 +60,7 @@ class Pads:
                 self.seq += 1
                 self.ring.push(raw, now, now, self.seq)
                 if self.controller is not None:
-                    await self.controller.on_frame(raw, now)
+                    await self.controller.check(raw, now)
             await asyncio.sleep(FRAME_PERIOD_S)
 
 

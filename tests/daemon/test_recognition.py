@@ -18,14 +18,15 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.core.model import model_ref
-from edge.core.vlm import VLMAnswer
 from edge.daemon.episode import Status
 from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
 from edge.daemon.press import PressOutcome
 from edge.daemon.recognition import Recognition, Recognizer
-from edge.daemon.sensor import Window
+from edge.daemon.ring import Window
+from edge.daemon.state import PressResult, PressState
 from edge.daemon.store import EpisodeStore
+from edge.vlm.client import VLMAnswer
 from tests.support.daemon import ROOT
 from tests.support.fakes import FakeCamera
 from tests.support.presses import recording_of
@@ -39,7 +40,7 @@ MODEL = model_ref(ROOT / "models")
 def pressed(seed: int = 3) -> PressOutcome:
     """A real press of a macaron (from the simulator) as the controller reports it."""
     rec = recording_of("macaron", seed)
-    return PressOutcome(result="ok", t_cross=rec.t_stop - 0.001, t_stop=rec.t_stop,
+    return PressOutcome(result=PressResult.OK, t_cross=rec.t_stop - 0.001, t_stop=rec.t_stop,
                         stop_latency_s=0.001, tare=rec.tare,
                         window=Window(rec.frames, rec.recv_time, rec.sensor_time, rec.seq))
 
@@ -52,17 +53,17 @@ class ScriptedPress:
         self.outcomes = list(outcomes)
         self.gate: asyncio.Event | None = None
         self.hand_over = False
-        self.state = "idle"
+        self.state = PressState.IDLE
 
     async def run(self, window_ready: asyncio.Future | None = None) -> PressOutcome:
-        self.state = "closing"
+        self.state = PressState.CLOSING
         outcome = self.outcomes.pop(0)
         if self.hand_over and window_ready is not None:
-            self.state = "returning"
+            self.state = PressState.RETURNING
             window_ready.set_result(outcome)
         if self.gate is not None:
             await self.gate.wait()
-        self.state = "idle"
+        self.state = PressState.IDLE
         return outcome
 
 
@@ -88,6 +89,7 @@ class ScriptedVLM:
     asked: list[tuple[Any, str, list[str]]] = field(default_factory=list)
     closed: bool = False
     mode: str = "vision_tactile"
+    unreachable: str | None = None
 
     def image_limits(self) -> tuple[int, int]:
         return 512, 200_000
@@ -119,7 +121,7 @@ async def drain(sub) -> list[dict]:
 def recognizer(tmp_path, press, vlm, compute=None, camera=None, cfg: Config | None = None):
     cfg = cfg or Config()
     events = EventBus()
-    rec = Recognizer(Recognition(cfg, MODEL, vlm), lambda: press,
+    rec = Recognizer(Recognition(cfg, MODEL, vlm), press,
                      compute or InProcessCompute(), EpisodeStore(tmp_path / "episodes"),
                      events, Metrics(), camera)
     return rec, events
@@ -182,7 +184,8 @@ async def test_a_refused_question_is_a_vlm_error_not_retried(tmp_path):
 
 async def test_a_failed_press_is_kept_failed_and_never_asked(tmp_path):
     vlm = ScriptedVLM([])
-    outcome = PressOutcome(result="no_contact", message="no contact: the norm stayed below")
+    outcome = PressOutcome(result=PressResult.NO_CONTACT,
+                           message="no contact: the norm stayed below")
     compute = InProcessCompute()
     rec, _ = recognizer(tmp_path, ScriptedPress(outcome), vlm, compute)
     episode = await rec.recognize(CANDIDATES, None, True, 10, "button")

@@ -4,7 +4,8 @@ import time
 import numpy as np
 import pytest
 
-from edge.daemon.sensor import FrameRing, Sampler
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler
 
 
 def test_ring_wraps_and_windows_by_time():

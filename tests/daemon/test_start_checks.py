@@ -242,6 +242,50 @@ async def test_a_wrong_layout_found_after_a_degraded_start_keeps_torque_off_said
         assert robot.dxl.torque_enables == 0
 
 
+async def test_torque_failing_when_the_stream_arrives_is_what_health_names(tmp_path):
+    systemd = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    systemd.bind(str(tmp_path / "notify.sock"))
+    systemd.setblocking(False)
+    said: list[str] = []
+    listener = asyncio.create_task(listen(systemd, said))
+    async with SimRobot(QUICK_OBJECT, seed=15, cfg=base_config()) as robot:
+        await robot.xela.stop()
+        d = Daemon(robot, degraded_config(), tmp_path)
+        d.wait_ready = False
+        d.notifier = Notifier(str(tmp_path / "notify.sock"))
+        async with d:
+            health = await wait_health(d, False)
+            assert f"sensor server {robot.xela.url} unreachable" in health["sensor_error"]
+            # The gripper unplugged while the daemon waits: torque-on fails on the stream.
+            gripper = d.cfg.bus.gripper_id
+            before = joints(robot, d.cfg), robot.dxl.true_position(gripper)
+            robot.dxl.set_missing(gripper)
+            try:
+                await robot.xela.start()
+                await wait_until(lambda: d.runtime.health().bus_error, 10,
+                                 "the torque-on failure said")
+                status, health = await d.get("/healthz")
+                print(f"after the stream: sensor_error={health['sensor_error']!r} "
+                      f"bus_error={health['bus_error']!r}")
+                assert status == 503 and not health["ready"]
+                assert health["sensor_error"] is None and health["sensor_fresh"]
+                assert health["bus_error"].startswith("torque could not be turned on: ")
+                assert f"motor {gripper}" in health["bus_error"]
+                assert health["torque_on"] is False
+                status, refused = await d.post("/v1/recognize", {"candidates": CUBE})
+                assert status == 503 and "torque could not be turned on" in refused["error"]
+                assert robot.xela.url not in refused["error"]
+                assert (joints(robot, d.cfg), robot.dxl.true_position(gripper)) == before
+                assert store_consistent(d.store.root) == []
+                # systemctl status says it too, no longer the sensor server.
+                statuses = [m for m in said if m.startswith("STATUS=")]
+                assert statuses[-1] == f"STATUS=degraded: {health['bus_error']}", said
+            finally:
+                robot.dxl.set_missing(gripper, False)
+    listener.cancel()
+    systemd.close()
+
+
 async def test_a_camera_failing_at_recognition_ends_camera_error_with_its_message(
         tmp_path, monkeypatch, capsys):
     still = tmp_path / "still.jpg"

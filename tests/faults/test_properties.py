@@ -390,6 +390,7 @@ def only_recording_errors(data: bytes) -> None:
         assert rec.frames.dtype == np.uint16 and rec.frames.ndim == 2
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(data=st.binary(max_size=300), magic=st.sampled_from(
     [b"", b"PK\x03\x04", b"PK\x05\x06", b"\x93NUMPY\x01\x00", b"\x93NUMPY\x02\x00v\x00",
@@ -400,6 +401,7 @@ def test_recordings_loader_random_bytes(data, magic):
     only_recording_errors(magic + data)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(edits=st.lists(st.tuples(st.integers(0, len(VALID) - 1), st.integers(0, 255),
                                 st.sampled_from(["flip", "cut", "insert", "delete"])),

@@ -14,10 +14,10 @@ from dataclasses import replace
 import pytest
 
 from edge.core.errors import EdgeError, NotFoundError
-from edge.core.vlm import UNREACHABLE_AFTER_ATTEMPTS
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
 from edge.tools.episode_retry import run_retry
+from edge.vlm.client import UNREACHABLE_AFTER_ATTEMPTS
 from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,

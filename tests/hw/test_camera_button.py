@@ -10,6 +10,7 @@ from edge.hw.button import _PolledButton
 from edge.hw.camera import CommandCamera, HttpCamera
 from edge.sim.robot import SimRobot
 from tests.support.fakes import FakeCamera
+from tests.support.waits import wait_until
 
 WRITE_JPEG = ("import sys; from PIL import Image; "
               "Image.new('RGB', (64, 48), 'red').save(sys.argv[1], 'JPEG')")
@@ -55,7 +56,14 @@ async def test_http_camera_on_the_simulated_robot():
 async def test_polled_button_debounces_and_reports_presses():
     levels = iter([False] * 3 + [True, False, True] + [True] * 10 + [False] * 10 + [True] * 10
                   + [False] * 1000)
-    button = _PolledButton(lambda: next(levels), "test")
+    reads = 0
+
+    def read():
+        nonlocal reads
+        reads += 1
+        return next(levels)
+
+    button = _PolledButton(read, "test")
     presses = []
 
     async def collect():
@@ -63,7 +71,10 @@ async def test_polled_button_debounces_and_reports_presses():
             presses.append(t)
 
     task = asyncio.create_task(collect())
-    await asyncio.sleep(0.6)
+    # Until the last press and release have been read, however late a loaded host polls;
+    # then a moment for any press still on its way to the loop.
+    await wait_until(lambda: reads > 46, 10.0, "the levels read")
+    await asyncio.sleep(0.1)
     task.cancel()
     await button.close()
     # The bounce right after the first press is ignored: two clean presses.

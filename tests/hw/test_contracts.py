@@ -14,9 +14,12 @@ from edge.core.config import BusConfig, SensorConfig
 from edge.hw.arm import DynamixelArm, DynamixelGripper
 from edge.hw.button import GPIOButton, SerialButton, _PolledButton
 from edge.hw.camera import CommandCamera, HttpCamera, V4L2Camera
-from edge.hw.contracts import Arm, Button, Camera, Gripper, TactileSource
+from edge.hw.contracts import Arm, Button, Camera, Gripper, MotorBus, TactileSource
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.xela import XelaClient
+from edge.sim.virtual import Transport, VirtualTactileSource
+from edge.sim.world import SimWorld
+from tests.support.daemon import QUICK_OBJECT
 from tests.support.fakes import FakeArm, FakeButton, FakeCamera, FakeGripper, FakeTactileSource
 
 HARDWARE_LIBRARIES = ("dynamixel_sdk", "serial", "aiohttp", "cv2", "gpiod")
@@ -83,13 +86,15 @@ async def test_each_fake_satisfies_its_contract(make, contract):
     ("make", "contract"),
     [
         (lambda: XelaClient(SensorConfig()), TactileSource),
+        (lambda: DynamixelBus(BusConfig()), MotorBus),
         (lambda: DynamixelGripper(DynamixelBus(BusConfig())), Gripper),
         (lambda: DynamixelArm(DynamixelBus(BusConfig()), POSES), Arm),
         (lambda: CommandCamera("fswebcam {out}"), Camera),
         (lambda: HttpCamera("http://127.0.0.1:9/still.jpg"), Camera),
         (lambda: _PolledButton(lambda: False, "test"), Button),
     ],
-    ids=["xela", "dxl-gripper", "dxl-arm", "command-camera", "http-camera", "polled-button"],
+    ids=["xela", "dxl-bus", "dxl-gripper", "dxl-arm", "command-camera", "http-camera",
+         "polled-button"],
 )
 async def test_each_real_driver_satisfies_its_contract(make, contract):
     # Built, not started: no port, server or camera is touched.
@@ -107,3 +112,12 @@ def test_drivers_that_need_their_device_to_be_built_satisfy_their_contract(cls, 
     # methods only, so the class itself can be checked.
     assert issubclass(cls, contract)
     assert not _signature_mismatches(cls, contract)
+
+
+def test_the_virtual_robots_stream_satisfies_the_tactile_contract():
+    # Built on a world, not started: its frames are made on the virtual clock when read.
+    rng = np.random.default_rng(0)
+    source = VirtualTactileSource(SimWorld(QUICK_OBJECT, rng), 125.0, Transport(), rng)
+    assert isinstance(source, TactileSource)
+    assert not _signature_mismatches(source, TactileSource)
+    assert source.server_models == ("XR1944", "XR1944")

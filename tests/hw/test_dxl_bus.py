@@ -481,6 +481,7 @@ def _p50_p99(late: list[float]) -> tuple[float, float]:
     return statistics.median(late), late[min(len(late) - 1, round(0.99 * len(late)))]
 
 
+@pytest.mark.slow
 @pytest.mark.asyncio
 async def test_event_loop_stays_on_time_while_the_bus_waits(emu):
     # The stock SDK waits for a reply by spinning; its pyserial read does a select() per turn,

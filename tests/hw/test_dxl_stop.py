@@ -57,6 +57,7 @@ def _raw_for_gap(gap_m: float) -> int:
 OPEN_RAW = _raw_for_gap(OPEN_GAP_M)
 
 
+@pytest.mark.slow
 @pytest.mark.asyncio
 async def test_200_stops_never_back_off_the_squeeze():
     cfg = Config()

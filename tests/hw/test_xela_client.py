@@ -68,6 +68,7 @@ async def stale_latency(client: XelaClient, switch: Any) -> tuple[float, float]:
     return t_raise - t_switch, t_raise - last.recv_time
 
 
+@pytest.mark.slow
 @pytest.mark.asyncio
 @pytest.mark.parametrize("duration_s", [10.0])
 async def test_stream_at_125hz_loses_no_frame(

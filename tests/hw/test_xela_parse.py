@@ -289,12 +289,14 @@ def _only_sensor_errors(msg: object) -> None:
     assert frame is None or frame.raw.dtype == np.uint16
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.text(max_size=200) | st.binary(max_size=200))
 def test_random_text_only_raises_sensor_error(text: str | bytes) -> None:
     _only_sensor_errors(text)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(json_values)
 def test_random_json_only_raises_sensor_error(value: object) -> None:
@@ -303,6 +305,7 @@ def test_random_json_only_raises_sensor_error(value: object) -> None:
         _only_sensor_errors(value)
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(
     st.sampled_from(["message", "time", "1", "2", "data", "integer", "taxels", "model"]),
@@ -352,3 +355,61 @@ def test_a_model_not_what_the_configuration_says_is_refused_naming_both() -> Non
     for n in ("1", "2"):
         del obj[n]["model"]
     assert parse_frame(obj, 2, 16, expected_model="uSPa44") is not None
+
+
+# -- the whole-frame decode against the checks one sensor at a time ----------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.integers(1, 4), min_size=1, max_size=3),  # taxels of each sensor
+    st.sampled_from(["hex", "list", "integer", "mixed"]),
+    st.integers(0, 2**31),
+)
+def test_frame_words_match_per_sensor_checks(taxels: list[int], style: str, seed: int) -> None:
+    """The frame's words decoded at once are the words each sensor's own check reads."""
+    from edge.hw.xela import _frame_words, _sensor_words
+
+    rng = np.random.default_rng(seed)
+    sensors = []
+    for i, n in enumerate(taxels):
+        words = rng.integers(0, 65536, 3 * n).tolist()
+        as_hex = style == "hex" or (style == "mixed" and i % 2 == 0)
+        sensor: dict = {"data": ",".join(f"{w:04X}" for w in words) if as_hex else words}
+        if style == "integer":
+            sensor = {"data": "not read", "integer": words}
+        sensors.append(sensor)
+    each = [_sensor_words(s, 1, str(i + 1)) for i, s in enumerate(sensors)]
+    decoded = _frame_words(sensors)
+    if style == "mixed" and len(taxels) > 1:
+        assert decoded is None  # (the checks one sensor at a time read it)
+        return
+    assert decoded is not None
+    np.testing.assert_array_equal(decoded[0], np.concatenate(each))
+    assert decoded[0].dtype == np.uint16
+    assert decoded[1] == [len(a) for a in each]
+
+
+@pytest.mark.parametrize("text", [
+    # What msgspec refuses and the standard decoder reads: parsed as before.
+    '{"message": 1, "time": 1.0, "1": {"data": "0001,00\n02,0003"}}',  # a raw newline
+    '{"message": 1, "time": 1.0, "1": {"data": [1, 2, 3], "note": "\\ud800"}}',  # lone surrogate
+    '{"message": 1, "time": 1.0, "1": {"data": [1, 2, 3], "gain": 1e999}}',  # a float over range
+    '{"message": 1, "time": 1.0, "1": {"data": [1, 2, 3], "id": 123456789012345678901234567890}}',
+])
+def test_lenient_frames_still_parse(text: str) -> None:
+    for msg in (text, text.encode("utf-16"), text.encode("utf-8", "surrogatepass")):
+        frame = parse_layout_free(msg)
+        assert frame is not None and frame.raw.tolist() == [1, 2, 3]
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    # Integers beyond 64 bits: the faults are said with the frame's numbers.
+    ('{"message": 1, "time": 1.0, "1": {"data": [0, 123456789012345678901234567890, 0]}}',
+     r"0\.\.65535, got 0\.\.123456789012345678901234567890$"),
+    ('{"message": 123456789012345678901234567890, "time": 1.0, "1": {"data": [0, 0, 0]}}',
+     "got 123456789012345678901234567890$"),
+])
+def test_huge_integers_named_as_sent(text: str, match: str) -> None:
+    with pytest.raises(SensorError, match=match):
+        parse_frame(text, 1, 1)

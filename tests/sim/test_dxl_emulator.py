@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import threading
 import time
@@ -271,18 +272,21 @@ def test_status_return_level_one_answers_reads_only(emu, port):
 
 
 def test_return_delay_and_reply_latency_are_honoured(emu, port):
+    # The best of several pings, a timed-out one not counted: the stock SDK gives up after
+    # about 34 ms, and a loaded host now and then holds the emulator's thread that long.
     def ping_s() -> float:
         t0 = time.perf_counter()
-        _ok(PH.ping(port, 11))
-        return time.perf_counter() - t0
+        answered = PH.ping(port, 11)[1] == sdk.COMM_SUCCESS
+        return time.perf_counter() - t0 if answered else math.inf
 
     fast = min(ping_s() for _ in range(5))
     emu.set_register(11, "Return Delay Time", 250)
     slow = min(ping_s() for _ in range(5))
     emu.reply_latency_s = 0.01
-    slower = min(ping_s() for _ in range(3))
+    slower = min(ping_s() for _ in range(5))
     print(f"ping: {fast * 1e3:.2f} ms at Return Delay Time 0, {slow * 1e3:.2f} ms at 250, "
           f"{slower * 1e3:.2f} ms with 10 ms reply latency")
+    assert max(fast, slow, slower) < math.inf, "no ping answered"
     assert slow >= 0.0005 and slower >= 0.010
 
 
@@ -471,7 +475,8 @@ def test_start_stop_leaks_no_thread_or_fd():
         with DxlEmulator() as emulator:
             handler = sdk.PortHandler(emulator.port)
             assert handler.openPort()
-            assert PH.ping(handler, 11)[1] == sdk.COMM_SUCCESS
+            # (up to three tries: a loaded host can hold the new emulator past the SDK timeout)
+            assert any(PH.ping(handler, 11)[1] == sdk.COMM_SUCCESS for _ in range(3))
             handler.closePort()
     assert threading.active_count() == before_threads
     assert _open_fds() == before_fds

@@ -22,7 +22,8 @@ import pytest
 from edge.core import recording
 from edge.core.config import SensorConfig
 from edge.core.errors import RecordingError, StaleSensorError
-from edge.daemon.sensor import FrameRing, Sampler, SensorTask
+from edge.daemon.ring import FrameRing
+from edge.daemon.sensor import Sampler, SensorTask
 from edge.hw.contracts import TactileFrame
 from edge.hw.xela import XelaClient
 from edge.sim.robot import SimRobot
@@ -216,7 +217,7 @@ class Watch:
         self.frames = 0
         self.went_stale = asyncio.Event()
 
-    async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
+    async def check(self, raw: np.ndarray, recv_time: float) -> None:
         self.frames += 1
 
     def sensor_stale(self, exc: BaseException) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 import aiohttp
 
 from edge.core.config import Config
-from edge.daemon.serve import assemble
+from edge.daemon.serve import assemble, running
 from edge.daemon.store import EPISODE_FILE
 from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
@@ -28,6 +28,8 @@ from tests.support.waits import wait_until
 ROOT = Path(__file__).resolve().parents[2]
 CUBE = names("cube")
 OPEN_WIDTH_M = 0.008
+# Generous: a start on a loaded two-core host (model warm-up, the first frames).
+READY_TIMEOUT_S = 10.0
 
 
 def base_config(vlm_url: str = "", *, move_time_s: float = 0.2, tare_s: float = 0.3) -> Config:
@@ -57,7 +59,8 @@ def fast_config(vlm_url: str = "") -> Config:
 
 class Daemon:
     """The daemon as ``vt-edge run`` assembles it (:func:`edge.daemon.serve.assemble`), its
-    API on a free loopback port, its runtime running in a task of the test's loop."""
+    API on a free loopback port, its runtime running in a task of the test's loop
+    (:func:`edge.daemon.serve.running`)."""
 
     def __init__(self, robot: SimRobot, cfg: Config, state: Path,
                  headers: dict[str, str] | None = None) -> None:
@@ -78,16 +81,8 @@ class Daemon:
                 assemble(self.cfg, button=self.button, notifier=self.notifier))
             self.runtime, self.api, self.devices = daemon.runtime, daemon.api, daemon.devices
             self.store, self.compute = daemon.store, daemon.compute
-            self.task = asyncio.create_task(self.runtime.run())
-            ready = asyncio.create_task(self.runtime.ready.wait() if self.wait_ready
-                                        else asyncio.sleep(0))
-            await asyncio.wait({self.task, ready}, timeout=10,
-                               return_when=asyncio.FIRST_COMPLETED)
-            if not ready.done():
-                ready.cancel()
-                if self.task.done():
-                    await self.task  # its error
-                raise TimeoutError("the daemon was not ready within 10 s")
+            self.task = await self._stack.enter_async_context(
+                running(daemon, READY_TIMEOUT_S if self.wait_ready else None))
         except BaseException:
             await self._stack.aclose()
             raise
@@ -101,11 +96,7 @@ class Daemon:
 
     async def __aexit__(self, *exc):
         await self.http.close()
-        self.runtime.stop()
-        try:
-            await asyncio.wait_for(self.task, 30)
-        finally:
-            await self._stack.aclose()
+        await self._stack.aclose()
 
     async def post(self, path, body, headers=None):
         async with self.http.post(self.url + path, json=body, headers=headers) as resp:

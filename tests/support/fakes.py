@@ -17,6 +17,7 @@ from edge.core.errors import StaleSensorError
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M, GRIPPER_OPEN_WIDTH_M, gripper_raw
 from edge.hw.contracts import (
     DEFAULT_MOVE_TIMEOUT_S,
+    FrameHook,
     GripperState,
     GripperStop,
     JointPose,
@@ -61,6 +62,7 @@ class FakeTactileSource:
         self._last_recv: float | None = None
         self._closed = False
         self.stats = StreamStats()
+        self.server_models: tuple[str, ...] | None = self._models
 
     async def start(self) -> None:
         pass
@@ -95,6 +97,12 @@ class FakeTactileSource:
     def finish(self) -> None:
         """End iteration after what is already queued."""
         self._queue.put_nowait(_END)
+
+    def set_frame_hook(self, hook: FrameHook | None) -> bool:
+        return False  # frames go straight to frames(): the consumer runs its step
+
+    async def wait_first_frame(self, timeout_s: float) -> None:
+        return None  # its frames are in memory: there from the start
 
     def is_fresh(self) -> bool:
         if self._closed or self._last_recv is None:

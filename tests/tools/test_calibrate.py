@@ -25,7 +25,7 @@ from edge import cli
 from edge.core import tomledit
 from edge.core.config import load_config
 from edge.core.errors import ConfigError, EdgeError, StaleSensorError
-from edge.daemon.lifecycle import Devices
+from edge.hw.contracts import Devices
 from edge.hw.xela import parse_frame
 from edge.sim.robot import SimRobot
 from edge.sim.virtual import VirtualClockLoop, VirtualRobot
@@ -293,11 +293,7 @@ def test_a_gripper_that_cannot_open_leaves_the_arm_where_it_stands(tmp_path, mon
                 await move_to(pose, timeout_s)
 
             async def close_bus(safe_pose=None) -> None:
-                # DynamixelBus.close's steps, which the thread-less VirtualBus skips.
                 closes.append(safe_pose)
-                if safe_pose is not None and r.bus._torque_on:
-                    await safe_pose()
-                await r.bus.set_torque(False)
                 await bus_close(safe_pose)
 
             async def opened_devices(_cfg):

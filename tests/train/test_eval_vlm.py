@@ -13,10 +13,10 @@ from PIL import Image
 from edge.core.config import VLMConfig
 from edge.core.errors import EvalVLMError
 from edge.core.model import load_model
-from edge.core.prompt import load_template
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.standin_vlm import StandIn
+from edge.vlm.prompt import load_template
 from tests.support.vlm_thread import fake_in_thread
 from train import eval_vlm
 from train.eval_vlm import AnswerCache, EvalVLMConfig
@@ -71,7 +71,7 @@ async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work
     assert all(r["n"] == len(CUBE) * PRESSES and r["invalid_answer"] == 0
                for r in res.values())
 
-    # One request per question, each with the shipped template rendered by edge.core.prompt.
+    # One request per question, each with the shipped template rendered by edge.vlm.prompt.
     requests = fake.chat_requests
     records = cache_lines(out)
     assert len(requests) == len(records) == JOBS

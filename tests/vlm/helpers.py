@@ -7,7 +7,7 @@ import io
 import numpy as np
 from PIL import Image
 
-from edge.core.vlm import VLMConfig
+from edge.vlm.client import VLMConfig
 
 MODEL = "fake-vlm"
 CANDIDATES = ["raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash",

@@ -1,8 +1,7 @@
-"""Answer parsing, Retry-After and backoff: pure functions, hostile inputs included."""
+"""Answer parsing and Retry-After: pure functions, hostile inputs included."""
 
 import email.utils
 import json
-import random
 import string
 import time
 
@@ -10,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from edge.core.vlm import (
+from edge.vlm.client import (
     MAX_ANSWER_CHARS,
-    backoff_delay,
     match_label,
     normalise_label,
     parse_label,
@@ -101,6 +99,7 @@ labels = st.lists(
 )
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(text=st.text(max_size=300), candidates=labels)
 def test_any_answer_never_crashes_and_never_invents(text, candidates):
@@ -157,13 +156,3 @@ def test_retry_after_forms():
     assert parse_retry_after(past, now) == 0.0
     for bad in (None, "", "soon", "nan", "inf", "Mon, 99 Foo 2024 99:99:99 GMT"):
         assert parse_retry_after(bad, now) is None
-
-
-def test_backoff_grows_is_jittered_and_capped():
-    rng = random.Random(1)
-    for retry in range(12):
-        d = min(8.0, 0.5 * 2**retry)
-        delays = [backoff_delay(retry, 0.5, 8.0, rng) for _ in range(50)]
-        assert all(d / 2 <= x <= d for x in delays)
-        assert len(set(delays)) > 1
-    assert backoff_delay(10_000, 0.5, 8.0, rng) <= 8.0

@@ -12,7 +12,7 @@ import time
 import pytest
 from PIL import Image
 
-import edge.core.vlm as vlm_module
+import edge.vlm.client as vlm_module
 from edge.core.errors import (
     ConfigError,
     EdgeError,
@@ -26,8 +26,8 @@ from edge.core.errors import (
     VLMTimeoutError,
     VLMUnavailableError,
 )
-from edge.core.prompt import load_template
-from edge.core.vlm import (
+from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
+from edge.vlm.client import (
     NoVLM,
     OpenAIVLM,
     VLMAnswer,
@@ -36,7 +36,7 @@ from edge.core.vlm import (
     make_vlm,
     response_format,
 )
-from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
+from edge.vlm.prompt import load_template
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, image_bytes, vlm_config
 
@@ -305,7 +305,7 @@ async def test_api_key_never_leaks(monkeypatch, caplog, tmp_path, jpeg):
     seen += [str(err.value), repr(err.value)]
     # Everything logged on this side (the fake server is the careless other side).
     ours = [r for r in caplog.records if r.name != "edge.sim.fake_vlm"]
-    assert any(r.name == "edge.core.vlm" for r in ours)
+    assert any(r.name == "edge.vlm.client" for r in ours)
     seen += [logging.Formatter().format(r) for r in ours]
     for text in seen:
         assert planted not in text

@@ -13,8 +13,8 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from edge.core.vlm import response_format
 from edge.sim.fake_vlm import FakeVLM
+from edge.vlm.client import response_format
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes
 

@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from edge.core.errors import EdgeError, ImageError
-from edge.core.images import data_url, prepare_image
+from edge.vlm.images import data_url, prepare_image
 from tests.vlm.helpers import image_bytes
 
 

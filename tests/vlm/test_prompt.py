@@ -6,7 +6,7 @@ import re
 import pytest
 
 from edge.core.errors import EdgeError, PromptError
-from edge.core.prompt import (
+from edge.vlm.prompt import (
     DEFAULT_PROMPT_DIR,
     MODES,
     PromptTemplate,

@@ -14,10 +14,10 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from edge.core.vlm import OpenAIVLM
 from edge.sim import catalogue, common_sense, standin_vlm
 from edge.sim.camera import render
 from edge.sim.standin_vlm import DEFAULT, VISION_LED, decide
+from edge.vlm.client import OpenAIVLM
 from tests.support.waits import free_port
 from tests.vlm.helpers import image_bytes, vlm_config
 

@@ -13,14 +13,14 @@ from edge.core.errors import (
     VLMFormatRefusedError,
     VLMRejectedError,
 )
-from edge.core.prompt import format_candidates
-from edge.core.vlm import (
+from edge.sim.fake_vlm import REFUSALS, FakeVLM, Reply
+from edge.vlm.client import (
     PROBE_CANDIDATES,
     UNREACHABLE_AFTER_ATTEMPTS,
     OpenAIVLM,
     response_format,
 )
-from edge.sim.fake_vlm import REFUSALS, FakeVLM, Reply
+from edge.vlm.prompt import format_candidates
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, vlm_config
 
@@ -61,7 +61,7 @@ async def test_each_mode_sends_its_response_format(jpeg, mode, expected):
 async def test_a_server_refusing_response_format_is_asked_in_free_text(jpeg, caplog, refusal):
     """(a) Refuses any response_format, in the words (and status) of a real server: the client
     steps down json_schema -> json_object -> none, logs each step once, keeps it."""
-    caplog.set_level(logging.WARNING, "edge.core.vlm")
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
     async with FakeVLM(model=MODEL, choose=pick_second, structured="none_only",
                        refusal=refusal) as fake:
         async with OpenAIVLM(vlm_config(fake.base_url)) as vlm:
@@ -95,7 +95,7 @@ async def test_a_server_refusing_response_format_is_asked_in_free_text(jpeg, cap
 
 @pytest.mark.asyncio
 async def test_questions_in_flight_together_log_each_step_once(jpeg, caplog):
-    caplog.set_level(logging.WARNING, "edge.core.vlm")
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
     async with FakeVLM(model=MODEL, structured="none_only", latency_s=0.05) as fake, \
             OpenAIVLM(vlm_config(fake.base_url)) as vlm:
         answers = await asyncio.gather(*(vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
@@ -108,7 +108,7 @@ async def test_questions_in_flight_together_log_each_step_once(jpeg, caplog):
 async def test_a_server_ignoring_response_format_answers_prose_that_is_read(jpeg, caplog):
     """(b) Takes response_format without looking and answers prose: no step down (nothing
     was refused), the prose names one candidate and is read as it, no corrective retry."""
-    caplog.set_level(logging.WARNING, "edge.core.vlm")
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
     async with FakeVLM(model=MODEL, choose=pick_second, structured="ignored") as fake, \
             OpenAIVLM(vlm_config(fake.base_url)) as vlm:
         answer = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
@@ -131,7 +131,7 @@ async def test_prose_naming_no_single_candidate_is_invalid_not_guessed(jpeg):
 @pytest.mark.asyncio
 async def test_a_server_with_json_mode_only_is_asked_in_json_mode(jpeg, caplog):
     """(c) Refuses json_schema with a 400 (an older llama.cpp server), takes json_object."""
-    caplog.set_level(logging.WARNING, "edge.core.vlm")
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
     async with FakeVLM(model=MODEL, choose=pick_second, structured="json_object_only") as fake:
         async with OpenAIVLM(vlm_config(fake.base_url)) as vlm:
             first = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)

@@ -4,7 +4,7 @@ import pytest
 
 from edge.core.config import from_dict
 from edge.core.errors import ConfigError
-from edge.core.vlm import VLMConfig
+from edge.vlm.client import VLMConfig
 
 
 def test_defaults_mean_no_vlm_and_are_valid():

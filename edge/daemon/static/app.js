@@ -1,5 +1,7 @@
 // vtzero operator page: plain JavaScript, no build step, nothing loaded from elsewhere.
 // Data: /healthz (polled), /v1/events and /v1/tactile (server-sent events), /v1/episodes.
+// /healthz's keys are Health's and an episode's press keys PressSummary's (edge/daemon/
+// state.py; the list carries webui.LISTED_PRESS): tests/daemon/test_state.py checks them.
 "use strict";
 
 const UI = { "X-Vtzero-UI": "1" };

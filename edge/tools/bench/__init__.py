@@ -2,7 +2,7 @@
 
 Writes ``OUT/results.json`` (one key per figure: p50, p99, max, n, unit, target, met; plus
 ``host``, ``run``, ``sections`` and ``notes``), ``OUT/results.md`` (rendered from it) and
-``OUT/raw.json`` (every press); :mod:`edge.core.results` holds the format. Phases, each
+``OUT/raw.json`` (every press); :mod:`edge.tools.bench.results` holds the format. Phases, each
 printed on stderr as it runs:
 
 1. **runtime** (:mod:`.runtime`): the daemon's runtime in this process against the emulated
@@ -33,8 +33,8 @@ from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 
-from edge.core.results import Results, progress
 from edge.tools.bench.report import FIGURES, WHY
+from edge.tools.bench.results import Results, progress
 from edge.tools.bench.settings import FULL, QUICK, Settings
 
 __all__ = ["FIGURES", "FULL", "PHASES", "QUICK", "Settings", "bench", "run_bench"]

@@ -2,9 +2,10 @@
 on every arriving frame, and two that check it only on a periodic tick (the sampler's 125 Hz,
 a 100 Hz control loop as in the usual ROS 2 arrangement).
 
-The comparison controllers live here, not in production code. They are made by the runtime's
-public factory (``Runtime.make_press_controller``) and use only the controller's public
-hooks: ``on_outcome``, ``on_frame``, ``check`` and ``armed``.
+They are one controller, the daemon's for its whole life (``assemble(...,
+controller_factory=BenchController)``), whose check is switched between presses
+(:meth:`BenchController.use`); it lives here, not in production code, and uses only the
+controller's public hooks: ``on_outcome``, ``check`` and ``armed``.
 """
 
 from __future__ import annotations
@@ -15,43 +16,54 @@ from typing import Any
 
 import numpy as np
 
+from edge.core.errors import BusyError
 from edge.daemon.press import PressController, PressOutcome
 
+# How each compared controller checks the threshold: on every frame (None), or on a tick of
+# this period (s). The names are settings.CONTROLLERS.
+TICK_PERIOD_S: dict[str, float | None] = {"per_frame": None, "tick125": 1 / 125.0,
+                                          "loop100": 1 / 100.0}
+# The ticks' phase against the frame stream is drawn from this seed's generator.
+TICK_PHASE_SEED = 0
 
-class RecordingController(PressController):
-    """The production controller, unchanged; its ``on_outcome`` hook hands each outcome to
-    the bench."""
 
-    name = "per_frame"
+class BenchController(PressController):
+    """The production controller; its ``on_outcome`` hook hands each outcome to the bench
+    (``outcomes``), and :meth:`use` picks how the next presses check the threshold."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.outcomes: asyncio.Queue[PressOutcome] = asyncio.Queue()
         super().__init__(*args, on_outcome=self.outcomes.put_nowait, **kwargs)
-
-
-class TickedController(RecordingController):
-    """The threshold checked only on a periodic tick, with the latest frame.
-
-    The sensor path only records the latest frame; a ticker on an absolute grid (period
-    ``period_s``) runs the same check as the production controller (stop included) on it.
-    The grid's phase against the frame stream is drawn afresh for every press: a 125 Hz tick
-    against a 125 Hz stream would otherwise sit at one arbitrary phase for the whole run.
-    """
-
-    def __init__(self, *args: Any, name: str, period_s: float, rng: np.random.Generator,
-                 **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.name = name
-        self.period_s = period_s
-        self.rng = rng
+        self.name = "per_frame"
+        self.period_s: float | None = None
+        self.rng = np.random.default_rng(TICK_PHASE_SEED)
         self.latest: tuple[np.ndarray, float] | None = None
 
-    async def on_frame(self, raw: np.ndarray, recv_time: float) -> None:
+    def use(self, name: str) -> None:
+        """From the next press on, the threshold checked as controller ``name`` does
+        (:data:`TICK_PERIOD_S`): on every frame by the production check itself, which the
+        sensor task calls (no call added), or only on a periodic tick with the latest frame
+        (the sensor task's call keeps the frame)."""
+        if self.state != "idle":
+            raise BusyError(f"a press is running ({self.state}); switch between presses")
+        period_s = TICK_PERIOD_S[name]
+        self.name = name
+        self.period_s = period_s
+        # (set on the instance: the sensor task looks ``check`` up on every frame)
+        if period_s is None:
+            vars(self).pop("check", None)
+        else:
+            vars(self)["check"] = self._keep_latest
+
+    async def _keep_latest(self, raw: np.ndarray, recv_time: float) -> None:
         self.latest = (raw, recv_time)
 
     async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
                   ) -> PressOutcome:
-        ticker = asyncio.create_task(self.tick(), name=f"bench-{self.name}-ticker")
+        if self.period_s is None:
+            return await super().run(window_ready)
+        ticker = asyncio.create_task(self._tick(self.period_s),
+                                     name=f"bench-{self.name}-ticker")
         try:
             return await super().run(window_ready)
         finally:
@@ -59,16 +71,18 @@ class TickedController(RecordingController):
             with contextlib.suppress(asyncio.CancelledError):
                 await ticker
 
-    async def tick(self) -> None:
-        """Check the latest frame on each tick of the grid while the press is armed."""
+    async def _tick(self, period: float) -> None:
+        """Check the latest frame on each tick of an absolute grid while the press is
+        armed. The grid's phase against the frame stream is drawn afresh for every press:
+        a 125 Hz tick against a 125 Hz stream would otherwise sit at one arbitrary phase
+        for the whole run."""
         loop = asyncio.get_running_loop()
-        period = self.period_s
         deadline = loop.time() + float(self.rng.uniform(0.0, period))
         while True:
             await asyncio.sleep(max(0.0, deadline - loop.time()))
             latest = self.latest
             if latest is not None and self.armed:
-                await self.check(*latest)
+                await PressController.check(self, *latest)
             deadline += period
             behind = loop.time() - deadline
             if behind > period:

@@ -15,10 +15,10 @@ import sys
 import time
 from pathlib import Path
 
-from edge.core.figures import figure, stats, target
-from edge.core.proc import process_tree
-from edge.core.results import PhaseResult, progress
+from edge.tools.bench.figures import figure, stats, target
 from edge.tools.bench.host import torch_mappings, tree_memory_mb
+from edge.tools.bench.proc import process_tree
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import CUBE, HELPER_START_S, OBJECTS, ROOT, SIM_CONFIG, Settings
 from edge.tools.stack import http_json
 

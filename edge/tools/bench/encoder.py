@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from edge.core.figures import figure, ratio_figure, target, timed_in_blocks
 from edge.core.model import load_model, synthetic_database, synthetic_inputs
-from edge.core.results import PhaseResult, progress
+from edge.tools.bench.figures import figure, ratio_figure, target, timed_in_blocks
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import MODELS, Settings
 
 

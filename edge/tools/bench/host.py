@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from edge.core.proc import host_cpu_s, proc_cpu_s, process_tree
+from edge.tools.bench.proc import host_cpu_s, proc_cpu_s, process_tree
 
 
 def thread_sched(tid: int) -> tuple[float, float, int]:

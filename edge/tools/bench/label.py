@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import logging
 import time
@@ -22,14 +21,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from edge.core.figures import figure, target
-from edge.core.results import PhaseResult, progress
-from edge.tools.bench.controllers import RecordingController
+from edge.tools.bench.controllers import BenchController
+from edge.tools.bench.figures import figure, target
 from edge.tools.bench.load import Helper
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
 
 ROBOT_CONFIG = ROOT / "configs" / "robot.toml"
 LABEL_TIMEOUT_S = 60.0
+READY_TIMEOUT_S = 30.0
 # Targets (issue: ask while the arm returns): the request leaves this soon after the window.
 AFTER_WINDOW_P50_MS = 30.0
 AFTER_WINDOW_P99_MS = 60.0
@@ -46,7 +46,7 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
 
     from edge.core.config import load_config
     from edge.daemon.press import RECORD_MARGIN_S
-    from edge.daemon.serve import assemble
+    from edge.daemon.serve import assemble, running
 
     cfg = load_config(SIM_CONFIG)
     cfg = replace(
@@ -59,58 +59,52 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
         vlm=replace(cfg.vlm, base_url=vlm["base_url"], model="fake-vlm", max_retries=0,
                     total_timeout_s=60.0))
     rows: list[dict[str, float]] = []
-    async with assemble(cfg) as daemon:
+    async with assemble(cfg, controller_factory=BenchController) as daemon, \
+            running(daemon, READY_TIMEOUT_S):
         runtime = daemon.runtime
-        ctl = runtime.make_press_controller(RecordingController)
-        runtime.use_press_controller(ctl)
-        task = asyncio.create_task(runtime.run(), name="bench-label-runtime")
-        try:
-            await asyncio.wait_for(runtime.ready.wait(), 30)
-            api = f"http://127.0.0.1:{daemon.api.port}"
-            after_s = ctl.window.after_s
-            async with aiohttp.ClientSession() as http:
-                # One press more, first and not counted: it loads the encoder.
-                for i in range(-1, presses):
-                    async with http.post(f"{robot['control_url']}/object",
-                                         json={"name": OBJECTS[i % len(OBJECTS)]}) as r:
-                        r.raise_for_status()
-                    marker = f"label_{i + 1:03d}"
-                    with runtime.subscribe() as events:
-                        t_trigger = time.monotonic()
-                        async with http.post(f"{api}/v1/recognize",
-                                             json={"candidates": [*CUBE, marker]}) as r:
-                            ep = await r.json()
-                            if r.status != 202:
-                                raise RuntimeError(f"recognize answered {r.status}: {ep}")
-                        t_label = None
-                        async with asyncio.timeout(LABEL_TIMEOUT_S):
-                            async for event in events:
-                                if (event.get("episode") == ep["id"]
-                                        and event.get("type") == "result"):
-                                    t_label = time.monotonic()
-                                    break
-                    outcome = await asyncio.wait_for(ctl.outcomes.get(), LABEL_TIMEOUT_S)
-                    async with http.get(f"{vlm['bench_url']}/received") as r:
-                        arrivals = await r.json()
-                    t_vlm = next((a["t"] for a in arrivals
-                                  if a["candidates"] and a["candidates"][-1] == marker), None)
-                    if outcome.t_stop is None or t_vlm is None or t_label is None:
-                        progress(f"label press {i + 1}: {outcome.result}: {outcome.message}")
-                        continue
-                    t_window = outcome.t_stop + after_s + RECORD_MARGIN_S
-                    row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
-                           "trigger_to_label_s": t_label - t_trigger}
-                    progress(f"label press {i + 1}/{presses}: request "
-                             f"{row['label_after_window_ms']:.1f} ms after the window, "
-                             f"label {row['trigger_to_label_s']:.2f} s after the trigger"
-                             + (" (warm-up, not counted)" if i < 0 else ""))
-                    if i >= 0:
-                        rows.append(row)
-                    await asyncio.sleep(0.2)  # the arm settles; the lock is free
-        finally:
-            runtime.stop()
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(task, 30)
+        ctl = runtime.press
+        assert isinstance(ctl, BenchController)
+        api = f"http://127.0.0.1:{daemon.api.port}"
+        after_s = ctl.window.after_s
+        async with aiohttp.ClientSession() as http:
+            # One press more, first and not counted: it loads the encoder.
+            for i in range(-1, presses):
+                async with http.post(f"{robot['control_url']}/object",
+                                     json={"name": OBJECTS[i % len(OBJECTS)]}) as r:
+                    r.raise_for_status()
+                marker = f"label_{i + 1:03d}"
+                with runtime.subscribe() as events:
+                    t_trigger = time.monotonic()
+                    async with http.post(f"{api}/v1/recognize",
+                                         json={"candidates": [*CUBE, marker]}) as r:
+                        ep = await r.json()
+                        if r.status != 202:
+                            raise RuntimeError(f"recognize answered {r.status}: {ep}")
+                    t_label = None
+                    async with asyncio.timeout(LABEL_TIMEOUT_S):
+                        async for event in events:
+                            if (event.get("episode") == ep["id"]
+                                    and event.get("type") == "result"):
+                                t_label = time.monotonic()
+                                break
+                outcome = await asyncio.wait_for(ctl.outcomes.get(), LABEL_TIMEOUT_S)
+                async with http.get(f"{vlm['bench_url']}/received") as r:
+                    arrivals = await r.json()
+                t_vlm = next((a["t"] for a in arrivals
+                              if a["candidates"] and a["candidates"][-1] == marker), None)
+                if outcome.t_stop is None or t_vlm is None or t_label is None:
+                    progress(f"label press {i + 1}: {outcome.result}: {outcome.message}")
+                    continue
+                t_window = outcome.t_stop + after_s + RECORD_MARGIN_S
+                row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
+                       "trigger_to_label_s": t_label - t_trigger}
+                progress(f"label press {i + 1}/{presses}: request "
+                         f"{row['label_after_window_ms']:.1f} ms after the window, "
+                         f"label {row['trigger_to_label_s']:.2f} s after the trigger"
+                         + (" (warm-up, not counted)" if i < 0 else ""))
+                if i >= 0:
+                    rows.append(row)
+                await asyncio.sleep(0.2)  # the arm settles; the lock is free
     return rows
 
 

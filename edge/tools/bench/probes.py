@@ -15,6 +15,7 @@ import numpy as np
 
 from edge.core import preprocess
 from edge.daemon.press import PressOutcome
+from edge.daemon.state import PressState
 
 # Frames whose parse time is kept (about 2 minutes at 125 Hz).
 PARSE_TIMES = 1 << 14
@@ -24,10 +25,10 @@ def first_crossing(ring: Any, outcome: PressOutcome,
                    x_th: float) -> tuple[float, int, float] | None:
     """Receive time, sequence number and sensor time (the server's wall clock) of the first
     frame over ``x_th`` after closing began (the controller's own norm), up to the stop."""
-    states = dict(outcome.states)
-    if outcome.tare is None or outcome.t_stop is None or "closing" not in states:
+    closing = outcome.summary().entered(PressState.CLOSING)
+    if outcome.tare is None or outcome.t_stop is None or closing is None:
         return None
-    win = ring.window(states["closing"] - 0.05, outcome.t_stop)
+    win = ring.window(closing - 0.05, outcome.t_stop)
     if len(win.raw) == 0:
         return None
     level = np.linalg.norm(win.raw - outcome.tare, axis=1) / preprocess.UNITS_SCALE

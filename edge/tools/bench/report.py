@@ -1,6 +1,6 @@
 """How the runtime side's figures read: their order in the table, how to read them, the
 load they ran under, and why a target is missed on this kind of host (``results.md``;
-:mod:`edge.core.results` renders it)."""
+:mod:`edge.tools.bench.results` renders it)."""
 
 from __future__ import annotations
 

@@ -19,8 +19,8 @@ phase's figure takes its samples from the phase's time window. Each production s
 split into its parts (:class:`StopParts`).
 
 Every press is triggered over the HTTP API; the bench reads the daemon only through its
-public hooks (:mod:`edge.tools.bench.probes`) and swaps controllers with
-``Runtime.use_press_controller``.
+public hooks (:mod:`edge.tools.bench.probes`); its press controller is the bench's
+(``assemble(..., controller_factory=BenchController)``), switched between presses.
 """
 
 from __future__ import annotations
@@ -35,12 +35,10 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from edge.core.figures import figure, finish, ratio_figure, stats, target
 from edge.core.progress import Progress
-from edge.core.results import PhaseResult, progress
-from edge.tools.bench.controllers import RecordingController, TickedController
+from edge.daemon.state import PressState
+from edge.tools.bench.controllers import BenchController
+from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
 from edge.tools.bench.probes import (
@@ -52,6 +50,7 @@ from edge.tools.bench.probes import (
     stop_parts,
 )
 from edge.tools.bench.report import READING, load_text
+from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import (
     CONTROLLER_TEXT,
     CONTROLLERS,
@@ -69,6 +68,7 @@ ROBOT_NICE = -10
 # to this many times, so that every controller gets its presses; failures are counted.
 PRESS_ATTEMPTS = 3
 PRESS_TIMEOUT_S = 60.0
+READY_TIMEOUT_S = 30.0
 # Operator pages kept open during the pages phase.
 PAGES = 2
 # Targets of the stop (issue: the stop at the floor): p99 under the load, and the median
@@ -149,10 +149,10 @@ class RuntimeBench:
     async def run(self) -> None:
         import aiohttp
 
-        from edge.daemon.serve import assemble
+        from edge.daemon.serve import assemble, running
 
         cfg = self.config()
-        async with assemble(cfg) as daemon:
+        async with assemble(cfg, controller_factory=BenchController) as daemon:
             runtime, compute = daemon.runtime, daemon.compute
             self.compute = compute
             worker = compute.pid()
@@ -163,18 +163,9 @@ class RuntimeBench:
             self.bus = daemon.devices.bus
             self.realtime = daemon.realtime
             self.runtime = runtime
-            rng = np.random.default_rng(0)
-            self.controllers: dict[str, RecordingController] = {
-                "per_frame": runtime.make_press_controller(RecordingController),
-                "tick125": runtime.make_press_controller(
-                    TickedController, name="tick125", period_s=1 / 125.0, rng=rng),
-                "loop100": runtime.make_press_controller(
-                    TickedController, name="loop100", period_s=1 / 100.0, rng=rng),
-            }
-            runtime.use_press_controller(self.controllers["per_frame"])
-            task = asyncio.create_task(runtime.run(), name="bench-runtime")
-            try:
-                await asyncio.wait_for(runtime.ready.wait(), 30)
+            assert isinstance(runtime.press, BenchController)
+            self.controller = runtime.press
+            async with running(daemon, READY_TIMEOUT_S):
                 self.api_url = f"http://127.0.0.1:{daemon.api.port}"
                 floor = await asyncio.to_thread(Helper, "floor", "--url",
                                                 self.robot["xela_url"])
@@ -189,19 +180,15 @@ class RuntimeBench:
                     out = await asyncio.to_thread(floor.stop)
                     with contextlib.suppress(ValueError, IndexError, KeyError):
                         self.floor_samples = json.loads(out.strip().splitlines()[-1])["samples"]
-            finally:
-                runtime.stop()
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(task, 30)
 
     # ----- one press
 
     async def _press(self, phase: str, name: str, obj: str) -> PressRecord:
         http, runtime = self.http, self.runtime
-        ctl = self.controllers[name]
+        ctl = self.controller
         async with http.post(f"{self.robot['control_url']}/object", json={"name": obj}) as r:
             r.raise_for_status()
-        runtime.use_press_controller(ctl)
+        ctl.use(name)
         marker = f"bench_{len(self.records):04d}"
         while True:
             t_trigger = time.monotonic()
@@ -218,9 +205,9 @@ class RuntimeBench:
         rec = PressRecord(phase, name, obj, marker, outcome.result, t_trigger,
                           message=outcome.message, realtime=self.realtime.active)
         states = dict(outcome.states)
-        if "above" in states and "idle" in states:
-            rec.press_s = states["idle"] - states["above"]
-            rec.pre_press_ms = 1e3 * (states["above"] - t_trigger)
+        if PressState.ABOVE in states and PressState.IDLE in states:
+            rec.press_s = states[PressState.IDLE] - states[PressState.ABOVE]
+            rec.pre_press_ms = 1e3 * (states[PressState.ABOVE] - t_trigger)
         if outcome.stop_latency_s is not None:
             rec.controller_latency_ms = 1e3 * outcome.stop_latency_s
         crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
@@ -298,8 +285,8 @@ class RuntimeBench:
 
     async def _loaded_phase(self, cfg: Any, model: Any) -> None:
         from edge.core.errors import EdgeError
-        from edge.core.vlm import OpenAIVLM
         from edge.daemon.serve import vlm_config
+        from edge.vlm.client import OpenAIVLM
 
         s = self.s
         runtime = self.runtime

@@ -7,7 +7,7 @@ adds the training side's (torch, training) to it; ``make bench`` runs the two. T
 - ``run``: when, which command(s), settings, the phases run and the CPU during each
   (``phase_cpu``: cores busy on the host, how many of them by the bench, how many by
   other processes), duration, load average at the end, and what a phase adds (the load);
-- one key per figure (:mod:`edge.core.figures`), each with ``host_cores_busy`` during its
+- one key per figure (:mod:`edge.tools.bench.figures`), each with ``host_cores_busy`` during its
   phase;
 - ``sections``: titled markdown text the phases add (how to read their figures);
 - ``run.baseline`` (optional): an earlier run's figures (p50, p99), rendered as a "Before
@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 
 from edge.core.atomic import atomic_write_text
-from edge.core.figures import Figure, explain, is_figure, short, target_text
-from edge.core.proc import host_cpu_s, own_tree_cpu_s
+from edge.tools.bench.figures import Figure, explain, is_figure, short, target_text
+from edge.tools.bench.proc import host_cpu_s, own_tree_cpu_s
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 RESULTS, MARKDOWN, RAW = "results.json", "results.md", "raw.json"
 # Keys of a figure that the "What each figure is" list does not repeat.
 _TABLE_KEYS = ("p50", "p99", "max", "n", "unit", "target", "met", "what", "host_cores_busy")

@@ -4,7 +4,7 @@ A figure is a JSON object: ``p50``, ``p99``, ``max`` and ``n`` of its samples, `
 ``target`` (a list of conditions on the figure's own keys, all of which must hold, or None)
 and ``met`` (True, False, or None without a target), plus whatever else describes it
 (``what``, counts, sub-statistics). ``vt-edge bench`` and ``vt-train bench`` build them here
-and put them in one results file (:mod:`edge.core.results`).
+and put them in one results file (:mod:`edge.tools.bench.results`).
 """
 
 from __future__ import annotations

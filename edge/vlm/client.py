@@ -49,6 +49,7 @@ from urllib.parse import urlsplit
 
 import aiohttp
 
+from edge.core.backoff import Backoff
 from edge.core.config import VLMConfig
 from edge.core.errors import (
     ConfigError,
@@ -64,8 +65,8 @@ from edge.core.errors import (
     VLMTimeoutError,
     VLMUnavailableError,
 )
-from edge.core.images import PreparedImage, VLMImage, prepare_for_vlm
-from edge.core.prompt import (
+from edge.vlm.images import PreparedImage, VLMImage, prepare_for_vlm
+from edge.vlm.prompt import (
     PromptMode,
     PromptTemplate,
     check_candidates,
@@ -105,6 +106,8 @@ UNREACHABLE_AFTER_ATTEMPTS = 4
 PROBE_CANDIDATES = ("red_cube", "blue_ball")
 PROBE_DESCRIPTION = "wood cube"
 PROBE_IMAGE_SIDE_PX = 64
+# Each transport retry waits half to all of the backoff (edge.core.backoff).
+BACKOFF_SPREAD = (0.5, 1.0)
 
 Status = Literal["ok", "invalid_answer", "not_configured"]
 
@@ -193,6 +196,12 @@ class VLMClient(Protocol):
     def image_limits(self) -> tuple[int, int] | None:
         """(longest side in px, bytes) an image is prepared to before it is sent, or None
         when no image is sent."""
+        ...
+
+    @property
+    def unreachable(self) -> str | None:
+        """Why the server counts as unreachable now (``/healthz``, ``/metrics``), else None
+        (always None without a server)."""
         ...
 
     async def close(self) -> None: ...
@@ -342,12 +351,6 @@ def parse_retry_after(value: str | None, now: float | None = None) -> float | No
     if not math.isfinite(seconds):
         return None
     return max(0.0, seconds)
-
-
-def backoff_delay(retry: int, base_s: float, cap_s: float, rng: random.Random) -> float:
-    """Capped exponential backoff with jitter: in [d/2, d], d = min(cap, base * 2**retry)."""
-    d = min(cap_s, base_s * 2.0 ** min(retry, 60))
-    return d / 2 + rng.uniform(0, d / 2)
 
 
 def load_api_key(config: VLMConfig) -> str | None:
@@ -611,7 +614,7 @@ class OpenAIVLM:
         if self._api_key:
             headers["Authorization"] = f"Bearer {self._api_key}"
         session = self._get_session()
-        retry = 0
+        backoff = Backoff(cfg.backoff_base_s, cfg.backoff_cap_s, BACKOFF_SPREAD, self._rng)
         while True:
             started = time.monotonic()
             wait_s: float | None = None
@@ -649,16 +652,15 @@ class OpenAIVLM:
                     return status, body
                 failure = self._http_error(status, body, url=url)
             attempts = len(trace.outcomes)
-            if retry >= max_retries:
+            if backoff.failures >= max_retries:
                 log.warning("VLM unavailable after %d attempt(s): %s", attempts, failure)
                 raise failure
-            delay = backoff_delay(retry, cfg.backoff_base_s, cfg.backoff_cap_s, self._rng)
+            delay = backoff.next_s()
             if wait_s is not None:
                 delay = max(delay, min(wait_s, cfg.retry_after_cap_s))
             log.warning("VLM attempt %d failed (%s); retrying in %.2f s", attempts,
                         trace.outcomes[-1], delay)
             await self._sleep(delay)
-            retry += 1
 
     def _answered(self) -> None:
         if self._unanswered >= UNREACHABLE_AFTER_ATTEMPTS:
@@ -838,6 +840,10 @@ class NoVLM:
     def image_limits(self) -> tuple[int, int] | None:
         return None
 
+    @property
+    def unreachable(self) -> str | None:
+        return None  # no server to reach
+
     async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:
         labels = check_candidates(candidates)
@@ -864,6 +870,6 @@ __all__ = [
     "VLMConnectionError", "VLMFormatRefusedError", "VLMHTTPError", "VLMProbe",
     "VLMRejectedError", "VLMResponseError",
     "VLMResponseTooLargeError", "VLMServerError", "VLMTimeoutError", "VLMUnavailableError",
-    "backoff_delay", "make_vlm", "match_label", "normalise_label", "parse_label",
+    "make_vlm", "match_label", "normalise_label", "parse_label",
     "parse_retry_after", "request_head", "response_format",
 ]

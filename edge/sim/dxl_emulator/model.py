@@ -1,11 +1,12 @@
-"""A Dynamixel Protocol 2.0 bus of XM430-W350 motors, emulated behind a pseudo-terminal.
+"""The emulated motors of a Dynamixel Protocol 2.0 bus of XM430-W350s: the device model.
 
-The emulator opens a pty pair and serves the slave side (``emulator.port``, e.g.
-``/dev/pts/7``), so the real ``dynamixel_sdk.PortHandler(emulator.port)`` talks to it byte for
-byte: header ``FF FF FD 00``, CRC-16 (poly 0x8005), byte stuffing both ways, status packets,
-Return Delay Time, Status Return Level, broadcast rules (no status for broadcast writes).
-Instructions: PING (unicast and broadcast), READ, WRITE, REG_WRITE, ACTION, REBOOT, SYNC READ,
-FAST SYNC READ, SYNC WRITE, BULK READ, BULK WRITE.
+:meth:`DxlEmulator.start` serves them on a pty pair (:mod:`.pty`; ``emulator.port``, e.g.
+``/dev/pts/7``), so the real ``dynamixel_sdk.PortHandler(emulator.port)`` talks to them byte
+for byte; :meth:`DxlEmulator.transact` takes instruction packets in-process (the recorder's
+virtual bus). Packets (:mod:`.codec`): header ``FF FF FD 00``, CRC-16 (poly 0x8005), byte
+stuffing both ways, status packets, Return Delay Time, Status Return Level, broadcast rules
+(no status for broadcast writes). Instructions: PING (unicast and broadcast), READ, WRITE,
+REG_WRITE, ACTION, REBOOT, SYNC READ, FAST SYNC READ, SYNC WRITE, BULK READ, BULK WRITE.
 
 Each motor has the XM430 control table in memory with the EEPROM/RAM rules (EEPROM writes
 answer the Access error while torque is on), the static and dependent write limits, and a
@@ -49,16 +50,10 @@ status packet and torque off, as a real shutdown does).
 from __future__ import annotations
 
 import collections
-import contextlib
-import errno
-import fcntl
 import logging
 import math
-import os
-import select
 import threading
 import time
-import tty
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
@@ -78,43 +73,40 @@ from edge.hw.control_table import (
     Area,
     Register,
 )
+from edge.sim.dxl_emulator.codec import (
+    BROADCAST_ID,
+    ERR_ACCESS,
+    ERR_ALERT,
+    ERR_CRC,
+    ERR_DATA_LENGTH,
+    ERR_DATA_LIMIT,
+    ERR_DATA_RANGE,
+    ERR_INSTRUCTION,
+    ERR_RESULT_FAIL,
+    HEADER,
+    INST_ACTION,
+    INST_BULK_READ,
+    INST_BULK_WRITE,
+    INST_FAST_SYNC_READ,
+    INST_PING,
+    INST_READ,
+    INST_REBOOT,
+    INST_REG_WRITE,
+    INST_STATUS,
+    INST_SYNC_READ,
+    INST_SYNC_WRITE,
+    INST_WRITE,
+    Instruction,
+    crc16,
+    encode_packet,
+    parse_packet,
+)
+from edge.sim.dxl_emulator.pty import PtyTransport
 
 _log = logging.getLogger(__name__)
 
 LoadFn = Callable[[int, float, float], float]
 
-BROADCAST_ID = 0xFE
-HEADER = b"\xff\xff\xfd\x00"
-MAX_PACKET_LENGTH = 1024
-
-INST_PING = 0x01
-INST_READ = 0x02
-INST_WRITE = 0x03
-INST_REG_WRITE = 0x04
-INST_ACTION = 0x05
-INST_REBOOT = 0x08
-INST_STATUS = 0x55
-INST_SYNC_READ = 0x82
-INST_SYNC_WRITE = 0x83
-INST_FAST_SYNC_READ = 0x8A
-INST_BULK_READ = 0x92
-INST_BULK_WRITE = 0x93
-
-ERR_RESULT_FAIL = 0x01
-ERR_INSTRUCTION = 0x02
-ERR_CRC = 0x03
-ERR_DATA_RANGE = 0x04
-ERR_DATA_LENGTH = 0x05
-ERR_DATA_LIMIT = 0x06
-ERR_ACCESS = 0x07
-ERR_ALERT = 0x80
-
-# A packet whose declared length never arrives is dropped after this long, so one corrupt
-# length field cannot wedge the parser.
-PARTIAL_PACKET_TIMEOUT_S = 0.05
-# The thread wakes at least this often to step the motion model while the bus is quiet.
-IDLE_WAKE_S = 0.01
-STOP_JOIN_TIMEOUT_S = 2.0
 # Firmware of the XM430s on our arm.
 DEFAULT_FIRMWARE = 48
 # Hardware no-load speed of the XM430-W350 at 12 V is about 46 rev/min (200 velocity units):
@@ -123,70 +115,6 @@ _MAX_VELOCITY_UNITS = 200
 
 _TABLE = XM430_W350
 _GOALS = frozenset({"Goal PWM", "Goal Current", "Goal Velocity", "Goal Position"})
-
-
-def _make_crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else crc << 1
-        table.append(crc & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _make_crc_table()
-
-
-def crc16(data: bytes | bytearray, crc: int = 0) -> int:
-    """CRC-16 of Protocol 2.0 (poly 0x8005, initial 0, not reflected), as the SDK computes it."""
-    for byte in data:
-        crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ byte) & 0xFF]) & 0xFFFF
-    return crc
-
-
-def stuff(body: bytes | bytearray) -> bytes:
-    """Insert an ``FD`` after every ``FF FF FD`` of a packet body (instruction to last param)."""
-    out = bytearray()
-    prev2 = prev1 = 0
-    for byte in body:
-        out.append(byte)
-        if byte == 0xFD and prev1 == 0xFF and prev2 == 0xFF:
-            out.append(0xFD)
-        prev2, prev1 = prev1, byte
-    return bytes(out)
-
-
-def unstuff(body: bytes | bytearray) -> bytes:
-    """Undo :func:`stuff`: ``FF FF FD FD`` becomes ``FF FF FD``."""
-    out = bytearray()
-    i = 0
-    while i < len(body):
-        byte = body[i]
-        out.append(byte)
-        if (byte == 0xFD and len(out) >= 3 and out[-2] == 0xFF and out[-3] == 0xFF
-                and i + 1 < len(body) and body[i + 1] == 0xFD):
-            i += 1
-        i += 1
-    return bytes(out)
-
-
-def encode_packet(packet_id: int, body: bytes | bytearray) -> bytes:
-    """A whole Protocol 2.0 packet: header, ID, length, stuffed body, CRC."""
-    stuffed = stuff(body)
-    length = len(stuffed) + 2
-    packet = HEADER + bytes((packet_id, length & 0xFF, length >> 8)) + stuffed
-    return packet + crc16(packet).to_bytes(2, "little")
-
-
-@dataclass(frozen=True)
-class Instruction:
-    """One parsed instruction packet (body unstuffed)."""
-
-    motor_id: int
-    instruction: int
-    params: bytes
-    crc_ok: bool
 
 
 @dataclass(frozen=True)
@@ -211,34 +139,6 @@ class Received:
     motor_id: int
     instruction: int
     params: bytes
-
-
-def parse_packet(buf: bytearray) -> Instruction | None:
-    """Take the first complete packet off the front of ``buf``; drop garbage before it.
-
-    Returns None when no complete packet is there yet (``buf`` then starts with a possible
-    header, or holds at most the last three bytes of garbage).
-    """
-    while True:
-        idx = buf.find(HEADER)
-        if idx < 0:
-            del buf[: max(0, len(buf) - 3)]
-            return None
-        del buf[:idx]
-        if len(buf) < 7:
-            return None
-        length = buf[5] | (buf[6] << 8)
-        if length < 3 or length > MAX_PACKET_LENGTH:
-            del buf[:1]
-            continue
-        total = 7 + length
-        if len(buf) < total:
-            return None
-        packet = bytes(buf[:total])
-        del buf[:total]
-        crc_ok = crc16(packet[:-2]) == int.from_bytes(packet[-2:], "little")
-        body = unstuff(packet[7:-2])
-        return Instruction(packet[4], body[0], body[1:], crc_ok)
 
 
 class _Profile:
@@ -367,7 +267,7 @@ class DxlEmulator:
         self._load = load
         self.reply_latency_s = reply_latency_s
         self._step_s = step_s
-        self._clock = clock
+        self.clock = clock
         self._lock = threading.RLock()
         self._sim_t = clock()
         self.received: collections.deque[Received] = collections.deque(maxlen=10_000)
@@ -377,45 +277,24 @@ class DxlEmulator:
         # must never power the arm is checked against.
         self.torque_enables = 0
         self.port = ""
-        self._master = self._slave = self._wake_r = self._wake_w = -1
-        self._thread: threading.Thread | None = None
-        self._stopping = threading.Event()
+        self._pty = PtyTransport(self)
 
     # ---------------------------------------------------------------- lifecycle
 
     def start(self) -> DxlEmulator:
-        if self._thread is not None:
+        """Serve the motors on a pty (:attr:`port`) from a thread of their own."""
+        if self._pty.serving:
             raise RuntimeError("emulator already started")
-        self._master, self._slave = os.openpty()
-        # Raw from the start: no echo, no CR/LF translation, before any client opens the port.
-        tty.setraw(self._slave)
-        # Keep the slave open ourselves so the master never reads EIO between clients.
-        self.port = os.ttyname(self._slave)
-        fl = fcntl.fcntl(self._master, fcntl.F_GETFL)
-        fcntl.fcntl(self._master, fcntl.F_SETFL, fl | os.O_NONBLOCK)
-        self._wake_r, self._wake_w = os.pipe()
         with self._lock:
-            self._sim_t = self._clock()
+            self._sim_t = self.clock()
             for motor in self._motors.values():
                 motor.watchdog_last = self._sim_t
-        self._thread = threading.Thread(target=self._run, name="dxl-emulator", daemon=True)
-        self._thread.start()
+        self.port = self._pty.start()
         _log.debug("Dynamixel emulator serving %s, motors %s", self.port, sorted(self._motors))
         return self
 
     def stop(self) -> None:
-        if self._thread is None:
-            return
-        self._stopping.set()
-        os.write(self._wake_w, b"x")
-        self._thread.join(STOP_JOIN_TIMEOUT_S)
-        if self._thread.is_alive():
-            _log.error("Dynamixel emulator thread did not stop within %.1f s", STOP_JOIN_TIMEOUT_S)
-        self._thread = None
-        for fd in (self._master, self._slave, self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        self._master = self._slave = self._wake_r = self._wake_w = -1
+        self._pty.stop()
 
     def __enter__(self) -> DxlEmulator:
         return self.start()
@@ -428,7 +307,7 @@ class DxlEmulator:
     def true_position(self, motor_id: int) -> float:
         """The motor's true position (raw counts), advanced to now."""
         with self._lock:
-            self._advance(self._clock())
+            self._advance(self.clock())
             return self._motors[motor_id].pos
 
     def transact(self, data: bytes) -> bytes:
@@ -436,23 +315,34 @@ class DxlEmulator:
         instruction packets in ``data`` at the clock's present time and return their status
         packets at once (the recorder models the wire's timing itself). Not while the pty
         thread serves."""
-        if self._thread is not None:
+        if self._pty.serving:
             raise RuntimeError("transact() is for an emulator without its pty thread")
-        now = self._clock()
+        now = self.clock()
         buf = bytearray(data)
         out = bytearray()
+        self.advance(now)
+        while (ins := parse_packet(buf)) is not None:
+            for _motor_id, _delay_s, packet in self.execute(ins, now):
+                out += packet
+        return bytes(out)
+
+    def advance(self, now: float) -> None:
+        """Step the motion model (and the watchdogs) to ``now``."""
         with self._lock:
             self._advance(now)
-            while (ins := parse_packet(buf)) is not None:
-                self.received.append(Received(now, ins.motor_id, ins.instruction, ins.params))
-                for _motor, packet in self._handle(ins, now):
-                    out += packet
-        return bytes(out)
+
+    def execute(self, ins: Instruction, now: float) -> list[tuple[int, float, bytes]]:
+        """Take one instruction off the wire at ``now`` (the model advanced to it): the
+        status packets it is answered with, in bus order, each as (motor ID, that motor's
+        Return Delay Time, packet)."""
+        self.received.append(Received(now, ins.motor_id, ins.instruction, ins.params))
+        with self._lock:
+            return [(m.id, m.return_delay_s, packet) for m, packet in self._handle(ins, now)]
 
     def get_register(self, motor_id: int, name: str) -> int:
         """A register as the motor would answer it now (bypasses the bus)."""
         with self._lock:
-            self._advance(self._clock())
+            self._advance(self.clock())
             motor = self._motors[motor_id]
             self._refresh(motor)
             return motor.get(name)
@@ -470,7 +360,7 @@ class DxlEmulator:
         """Trip the motor's Bus Watchdog now, as a host silent past it would: the motor
         stops where it is, and every read still answers."""
         with self._lock:
-            self._advance(self._clock())
+            self._advance(self.clock())
             self._trip(self._motors[motor_id])
 
     def set_register(self, motor_id: int, name: str, value: int) -> None:
@@ -479,7 +369,7 @@ class DxlEmulator:
         ``Present Position`` moves the motor there (and its Goal Position with it).
         """
         with self._lock:
-            self._advance(self._clock())
+            self._advance(self.clock())
             motor = self._motors[motor_id]
             if name == "Present Position":
                 motor.pos = float(value)
@@ -505,7 +395,7 @@ class DxlEmulator:
         """Raise Hardware Error Status bits (0 clears): the motor shuts down (torque off) and
         every status packet carries the alert bit until cleared."""
         with self._lock:
-            self._advance(self._clock())
+            self._advance(self.clock())
             motor = self._motors[motor_id]
             motor.put("Hardware Error Status", bits)
             if bits:
@@ -859,63 +749,6 @@ class DxlEmulator:
             packet += bytes((self._error_byte(m, 0), m.id)) + m.mem[address:address + length]
             packet += crc16(packet).to_bytes(2, "little")
         return bytes(packet)
-
-    # ---------------------------------------------------------------- the thread
-
-    def _run(self) -> None:
-        buf = bytearray()
-        partial_since: float | None = None
-        try:
-            while not self._stopping.is_set():
-                ready, _, _ = select.select([self._master, self._wake_r], [], [], IDLE_WAKE_S)
-                if self._wake_r in ready:
-                    break
-                now = self._clock()
-                if self._master in ready:
-                    try:
-                        buf += os.read(self._master, 4096)
-                    except BlockingIOError:
-                        pass
-                    except OSError as exc:
-                        if exc.errno != errno.EIO:
-                            raise
-                with self._lock:
-                    self._advance(now)
-                while True:
-                    ins = parse_packet(buf)
-                    if ins is None:
-                        break
-                    self.received.append(Received(now, ins.motor_id, ins.instruction,
-                                                  ins.params))
-                    with self._lock:
-                        replies = self._handle(ins, now)
-                    if not self._send(replies, now):
-                        return
-                if buf:
-                    partial_since = partial_since if partial_since is not None else now
-                    if now - partial_since > PARTIAL_PACKET_TIMEOUT_S:
-                        del buf[:1]
-                        partial_since = None
-                else:
-                    partial_since = None
-        except Exception:
-            _log.exception("Dynamixel emulator thread died")
-
-    def _send(self, replies: list[tuple[_Motor, bytes]], arrival: float) -> bool:
-        """Write the status packets with their delays; False if asked to stop meanwhile."""
-        due = arrival + self.reply_latency_s
-        for motor, packet in replies:
-            due += motor.return_delay_s
-            wait = due - self._clock()
-            if wait > 0 and select.select([self._wake_r], [], [], wait)[0]:
-                return False
-            try:
-                os.write(self._master, packet)
-            except BlockingIOError:
-                _log.warning("emulated motor %d: pty full, status packet dropped", motor.id)
-            due = max(due, self._clock())
-        return True
-
 
 def _id(m: _Motor) -> int:
     return m.id

@@ -1,0 +1,403 @@
+"""The Dynamixel bus of the arm: the real ``dynamixel_sdk`` (Protocol 2.0) behind one owner.
+
+Every operation runs on the bus's :class:`~edge.hw.dynamixel.executor.Executor` (by default
+the ``dxl-bus`` thread; the simulator's on its virtual clock), one at a time, stops first; no
+SDK call ever runs on the event loop. What runs there: the protocol transactions
+(:mod:`.transactions`), the bring-up and watchdog (:mod:`.bringup`) and the stop
+(:mod:`.stop`). Handing a stop over, the event loop waits (at most ``STOP_HANDOVER_MAX_S``)
+until the stop's packet is on the wire: the loop's thread sleeps, so the bus thread gets the
+GIL and, on a busy host, the loop's core at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Awaitable, Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import dynamixel_sdk as sdk
+
+from edge.core.config import BusConfig
+from edge.core.errors import DeviceError, EdgeError, MotorError
+from edge.hw.control_table import XM430_W350
+from edge.hw.dynamixel import bringup
+from edge.hw.dynamixel.bringup import MotorInfo
+from edge.hw.dynamixel.executor import Executor, ThreadExecutor
+from edge.hw.dynamixel.port import LATENCY_TIMER_DIR, BlockingPortHandler
+from edge.hw.dynamixel.stop import STOP_STATE_MAX_AGE_S, StopRecord, stop_goal
+from edge.hw.dynamixel.transactions import (
+    GOAL_POSITION,
+    BusState,
+    SeenState,
+    Transactions,
+)
+
+_log = logging.getLogger(__name__)
+
+
+class DynamixelBus:
+    """The Dynamixel bus of the arm: joints ``config.joint_ids``, gripper ``config.gripper_id``.
+
+    Use ``async with DynamixelBus(config) as bus`` (connect, then close), or call
+    :meth:`connect` and :meth:`close`. ``executor`` runs every operation (default a new
+    :class:`ThreadExecutor`). ``port_handler_factory`` builds the SDK port handler (default
+    :class:`BlockingPortHandler`; ``dynamixel_sdk.PortHandler`` is the stock one);
+    ``exclusive=False`` skips the port device's lock, for a port that is no device (the
+    simulator's in-process one).
+    """
+
+    def __init__(
+        self,
+        config: BusConfig,
+        *,
+        executor: Executor | None = None,
+        port_handler_factory: Callable[[str], sdk.PortHandler] = BlockingPortHandler,
+        latency_timer_dir: Path = LATENCY_TIMER_DIR,
+        clock: Callable[[], float] = time.monotonic,
+        exclusive: bool = True,
+    ) -> None:
+        self._config = config
+        self._executor: Executor = executor if executor is not None else ThreadExecutor()
+        # The clock of every time the bus reports (states, the stop); the event loop's.
+        self._clock = clock
+        # Called on the bus thread after each packet written to the port with (monotonic
+        # time, first 8 bytes of the packet); for measurements (see BlockingPortHandler).
+        self.on_write: Callable[[float, bytes], None] | None = None
+        self._ids = (*config.joint_ids, config.gripper_id)
+        self._port_handler_factory = port_handler_factory
+        self._latency_timer_dir = latency_timer_dir
+        self._exclusive = exclusive
+        self._tx = Transactions(config.port, self._ids, clock)
+        # The exclusive flock on the port device held while connected (bringup.lock_port).
+        self._lock_fd = -1
+        self._accepting = False
+        # When the last operation ended (the bus clock): a stop's in-flight wait, the feed.
+        self._last_op_end = 0.0
+        self._motors: dict[int, MotorInfo] = {}
+        self._torque_on = False
+        self._feed_task: asyncio.Task[None] | None = None
+        # When the last stop's Goal Position packet went to the port (its write call,
+        # monotonic), and what the stop did.
+        self.last_stop_t = 0.0
+        self.last_stop: StopRecord | None = None
+        self.stops = 0
+        # Stops that had to read Present Position first (no state fresh enough to trust).
+        self.stop_fallbacks = 0
+        # Why the bus is not fit to press, for /healthz: the last failed watchdog feed
+        # (cleared by the next good one).
+        self._feed_fault: str | None = None
+        # A motor found with torque off before a press (it shut itself down): until restart.
+        self._torque_fault: str | None = None
+
+    # ---------------------------------------------------------------- properties
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return self._ids
+
+    @property
+    def config(self) -> BusConfig:
+        return self._config
+
+    @property
+    def motors(self) -> Mapping[int, MotorInfo]:
+        """What :meth:`connect` found, by motor ID."""
+        return self._motors
+
+    @property
+    def torque_on(self) -> bool:
+        return self._torque_on
+
+    @property
+    def fault(self) -> str | None:
+        """What is wrong with the bus now (a motor that does not answer...), or None."""
+        return self._torque_fault or self._feed_fault
+
+    @property
+    def last_state(self) -> BusState | None:
+        """The last sync read of every motor's state."""
+        return self._tx.last_state
+
+    @property
+    def thread_id(self) -> int | None:
+        """``threading.get_ident()`` of the bus thread (the only one calling the SDK)."""
+        return self._executor.thread_id
+
+    @property
+    def native_thread_id(self) -> int | None:
+        """The kernel's thread ID of the bus thread (for its scheduling policy and CPU)."""
+        return self._executor.native_thread_id
+
+    def seen(self, motor_id: int) -> SeenState | None:
+        """The motor's position and velocity as last read (by any sync read), or None."""
+        return self._tx.seen.get(motor_id)
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def __aenter__(self) -> DynamixelBus:
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def connect(self, *, configure: bool = True) -> Mapping[int, MotorInfo]:
+        """Open the port, find every motor and configure it; torque stays off.
+
+        Pings every ID (a missing one raises :class:`MotorError` naming it), reads model and
+        firmware, reads Drive Mode and keeps its direction bit as found (joints get the
+        time-based profile bit, the gripper the velocity-based one), sets Operating Mode (3
+        for joints, 5 for the gripper) and Return Delay Time 0 with torque off, sets the
+        gripper's Goal Current, and checks the USB latency timer.
+
+        ``configure=False`` (``vt-edge doctor``) only opens the port and checks the latency
+        timer: the bus is then read-only (:meth:`ping`, :meth:`read`); every write is refused
+        and :meth:`close` leaves the motors as they were.
+        """
+        if self._accepting:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is already connected")
+        self._tx.read_only = not configure
+        self._executor.start()
+        self._accepting = True
+        try:
+            self._motors = await self._call("connect", self._connect_sync)
+        except BaseException:
+            await self._shutdown()
+            raise
+        return self._motors
+
+    async def close(self, safe_pose: Callable[[], Awaitable[object]] | None = None) -> None:
+        """Leave the arm safe and release the port.
+
+        With torque on, ``safe_pose`` (e.g. ``lambda: arm.move_to("rest")``) runs first; a
+        failing safe pose is logged and torque goes off where the arm is. The watchdog is
+        disarmed and torque turned off on every motor in any case, since a torque-on that
+        failed half way leaves some motors on.
+        """
+        if not self._accepting:
+            return
+        if self._tx.read_only:
+            await self._shutdown()
+            return
+        try:
+            if self._torque_on and safe_pose is not None:
+                try:
+                    await safe_pose()
+                except Exception:
+                    _log.exception("safe pose before torque off failed; "
+                                   "turning torque off where the arm stands")
+            await self.set_torque(False)
+        except DeviceError:
+            _log.exception("turning torque off at shutdown failed")
+        finally:
+            await self._shutdown()
+
+    # ---------------------------------------------------------------- operations
+
+    async def ping(self, motor_id: int) -> int:
+        """Ping one motor; its model number, or :class:`MotorError` naming it."""
+        return await self._call(f"ping {motor_id}", lambda: self._ping_sync(motor_id))
+
+    async def scan(self) -> dict[int, int]:
+        """Every motor that answers a broadcast ping: ID -> model number. Slow (the SDK
+        waits out the replies of all 253 IDs: about 0.8 s at 1 Mbps)."""
+        return await self._call("broadcast ping", lambda: bringup.scan(self._tx))
+
+    async def read(self, motor_id: int, name: str) -> int:
+        """One register of one motor (sign applied)."""
+        reg = XM430_W350[name]
+        return await self._call(f"read {name}", lambda: self._tx.read(motor_id, reg))
+
+    async def write(self, motor_id: int, name: str, value: int) -> None:
+        """One register of one motor, waiting for its status packet."""
+        reg = XM430_W350[name]
+        await self._call(f"write {name}", lambda: self._tx.write(motor_id, reg, value))
+
+    async def read_state(self) -> BusState:
+        """Present position, velocity and current of every motor in one sync read."""
+        return await self._call("sync read state", self._tx.read_state)
+
+    async def sync_write(self, name: str, values: Mapping[int, int]) -> None:
+        """One register on several motors in one SYNC WRITE packet (no status packets)."""
+        reg = XM430_W350[name]
+        items = dict(values)
+        await self._call(f"sync write {name}", lambda: self._tx.sync_write(reg, items))
+
+    async def write_goal_positions(self, goals: Mapping[int, int]) -> None:
+        """Goal Position of several motors in one SYNC WRITE packet."""
+        await self.sync_write(GOAL_POSITION.name, goals)
+
+    async def stop(self, motor_id: int, goal_position: int) -> None:
+        """Write Goal Position ahead of everything queued (one WRITE, status awaited)."""
+        await self._call("stop", lambda: self._tx.write(motor_id, GOAL_POSITION, goal_position),
+                         urgent=True)
+
+    async def stop_past_present(self, motor_id: int, offset_raw: int) -> int:
+        """Ahead of everything queued: read Present Position, write Goal Position =
+        present + ``offset_raw``; returns the goal written (the fallback of
+        :meth:`stop_ahead`)."""
+        record = await self._submit_stop(motor_id, offset_raw, None)
+        return record.goal
+
+    async def stop_ahead(self, motor_id: int, offset_raw: int,
+                         max_age_s: float = STOP_STATE_MAX_AGE_S) -> StopRecord:
+        """Ahead of everything queued, one WRITE of Goal Position = the motor's position
+        extrapolated to the moment of the write + ``offset_raw`` (the squeeze, signed in the
+        closing direction).
+
+        The position is the last one read (:meth:`seen`) moved on by its velocity. A state
+        older than ``max_age_s``, read before the motor's last goal write or within
+        ``STOP_STATE_SETTLE_S`` of it, or missing, is not trusted: then Present Position is
+        read first (:meth:`stop_past_present`), as many times as :attr:`stop_fallbacks`
+        says. Either way the goal lies past where the motor is, so a stop never backs off
+        the squeeze.
+        """
+        return await self._submit_stop(motor_id, offset_raw, max_age_s)
+
+    async def _submit_stop(self, motor_id: int, offset_raw: int,
+                           max_age_s: float | None) -> StopRecord:
+        t_submit = self._clock()
+        busy = self._executor.busy  # a transaction on the wire at the hand-over
+
+        def op() -> StopRecord:
+            t_start = self._clock()
+            in_flight = max(0.0, self._last_op_end - t_submit) if busy else 0.0
+            goal, age, why = stop_goal(self._tx, motor_id, offset_raw, max_age_s)
+            self._tx.write(motor_id, GOAL_POSITION, goal)
+            port = self._tx.port
+            t_written = getattr(port, "last_write_t", 0.0) or self._clock()
+            t_call = getattr(port, "write_call_t", 0.0) or t_written
+            self.last_stop_t = t_call
+            self.stops += 1
+            if why is not None and max_age_s is not None:
+                self.stop_fallbacks += 1
+            record = StopRecord(goal, why is None, age, why, t_submit, t_start, t_call,
+                                t_written, in_flight)
+            self.last_stop = record
+            return record
+
+        return await self._call("stop", op, urgent=True)
+
+    async def set_torque(self, enabled: bool) -> None:
+        """Torque on (goals set to present positions first, then the Bus Watchdog armed and
+        fed) or off (watchdog disarmed first)."""
+        if enabled:
+            await self._call("torque on", lambda: bringup.torque_on(self._tx, self._config))
+            self._torque_on = True
+            if self._feed_task is None:
+                self._feed_task = asyncio.create_task(self._feed_watchdog(),
+                                                      name="dxl-watchdog-feed")
+        else:
+            await self._stop_feed()
+            self._torque_on = False
+            await self._call("torque off", lambda: bringup.torque_off(self._tx))
+
+    async def recover_watchdog(self) -> list[int]:
+        """Before a press: check every motor still has torque on (a motor that shut itself
+        down raises :class:`MotorError` naming it, and :attr:`fault` keeps saying so), then
+        clear Bus Watchdog trips: write 0, hold the present position, re-arm.
+
+        Returns the IDs that had tripped.
+        """
+        return await self._call("recover watchdog", self._recover_watchdog_sync)
+
+    # ---------------------------------------------------------------- the asyncio side
+
+    async def _call(self, label: str, fn: Callable[[], Any], *, urgent: bool = False) -> Any:
+        if not self._accepting:
+            raise DeviceError(f"Dynamixel bus on {self._config.port} is not connected")
+
+        def run() -> Any:
+            try:
+                return fn()
+            except EdgeError:
+                raise
+            except OSError as e:  # pyserial's SerialException among them
+                raise DeviceError(f"Dynamixel bus on {self._config.port}: {label}: {e}") from e
+            finally:
+                self._last_op_end = self._clock()
+
+        return await self._executor.submit(label, run, urgent)
+
+    async def _feed_watchdog(self) -> None:
+        # Feeding from the loop, not the bus thread: a stalled event loop stops the feed, so
+        # the watchdog catches a dead host as well as a dead process. Any traffic counts.
+        interval_s = self._config.watchdog_ms / 1000.0 / 4
+        failing = False
+        while True:
+            await asyncio.sleep(interval_s)
+            if self._clock() - self._last_op_end < interval_s:
+                continue
+            try:
+                await self.read_state()
+            except DeviceError as exc:
+                if not failing:
+                    _log.warning("Bus Watchdog feed failed: %s", exc)
+                failing = True
+                self._feed_fault = str(exc)
+            else:
+                if failing:
+                    _log.info("Bus Watchdog feed works again")
+                failing = False
+                self._feed_fault = None
+
+    async def _stop_feed(self) -> None:
+        task, self._feed_task = self._feed_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _shutdown(self) -> None:
+        await self._stop_feed()
+        self._accepting = False
+        await self._executor.stop(self._close_port)
+        self._torque_on = False
+
+    # ---------------------------------------------------------------- on the executor
+
+    def _connect_sync(self) -> dict[int, MotorInfo]:
+        if self._exclusive:
+            self._lock_fd = bringup.lock_port(self._config.port)
+        port = bringup.open_port(self._config, self._port_handler_factory,
+                                 self._latency_timer_dir)
+        self._tx.port = port
+        if isinstance(port, BlockingPortHandler):
+            port.on_write = self._written
+        if self._tx.read_only:
+            return {}
+        return bringup.configure(self._tx, self._config)
+
+    def _written(self, t: float, head: bytes) -> None:
+        self._executor.on_wire()
+        if self.on_write is not None:
+            self.on_write(t, head)
+
+    def _ping_sync(self, motor_id: int) -> int:
+        model, why = bringup.ping_once(self._tx, motor_id)
+        if model is None:
+            raise bringup.no_answer(self._config, [motor_id], why)
+        return model
+
+    def _recover_watchdog_sync(self) -> list[int]:
+        if self._torque_on:
+            fault = bringup.torque_fault(self._tx)
+            if fault is not None:
+                motor_id, self._torque_fault = fault
+                raise MotorError(self._torque_fault, motor_id)
+        units = bringup.watchdog_units(self._config) if self._torque_on else None
+        return bringup.clear_watchdog_trips(self._tx, units)
+
+    def _close_port(self) -> None:
+        port, self._tx.port = self._tx.port, None
+        if port is not None and port.is_open:
+            with contextlib.suppress(OSError):
+                port.closePort()
+        lock_fd, self._lock_fd = self._lock_fd, -1
+        if lock_fd >= 0:
+            os.close(lock_fd)
