@@ -192,6 +192,24 @@ async def test_collect_writes_labelled_recordings(tmp_path):
         assert rec.extra["stop_latency_s"] > 0
 
 
+@pytest.mark.asyncio
+async def test_a_bus_watchdog_trip_between_presses_is_cleared_not_a_failed_press(tmp_path):
+    # A host stall past the watchdog (300 ms) trips the motors; the next press clears the
+    # trip first, as the daemon's do, instead of failing every press after it.
+    cfg = base_config()
+    prompts = []
+
+    def stall(message: str) -> None:
+        prompts.append(message)
+        for motor_id in (11, 12, 13, 14, 15):
+            robot.dxl.trip_watchdog(motor_id)
+
+    async with SimRobot("otedama", seed=16, cfg=cfg) as robot:
+        files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path, prompt=stall)
+    print(prompts)
+    assert len(files) == 2 and len(prompts) == 2
+
+
 @pytest.fixture(scope="module")
 def sim_serve(tmp_path_factory):
     """``vt-edge sim serve`` and its runtime configuration (quicker arm moves)."""
