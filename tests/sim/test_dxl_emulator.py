@@ -412,6 +412,20 @@ def test_watchdog_trip_and_recovery(clocked):
         port.closePort()
 
 
+def test_a_stalled_emulator_thread_is_not_host_silence(emu, port):
+    # The host keeps talking every 40 ms while the emulator's thread cannot run for 0.4 s
+    # (a loaded test host): the packets wait in the pty, and the 100 ms watchdog must not
+    # count that wait as the host's silence.
+    _ok(PH.write1ByteTxRx(port, 13, 64, 1))
+    _ok(PH.write1ByteTxRx(port, 13, 98, 5))  # 100 ms
+    with emu._lock:  # the thread blocks on its next step of the motion model
+        for _ in range(10):
+            PH.write4ByteTxOnly(port, 13, 116, 2048)
+            time.sleep(0.04)
+    time.sleep(0.05)
+    assert _ok(PH.read1ByteTxRx(port, 13, 98)) == 5  # armed, not tripped (-1)
+
+
 # ------------------------------------------------------------------ faults and lifecycle
 
 

@@ -356,6 +356,13 @@ class DxlEmulator:
         m.put("Goal Position", round(m.pos))
         _log.info("emulated motor %d: Bus Watchdog tripped", m.id)
 
+    def pause_watchdogs(self, seconds: float) -> None:
+        """Let ``seconds`` not count towards any Bus Watchdog: time the transport could not
+        see the wire (its thread did not run)."""
+        with self._lock:
+            for m in self._motors.values():
+                m.watchdog_last += seconds
+
     def trip_watchdog(self, motor_id: int) -> None:
         """Trip the motor's Bus Watchdog now, as a host silent past it would: the motor
         stops where it is, and every read still answers."""

@@ -11,6 +11,7 @@ import logging
 import os
 import select
 import threading
+import time
 import tty
 from typing import TYPE_CHECKING
 
@@ -26,6 +27,9 @@ _log = logging.getLogger(__name__)
 PARTIAL_PACKET_TIMEOUT_S = 0.05
 # The thread wakes at least this often to step the motion model while the bus is quiet.
 IDLE_WAKE_S = 0.01
+# A wake-up later than this past IDLE_WAKE_S means this thread was not running (a loaded
+# host), not that the bus was quiet: see PtyTransport._run.
+STALL_S = 0.05
 STOP_JOIN_TIMEOUT_S = 2.0
 
 
@@ -76,11 +80,22 @@ class PtyTransport:
         emu = self._emu
         buf = bytearray()
         partial_since: float | None = None
+        # Only on the wall clock does this thread's stall pass on the motors' clock (a test's
+        # manual clock moves when the test moves it).
+        wall = emu.clock is time.monotonic
+        woke = time.monotonic()
         try:
             while not self._stopping.is_set():
                 ready, _, _ = select.select([self._master, self._wake_r], [], [], IDLE_WAKE_S)
                 if self._wake_r in ready:
                     break
+                stalled = time.monotonic() - woke - IDLE_WAKE_S
+                woke = time.monotonic()
+                if wall and stalled > STALL_S:
+                    # A motor's watchdog counts silence on the wire; while this thread did
+                    # not run, the host's packets waited in the pty unseen. That time is not
+                    # the host's silence: a loaded test host must not trip the watchdog.
+                    emu.pause_watchdogs(stalled)
                 now = emu.clock()
                 if self._master in ready:
                     try:
