@@ -29,7 +29,7 @@ from edge.hw.dynamixel import bringup
 from edge.hw.dynamixel.bringup import MotorInfo
 from edge.hw.dynamixel.executor import Executor, ThreadExecutor
 from edge.hw.dynamixel.port import LATENCY_TIMER_DIR, BlockingPortHandler
-from edge.hw.dynamixel.stop import STOP_STATE_MAX_AGE_S, StopRecord, stop_goal
+from edge.hw.dynamixel.stop import STOP_STATE_MAX_AGE_S, StopPacket, StopRecord, stop_goal
 from edge.hw.dynamixel.transactions import (
     GOAL_POSITION,
     BusState,
@@ -73,6 +73,8 @@ class DynamixelBus:
         self._latency_timer_dir = latency_timer_dir
         self._exclusive = exclusive
         self._tx = Transactions(config.port, self._ids, clock)
+        # The stop's packet per motor, built but for the goal (the stop only adds it).
+        self._stop_packets = {i: StopPacket(i) for i in self._ids}
         # The exclusive flock on the port device held while connected (bringup.lock_port).
         self._lock_fd = -1
         self._accepting = False
@@ -268,7 +270,9 @@ class DynamixelBus:
             t_start = self._clock()
             in_flight = max(0.0, self._last_op_end - t_submit) if busy else 0.0
             goal, age, why = stop_goal(self._tx, motor_id, offset_raw, max_age_s)
-            self._tx.write(motor_id, GOAL_POSITION, goal)
+            prepared = self._stop_packets.get(motor_id)
+            packet = prepared.build(goal) if prepared is not None else None
+            self._tx.write(motor_id, GOAL_POSITION, goal, packet)
             port = self._tx.port
             t_written = getattr(port, "last_write_t", 0.0) or self._clock()
             t_call = getattr(port, "write_call_t", 0.0) or t_written

@@ -105,6 +105,29 @@ class CheckedPacketHandler(sdk.Protocol2PacketHandler):
 
     expect_params: int | None = None
     stale_skipped = 0
+    # Every status packet the last transaction caused has been read: nothing is waiting on
+    # the input, so a prepared packet (txPacket with bytes) needs no flush before it. Cleared
+    # by every packet sent; set by the transaction that read all its replies
+    # (Transactions.settle).
+    settled = False
+
+    def txPacket(self, port, txpacket):
+        if not isinstance(txpacket, bytes):
+            self.settled = False
+            return super().txPacket(port, txpacket)
+        # Built ahead, stuffed and with its CRC (edge.hw.dynamixel.stop.StopPacket): written
+        # as it is. The SDK flushes the input before every packet so that a reply left
+        # over cannot pass for this one's; with the line settled there is none to flush.
+        if port.is_using:
+            return sdk.COMM_PORT_BUSY
+        port.is_using = True
+        if not self.settled:
+            port.clearPort()
+        self.settled = False
+        if port.writePort(txpacket) != len(txpacket):
+            port.is_using = False
+            return sdk.COMM_TX_FAIL
+        return sdk.COMM_SUCCESS
 
     def rxPacket(self, port, fast_option):
         while True:

@@ -11,7 +11,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from edge.hw.dynamixel.transactions import PRESENT_POSITION, Transactions
+import dynamixel_sdk as sdk
+
+from edge.hw.dynamixel.transactions import GOAL_POSITION, PRESENT_POSITION, Transactions
 
 # The stop's goal is extrapolated from a state read no older than this. The press reads the
 # gripper after every second tactile frame while closing (16 ms at 125 Hz, 20 ms at
@@ -69,3 +71,48 @@ def stop_goal(tx: Transactions, motor_id: int, offset_raw: int,
         estimate = seen.position + seen.velocity_raw_s * (now - seen.t)
         return round(estimate) + offset_raw, now - seen.t, None
     return tx.read(motor_id, PRESENT_POSITION) + offset_raw, None, why
+
+
+# Protocol 2.0's header: where it appears inside a packet the SDK stuffs a byte after it.
+_HEADER = b"\xff\xff\xfd"
+_PKT_LENGTH_L = 5
+
+
+def _crc_table() -> tuple[int, ...]:
+    # The SDK's CRC-16 table, as its own updateCRC gives it for one byte from 0.
+    ph = sdk.Protocol2PacketHandler()
+    return tuple(ph.updateCRC(0, [b], 1) for b in range(256))
+
+
+_CRC_TABLE = _crc_table()
+
+
+class StopPacket:
+    """The stop's WRITE of Goal Position to one motor, built ahead but for its goal.
+
+    The SDK builds every packet in Python as it sends it (a copy for byte stuffing, a CRC
+    over the whole packet). Only the stop's 4 goal bytes are unknown until the stop, so
+    what comes before them, and the CRC over it, is computed once: at the stop, 4 CRC steps
+    and a concatenation. :meth:`build` gives the bytes the SDK's ``write4ByteTxRx`` sends
+    (``tests/hw/test_dxl_stop_packet.py``).
+    """
+
+    def __init__(self, motor_id: int) -> None:
+        length = GOAL_POSITION.size + 5  # instruction, address (2), data, CRC (2)
+        head = [0xFF, 0xFF, 0xFD, 0x00, motor_id, length & 0xFF, length >> 8, sdk.INST_WRITE,
+                GOAL_POSITION.address & 0xFF, GOAL_POSITION.address >> 8]
+        self.motor_id = motor_id
+        self._head = bytes(head)
+        self._crc = sdk.Protocol2PacketHandler().updateCRC(0, head, len(head))
+
+    def build(self, goal: int) -> bytes | None:
+        """The packet writing ``goal``; None where it needs byte stuffing (the goal's bytes
+        hold the header), which is left to the SDK."""
+        data = GOAL_POSITION.encode(goal)
+        crc = self._crc
+        for b in data:
+            crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]) & 0xFFFF
+        packet = self._head + data
+        if packet.find(_HEADER, _PKT_LENGTH_L) >= 0:
+            return None
+        return packet + crc.to_bytes(2, "little")

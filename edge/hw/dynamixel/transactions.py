@@ -132,6 +132,12 @@ class Transactions:
         finally:
             self.ph.expect_params = None
 
+    def settle(self, result: int) -> None:
+        """The transaction read every status packet it caused (``result`` COMM_SUCCESS):
+        nothing is left on the input (CheckedPacketHandler.settled)."""
+        if result == sdk.COMM_SUCCESS:
+            self.ph.settled = True
+
     def drain_late_replies(self) -> None:
         # Replies that come after the SDK gave up must not be read as the retry's answer (a
         # same-size status would pass for it): let them arrive, then drop them.
@@ -163,24 +169,36 @@ class Transactions:
                 self.drain_late_replies()
             else:
                 raw, result, error = read(self.port, motor_id, reg.address)
+        self.settle(result)
         self.check(motor_id, f"read {reg.name}", result, error)
         return reg.from_unsigned(raw)
 
-    def write(self, motor_id: int, reg: Register, value: int) -> None:
+    def write(self, motor_id: int, reg: Register, value: int,
+              packet: bytes | None = None) -> None:
+        """``packet``: this write's instruction packet built ahead (the stop's: stop.StopPacket),
+        sent as it is instead of the SDK building it."""
         self.refuse_if_read_only(f"motor {motor_id}: write {reg.name}")
-        write = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx,
-                 4: self.ph.write4ByteTxRx}[reg.size]
+        if packet is None:
+            write = {1: self.ph.write1ByteTxRx, 2: self.ph.write2ByteTxRx,
+                     4: self.ph.write4ByteTxRx}[reg.size]
+
+            def send() -> tuple[int, int]:
+                return write(self.port, motor_id, reg.address, reg.to_unsigned(value))
+        else:
+            def send() -> tuple[int, int]:
+                _, result, error = self.ph.txRxPacket(self.port, packet)
+                return result, error
         with self.expect(0):
             for _ in range(READ_ATTEMPTS - 1):
                 # A lost or garbled status packet is written again once: every register
                 # written here takes an absolute value, so a second delivery changes nothing.
-                result, error = write(self.port, motor_id, reg.address, reg.to_unsigned(value))
+                result, error = send()
                 if result not in _TRANSIENT:
                     break
                 self.drain_late_replies()
             else:
-                result, error = write(self.port, motor_id, reg.address,
-                                      reg.to_unsigned(value))
+                result, error = send()
+        self.settle(result)
         if reg is GOAL_POSITION:
             # A new goal changes the motion: states read before it say nothing about it now.
             self.goal_t[motor_id] = self.clock()
@@ -231,6 +249,7 @@ class Transactions:
                 velocity=_field(PRESENT_VELOCITY, data),
                 current=_field(PRESENT_CURRENT, data),
             )
+        self.settle(sdk.COMM_SUCCESS)
         state = BusState(self.clock(), motors)
         self.last_state = state
         for motor_id, m in motors.items():

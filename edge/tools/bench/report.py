@@ -106,8 +106,8 @@ WHY: dict[str, str] = {
         "that refuse a malformed or repeated frame, parse_ms) costs about what the floor's "
         "whole path does; then the frame goes to the check (queue_ms, check_ms), the stop "
         "is handed to the bus thread that owns the port (handover_ms: the SDK is blocking "
-        "and not thread-safe, so it never runs on the loop) and the SDK builds the packet "
-        "in Python (write_ms). The parts are in stop_latency_ms."),
+        "and not thread-safe, so it never runs on the loop) and the goal goes into the "
+        "packet built ahead (write_ms). The parts are in stop_latency_ms."),
     "sampler_period_error_ms_realtime": (
         "At real-time priority on a CPU of its own the loop thread hardly waits for a core "
         "any more (loop_thread: run-queue wait, preemptions), so the ticks it still misses "
