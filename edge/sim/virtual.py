@@ -263,13 +263,14 @@ class VirtualRobot:
     """
 
     def __init__(self, cfg: Config, object_name: str, rng: np.random.Generator, *,
-                 skin_draw: SkinDraw | None = None, transport: Transport = Transport()) -> None:
+                 skin_draw: SkinDraw | None = None, transport: Transport = Transport(),
+                 pads_age_s: float = 0.0) -> None:
         loop = asyncio.get_running_loop()
         clock = loop.time
         bus_cfg = cfg.bus
         self.world = SimWorld(object_name, rng, gripper_id=bus_cfg.gripper_id,
                               skin_draw=skin_draw, layout=PadLayout.of(cfg.sensor),
-                              clock=clock)
+                              clock=clock, pads_age_s=pads_age_s)
         positions = {mid: float(v) for mid, v in
                      zip(bus_cfg.joint_ids, cfg.poses["above"], strict=True)}
         positions[bus_cfg.gripper_id] = raw_from_width(cfg.press.open_width_m)

@@ -86,8 +86,11 @@ class SimWorld:
     def __init__(self, object_name: str, seed: int | np.random.Generator = 0,
                  gripper_id: int = 15, *, skin_draw: SkinDraw | None = None,
                  layout: PadLayout = XR1944,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        """``layout``: the pads drawn when ``skin_draw`` gives none."""
+                 clock: Callable[[], float] = time.monotonic,
+                 pads_age_s: float = 0.0) -> None:
+        """``layout``: the pads drawn when ``skin_draw`` gives none. ``pads_age_s``: how
+        long the pads have been powered when the world starts (their drift has levelled off
+        that far: a robot that is already up)."""
         self._lock = threading.Lock()
         self._rng = np.random.default_rng(seed)
         # Spawned, not drawn, from a given generator: the world's own draws (and so every
@@ -104,8 +107,9 @@ class SimWorld:
         # steps on its own thread, in batches): set by robot_motors. Called without the
         # world's lock, which the motors' load hook takes.
         self.sync: Callable[[], object] = lambda: None
-        self._t0 = clock()
-        self._t = self._t0
+        self._t = clock()
+        # The pads' drift runs on their own time since power-up (Skin.frame's t_s).
+        self._t0 = self._t - pads_age_s
         self._gap = 0.07
         # The contact force behind the last rendered frame (what the pads felt), for benches.
         self.frame_force_n = 0.0

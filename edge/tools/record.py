@@ -35,7 +35,7 @@ from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.ring import FrameRing
 from edge.daemon.sensor import SensorTask
 from edge.sim.catalogue import DATASETS, ObjectClass, get
-from edge.sim.skin import SkinDraw
+from edge.sim.skin import DRIFT_TAU_S, SkinDraw
 from edge.sim.virtual import Transport, VirtualClockLoop, VirtualRobot
 from edge.sim.world import robot_pads
 
@@ -55,6 +55,11 @@ DEFAULT_TRANSPORT = Transport()
 # Where each press's virtual clock starts, and how far apart presses lie on it.
 CLOCK_START_S = 100.0
 CLOCK_SPACING_S = 20.0
+# How long the pads have been up at a press: drawn so that their drift rate (the start-up
+# rate times exp(-age / DRIFT_TAU_S)) is uniform between levelled off and just powered, as
+# over a session of the robot (whose emulated pads start drifting when `sim serve` starts).
+# Every press on a fresh world at age 0 taught the encoder one robot's start-up drift ramp.
+PADS_AGE_MEAN_S = DRIFT_TAU_S
 
 
 @dataclass(frozen=True)
@@ -88,10 +93,11 @@ def sim_config() -> Config:
 
 
 async def _press_once(cfg: Config, name: str, rng: np.random.Generator, skin: SkinDraw,
-                      transport: Transport, window: preprocess.WindowSpec
+                      transport: Transport, window: preprocess.WindowSpec, pads_age_s: float
                       ) -> tuple[PressOutcome, tuple[float | None, float, float]]:
     loop = asyncio.get_running_loop()
-    async with VirtualRobot(cfg, name, rng, skin_draw=skin, transport=transport) as robot:
+    async with VirtualRobot(cfg, name, rng, skin_draw=skin, transport=transport,
+                            pads_age_s=pads_age_s) as robot:
         ring = FrameRing(cfg.sensor.channels, RING_FRAMES)
         controller = PressController(cfg, robot.gripper, robot.arm, ring,
                                      recover=robot.bus.recover_watchdog, window=window,
@@ -134,9 +140,11 @@ def _press_tries(cfg: Config, name: str, rng: np.random.Generator, skin: SkinDra
                  transport: Transport, window: preprocess.WindowSpec, t0: float
                  ) -> PressRecord:
     failures: list[str] = []
+    pads_age_s = float(rng.exponential(PADS_AGE_MEAN_S))
     for attempt in range(1, PRESS_TRIES + 1):
         with asyncio.Runner(loop_factory=functools.partial(VirtualClockLoop, t0)) as runner:
-            outcome, truth = runner.run(_press_once(cfg, name, rng, skin, transport, window))
+            outcome, truth = runner.run(_press_once(cfg, name, rng, skin, transport, window,
+                                                    pads_age_s))
         if outcome.contact and outcome.window is not None:
             rec = outcome_recording(outcome, cfg, name)
             rec.extra.update(peak_force_n=truth[2], tries=attempt)
