@@ -84,10 +84,12 @@ def _same_classes(meta: dict[str, Any], dataset: str) -> bool:
     descriptions, per-class thresholds): anything else means recording again."""
     if not meta.get("recorder"):
         return False  # an older recorder's data: another press protocol
-    from edge.tools.record import DEFAULT_TRANSPORT
+    from edge.tools.record import DEFAULT_TRANSPORT, PADS_AGE_MEAN_S
 
     if meta.get("transport") != asdict(DEFAULT_TRANSPORT):
         return False  # pressed with another stop latency than the daemon's today
+    if meta.get("pads_age_mean_s") != PADS_AGE_MEAN_S:
+        return False  # pressed on pads of another age (their drift ramp)
     have = meta.get("classes", [])
     if [(c.get("label"), c.get("split"), c.get("description")) for c in have] != [
             (o.name, o.split, o.description) for o in DATASETS[dataset]]:

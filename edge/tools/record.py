@@ -205,6 +205,7 @@ def record_dataset(dataset: str, presses: int, out: str | Path, seed: int = 0, *
         "recorder": "the daemon's press controller on the virtual-clock emulated robot",
         "press": asdict(cfg.press),
         "transport": asdict(transport),
+        "pads_age_mean_s": PADS_AGE_MEAN_S,
         "classes": [{"label": c.name, "split": c.split, "description": c.description,
                      "x_th": class_config(cfg, c, x_th).press.x_th} for c in classes],
         "retried": retried,
