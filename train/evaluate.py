@@ -343,10 +343,11 @@ def _split_accuracy(knn: dict[str, Any], splits: Splits) -> dict[str, float]:
     return out
 
 
-def _against(rows: Sequence[dict[str, Any]], other: str
-             ) -> tuple[str, list[str]] | None:
-    """``vq`` beside ``other``, retrieval in z, on the headline figures: the figures side by
-    side and those ``other`` does better on; None if either row is missing."""
+def _against(rows: Sequence[dict[str, Any]], other: str, who: str
+             ) -> tuple[str, str] | None:
+    """``vq`` beside ``other`` (called ``who``), retrieval in z, on the headline figures: the
+    figures side by side and a sentence naming those ``other`` does better on; None if
+    either row is missing."""
     by = {(r["variant"], r["space"]): r for r in rows}
     vq, that = by.get(("vq", "z")), by.get((other, "z"))
     if vq is None or that is None:
@@ -355,18 +356,16 @@ def _against(rows: Sequence[dict[str, Any]], other: str
               if vq[key] is not None and that[key] is not None and that[key] > vq[key]]
     parts = ", ".join(f"{name} {_fmt(vq[key])} against {_fmt(that[key])}"
                       for key, name in VERSUS_BASELINE)
-    return parts, better
+    return parts, f"{who} does better on {', '.join(better) if better else 'none of them'}"
 
 
 def _paper_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
     """A paragraph setting the shipped configuration (``vq``) beside the paper's
     (``vq_paper``), from this report's own numbers."""
-    found = _against(rows, "vq_paper")
+    found = _against(rows, "vq_paper", "The paper's configuration")
     if found is None:
         return []
-    parts, better = found
-    verdict = (f"The paper's configuration does better on {', '.join(better)}"
-               if better else "The paper's configuration does better on none of them")
+    parts, verdict = found
     return ["", "## The shipped configuration against the paper's", "",
             "Both have the paper's encoder, VQ bottleneck (K = 32) and decoder. The paper's "
             "(`vq_paper`) has z of 4 numbers and reconstruction loss only: its decoder sees "
@@ -383,12 +382,10 @@ def _paper_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
 def _decoder_comparison(rows: Sequence[dict[str, Any]]) -> list[str]:
     """A paragraph setting the paper's decoder (``vq``) beside the zero-input one
     (``vq_zeros``), retrieval in z, from this report's own numbers."""
-    found = _against(rows, "vq_zeros")
+    found = _against(rows, "vq_zeros", "The zero-input decoder")
     if found is None:
         return []
-    parts, better = found
-    verdict = (f"The zero-input decoder does better on {', '.join(better)}"
-               if better else "The zero-input decoder does better on none of them")
+    parts, verdict = found
     return ["", "## Decoders", "",
             f"The paper's decoder (`vq`: z_q and X, teacher-forced) against the zero-input one "
             f"(`vq_zeros`, otherwise the same configuration), retrieval in z: {parts}. "

@@ -89,8 +89,8 @@ class PtyTransport:
                 ready, _, _ = select.select([self._master, self._wake_r], [], [], IDLE_WAKE_S)
                 if self._wake_r in ready:
                     break
-                stalled = time.monotonic() - woke - IDLE_WAKE_S
-                woke = time.monotonic()
+                last, woke = woke, time.monotonic()
+                stalled = woke - last - IDLE_WAKE_S
                 if wall and stalled > STALL_S:
                     # A motor's watchdog counts silence on the wire; while this thread did
                     # not run, the host's packets waited in the pty unseen. That time is not
