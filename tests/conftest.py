@@ -71,6 +71,20 @@ def _group_shared_fixtures(items: list[pytest.Item]) -> None:
         item.add_marker(pytest.mark.xdist_group(find(owners[0]).split("::")[0]))
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Refuse a pytest that xdist's groups do not work with. pytest 9.2 keeps a test's id
+    where pytest-xdist 3.8 does not write the group, so ``--dist loadgroup`` silently
+    groups nothing: every worker builds every shared fixture (a recorded dataset three
+    times over) and the suite takes twice as long, with nothing failing."""
+    if config.getoption("dist", "no") == "loadgroup" and pytest.version_tuple[:2] >= (9, 2):
+        import xdist
+
+        if tuple(int(p) for p in xdist.__version__.split(".")[:2]) <= (3, 8):
+            raise pytest.UsageError(
+                f"pytest {pytest.__version__} with pytest-xdist {xdist.__version__} ignores "
+                "--dist loadgroup; install the dev extra's versions: pip install -e '.[dev]'")
+
+
 def pytest_runtest_setup(item: pytest.Item) -> None:
     for mark in item.iter_markers("needs_program"):
         present, reason = mark.args
