@@ -55,6 +55,12 @@ class WindowSpec:
         window (12 at sigma 3, 96 ms at 125 Hz)."""
         return int(GAUSSIAN_TRUNCATE * self.sigma_samples + 0.5)
 
+    @property
+    def last_sample_s(self) -> float:
+        """The window's last sample time from the stop (``after_s`` less one period): the
+        crop is complete with the first frame at or past it."""
+        return (self.n_window - 1) * self.period_s - self.before_s
+
     def grid(self, t_stop: float, margin: int = 0) -> np.ndarray:
         """The ideal sample times of the window around ``t_stop``, with ``margin`` more
         samples of the same grid on each side."""

@@ -178,25 +178,21 @@ def warm_up(ref: ModelRef) -> None:
 
 @dataclass(frozen=True)
 class Analysis:
-    """What the compute process makes of one press (and its photo), in one round trip."""
+    """What the compute process makes of one press's model window: what the VLM question
+    needs, and the model's input and output for the episode."""
 
     z: list[float]
     code: int
     topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
     description: str
-    press_npz: bytes  # the press as a recording file
     model_io_npz: bytes  # the crop, the model input and the embedding
-    # The photo prepared for the VLM (None without a photo, when the VLM sends none, or
-    # when it could not be prepared: ``image_error`` says why).
-    image: VLMImage | None = None
-    image_error: str | None = None
 
 
-def analyse_press(ref: ModelRef, rec: recording.Recording, image: bytes | None = None,
-                  image_limits: tuple[int, int] | None = None) -> Analysis:
-    """The crop (the model's own window), the encoder, the nearest references, the
-    episode's arrays serialised, and the photo prepared for the VLM within
-    ``image_limits``."""
+def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
+    """The crop (the model's own window), the encoder, the nearest references and the
+    model's input and output serialised: the work between the window and the VLM question,
+    kept to that (the photo is prepared while the press runs, the press serialised, with
+    ``recording.to_bytes``, after the question has left)."""
     model = model_for(ref)
     spec = model.window
     units = preprocess.recording_units(rec)
@@ -209,15 +205,19 @@ def analyse_press(ref: ModelRef, rec: recording.Recording, image: bytes | None =
     description = model.describe([label for label, _ in topk])
     buf = io.BytesIO()
     np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-    prepared, image_error = None, None
-    if image is not None and image_limits is not None:
-        try:
-            prepared = images.prepare_for_vlm(image, *image_limits)
-        except ImageError as exc:
-            image_error = str(exc)
     return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
-                    description, recording.to_bytes(rec), buf.getvalue(), prepared,
-                    image_error)
+                    description, buf.getvalue())
 
 
-__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for", "warm_up"]
+def prepare_photo(image: bytes, image_limits: tuple[int, int]
+                  ) -> tuple[VLMImage | None, str | None]:
+    """The photo prepared for the VLM within ``image_limits``, or None and why it cannot
+    be sent."""
+    try:
+        return images.prepare_for_vlm(image, *image_limits), None
+    except ImageError as exc:
+        return None, str(exc)
+
+
+__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for",
+           "prepare_photo", "warm_up"]

@@ -64,6 +64,9 @@ class PressOutcome:
     peak_level: float = 0.0
     level_at_cross: float = 0.0
     tare: np.ndarray | None = None
+    # The frames around the stop: handed over (``run``'s window_ready) through the first
+    # frame past the model's window; once the press has ended, the whole recording (its
+    # margins too).
     window: Window | None = None
     gripper_trace: list[GripperState] = field(default_factory=list)
     states: list[tuple[PressState, float]] = field(default_factory=list)
@@ -220,7 +223,8 @@ class PressController:
     async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
                   ) -> PressOutcome:
         """One press; ``window_ready`` gets the outcome as soon as the model's window is
-        complete, while the gripper opens and the arm returns (the press goes on after)."""
+        complete (the first frame past it received), while the gripper opens and the arm
+        returns (the press goes on after, and records the window's margin)."""
         outcome = PressOutcome()
         self._outcome = outcome
         self._user_abort.clear()
@@ -290,9 +294,19 @@ class PressController:
             returning = asyncio.create_task(self._return(outcome), name="press-return")
         try:
             if outcome.t_stop is not None:
-                outcome.window = await self._window(outcome.t_stop)
+                # The model's crop is complete with the first frame at or past its last
+                # sample; the analysis starts on it at once, while the recording's margin
+                # still comes in.
+                t_stop, spec = outcome.t_stop, self.window
+                start = t_stop - spec.before_s - RECORD_MARGIN_S
+                await self._stream_past(t_stop + spec.last_sample_s)
+                # (Through that frame: the crop interpolates up to it.)
+                outcome.window = self.ring.window(start, self.ring.latest_time())
                 if window_ready is not None and not window_ready.done():
                     window_ready.set_result(outcome)
+                end = t_stop + spec.after_s + RECORD_MARGIN_S
+                await self._stream_past(end)
+                outcome.window = self.ring.window(start, end)
             if returning is not None:
                 await returning
         finally:
@@ -312,19 +326,11 @@ class PressController:
             if outcome.result == PressResult.OK:
                 outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
 
-    async def _window(self, t_stop: float) -> Window:
-        """The recording's window around the stop, once the stream covers it."""
-        # The window reaches 0.6 s past the stop; normally the opening took most of that.
-        spec = self.window
-        end = t_stop + spec.after_s + RECORD_MARGIN_S
-        wait = end - self.clock()
-        if wait > 0:
-            await asyncio.sleep(wait)
-        # A stream that paused after the stop (a server hiccup, a busy host) catches up.
-        give_up = self.clock() + STREAM_CATCH_UP_S
-        while self.ring.latest_time() < end and self.clock() < give_up:  # noqa: ASYNC110
-            await asyncio.sleep(0.01)
-        return self.ring.window(t_stop - spec.before_s - RECORD_MARGIN_S, end)
+    async def _stream_past(self, end: float) -> None:
+        """Until the stream covers ``end`` (a frame at or past it); a stream that paused
+        after the stop (a server hiccup, a busy host) has ``STREAM_CATCH_UP_S`` more to
+        catch up, then the window is what arrived."""
+        await self.ring.wait_until(end, max(end - self.clock(), 0.0) + STREAM_CATCH_UP_S)
 
     def _check_fresh(self) -> None:
         age = self.clock() - self.ring.latest_time()

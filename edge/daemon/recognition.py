@@ -32,7 +32,7 @@ from edge.core.errors import (
     VLMUnavailableError,
 )
 from edge.core.model import ModelRef
-from edge.daemon.compute import Analysis, ComputeWorker, analyse_press
+from edge.daemon.compute import Analysis, ComputeWorker, analyse_press, prepare_photo
 from edge.daemon.episode import Episode, Neighbour, Status
 from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
@@ -151,13 +151,12 @@ class Recognizer:
         noted = asyncio.get_running_loop().run_in_executor(
             None, self.store.accept, episode_id, candidates, source)
         asking: asyncio.Task | None = None
+        photo: asyncio.Task | None = None
         try:
             self.events.publish({"type": "episode", "episode": episode_id,
                                  "status": "running"})
-            camera_task = None
-            if image is None and self.camera is not None:
-                # The photo is taken while the arm moves.
-                camera_task = asyncio.create_task(self.camera.capture(), name="camera")
+            # Taken (unless given) and prepared for the VLM while the arm moves.
+            photo = asyncio.create_task(self._photo(setup, episode_id, image), name="photo")
             loop = asyncio.get_running_loop()
             window: asyncio.Future[PressOutcome] = loop.create_future()
             pressing = self._start_press(window)
@@ -166,17 +165,14 @@ class Recognizer:
                 # returns), or as it ended without one.
                 await asyncio.wait({window, pressing}, return_when=asyncio.FIRST_COMPLETED)
                 outcome = window.result() if window.done() else pressing.result()
-                camera_error = None
-                if camera_task is not None:
-                    try:
-                        image = await camera_task
-                    except (EdgeError, OSError) as exc:
-                        camera_error = " ".join(str(exc).split()) or type(exc).__name__
-                        log.warning("episode %s: camera failed: %s", episode_id, camera_error)
                 episode = Episode(episode_id, Status.RUNNING, candidates, source,
                                   software_version=__version__, x_th=setup.cfg.press.x_th,
                                   vlm_mode=setup.vlm.mode)
-                episode, files, prepared = await self._analyse(setup, episode, image, outcome)
+                episode, files = await self._analyse(setup, episode, outcome)
+                image, prepared, camera_error = await photo
+                if image is not None:
+                    kind = ".png" if image.startswith(b"\x89PNG") else ".jpg"
+                    files["image" + kind] = image
                 if (camera_error is not None and episode.status == Status.PENDING
                         and needs_photo(setup.vlm.mode)):
                     # The VLM would refuse the question without its photo: the camera is why.
@@ -191,6 +187,8 @@ class Recognizer:
             except asyncio.CancelledError:
                 pressing.cancel()
                 raise
+            # The whole recording (the window's margins came in after the question left).
+            files.update(await self._press_file(setup, outcome))
             self.metrics.observe_press(outcome)
             episode = episode.with_(press=outcome.summary(),
                                     timings={"press_s": time.monotonic() - t0,
@@ -213,6 +211,8 @@ class Recognizer:
             log.exception("episode %s failed", episode_id)
             await self._keep_failure(episode_id, candidates, source, exc, noted)
         finally:
+            if photo is not None and not photo.done():
+                photo.cancel()  # the episode failed before it needed the photo
             if asking is not None and not asking.done():
                 asking.cancel()  # its episode was never stored
             if self.current == episode_id:
@@ -250,45 +250,70 @@ class Recognizer:
         except Exception:
             log.exception("episode %s: the failure could not be stored", episode_id)
 
-    async def _analyse(self, setup: Recognition, episode: Episode, image: bytes | None,
-                       outcome: PressOutcome
-                       ) -> tuple[Episode, dict[str, bytes], VLMImage | None]:
-        """The episode (``failed``, or ``pending`` for the VLM), its files, and the photo
-        prepared for the VLM: one round trip to the compute process."""
-        files: dict[str, bytes] = {}
-        if image is not None:
-            files["image" + (".png" if image.startswith(b"\x89PNG") else ".jpg")] = image
+    async def _photo(self, setup: Recognition, episode_id: str, image: bytes | None
+                     ) -> tuple[bytes | None, VLMImage | None, str | None]:
+        """(the photo, its form for the VLM, why the camera gave none): the camera's photo
+        unless one was given, prepared in the compute process while the press runs, so
+        that the question leaves with no image work once the window is complete."""
+        if image is None and self.camera is not None:
+            try:
+                image = await self.camera.capture()
+            except (EdgeError, OSError) as exc:
+                why = " ".join(str(exc).split()) or type(exc).__name__
+                log.warning("episode %s: camera failed: %s", episode_id, why)
+                return None, None, why
+        limits = setup.vlm.image_limits()
+        if image is None or limits is None:
+            return image, None, None
+        try:
+            prepared, image_error = await self.compute.run(prepare_photo, image, limits)
+        except ComputeError as exc:
+            # The VLM client prepares it when it asks (in the compute process again).
+            log.warning("episode %s: the photo was not prepared ahead: %s", episode_id, exc)
+            return image, None, None
+        if image_error is not None:
+            log.warning("episode %s: the photo cannot be sent: %s", episode_id, image_error)
+        return image, prepared, None
+
+    async def _analyse(self, setup: Recognition, episode: Episode, outcome: PressOutcome
+                       ) -> tuple[Episode, dict[str, bytes]]:
+        """The episode (``failed``, or ``pending`` for the VLM) and the model's files: one
+        round trip to the compute process, on the press's model window."""
         if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
             return (episode.with_(status=Status.FAILED,
-                                  error=outcome.message or outcome.result), files, None)
+                                  error=outcome.message or outcome.result), {})
         t = time.monotonic()
-        rec = None
         try:
             rec = outcome_recording(outcome, setup.cfg)
-            analysis: Analysis = await self.compute.run(
-                analyse_press, setup.model, rec, image, setup.vlm.image_limits())
+            analysis: Analysis = await self.compute.run(analyse_press, setup.model, rec)
         except EdgeError as exc:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
             log.error("episode %s: press not usable for recognition: %s", episode.id, exc)
             why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
                    else "its tactile window is unusable")
-            if rec is not None:  # (none when the window itself is unusable)
-                with contextlib.suppress(EdgeError):
-                    files["press.press.npz"] = recording.to_bytes(rec)
             return (episode.with_(status=Status.FAILED,
-                                  error=f"the press worked but {why}: {exc}"), files, None)
-        if analysis.image_error is not None:
-            log.warning("episode %s: the photo cannot be sent: %s", episode.id,
-                        analysis.image_error)
-        files["press.press.npz"] = analysis.press_npz
-        files["model_io.npz"] = analysis.model_io_npz
+                                  error=f"the press worked but {why}: {exc}"), {})
         episode = episode.with_(
             status=Status.PENDING, code=analysis.code, z=analysis.z,
             topk=[Neighbour(label, d) for label, d in analysis.topk],
             description=analysis.description,
             timings={**episode.timings, "encode_s": time.monotonic() - t})
-        return episode, files, analysis.image
+        return episode, {"model_io.npz": analysis.model_io_npz}
+
+    async def _press_file(self, setup: Recognition, outcome: PressOutcome
+                          ) -> dict[str, bytes]:
+        """The press as a recording file, when it has a window (a compressed write: CPU
+        work for the compute process, or a thread when the process cannot)."""
+        try:
+            rec = outcome_recording(outcome, setup.cfg)
+        except EdgeError:
+            return {}  # no stop, no window: nothing was recorded
+        try:
+            data = await self.compute.run(recording.to_bytes, rec)
+        except ComputeError:
+            data = await asyncio.to_thread(recording.to_bytes, rec)
+        return {"press.press.npz": data}
 
     def _tactile_event(self, episode: Episode) -> Callable[[asyncio.Future], None]:
         """Publishes the tactile result once the episode is stored (a done-callback)."""

@@ -4,6 +4,7 @@ the press (its crop), the sampler and the services beside the press (:mod:`edge.
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,8 @@ class FrameRing:
         self.sensor_time = np.zeros(capacity)
         self.seq = np.zeros(capacity, dtype=np.int64)
         self.count = 0  # frames ever written
+        # (time, future) of whoever waits for a frame received at or after that time.
+        self._waiters: list[tuple[float, asyncio.Future[None]]] = []
 
     def push(self, raw: np.ndarray, recv_time: float, sensor_time: float, seq: int) -> None:
         i = self.count % self.capacity
@@ -37,6 +40,34 @@ class FrameRing:
         self.sensor_time[i] = sensor_time
         self.seq[i] = seq
         self.count += 1
+        if self._waiters:
+            self._wake(recv_time)
+
+    def _wake(self, recv_time: float) -> None:
+        waiting = []
+        for t, future in self._waiters:
+            if recv_time >= t:
+                if not future.done():
+                    future.set_result(None)
+            elif not future.done():
+                waiting.append((t, future))
+        self._waiters = waiting
+
+    async def wait_until(self, t: float, timeout_s: float) -> bool:
+        """Until a frame received at or after ``t`` is in the ring (True) or ``timeout_s``
+        has passed (False). Woken by the frame's push, not by polling: the press hands its
+        window over the moment the frame that completes it arrives."""
+        if self.latest_time() >= t:
+            return True
+        future = asyncio.get_running_loop().create_future()
+        self._waiters.append((t, future))
+        try:
+            await asyncio.wait_for(future, timeout_s)
+        except TimeoutError:
+            return self.latest_time() >= t
+        finally:
+            self._waiters = [(w, f) for w, f in self._waiters if f is not future]
+        return True
 
     @property
     def latest_index(self) -> int:

@@ -7,14 +7,15 @@ import json
 import os
 import shutil
 import signal
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from edge.core import preprocess, recording
-from edge.core.errors import ComputeError, ImageError, ModelError
+from edge.core.errors import ComputeError, ImageError, ModelError, PreprocessError
 from edge.core.model import load_model, model_ref
-from edge.daemon.compute import ComputeWorker, analyse_press
+from edge.daemon.compute import ComputeWorker, analyse_press, prepare_photo
 from edge.vlm.images import check_image
 from tests.support.daemon import ROOT
 from tests.support.presses import recording_of
@@ -33,21 +34,43 @@ async def test_analysis_in_the_worker_equals_the_model_in_process(model):
     rec = recording_of("boiled_kiri_mochi", 5)
     photo = image_bytes(1600, 1200)
     async with ComputeWorker() as worker:
-        result = await worker.run(analyse_press, model_ref(MODELS), rec, photo, (512, 200_000))
+        result = await worker.run(analyse_press, model_ref(MODELS), rec)
         assert worker.pid() not in (None, os.getpid())
+        # The photo, prepared for the VLM (while the press runs), and the press as a file
+        # (once the question has left): the same worker.
+        (prepared, data_url), image_error = await worker.run(prepare_photo, photo,
+                                                             (512, 200_000))
+        press_npz = await worker.run(recording.to_bytes, rec)
     x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
     z_here, code_here = model.encode(x)
     np.testing.assert_allclose(result.z, np.asarray(z_here).reshape(-1), atol=1e-6)
     assert result.code == code_here and result.topk == model.topk(z_here, 3)
     assert result.description == model.describe([label for label, _ in result.topk])
-    back = recording.from_bytes(result.press_npz)
-    np.testing.assert_array_equal(back.frames, rec.frames)
     with np.load(io.BytesIO(result.model_io_npz)) as arrays:
         np.testing.assert_allclose(arrays["x"], x)
-    # The photo prepared for the VLM in the same round trip.
-    prepared, data_url = result.image
     assert max(prepared.width, prepared.height) <= 512 and len(prepared.data) <= 200_000
-    assert data_url.startswith(b"data:image/jpeg;base64,") and result.image_error is None
+    assert data_url.startswith(b"data:image/jpeg;base64,") and image_error is None
+    np.testing.assert_array_equal(recording.from_bytes(press_npz).frames, rec.frames)
+
+
+async def test_the_analysis_on_the_window_through_its_first_frame_past_equals_the_whole(model):
+    """The press hands its window over as soon as the first frame at or past the crop's
+    last sample has arrived (the recording's margin comes in later): the same answer as
+    the whole recording gives; a frame fewer and the crop is refused, not extrapolated."""
+    rec = recording_of("boiled_kiri_mochi", 5)
+    ref = model_ref(MODELS)
+    past = int(np.searchsorted(rec.recv_time, rec.t_stop + ref.window.last_sample_s))
+    assert past < len(rec.recv_time) - 5  # the recording reaches further: its margin
+
+    def through(n: int):
+        return replace(rec, frames=rec.frames[:n], recv_time=rec.recv_time[:n],
+                       sensor_time=rec.sensor_time[:n], seq=rec.seq[:n])
+
+    whole, early = analyse_press(ref, rec), analyse_press(ref, through(past + 1))
+    assert early.z == whole.z and early.topk == whole.topk
+    assert early.model_io_npz == whole.model_io_npz
+    with pytest.raises(PreprocessError, match="leaves the stream"):
+        analyse_press(ref, through(past))
 
 
 async def test_the_crop_is_the_window_the_model_states(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 from edge.core import preprocess
 from edge.core.config import Config
 from edge.core.errors import DeviceError, StaleSensorError
-from edge.daemon.press import OPEN_TRIES, PressController, PressOutcome
+from edge.daemon.press import OPEN_TRIES, RECORD_MARGIN_S, PressController, PressOutcome
 from edge.daemon.ring import FrameRing
 from tests.support.fakes import FakeArm, FakeGripper
 
@@ -237,6 +237,29 @@ async def test_the_recording_covers_the_window_the_controller_is_given():
         ctl.window = wide
         outcome = await ctl.run()
     assert outcome.window.recv_time[-1] >= outcome.t_stop + wide.after_s
+
+
+async def test_the_window_is_handed_over_at_the_crops_last_sample_then_the_margin_recorded():
+    spec = preprocess.DEFAULT_WINDOW
+    async with rig() as (ctl, _g, _a, _p, _s, _o):
+        await asyncio.sleep(spec.before_s)
+        window_ready: asyncio.Future[PressOutcome] = asyncio.get_running_loop().create_future()
+        press = asyncio.create_task(ctl.run(window_ready))
+        handed = await window_ready
+        t_handed = asyncio.get_running_loop().time()
+        # What the analysis takes at that moment: the crop's frames, through the first frame
+        # at or past its last sample, and no further; the press has not ended.
+        early = handed.window
+        last_sample = handed.t_stop + spec.last_sample_s
+        assert early.recv_time[-1] >= last_sample > early.recv_time[-2]
+        print(f"handed over {1e3 * (t_handed - last_sample):.1f} ms after the crop's last "
+              "sample")
+        assert t_handed - last_sample < 0.1 and not press.done()
+        outcome = await press
+    # Then the recording's margin: the window stored with the press reaches further.
+    assert outcome is handed and outcome.window.recv_time[-1] >= (
+        outcome.t_stop + spec.after_s + RECORD_MARGIN_S - FRAME_PERIOD_S)
+    assert len(outcome.window.raw) > len(early.raw)
 
 
 @pytest.mark.parametrize("at", ["above", "lowered", "tare"])

@@ -139,8 +139,10 @@ async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
     assert [n.label for n in episode.topk][:1] and len(episode.topk) == 3
     assert episode.description and episode.z and episode.code is not None
     assert set(episode.timings) == {"press_s", "encode_s", "vlm_s"}
-    # One round trip to the compute process: the analysis and the photo together.
-    assert compute.calls == ["analyse_press"] and camera.captures == 1
+    # The compute process: the photo prepared while the press runs, then the analysis on
+    # the window; the press itself is serialised after the question has left.
+    assert sorted(compute.calls[:2]) == ["analyse_press", "prepare_photo"]
+    assert compute.calls[2:] == ["to_bytes"] and camera.captures == 1
     image, description, candidates = vlm.asked[0]
     prepared, data_url = image  # prepared for the VLM, not raw bytes
     assert max(prepared.width, prepared.height) <= 512 and data_url.startswith(b"data:")

@@ -3,10 +3,10 @@
 The daemon as ``vt-edge run`` assembles it, in this process, against the emulated robot and
 the bench's fake VLM (own processes) answering after ``Settings.vlm_latency_s``, with the
 arm's moves as long as on the real arm (``runtime.move_time_s`` of configs/robot.toml). For
-each press: when its crop window was complete (the stop + the window after it + the
-recording's margin), when its VLM request arrived at the fake VLM, and when the label's
-``result`` event came. ``python -m edge.tools.bench.label [--presses N]`` prints the
-figures as JSON (to measure a checkout on its own).
+each press: when its crop window was complete (the stop + its last sample's time), when its
+VLM request arrived at the fake VLM, and when the label's ``result`` event came.
+``python -m edge.tools.bench.label [--presses N]`` prints the figures as JSON (to measure a
+checkout on its own).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from edge.daemon.state import PressState
 from edge.tools.bench.controllers import BenchController
 from edge.tools.bench.figures import figure, target
 from edge.tools.bench.load import Helper
@@ -45,7 +46,6 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
     import aiohttp
 
     from edge.core.config import load_config
-    from edge.daemon.press import RECORD_MARGIN_S
     from edge.daemon.serve import assemble, running
 
     cfg = load_config(SIM_CONFIG)
@@ -65,7 +65,7 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
         ctl = runtime.press
         assert isinstance(ctl, BenchController)
         api = f"http://127.0.0.1:{daemon.api.port}"
-        after_s = ctl.window.after_s
+        last_s = ctl.window.last_sample_s
         async with aiohttp.ClientSession() as http:
             # One press more, first and not counted: it loads the encoder.
             for i in range(-1, presses):
@@ -95,9 +95,11 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                 if outcome.t_stop is None or t_vlm is None or t_label is None:
                     progress(f"label press {i + 1}: {outcome.result}: {outcome.message}")
                     continue
-                t_window = outcome.t_stop + after_s + RECORD_MARGIN_S
+                t_window = outcome.t_stop + last_s
+                states = dict(outcome.states)
                 row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
-                       "trigger_to_label_s": t_label - t_trigger}
+                       "trigger_to_label_s": t_label - t_trigger,
+                       "pre_press_ms": 1e3 * (states[PressState.ABOVE] - t_trigger)}
                 progress(f"label press {i + 1}/{presses}: request "
                          f"{row['label_after_window_ms']:.1f} ms after the window, "
                          f"label {row['trigger_to_label_s']:.2f} s after the trigger"
@@ -141,8 +143,9 @@ def label_phase(s: Settings, tmp: Path) -> PhaseResult:
         "label_after_window_ms": figure(
             [r["label_after_window_ms"] for r in rows], "ms",
             target(("p50", "<=", AFTER_WINDOW_P50_MS), ("p99", "<=", AFTER_WINDOW_P99_MS)),
-            what="the press's crop window complete (stop + window after it + recording "
-                 "margin) -> its VLM request received by the fake VLM"),
+            what="the press's crop window complete (the stop + its last sample's time) -> "
+                 "its VLM request received by the fake VLM; the wait for the first frame at "
+                 "or past that sample is in it"),
         "trigger_to_label_s": figure(
             [r["trigger_to_label_s"] for r in rows], "s", None,
             move_time_s=move_time_s, vlm_latency_s=s.vlm_latency_s,

@@ -101,6 +101,9 @@ class PressRecord:
     overshoot_n: float | None = None
     press_s: float | None = None  # 'above' entered -> 'idle' entered
     pre_press_ms: float | None = None  # trigger -> 'above'
+    # 'above' entered -> the model's crop window complete (the stop + its last sample's
+    # time): the press's own part of the way to the VLM question.
+    to_window_s: float | None = None
     t_vlm: float | None = None
     overhead_ms: float | None = None
     message: str = ""
@@ -208,6 +211,9 @@ class RuntimeBench:
         if PressState.ABOVE in states and PressState.IDLE in states:
             rec.press_s = states[PressState.IDLE] - states[PressState.ABOVE]
             rec.pre_press_ms = 1e3 * (states[PressState.ABOVE] - t_trigger)
+            if outcome.t_stop is not None:
+                rec.to_window_s = (outcome.t_stop + ctl.window.last_sample_s
+                                   - states[PressState.ABOVE])
         if outcome.stop_latency_s is not None:
             rec.controller_latency_ms = 1e3 * outcome.stop_latency_s
         crossing = first_crossing(runtime.ring, outcome, runtime.cfg.press.x_th)
@@ -430,8 +436,8 @@ class RuntimeBench:
                 break
             await asyncio.sleep(0.2)
         for rec in wanted.values():
-            if rec.t_vlm is not None and rec.press_s is not None:
-                rec.overhead_ms = 1e3 * (rec.t_vlm - rec.t_trigger - rec.press_s)
+            if rec.t_vlm is not None and rec.to_window_s is not None:
+                rec.overhead_ms = 1e3 * (rec.t_vlm - rec.t_trigger - rec.to_window_s)
         missing = [m for m, r in wanted.items() if r.t_vlm is None]
         if missing:
             self.notes.append(f"{len(missing)} VLM requests never arrived: {missing[:5]}")
@@ -554,8 +560,9 @@ class RuntimeBench:
             figs[key] = figure(
                 [r.overhead_ms for r in recs], "ms", goal,
                 pre_press_ms_p50=stats([r.pre_press_ms for r in recs])["p50"],
-                what="POST /v1/recognize -> VLM request received, minus the press itself "
-                     "('above' entered -> 'idle' entered)" +
+                what="POST /v1/recognize -> VLM request received, minus the press's own "
+                     "part of that way ('above' entered -> the model's crop window complete: "
+                     "the stop + its last sample's time)" +
                      (", no extra load" if phase == "quiet" else ", under the load"))
         return figs
 
