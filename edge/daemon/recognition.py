@@ -155,11 +155,13 @@ class Recognizer:
         try:
             self.events.publish({"type": "episode", "episode": episode_id,
                                  "status": "running"})
-            # Taken (unless given) and prepared for the VLM while the arm moves.
-            photo = asyncio.create_task(self._photo(setup, episode_id, image), name="photo")
             loop = asyncio.get_running_loop()
             window: asyncio.Future[PressOutcome] = loop.create_future()
+            # The press's task first: its motor check goes to the bus before the photo's
+            # work takes the loop.
             pressing = self._start_press(window)
+            # Taken (unless given) and prepared for the VLM while the arm moves.
+            photo = asyncio.create_task(self._photo(setup, episode_id, image), name="photo")
             try:
                 # The press as of its complete window (it goes on: the gripper opens, the arm
                 # returns), or as it ended without one.
