@@ -82,12 +82,11 @@ class Runtime:
         self.metrics = Metrics()
         self.ring = FrameRing(cfg.sensor.channels, int(RING_SECONDS * SAMPLE_RATE_HZ * 1.5))
         self.sampler = Sampler(self.ring, SAMPLE_RATE_HZ)
-        bus = devices.bus
         # One press controller for the daemon's life: the sensor task checks every frame
         # with it, the recognizer presses with it.
         self.press = controller_factory(
             cfg, devices.gripper, devices.arm, self.ring, on_state=self._on_press_state,
-            recover=bus.recover_watchdog if bus is not None else None, window=model.window)
+            recover=devices.recover, window=model.window)
         self.recognizer = Recognizer(Recognition(cfg, model, vlm), self.press, compute, store,
                                      self.events, self.metrics, devices.camera)
         self.sensor = SensorTask(devices.tactile, self.ring, self.press,

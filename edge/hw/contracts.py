@@ -316,3 +316,9 @@ class Devices:
     camera: Camera | None = None
     button: Button | None = None
     bus: MotorBus | None = None  # closed (safe pose, torque off) by the caller
+
+    @property
+    def recover(self) -> Callable[[], Awaitable[list[int]]] | None:
+        """What a press runs before it moves (:meth:`MotorBus.recover_watchdog`); None
+        without a bus of its own."""
+        return self.bus.recover_watchdog if self.bus is not None else None

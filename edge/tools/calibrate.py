@@ -425,10 +425,8 @@ async def measure_threshold(cfg: Config, *, force_ma: float | None = FORCE_MA,
     stream = _Stream(devices.tactile, cfg.sensor.channels, clock, cfg.sensor.stale_timeout_s)
     reader = asyncio.create_task(stream.run(), name="calibrate-sensor")
     # The press's own opening: capped at Goal Current, retried, the watchdog cleared.
-    bus = devices.bus
     press = PressController(cfg, devices.gripper, devices.arm, stream.ring,
-                            recover=bus.recover_watchdog if bus is not None else None,
-                            clock=clock)
+                            recover=devices.recover, clock=clock)
     timeout = cfg.runtime.move_timeout_s
     gripper_stuck = False
     try:

@@ -217,9 +217,8 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
     ring = FrameRing(cfg.sensor.channels, RING_FRAMES)
     # Each press clears Bus Watchdog trips first, as the daemon's do: one host stall longer
     # than the watchdog must not fail every press after it.
-    bus = devices.bus
     controller = PressController(cfg, devices.gripper, devices.arm, ring,
-                                 recover=bus.recover_watchdog if bus is not None else None)
+                                 recover=devices.recover)
     sensor = SensorTask(devices.tactile, ring, controller)
     task = asyncio.create_task(sensor.run(), name="sensor")
     try:
