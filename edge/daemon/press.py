@@ -45,8 +45,11 @@ RECORD_MARGIN_S = 0.2
 # GRIPPER_TRACE_PERIOD_S.
 GRIPPER_TRACE_FRAMES = 2
 GRIPPER_TRACE_PERIOD_S = 0.02
-# A stream this long without a fresh frame means the press must not start.
+# A stream this long without a fresh frame means the press must not start...
 FRESH_FRAME_S = 0.1
+# ... unless a fresh one arrives within this long: a busy host can hold a frame back past
+# FRESH_FRAME_S with nothing wrong with the pads. Nothing moves before it has arrived.
+FRESH_WAIT_S = 0.5
 # Tries to open the gripper before a press gives up and says it may still be closed.
 OPEN_TRIES = 3
 # After the press, how long the recording waits for a late stream to cover its window.
@@ -232,7 +235,7 @@ class PressController:
         moved = False  # whether this press has moved the arm
         touched = False  # whether this press has commanded the gripper
         try:
-            self._check_fresh()
+            await self._await_fresh()
             if self.recover is not None:
                 await self.recover()
             self._enter(outcome, PressState.ABOVE)
@@ -331,6 +334,14 @@ class PressController:
         after the stop (a server hiccup, a busy host) has ``STREAM_CATCH_UP_S`` more to
         catch up, then the window is what arrived."""
         await self.ring.wait_until(end, max(end - self.clock(), 0.0) + STREAM_CATCH_UP_S)
+
+    async def _await_fresh(self) -> None:
+        """A fresh frame before anything moves: waits up to ``FRESH_WAIT_S`` for one where
+        the last is older than ``FRESH_FRAME_S`` (not where the stream is known stale)."""
+        now = self.clock()
+        if not self._stale.is_set() and now - self.ring.latest_time() > FRESH_FRAME_S:
+            await self.ring.wait_until(now, FRESH_WAIT_S)
+        self._check_fresh()
 
     def _check_fresh(self) -> None:
         age = self.clock() - self.ring.latest_time()

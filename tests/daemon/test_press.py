@@ -159,6 +159,19 @@ async def test_a_stale_stream_refuses_the_press_before_anything_moves():
     assert gripper.calls == [] and arm.history == [] and states == ["idle"]
 
 
+async def test_a_frame_held_back_past_the_fresh_limit_delays_the_press_instead_of_failing_it():
+    async with rig() as (ctl, gripper, arm, pads, states, _o):
+        await asyncio.sleep(preprocess.DEFAULT_WINDOW.before_s)
+        pads.running = False
+        await asyncio.sleep(0.15)  # older than FRESH_FRAME_S: a host that held frames back
+        press = asyncio.create_task(ctl.run())
+        await asyncio.sleep(0.1)
+        assert gripper.calls == [] and arm.history == []  # nothing moves on old data
+        pads.running = True
+        outcome = await press
+    assert outcome.result == "ok" and states == FULL_PRESS, outcome.message
+
+
 async def test_an_abort_request_while_closing_opens():
     cfg = config(close_timeout_s=2.0)
     async with rig(cfg, object_width_m=None) as (ctl, gripper, arm, _p, _s, _o):
