@@ -337,9 +337,10 @@ class PressController:
 
     async def _await_fresh(self) -> None:
         """A fresh frame before anything moves: waits up to ``FRESH_WAIT_S`` for one where
-        the last is older than ``FRESH_FRAME_S`` (not where the stream is known stale)."""
+        the last is older than ``FRESH_FRAME_S`` or the stream was found stale (the sensor
+        task clears that with the frame that ends it)."""
         now = self.clock()
-        if not self._stale.is_set() and now - self.ring.latest_time() > FRESH_FRAME_S:
+        if self._stale.is_set() or now - self.ring.latest_time() > FRESH_FRAME_S:
             await self.ring.wait_until(now, FRESH_WAIT_S)
         self._check_fresh()
 

@@ -164,10 +164,12 @@ async def test_a_frame_held_back_past_the_fresh_limit_delays_the_press_instead_o
         await asyncio.sleep(preprocess.DEFAULT_WINDOW.before_s)
         pads.running = False
         await asyncio.sleep(0.15)  # older than FRESH_FRAME_S: a host that held frames back
+        ctl.sensor_stale(StaleSensorError("no fresh frame for 0.1 s"))  # the sensor task's
         press = asyncio.create_task(ctl.run())
         await asyncio.sleep(0.1)
         assert gripper.calls == [] and arm.history == []  # nothing moves on old data
         pads.running = True
+        ctl.sensor_fresh()  # the sensor task, on the frame that ends it
         outcome = await press
     assert outcome.result == "ok" and states == FULL_PRESS, outcome.message
 
