@@ -190,7 +190,6 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
     started = time.perf_counter()
     window, shipped = await asyncio.to_thread(_window, cfg.model_dir)
     model_config = dataclasses.replace(shipped, decoder=cfg.decoder or shipped.decoder)
-    decoder = model_config.decoder
     presses, splits = await asyncio.to_thread(eval_vlm.load_reference, cfg.reference, window)
     cfg.validate(len(splits.train))
     sets = await asyncio.to_thread(eval_vlm.load_sets, cfg.unseen, cfg.limit, window)
@@ -245,7 +244,7 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
             await _ask(ecfg, sets, templates, all_jobs, cache, eval_bar, images.name)
     else:
         await _ask(ecfg, sets, templates, all_jobs, cache, eval_bar, images.name)
-    report = summarise(cfg, draws, jobs, cache.records, model_name, decoder,
+    report = summarise(cfg, draws, jobs, cache.records, model_name, model_config,
                        t_train, time.perf_counter() - started)
     report["data"] = {
         "reference": {"directory": str(cfg.reference), "train_classes": len(splits.train),
@@ -273,8 +272,8 @@ def _accuracy(jobs: Sequence[Job], records: Mapping[str, Mapping[str, Any]], dat
 
 
 def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, int], list[Job]],
-              records: Mapping[str, Mapping[str, Any]], model: str, decoder: str,
-              train_s: float, total_s: float) -> dict[str, Any]:
+              records: Mapping[str, Mapping[str, Any]], model: str,
+              model_config: ModelConfig, train_s: float, total_s: float) -> dict[str, Any]:
     missing = [j.key for js in jobs.values() for j in js if j.key not in records]
     if missing:
         raise EvalVLMError(f"{len(missing)} answers missing (first: {missing[0]})")
@@ -304,7 +303,9 @@ def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, i
         "title": "Fig. 6: accuracy against the number of reference classes"
                  + (" (simulated VLM)" if cfg.standin else ""),
         "simulated_vlm": cfg.standin, "model": model, "base_url": cfg.vlm.base_url,
-        "decoder": decoder, "seed": cfg.seed, "draws": cfg.draws,
+        "decoder": model_config.decoder, "latent": model_config.latent,
+        "metric": model_config.metric,
+        "seed": cfg.seed, "draws": cfg.draws,
         "max_epochs": cfg.max_epochs, "patience": cfg.patience, "limit": cfg.limit,
         "protocol": "vision + tactile, top-3; |Y_ref| drawn from the training classes, "
                     "encoder retrained on them (validation classes for early stopping), "
@@ -341,7 +342,11 @@ def markdown(r: Mapping[str, Any]) -> str:
                   "like.", ""]
     data = r.get("data", {})
     ref = data.get("reference", {})
-    lines += [f"VLM `{r['model']}`; encoders retrained per draw (decoder `{r['decoder']}`: "
+    # (Reports written before these were recorded name the decoder only.)
+    shape = (f"z of {r['latent']} numbers, metric term weight {r['metric']:g}, "
+             if "latent" in r else "")
+    lines += [f"VLM `{r['model']}`; encoders retrained per draw ({shape}decoder "
+              f"`{r['decoder']}`: "
               f"{eval_vlm.decoder_title(r['decoder'])}; at most {r['max_epochs']} epochs, "
               f"patience {r['patience']}); {r['draws']} draws per size, seed {r['seed']}. "
               f"{r['protocol']}.", "",

@@ -125,6 +125,8 @@ def test_fig6_draws_trains_caches_and_resumes(released, work, tmp_path):
     assert {r["condition"] for r in records} == {"vision_only", "vq_top3"}
     md = (cfg.out / fig6.REPORT_MD).read_text()
     assert "(simulated VLM)" in md and "| 0 | 50.0 ± 0.0 |" in md
+    # The header names the encoder's shape, not its decoder alone.
+    assert "z of 16 numbers, metric term weight 1, decoder `teacher`" in md
     assert (cfg.out / fig6.REPORT_PNG).stat().st_size > 0
     # Resumed: nothing trained or asked again, the same figures.
     n_answers = lines(cache)
