@@ -123,14 +123,14 @@ WHY: dict[str, str] = {
         "the loop: see missed_first_crossing and aborted_after_stop of "
         "stop_latency_ms_loop100. Closing the per-frame tail (above) closes this."),
     "overhead_ms": (
-        "What remains: the API request and the pre-press motor check (pre_press_ms), one "
-        "round trip to the compute process after the press (crop, encoder, serialisation and "
-        "the photo's preparation together, and the pickling both ways), JSON and the POST; "
-        "the episode's durable write overlaps the VLM request. The p99 of 8 presses is their "
+        "What remains: the API request and the pre-press motor check (pre_press_ms: a SYNC "
+        "READ of torque, one of the watchdogs, each a round trip to the emulated robot, a "
+        "process of this host), the wait for the first frame at or past the crop's last "
+        "sample (up to one frame period), one round trip to the compute process (the crop, "
+        "encoder and top-k; the photo was prepared during the press and the press is "
+        "serialised after the request), JSON and the POST. The p99 of 8 presses is their "
         "slowest, on a host shared with the emulated robot (and with other jobs when the CPU "
-        "line above says so). To close it: the host as for the sampler; start that round "
-        "trip as soon as the window after the stop is complete, so that the arm's return "
-        "overlaps it, instead of after the press."),
+        "line above says so). To close it: the host as for the sampler."),
     "encode_ms": (
         "onnxruntime itself needs about 0.1 ms per sequence on a quiet core (0.094 ms p50 "
         "in a separate run of this code); see host_cores_busy and the other tenants' share "
