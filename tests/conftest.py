@@ -9,10 +9,19 @@ once, on one worker; every other test goes to whichever worker is free."""
 from __future__ import annotations
 
 import os
+import sys
 
 import pytest
 
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+# Bytecode is cached for the test run even where the shell sets PYTHONDONTWRITEBYTECODE: with
+# it, every xdist worker rewrote every test module's asserts again (~6 s of CPU each at
+# collection) and every command a test starts (vt-edge run, collect, sim serve, ...: about
+# a hundred) compiled the project's modules again, on a two-core host whose suite is
+# CPU-bound. What a test runs is unchanged; the caches go to the ignored __pycache__/.
+sys.dont_write_bytecode = False
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

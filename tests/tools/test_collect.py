@@ -23,7 +23,7 @@ from edge.tools.collect import CollectReport, collect, collect_plan
 from edge.tools.plan import load_plan
 from edge.tools.stack import http_json
 from tests.support import processes
-from tests.support.daemon import CUBE, ROOT, Daemon, base_config
+from tests.support.daemon import CUBE, ROOT, Daemon, base_config, fast_config
 from tests.support.processes import COMMAND_TIMEOUT_S, VT_EDGE, Output, clean_env
 from tests.support.waits import wait_until
 
@@ -73,7 +73,7 @@ async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_pat
     out = tmp_path / "data"
     placed: list[str] = []
     async with SimRobot("stainless_cube", seed=13, cfg=base_config()) as robot:
-        cfg = robot.runtime_config(base_config())
+        cfg = robot.runtime_config(fast_config())  # shorter moves and tare: 7 presses
         t0 = time.monotonic()
         report = await collect_plan(cfg, load_plan(plan_path), out, person(robot, placed))
         elapsed = time.monotonic() - t0
@@ -134,7 +134,7 @@ async def test_failed_presses_are_retried_then_the_class_is_skipped(tmp_path, mo
     plan = load_plan(write_plan(tmp_path, PLAN.replace("photo = true", "photo = false")))
     out = tmp_path / "data"
     async with SimRobot("otedama", seed=14, cfg=base_config()) as robot:
-        cfg = robot.runtime_config(base_config())
+        cfg = robot.runtime_config(fast_config())  # shorter moves and tare: 8 presses
         report = CollectReport()
 
         async def stream(silent_until) -> None:
@@ -170,9 +170,9 @@ async def test_failed_presses_are_retried_then_the_class_is_skipped(tmp_path, mo
 
 @pytest.mark.asyncio
 async def test_collect_writes_labelled_recordings(tmp_path):
-    cfg = base_config()
+    cfg = fast_config()  # shorter moves and tare
     prompts = []
-    async with SimRobot("otedama", seed=11, cfg=cfg) as robot:
+    async with SimRobot("otedama", seed=11, cfg=base_config()) as robot:
         files = await collect(robot.runtime_config(cfg), "otedama", 2, tmp_path,
                               prompt=prompts.append)
         # A rerun whose first frame comes late (a second, where the start used to wait a
