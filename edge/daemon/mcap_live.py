@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from edge.core.errors import EdgeError
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.mcaplog import LIVE_TOPICS, SUFFIX, McapLog
 from edge.daemon.taps import Rows, rows_since
 
@@ -118,9 +119,7 @@ class McapRecorder:
                         await worker.run(segment_abandon)
                     await asyncio.sleep(RETRY_S)
         finally:
-            pump.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await pump
+            await cancel_and_wait(pump)
             if opened:
                 closing = asyncio.ensure_future(self._close(worker))
                 try:

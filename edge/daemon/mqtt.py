@@ -39,6 +39,7 @@ from typing import Any
 from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
 from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.api import BadRequest, validate_candidates
 from edge.daemon.state import Health, PressSummary
 
@@ -160,9 +161,7 @@ class MqttBridge:
                     backoff.reset()  # it was up: start again from the base
                 await asyncio.sleep(backoff.next_s())
         finally:
-            pump.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await pump
+            await cancel_and_wait(pump)
 
     async def _session(self, password: str | None, tls: ssl.SSLContext | None) -> None:
         import aiomqtt

@@ -27,6 +27,7 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.core.errors import DeviceError, EdgeError, StaleSensorError
 from edge.core.layout import PadLayout
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.ring import FrameRing, Window
 from edge.daemon.state import PressResult, PressState, PressSummary
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
@@ -282,9 +283,7 @@ class PressController:
             # Refused before touching anything (stale sensor, a motor down): nothing to undo.
             opened = await self._open_safely(outcome) if touched else False
             if trace_task is not None:
-                trace_task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await trace_task
+                await cancel_and_wait(trace_task)
         if moved and not opened:
             # Lifting a gripper that may still hold the object would drag or lift it.
             log.error("the gripper may still be closed: the arm stays where it stands")

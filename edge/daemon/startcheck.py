@@ -14,13 +14,13 @@ the stream arrives (:meth:`edge.daemon.lifecycle.Runtime.power_on_with_stream`).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import time
 
 from edge.core.config import Config, SensorConfig
 from edge.core.errors import EdgeError, SensorLayoutError, StaleSensorError, StartError
 from edge.core.model import ModelLayout, ModelRef
+from edge.core.tasks import cancel_and_wait
 from edge.hw.contracts import Camera, Devices
 
 log = logging.getLogger(__name__)
@@ -58,9 +58,7 @@ async def check_devices(cfg: Config, devices: Devices, vlm_mode: str) -> str | N
                  sensor_ms, ", one photo taken" if camera is not None else "")
     finally:
         if camera is not None and not camera.done():
-            camera.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await camera
+            await cancel_and_wait(camera)
     return absent
 
 

@@ -16,7 +16,6 @@ integers) per pad and axis: ``x``/``y`` shear and ``z`` normal load of taxels 0.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
@@ -28,6 +27,7 @@ import numpy as np
 
 from edge.core import preprocess
 from edge.core.layout import PadLayout
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.state import PressState
 from edge.daemon.taps import newest
 
@@ -119,9 +119,7 @@ class TactileFeed:
                     deadline += math.ceil((now - deadline) / self.period_s) * self.period_s
                 await asyncio.sleep(deadline - now)
         finally:
-            events.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await events
+            await cancel_and_wait(events)
 
     def _encode(self) -> bytes | None:
         ring = self.runtime.ring

@@ -27,6 +27,7 @@ import numpy as np
 from edge.core.backoff import Backoff
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
+from edge.core.tasks import cancel_and_wait
 from edge.hw.contracts import StreamStats, TactileFrame
 
 log = logging.getLogger(__name__)
@@ -407,9 +408,7 @@ class XelaClient:
             return
         self._closed = True
         if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+            await cancel_and_wait(self._task)
         if self._session is not None:
             await self._session.close()
         self._connected = False

@@ -27,6 +27,7 @@ import numpy as np
 from aiohttp import WSCloseCode, web
 
 from edge.core.layout import PadLayout
+from edge.core.tasks import cancel_and_wait
 from edge.sim.skin import PadNoise, SkinDraw
 from edge.sim.xela_replay import Replay, load_replay
 
@@ -278,9 +279,7 @@ class XelaServerEmulator:
             async for _ in ws:
                 pass
         finally:
-            sender.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await sender
+            await cancel_and_wait(sender)
             self._clients.pop(ws, None)
             self._handlers.discard(task)
             log.info("XELA emulator: client %s gone", request.remote)

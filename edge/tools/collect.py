@@ -14,7 +14,6 @@ of one class.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import socket
@@ -29,6 +28,7 @@ from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config
 from edge.core.errors import ConfigError, EdgeError
 from edge.core.layout import PadLayout
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.ring import FrameRing
 from edge.daemon.sensor import SensorTask
@@ -247,9 +247,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
               "again to go on from there", flush=True)
         raise
     finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancel_and_wait(task)
         if own:
             await close_devices(devices, cfg.runtime.move_timeout_s)
     return report

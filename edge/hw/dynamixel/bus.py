@@ -24,6 +24,7 @@ import dynamixel_sdk as sdk
 
 from edge.core.config import BusConfig
 from edge.core.errors import DeviceError, EdgeError, MotorError
+from edge.core.tasks import cancel_and_wait
 from edge.hw.control_table import XM430_W350
 from edge.hw.dynamixel import bringup
 from edge.hw.dynamixel.bringup import MotorInfo
@@ -353,9 +354,7 @@ class DynamixelBus:
     async def _stop_feed(self) -> None:
         task, self._feed_task = self._feed_task, None
         if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task)
 
     async def _shutdown(self) -> None:
         await self._stop_feed()

@@ -11,12 +11,12 @@ controller's public hooks: ``on_outcome``, ``check`` and ``armed``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from typing import Any
 
 import numpy as np
 
 from edge.core.errors import BusyError
+from edge.core.tasks import cancel_and_wait
 from edge.daemon.press import PressController, PressOutcome
 
 # How each compared controller checks the threshold: on every frame (None), or on a tick of
@@ -67,9 +67,7 @@ class BenchController(PressController):
         try:
             return await super().run(window_ready)
         finally:
-            ticker.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await ticker
+            await cancel_and_wait(ticker)
 
     async def _tick(self, period: float) -> None:
         """Check the latest frame on each tick of an absolute grid while the press is

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import io
 import json
 import logging
@@ -50,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from edge.core.tasks import cancel_and_wait
 from edge.tools.bench.settings import HELPER_START_S, ROOT
 
 if TYPE_CHECKING:
@@ -282,9 +282,7 @@ async def _poll(args: argparse.Namespace) -> None:
     task = asyncio.create_task(loop())
 
     async def on_stop() -> None:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancel_and_wait(task)
         lat = stats.pop("latency_ms")
         stats["latency_ms_p50"] = float(np.median(lat)) if lat else None
         stats["latency_ms_max"] = float(np.max(lat)) if lat else None
@@ -403,9 +401,7 @@ async def _floor(args: argparse.Namespace) -> None:
     task = asyncio.create_task(run())
 
     async def on_stop() -> None:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancel_and_wait(task)
         print(json.dumps({"samples": samples}), flush=True)
 
     await _until_signal({"floor": args.url}, on_stop)
