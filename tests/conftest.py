@@ -9,6 +9,7 @@ once, on one worker; every other test goes to whichever worker is free."""
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 import pytest
@@ -22,6 +23,15 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 # CPU-bound. What a test runs is unchanged; the caches go to the ignored __pycache__/.
 sys.dont_write_bytecode = False
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+
+
+# Ctrl-C reaches the commands the tests start, whatever started the suite. A suite run in the
+# background (`make test &` in a script, nohup, a CI runner's job) has SIGINT ignored, as
+# POSIX has it, and an ignored signal stays ignored in every child: `vt-edge collect` and
+# `pose` then sat out the tests' Ctrl-C (exit 0 after the whole plan, or a prompt waiting
+# 30 s). A handled signal is reset to its default in a child, so handling it here is enough.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
