@@ -69,8 +69,8 @@ class PressOutcome:
     level_at_cross: float = 0.0
     tare: np.ndarray | None = None
     # The frames around the stop: handed over (``run``'s window_ready) through the first
-    # frame past the model's window; once the press has ended, the whole recording (its
-    # margins too).
+    # frame at or past the crop's last sample; once the press has ended, the whole recording
+    # (its margins too).
     window: Window | None = None
     gripper_trace: list[GripperState] = field(default_factory=list)
     states: list[tuple[PressState, float]] = field(default_factory=list)
@@ -226,9 +226,9 @@ class PressController:
 
     async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
                   ) -> PressOutcome:
-        """One press; ``window_ready`` gets the outcome as soon as the model's window is
-        complete (the first frame past it received), while the gripper opens and the arm
-        returns (the press goes on after, and records the window's margin)."""
+        """One press; ``window_ready`` gets the outcome as soon as the model's crop is
+        complete (the first frame at or past its last sample received), while the gripper
+        opens and the arm returns (the press goes on after, and records the margin)."""
         outcome = PressOutcome()
         self._outcome = outcome
         self._user_abort.clear()
