@@ -50,13 +50,11 @@ class Robot:
             stdout=subprocess.DEVNULL)
         wait_for(self.config.exists, 60, "emulated robot", self.sim)
         self.port = free_port()
-        # A quicker arm and tare, as in the lab's path (tests/tools/test_lab_path.py): the
-        # tactile data do not depend on how fast the arm travels. A stream is stale after
-        # 0.25 s, not 0.1: the test shares a loaded host with the emulated robot.
+        # A quicker arm: the tactile data do not depend on how fast it travels. A stream is
+        # stale after 0.25 s, not 0.1: the test shares a loaded host with the emulated robot.
         tomledit.update(self.config, self.config, {
             "api": {"port": self.port}, "sensor": {"stale_timeout_s": 0.25},
-            "press": {"tare_s": 0.15},
-            "runtime": {"models_dir": str(models), "move_time_s": 0.1}})
+            "runtime": {"models_dir": str(models), "move_time_s": 0.2}})
         self.api = f"http://127.0.0.1:{self.port}"
         self.daemon: subprocess.Popen | None = None
 
