@@ -44,14 +44,10 @@ class FrameRing:
             self._wake(recv_time)
 
     def _wake(self, recv_time: float) -> None:
-        waiting = []
+        # (Each waiter takes its own entry out when it resumes: nothing allocated here.)
         for t, future in self._waiters:
-            if recv_time >= t:
-                if not future.done():
-                    future.set_result(None)
-            elif not future.done():
-                waiting.append((t, future))
-        self._waiters = waiting
+            if recv_time >= t and not future.done():
+                future.set_result(None)
 
     async def wait_until(self, t: float, timeout_s: float) -> bool:
         """Until a frame received at or after ``t`` is in the ring (True) or ``timeout_s``
