@@ -36,10 +36,8 @@ from typing import Any, TypeVar
 import numpy as np
 
 from edge.core import preprocess, recording
-from edge.core.errors import ComputeError, ImageError, ModelError
+from edge.core.errors import ComputeError, ModelError
 from edge.core.model import Model, ModelRef, load_model
-from edge.vlm import images
-from edge.vlm.images import VLMImage
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +74,8 @@ class ComputeWorker:
     def _new_pool(self) -> ProcessPoolExecutor:
         ctx = multiprocessing.get_context("forkserver")
         # Imported once by the server; each worker is a fork of it (no effect once running).
-        ctx.set_forkserver_preload([__name__, "onnxruntime"])
+        # The images module (Pillow): the photo is prepared there too.
+        ctx.set_forkserver_preload([__name__, "onnxruntime", "edge.vlm.images"])
         return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
                                    initargs=(os.getpid(),))
 
@@ -209,15 +208,5 @@ def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
                     description, buf.getvalue())
 
 
-def prepare_photo(image: bytes, image_limits: tuple[int, int]
-                  ) -> tuple[VLMImage | None, str | None]:
-    """The photo prepared for the VLM within ``image_limits``, or None and why it cannot
-    be sent."""
-    try:
-        return images.prepare_for_vlm(image, *image_limits), None
-    except ImageError as exc:
-        return None, str(exc)
-
-
 __all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for",
-           "prepare_photo", "warm_up"]
+           "warm_up"]

@@ -24,6 +24,7 @@ from edge.core.errors import (
     BusyError,
     ComputeError,
     EdgeError,
+    ImageError,
     ModelError,
     NotFoundError,
     SensorError,
@@ -32,7 +33,7 @@ from edge.core.errors import (
     VLMUnavailableError,
 )
 from edge.core.model import ModelRef
-from edge.daemon.compute import Analysis, ComputeWorker, analyse_press, prepare_photo
+from edge.daemon.compute import Analysis, ComputeWorker, analyse_press
 from edge.daemon.episode import Episode, Neighbour, Status
 from edge.daemon.events import EventBus
 from edge.daemon.metrics import Metrics
@@ -41,7 +42,7 @@ from edge.daemon.startcheck import needs_photo
 from edge.daemon.store import EpisodeStore, new_id
 from edge.hw.contracts import Camera
 from edge.vlm.client import VLMClient
-from edge.vlm.images import VLMImage
+from edge.vlm.images import VLMImage, prepare_for_vlm
 
 log = logging.getLogger(__name__)
 
@@ -268,13 +269,12 @@ class Recognizer:
         if image is None or limits is None:
             return image, None, None
         try:
-            prepared, image_error = await self.compute.run(prepare_photo, image, limits)
-        except ComputeError as exc:
-            # The VLM client prepares it when it asks (in the compute process again).
+            # What the VLM client would run itself (its offload is the compute process).
+            prepared = await self.compute.run(prepare_for_vlm, image, *limits)
+        except (ComputeError, ImageError) as exc:
+            # Left to the client, which refuses a photo that cannot be sent.
             log.warning("episode %s: the photo was not prepared ahead: %s", episode_id, exc)
             return image, None, None
-        if image_error is not None:
-            log.warning("episode %s: the photo cannot be sent: %s", episode_id, image_error)
         return image, prepared, None
 
     async def _analyse(self, setup: Recognition, episode: Episode, outcome: PressOutcome

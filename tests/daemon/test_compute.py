@@ -15,8 +15,8 @@ import pytest
 from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ImageError, ModelError, PreprocessError
 from edge.core.model import load_model, model_ref
-from edge.daemon.compute import ComputeWorker, analyse_press, prepare_photo
-from edge.vlm.images import check_image
+from edge.daemon.compute import ComputeWorker, analyse_press
+from edge.vlm.images import check_image, prepare_for_vlm
 from tests.support.daemon import ROOT
 from tests.support.presses import recording_of
 from tests.vlm.helpers import image_bytes
@@ -38,8 +38,7 @@ async def test_analysis_in_the_worker_equals_the_model_in_process(model):
         assert worker.pid() not in (None, os.getpid())
         # The photo, prepared for the VLM (while the press runs), and the press as a file
         # (once the question has left): the same worker.
-        (prepared, data_url), image_error = await worker.run(prepare_photo, photo,
-                                                             (512, 200_000))
+        prepared, data_url = await worker.run(prepare_for_vlm, photo, 512, 200_000)
         press_npz = await worker.run(recording.to_bytes, rec)
     x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
     z_here, code_here = model.encode(x)
@@ -49,7 +48,7 @@ async def test_analysis_in_the_worker_equals_the_model_in_process(model):
     with np.load(io.BytesIO(result.model_io_npz)) as arrays:
         np.testing.assert_allclose(arrays["x"], x)
     assert max(prepared.width, prepared.height) <= 512 and len(prepared.data) <= 200_000
-    assert data_url.startswith(b"data:image/jpeg;base64,") and image_error is None
+    assert data_url.startswith(b"data:image/jpeg;base64,")
     np.testing.assert_array_equal(recording.from_bytes(press_npz).frames, rec.frames)
 
 

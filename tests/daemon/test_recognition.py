@@ -141,7 +141,7 @@ async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
     assert set(episode.timings) == {"press_s", "encode_s", "vlm_s"}
     # The compute process: the photo prepared while the press runs, then the analysis on
     # the window; the press itself is serialised after the question has left.
-    assert sorted(compute.calls[:2]) == ["analyse_press", "prepare_photo"]
+    assert sorted(compute.calls[:2]) == ["analyse_press", "prepare_for_vlm"]
     assert compute.calls[2:] == ["to_bytes"] and camera.captures == 1
     image, description, candidates = vlm.asked[0]
     prepared, data_url = image  # prepared for the VLM, not raw bytes
