@@ -58,6 +58,7 @@ class Batch:
     rows: Rows
     events: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     pads: int = 2  # [sensor] pads: how the rows' channels split
+    lost: int = 0  # frames before these that no segment holds (overwritten or abandoned)
 
 
 def segment_name(now: float | None = None, fmt: str = "mcap") -> str:
@@ -83,6 +84,8 @@ class McapRecorder:
         self.files: list[Path] = []  # segments completed
         self.lost = 0
         self._after = 0
+        self._in_segment = 0  # frames the open segment holds
+        self._unwritten = 0  # frames lost since the last batch sent, not counted in one yet
 
     async def run(self) -> None:
         from edge.daemon.compute import ComputeWorker
@@ -93,21 +96,27 @@ class McapRecorder:
         pump = asyncio.create_task(self._pump(), name="mcap-record-events")
         own = self._worker is None
         worker = self._worker or ComputeWorker()
+        # True from the moment the writer is asked to open a segment: a cancellation that
+        # interrupts the opening (the writer finishes a call it has begun) still closes it.
         opened = False
         try:
             await asyncio.to_thread(self.directory.mkdir, parents=True, exist_ok=True)
             if own:
                 await worker.start()
             while True:
+                batch: Batch | None = None
                 try:
                     if not opened:
+                        opened = True
                         await worker.run(segment_open, str(self.directory),
                                          segment_name(fmt=self.record_format),
                                          self.record_format, self.sensor_model)
-                        opened, started = True, time.monotonic()
+                        started = time.monotonic()
                         log.info("recording the live stream to %s", self.directory)
                     await asyncio.sleep(FLUSH_PERIOD_S)
-                    await worker.run(segment_append, self._batch())
+                    batch = self._batch()
+                    await worker.run(segment_append, batch)
+                    self._in_segment += len(batch.rows)
                     if time.monotonic() - started >= self.segment_s:
                         opened = False
                         self._done(await worker.run(segment_close))
@@ -115,6 +124,12 @@ class McapRecorder:
                     log.error("live MCAP recording: %s; a new segment in %.0f s", exc,
                               RETRY_S)
                     opened = False
+                    # The abandoned segment's frames and the batch it refused are counted
+                    # in the next segment's frames_lost, not silently dropped.
+                    unwritten = self._in_segment + (len(batch.rows) if batch else 0)
+                    self.lost += unwritten
+                    self._unwritten += unwritten
+                    self._in_segment = 0
                     with contextlib.suppress(EdgeError):
                         await worker.run(segment_abandon)
                     await asyncio.sleep(RETRY_S)
@@ -136,14 +151,15 @@ class McapRecorder:
         self.lost += rows.lost
         events = list(self._events)
         self._events.clear()
-        return Batch(rows, events, self.runtime.cfg.sensor.pads)
+        lost, self._unwritten = rows.lost + self._unwritten, 0
+        return Batch(rows, events, self.runtime.cfg.sensor.pads, lost)
 
     async def _close(self, worker: Any) -> None:
         """What arrived since the last flush, then the segment completed."""
-        await worker.run(segment_append, self._batch())
-        self._done(await worker.run(segment_close))
+        self._done(await worker.run(segment_finish, self._batch()))
 
     def _done(self, path: str | None) -> None:
+        self._in_segment = 0
         if path:
             self.files.append(Path(path))
             log.info("live MCAP segment complete: %s", path)
@@ -173,7 +189,7 @@ class _Segment:
 
     def append(self, batch: Batch) -> None:
         rows = batch.rows
-        self.lost += rows.lost
+        self.lost += batch.lost
         self.frames += len(rows)
         if len(rows):
             self.log.tactile("/tactile/raw", rows.recv_time, rows.sensor_time, rows.seq,
@@ -212,6 +228,18 @@ def segment_append(batch: Batch) -> None:
         _segment.append(batch)
     except OSError as exc:
         raise EdgeError(f"live MCAP recording: cannot write {_segment.log.tmp}: {exc}") from None
+
+
+def segment_finish(batch: Batch) -> str | None:
+    """The last batch appended and the segment completed; None when none is open (its
+    opening failed, or a rotation had just closed it)."""
+    if _segment is None:
+        return None
+    try:
+        segment_append(batch)
+    finally:
+        path = segment_close()
+    return path
 
 
 def segment_close() -> str | None:

@@ -1,6 +1,7 @@
 """MCAP: one episode from a real press exported, and the live stream recorded, both read
 back with the mcap library."""
 
+import asyncio
 import base64
 import json
 import os
@@ -170,3 +171,95 @@ def check_segments(live_dir):
         seqs += [m["seq"] for m in messages["/tactile/raw"]]
     # One stream cut into files: every frame once, in order, none missing between files.
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "frames lost or repeated"
+
+
+class _Runtime:
+    """What the live recorder reads of the daemon: its ring, its events and its config."""
+
+    def __init__(self):
+        from edge.daemon.events import EventBus
+        from edge.daemon.ring import FrameRing
+
+        self.cfg = fast_config()
+        self.ring = FrameRing(self.cfg.sensor.channels, 2000)
+        self.bus = EventBus()
+        self.seq = 0
+
+    def subscribe(self):
+        return self.bus.subscribe({"state": "idle"})
+
+    def push(self, n):
+        for _ in range(n):
+            self.ring.push(np.full(self.cfg.sensor.channels, 100 + self.seq % 50, np.uint16),
+                           self.seq / 125, self.seq / 125, self.seq)
+            self.seq += 1
+
+
+class _Writer:
+    """The real writer process with a fault injected at one call: ``hold`` answers the call
+    never (done in the writer, its reply held back, as when a cancellation meets it in
+    flight); ``fail`` refuses it as a full disk does."""
+
+    def __init__(self, worker, hold=None, fail=None):
+        self.worker, self.hold, self.fail = worker, hold, fail
+        self.held = asyncio.Event()
+
+    async def run(self, fn, *args):
+        from edge.core.errors import EdgeError
+
+        if fn is self.fail:
+            self.fail = None
+            raise EdgeError("live MCAP recording: cannot write: No space left on device")
+        result = await self.worker.run(fn, *args)
+        if fn is self.hold:
+            self.held.set()
+            await asyncio.Event().wait()
+        return result
+
+
+@pytest.mark.asyncio
+async def test_live_recording_stopped_while_a_segment_opens_completes_it(tmp_path):
+    from edge.daemon import mcap_live
+    from edge.daemon.compute import ComputeWorker
+
+    runtime = _Runtime()
+    async with ComputeWorker() as worker:
+        writer = _Writer(worker, hold=mcap_live.segment_open)
+        recorder = mcap_live.McapRecorder(runtime, tmp_path, worker=writer)
+        task = asyncio.create_task(recorder.run())
+        await asyncio.wait_for(writer.held.wait(), 30)
+        runtime.push(40)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    [path] = tmp_path.iterdir()  # whole, renamed: no .tmp left behind
+    messages, _, metadata, _ = read_mcap(path)
+    assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(40))
+    assert int(metadata["vtzero"]["frames_lost"]) == 0
+
+
+@pytest.mark.asyncio
+async def test_live_recording_counts_the_frames_a_failed_write_lost(tmp_path, monkeypatch):
+    from edge.daemon import mcap_live
+    from edge.daemon.compute import ComputeWorker
+
+    monkeypatch.setattr(mcap_live, "RETRY_S", 0.0)
+    monkeypatch.setattr(mcap_live, "FLUSH_PERIOD_S", 0.01)
+    runtime = _Runtime()
+    async with ComputeWorker() as worker:
+        writer = _Writer(worker)
+        recorder = mcap_live.McapRecorder(runtime, tmp_path, worker=writer)
+        task = asyncio.create_task(recorder.run())
+        await wait_until(lambda: any(tmp_path.iterdir()), 30, "a segment opened")
+        runtime.push(30)  # in the open segment, then that segment's next write fails
+        await wait_until(lambda: recorder._in_segment >= 30, 30, "30 frames written")
+        writer.fail = mcap_live.segment_append
+        runtime.push(20)
+        await wait_until(lambda: writer.fail is None, 30, "the write refused")
+        runtime.push(10)
+        await wait_until(lambda: recorder._in_segment >= 10, 30, "10 frames written")
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    [path] = tmp_path.iterdir()  # the failed segment was abandoned (its .tmp removed)
+    messages, _, metadata, _ = read_mcap(path)
+    assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(50, 60))
+    assert int(metadata["vtzero"]["frames_lost"]) == 50 == recorder.lost
