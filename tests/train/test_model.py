@@ -41,12 +41,17 @@ def test_training_is_deterministic_for_a_seed(data, tmp_path):
 
 
 def test_straight_through_and_shapes():
+    torch.manual_seed(0)
     model = TactileAutoencoder(ModelConfig())
     x = torch.randn(3, 25, 96)
     out = model(x, x)
     assert out.x_hat.shape == (3, 25, 96) and out.z.shape == (3, 16)
     assert out.code.shape == (3,)
-    assert torch.allclose(out.z_q, model.quantiser.codebook[out.code])
+    # z + (z_q - z) is z_q up to float32 rounding at z's magnitude, not at z_q's: a fixed
+    # tolerance failed now and then on unseeded draws with a code element near zero.
+    rounding = 4 * torch.finfo(torch.float32).eps * float(out.z.detach().abs().max())
+    torch.testing.assert_close(out.z_q, model.quantiser.codebook[out.code], rtol=0,
+                               atol=rounding)
     out.losses["loss"].backward()
     # The reconstruction reaches the encoder through the straight-through estimator.
     assert model.encoder.head.weight.grad is not None
