@@ -82,7 +82,7 @@ class McapRecorder:
         self._events: collections.deque[tuple[float, dict[str, Any]]] = collections.deque(
             maxlen=EVENT_BACKLOG)
         self.files: list[Path] = []  # segments completed
-        self.lost = 0
+        self.lost = 0  # frames no segment holds (the sum of the batches' lost)
         self._after = 0
         self._in_segment = 0  # frames the open segment holds
         self._unwritten = 0  # frames lost since the last batch sent, not counted in one yet
@@ -126,9 +126,7 @@ class McapRecorder:
                     opened = False
                     # The abandoned segment's frames and the batch it refused are counted
                     # in the next segment's frames_lost, not silently dropped.
-                    unwritten = self._in_segment + (len(batch.rows) if batch else 0)
-                    self.lost += unwritten
-                    self._unwritten += unwritten
+                    self._unwritten += self._in_segment + (len(batch.rows) if batch else 0)
                     self._in_segment = 0
                     with contextlib.suppress(EdgeError):
                         await worker.run(segment_abandon)
@@ -148,10 +146,10 @@ class McapRecorder:
         """The rows and events that arrived since the last batch."""
         rows = rows_since(self.runtime.ring, self._after)
         self._after = rows.count
-        self.lost += rows.lost
+        lost, self._unwritten = rows.lost + self._unwritten, 0
+        self.lost += lost
         events = list(self._events)
         self._events.clear()
-        lost, self._unwritten = rows.lost + self._unwritten, 0
         return Batch(rows, events, self.runtime.cfg.sensor.pads, lost)
 
     async def _close(self, worker: Any) -> None:
