@@ -72,6 +72,9 @@ log = logging.getLogger(__name__)
 
 # How long the pads are listened to, after a tare as long as the press's, for the idle noise.
 NOISE_WINDOW_S = 2.0
+# How long a connected server may take to send its first data frame (the listening starts at
+# it): a server still starting, or a busy host.
+FIRST_FRAME_TIMEOUT_S = 2.0
 NOISE_PERCENTILE = 99.9
 # Below this rate the press refuses its tare (edge.daemon.press: 50 frames per second).
 MIN_RATE_HZ = 50.0
@@ -371,7 +374,9 @@ async def _listen(sc: SensorConfig, duration_s: float) -> _Sample:
         async with asyncio.timeout(sc.connect_timeout_s):
             ws = await session.ws_connect(sc.url, max_msg_size=MAX_FRAME_CHARS)
         async with ws:
-            deadline = loop.time() + duration_s
+            # The window starts at the first data frame: on a busy host, or a server still
+            # starting, that frame can come later than the window is long.
+            deadline = loop.time() + FIRST_FRAME_TIMEOUT_S
             while (left := deadline - loop.time()) > 0:
                 try:
                     msg = await ws.receive(timeout=left)
@@ -388,6 +393,7 @@ async def _listen(sc: SensorConfig, duration_s: float) -> _Sample:
                 if frame is None:
                     continue
                 if sample.first is None:
+                    deadline = loop.time() + duration_s
                     sample.first = msg.data
                     # (Read as leniently as the parser reads it.)
                     sample.dialect = _dialect(json.loads(msg.data, strict=False))
@@ -416,7 +422,7 @@ async def _check_xela(cfg: Config, noise_window_s: float) -> list[Check]:
         seen = f"; {len(sample.malformed)} malformed: {sample.malformed[0]}" \
             if sample.malformed else ""
         return [fail("xela server", f"{sc.url} accepts the connection but sent no data frame "
-                     f"in {cfg.press.tare_s + noise_window_s:.1f} s{seen}",
+                     f"in {FIRST_FRAME_TIMEOUT_S:g} s{seen}",
                      "check that xela_server sees its pads (its own log, xela_viz)")]
     server = (ok("xela server", f"{sample.dialect} at {sc.url}", dialect=sample.dialect)
               if sample.dialect else

@@ -26,7 +26,7 @@ from edge.core.config import Config
 from edge.core.model import Origin
 from edge.sim.fake_vlm import FakeVLM
 from edge.sim.robot import SimRobot
-from edge.sim.xela_server import encode_frame
+from edge.sim.xela_server import Fault, encode_frame
 from edge.tools import doctor as doctor_module
 from edge.tools.doctor import Level, Report, run_doctor
 from tests.support.daemon import ROOT, base_config
@@ -207,6 +207,32 @@ def test_each_wrong_setting_names_its_cause_and_fix(lab, tmp_path, setting, wron
         assert words in text, f"{setting}: {words!r} not in {text!r}"
     assert report.failed == (Level.FAIL in expected.values())
     assert all(c.fix for c in report.checks if c.level is not Level.OK)
+
+
+def test_the_listening_starts_at_the_first_frame_and_a_silent_server_fails(lab, tmp_path):
+    # A first frame later than the whole listening window (a busy host, a server still
+    # starting) is not "no data": the window starts at it. A server that stays silent fails
+    # after FIRST_FRAME_TIMEOUT_S, saying so.
+    cfg = good_config(lab, tmp_path / "state")
+    xela = lab.robot.xela
+    late_s = 2 * (TEST_TARE_S + TEST_NOISE_WINDOW_S)
+    assert late_s < doctor_module.FIRST_FRAME_TIMEOUT_S
+    xela.fault = Fault.SILENT
+    try:
+        resume = threading.Timer(late_s, setattr, (xela, "fault", Fault.NONE))
+        resume.start()
+        t0 = time.monotonic()
+        report = doctor(cfg)
+        resume.join()
+        assert not_ok(report) == {}, report.table()
+        assert time.monotonic() - t0 >= late_s
+        xela.fault = Fault.SILENT
+        report = doctor(cfg)
+    finally:
+        xela.fault = Fault.NONE
+    assert not_ok(report) == {"xela server": Level.FAIL}, report.table()
+    assert (f"accepts the connection but sent no data frame in "
+            f"{doctor_module.FIRST_FRAME_TIMEOUT_S:g} s") in line(report, "xela server")
 
 
 def test_a_motor_in_alarm_fails_and_the_table_says_what_to_do(lab, tmp_path):
