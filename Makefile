@@ -9,11 +9,13 @@ STAMP := $(VENV)/.installed
 .PHONY: run test test-slow bench lint clean
 
 # --no-compile: byte-compiling every installed module (torch's thousands) was half the
-# install's time (63 s against 35 s on 2 cores); what the tests import compiles on first use.
+# install's time (63 s against 35 s on 2 cores). What the daemon, training and the tests
+# import is compiled once here instead, before parallel test workers would each compile it.
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet --no-compile -e '.[dev]'
+	$(PY) -c 'import edge.cli, train.cli, torch, onnxruntime, scipy.signal, aiohttp, hypothesis'
 	touch $(STAMP)
 
 run: $(STAMP)

@@ -20,7 +20,7 @@ from edge.tools.bench.settings import CONTROLLERS
 from train import bench as train_bench
 
 TINY = replace(bench.QUICK, presses=2, quiet_presses=1, load_min_s=2.0, label_presses=1,
-               daemon_runs=1,
+               label_warmup=False, rt_presses=1, rt_min_s=2.0, daemon_runs=1,
                rss_samples=1, encode_n=30, retrieval_queries=10, brute_queries_1m=2)
 TINY_TRAIN = replace(train_bench.QUICK, encode_n=30, train_presses=1, train_max_epochs=1)
 

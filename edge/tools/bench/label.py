@@ -42,7 +42,7 @@ def robot_move_time_s() -> float:
 
 
 async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, presses: int,
-                   move_time_s: float) -> list[dict[str, float]]:
+                   move_time_s: float, warmup: bool) -> list[dict[str, float]]:
     import aiohttp
 
     from edge.core.config import load_config
@@ -68,7 +68,7 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
         last_s = ctl.window.last_sample_s
         async with aiohttp.ClientSession() as http:
             # One press more, first and not counted: it loads the encoder.
-            for i in range(-1, presses):
+            for i in range(-1 if warmup else 0, presses):
                 async with http.post(f"{robot['control_url']}/object",
                                      json={"name": OBJECTS[i % len(OBJECTS)]}) as r:
                     r.raise_for_status()
@@ -126,7 +126,7 @@ def measure(s: Settings, tmp: Path, presses: int) -> tuple[list[dict[str, float]
             lg.setLevel(logging.WARNING)
         with asyncio.Runner(loop_factory=new_event_loop) as runner:
             rows = runner.run(_presses(robot.info, vlm.info, tmp / "label-state", presses,
-                                       move_time_s))
+                                       move_time_s, s.label_warmup))
     finally:
         for lg, level in zip(quiet, levels, strict=True):
             lg.setLevel(level)

@@ -36,6 +36,7 @@ class Settings:
     encode_duty: float  # fraction of the time the encoder thread works (1: back to back)
     poll_hz: float
     label_presses: int  # presses of the label phase (arm moves as on the real arm)
+    label_warmup: bool  # one press more before them, not counted: it loads the encoder
     daemon_runs: int
     rss_samples: int
     encode_n: int
@@ -49,7 +50,7 @@ FULL = Settings(quick=False, load_min_s=60.0, presses=30, quiet_presses=8, rt_pr
                 rt_min_s=60.0, move_time_s=0.2,
                 vlm_latency_s=1.0, load_vlm_clients=2, image_px=(3000, 2000),
                 encode_load_s=0.02, encode_duty=1.0, poll_hz=20.0, label_presses=10,
-                daemon_runs=3, rss_samples=6,
+                label_warmup=True, daemon_runs=3, rss_samples=6,
                 encode_n=2000, retrieval_queries=200, brute_queries_1m=20,
                 retrieval_refs=1_000_000, retrieval_classes=1000)
 QUICK = replace(FULL, quick=True, load_min_s=5.0, presses=3, quiet_presses=2, rt_presses=2,
