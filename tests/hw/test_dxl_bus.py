@@ -191,6 +191,14 @@ async def test_sdk_errors_become_motor_errors_with_the_sdk_message(emu, bus):
     assert caught.value.motor_id == 12
     assert "[TxRxResult] Incorrect status packet!" in str(caught.value)
     assert await bus.read(12, "Present Position") == 2048  # the next read is clean
+    # A sync read, of the state or of one register, alike: one bad reply is read again.
+    for read in (bus.read_state, bus.recover_watchdog):
+        emu.corrupt_crc(13, 1)
+        await read()
+        emu.corrupt_crc(13, 2)
+        with pytest.raises(MotorError, match="Incorrect status packet") as caught:
+            await read()
+        assert caught.value.motor_id == 13
 
 
 @pytest.mark.asyncio

@@ -12,6 +12,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from typing import TypeVar
 
 import dynamixel_sdk as sdk
 
@@ -28,6 +29,7 @@ from edge.hw.dynamixel.port import CheckedPacketHandler
 # is an error.
 READ_ATTEMPTS = 2
 _TRANSIENT = (sdk.COMM_RX_TIMEOUT, sdk.COMM_RX_CORRUPT)
+_R = TypeVar("_R")
 # Protocol 2.0 status error number (not a bit field): "Data Range Error".
 ERR_DATA_RANGE = 4
 # Before a retry: how long late replies to the failed attempt are waited for and dropped.
@@ -219,15 +221,18 @@ class Transactions:
                              f"{self.ph.getTxRxResult(result)}", first)
 
     def read_state(self) -> BusState:
+        return self._sync_read(self._read_state_once)
+
+    def _sync_read(self, read: Callable[[], _R]) -> _R:
         # A lost or garbled reply is retried once: a sync read has no side effect.
         for _ in range(READ_ATTEMPTS - 1):
             try:
-                return self._read_state_once()
+                return read()
             except MotorError as exc:
                 if not exc.transient:
                     raise
                 self.drain_late_replies()
-        return self._read_state_once()
+        return read()
 
     def _read_state_once(self) -> BusState:
         # The SDK's SYNC READ transmit, then its per-motor receive, so that a failure names
@@ -259,6 +264,9 @@ class Transactions:
 
     def sync_read_register(self, reg: Register) -> dict[int, int]:
         """One register of every motor in one SYNC READ (one round trip, not one each)."""
+        return self._sync_read(lambda: self._sync_read_register_once(reg))
+
+    def _sync_read_register_once(self, reg: Register) -> dict[int, int]:
         result = self.ph.syncReadTx(self.port, reg.address, reg.size, list(self.ids),
                                     len(self.ids), False)
         if result != sdk.COMM_SUCCESS:
