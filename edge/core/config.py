@@ -153,6 +153,11 @@ class PressConfig:
     # The stop goal lies this many encoder counts past the present position: keeps a gentle
     # squeeze (0 would release it; each count is ~0.035 mm of finger gap).
     stop_squeeze_raw: int = 2
+    # 0: after a press the arm lifts once the gripper is fully open. Above 0: it lifts once
+    # the fingers are clear of the object (this much wider than where the press crossed
+    # x_th, and the pads back under half of x_th) while the gripper opens on: the label and
+    # the next press come sooner by the rest of the opening.
+    lift_clearance_m: float = 0.0
 
     def validate(self, path: str) -> None:
         _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")
@@ -170,6 +175,8 @@ class PressConfig:
                  "must be in (-0.010, 0.019] m (the gripper's range)")
         _require(0 <= self.stop_squeeze_raw <= 20, path, "stop_squeeze_raw",
                  self.stop_squeeze_raw, "must be 0..20 counts")
+        _require(0 <= self.lift_clearance_m <= 0.02, path, "lift_clearance_m",
+                 self.lift_clearance_m, "must be in [0, 0.02] m (0: lift once fully open)")
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,10 @@ FRESH_FRAME_S = 0.1
 FRESH_WAIT_S = 0.5
 # Tries to open the gripper before a press gives up and says it may still be closed.
 OPEN_TRIES = 3
+# With press.lift_clearance_m: how often the opening gripper is read to see it clear of the
+# object, and the fraction of x_th the pads read under once the fingers have left it.
+CLEAR_POLL_S = 0.02
+CLEAR_LEVEL_FRACTION = 0.5
 # After the press, how long the recording waits for a late stream to cover its window.
 STREAM_CATCH_UP_S = 1.0
 
@@ -281,7 +285,7 @@ class PressController:
         finally:
             self._armed = None
             # Refused before touching anything (stale sensor, a motor down): nothing to undo.
-            opened = await self._open_safely(outcome) if touched else False
+            opened, opening = await self._open_safely(outcome) if touched else (False, None)
             if trace_task is not None:
                 await cancel_and_wait(trace_task)
         if moved and not opened:
@@ -293,7 +297,8 @@ class PressController:
             self._enter(outcome, PressState.RETURNING)
             # The window completes while the arm returns: whoever waits for it starts on it
             # at once, not once the arm is back.
-            returning = asyncio.create_task(self._return(outcome), name="press-return")
+            returning = asyncio.create_task(self._return(outcome, opening),
+                                            name="press-return")
         try:
             if outcome.t_stop is not None:
                 # The model's crop is complete with the first frame at or past its last
@@ -320,13 +325,26 @@ class PressController:
             self.on_outcome(outcome)
         return outcome
 
-    async def _return(self, outcome: PressOutcome) -> None:
+    async def _return(self, outcome: PressOutcome,
+                      opening: asyncio.Task[DeviceError | None] | None) -> None:
+        """The arm back above; ``opening``: the gripper's opening, still under way (the
+        fingers cleared the object first), which the press waits for too."""
         try:
-            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-        except EdgeError as exc:
-            log.error("arm did not return above the object: %s", exc)
-            if outcome.result == PressResult.OK:
-                outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
+            try:
+                await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+            except EdgeError as exc:
+                log.error("arm did not return above the object: %s", exc)
+                if outcome.result == PressResult.OK:
+                    outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
+            failed = None if opening is None else await opening
+            if failed is not None:
+                log.error("the gripper did not open fully once clear of the object: %s", failed)
+                outcome.result = PressResult.ERROR
+                outcome.message = (outcome.message + "; " if outcome.message else "") + (
+                    f"the gripper cleared the object but did not open fully: {failed}")
+        finally:
+            if opening is not None:
+                await cancel_and_wait(opening)
 
     async def _stream_past(self, end: float) -> None:
         """Until the stream covers ``end`` (a frame at or past it); a stream that paused
@@ -418,17 +436,63 @@ class PressController:
             outcome.message = (f"force far past the threshold (norm {armed.peak:.4f} > "
                                f"{armed.abort_level:.4f}): gripper opened")
 
-    async def _open_safely(self, outcome: PressOutcome) -> bool:
-        """Open the gripper (see :meth:`open_gripper_retrying`); False, and said in the
-        outcome, if it failed."""
+    async def _open_safely(self, outcome: PressOutcome
+                           ) -> tuple[bool, asyncio.Task[DeviceError | None] | None]:
+        """Open the gripper (see :meth:`open_gripper_retrying`). Returns whether the fingers
+        are off the object (False, and said in the outcome, if the opening failed) and, where
+        they cleared it before the gripper was fully open (``press.lift_clearance_m``), the
+        opening still under way."""
         self._enter(outcome, PressState.OPENING)
-        failed = await self.open_gripper_retrying()
+        clear_width = self._clear_width(outcome)
+        if clear_width is None:
+            failed = await self.open_gripper_retrying()
+        else:
+            opening = asyncio.create_task(self.open_gripper_retrying(), name="press-open")
+            try:
+                if await self._cleared(outcome, clear_width, opening):
+                    return True, opening
+                failed = await opening
+            except BaseException:
+                await cancel_and_wait(opening)
+                raise
         if failed is None:
-            return True
+            return True, None
         if outcome.result == PressResult.OK:
             outcome.result = PressResult.ERROR
         outcome.message = (outcome.message + "; " if outcome.message else "") + (
             f"GRIPPER MAY STILL BE CLOSED: opening failed {OPEN_TRIES} times (last: {failed})")
+        return False, None
+
+    def _clear_width(self, outcome: PressOutcome) -> float | None:
+        """The gripper width past which the fingers are clear of the object: the width where
+        the press crossed x_th plus ``press.lift_clearance_m``; None where the arm waits for
+        the full opening (the option off, or no crossing to measure from)."""
+        clearance = self.cfg.press.lift_clearance_m
+        if clearance <= 0 or outcome.t_cross is None or outcome.tare is None:
+            return None
+        before = [s.width_m for s in outcome.gripper_trace if s.t <= outcome.t_cross]
+        return before[-1] + clearance if before else None
+
+    async def _cleared(self, outcome: PressOutcome, clear_width: float,
+                       opening: asyncio.Task[DeviceError | None]) -> bool:
+        """Whether the fingers are clear of the object (past ``clear_width``, the pads'
+        latest fresh frame under half of x_th) while ``opening`` still runs; False once it
+        has ended (the caller takes its result) or a read fails (the opening says what)."""
+        assert outcome.tare is not None
+        release_level = self.cfg.press.x_th * CLEAR_LEVEL_FRACTION
+        while not opening.done():
+            try:
+                width = (await self.gripper.state()).width_m
+            except DeviceError:
+                return False
+            ring = self.ring
+            if (width >= clear_width and ring.count
+                    and ring.latest_time() >= self.clock() - FRESH_FRAME_S):
+                raw = ring.raw[ring.latest_index].astype(np.float64)
+                level = float(np.linalg.norm(raw - outcome.tare)) / preprocess.UNITS_SCALE
+                if level < release_level:
+                    return True
+            await asyncio.wait({opening}, timeout=CLEAR_POLL_S)
         return False
 
     async def open_gripper_retrying(self) -> DeviceError | None:

@@ -13,6 +13,7 @@ from edge.daemon.devices import enable_torque, open_devices
 from edge.daemon.press import PressController, outcome_recording
 from edge.daemon.ring import FrameRing
 from edge.daemon.sensor import SensorTask
+from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
 
@@ -83,3 +84,59 @@ async def test_soft_object_takes_longer_and_no_object_means_no_contact():
     assert nothing.result == "no_contact" and "no contact" in nothing.message
     assert width > 0.005
     assert np.isfinite(nothing.peak_level)
+
+
+@pytest.mark.asyncio
+async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
+    # press.lift_clearance_m: the arm starts back up once the fingers are clear of the object
+    # (wider than at the crossing by the clearance, the pads released), while the gripper
+    # opens on; 0 (the default), or a clearance the opening never reaches, waits for the
+    # full opening. Every press ends fully open, arm above.
+    cfg = base_config()
+    lifts = {}
+    for clearance in (0.0, 0.002, 0.02):
+        press_cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=clearance))
+        async with SimRobot("stainless_cube", seed=1, cfg=press_cfg) as robot:
+            rcfg, outcome, width = await press_once(robot, press_cfg)
+        assert outcome.result == "ok", outcome.message
+        states = dict(outcome.states)
+        lifts[clearance] = states["returning"] - states["opening"]
+        assert [s for s, _ in outcome.states][-3:] == ["opening", "returning", "idle"]
+        assert width == pytest.approx(rcfg.press.open_width_m, abs=0.001)
+    print("opening -> lift: " + ", ".join(f"{k * 1e3:g} mm {v:.3f} s" for k, v in lifts.items()))
+    assert lifts[0.002] < lifts[0.0] - 0.05
+    # Not before the fingers can have opened the clearance (at the gripper's opening speed).
+    assert lifts[0.002] >= 0.002 / GRIPPER_OPEN_SPEED_MPS
+    assert lifts[0.02] == pytest.approx(lifts[0.0], abs=0.1)
+
+
+@pytest.mark.asyncio
+async def test_a_gripper_lost_after_clearing_the_object_fails_the_press_saying_so():
+    cfg = base_config()
+    cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=0.002))
+    async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
+        rcfg = robot.runtime_config(cfg)
+        devices = await open_devices(rcfg)
+        await enable_torque(devices)
+        ring = FrameRing(96, 4000)
+
+        def on_state(state):
+            if state == "returning":  # the fingers are clear; the gripper drops out
+                robot.dxl.set_missing(rcfg.bus.gripper_id)
+
+        controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state)
+        task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
+        try:
+            await asyncio.sleep(0.3)
+            outcome = await controller.run()
+        finally:
+            robot.dxl.set_missing(rcfg.bus.gripper_id, False)
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            await devices.bus.close()
+            await devices.tactile.close()
+    print(outcome.message)
+    assert outcome.result == "error" and outcome.t_stop is not None
+    assert "the gripper cleared the object but did not open fully" in outcome.message
+    assert [s for s, _ in outcome.states][-3:] == ["opening", "returning", "idle"]
