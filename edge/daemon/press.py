@@ -317,8 +317,10 @@ class PressController:
             if returning is not None:
                 await returning
         finally:
-            if returning is not None and not returning.done():
-                returning.cancel()
+            # (A return cancelled before it started leaves the opening to cancel here.)
+            for task in (returning, opening):
+                if task is not None and not task.done():
+                    task.cancel()
         self._enter(outcome, PressState.IDLE)
         self._outcome = None
         if self.on_outcome is not None:
