@@ -107,7 +107,8 @@ async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
     assert lifts[0.002] < lifts[0.0] - 0.05
     # Not before the fingers can have opened the clearance (at the gripper's opening speed).
     assert lifts[0.002] >= 0.002 / GRIPPER_OPEN_SPEED_MPS
-    assert lifts[0.02] == pytest.approx(lifts[0.0], abs=0.1)
+    # (One-sided: a loaded host may only make the full opening look slower.)
+    assert lifts[0.02] >= lifts[0.0] - 0.1
 
 
 @pytest.mark.asyncio
