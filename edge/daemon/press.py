@@ -53,9 +53,8 @@ FRESH_FRAME_S = 0.1
 FRESH_WAIT_S = 0.5
 # Tries to open the gripper before a press gives up and says it may still be closed.
 OPEN_TRIES = 3
-# With press.lift_clearance_m: how often the opening gripper is read to see it clear of the
-# object, and the fraction of x_th the pads read under once the fingers have left it.
-CLEAR_POLL_S = 0.02
+# With press.lift_clearance_m: the fraction of x_th the pads read under once the fingers
+# have left the object.
 CLEAR_LEVEL_FRACTION = 0.5
 # After the press, how long the recording waits for a late stream to cover its window.
 STREAM_CATCH_UP_S = 1.0
@@ -317,7 +316,7 @@ class PressController:
             if returning is not None:
                 await returning
         finally:
-            # (A return cancelled before it started leaves the opening to cancel here.)
+            # (The opening too: the return waits for it, or never started.)
             for task in (returning, opening):
                 if task is not None and not task.done():
                     task.cancel()
@@ -330,23 +329,19 @@ class PressController:
     async def _return(self, outcome: PressOutcome,
                       opening: asyncio.Task[DeviceError | None] | None) -> None:
         """The arm back above; ``opening``: the gripper's opening, still under way (the
-        fingers cleared the object first), which the press waits for too."""
+        fingers cleared the object first), which the press waits for too (cancelled with
+        the press, by :meth:`run`)."""
         try:
-            try:
-                await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-            except EdgeError as exc:
-                log.error("arm did not return above the object: %s", exc)
-                if outcome.result == PressResult.OK:
-                    outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
-            failed = None if opening is None else await opening
-            if failed is not None:
-                log.error("the gripper did not open fully once clear of the object: %s", failed)
-                outcome.result = PressResult.ERROR
-                outcome.message = (outcome.message + "; " if outcome.message else "") + (
-                    f"the gripper cleared the object but did not open fully: {failed}")
-        finally:
-            if opening is not None:
-                await cancel_and_wait(opening)
+            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+        except EdgeError as exc:
+            log.error("arm did not return above the object: %s", exc)
+            if outcome.result == PressResult.OK:
+                outcome.result, outcome.message = PressResult.ERROR, f"return failed: {exc}"
+        failed = None if opening is None else await opening
+        if failed is not None:
+            log.error("the gripper did not open fully once clear of the object: %s", failed)
+            outcome.result = PressResult.ERROR
+            _say(outcome, f"the gripper cleared the object but did not open fully: {failed}")
 
     async def _stream_past(self, end: float) -> None:
         """Until the stream covers ``end`` (a frame at or past it); a stream that paused
@@ -461,8 +456,8 @@ class PressController:
             return True, None
         if outcome.result == PressResult.OK:
             outcome.result = PressResult.ERROR
-        outcome.message = (outcome.message + "; " if outcome.message else "") + (
-            f"GRIPPER MAY STILL BE CLOSED: opening failed {OPEN_TRIES} times (last: {failed})")
+        _say(outcome,
+             f"GRIPPER MAY STILL BE CLOSED: opening failed {OPEN_TRIES} times (last: {failed})")
         return False, None
 
     def _clear_width(self, outcome: PressOutcome) -> float | None:
@@ -472,29 +467,28 @@ class PressController:
         clearance = self.cfg.press.lift_clearance_m
         if clearance <= 0 or outcome.t_cross is None or outcome.tare is None:
             return None
-        before = [s.width_m for s in outcome.gripper_trace if s.t <= outcome.t_cross]
-        return before[-1] + clearance if before else None
+        at_cross = next((s.width_m for s in reversed(outcome.gripper_trace)
+                         if s.t <= outcome.t_cross), None)
+        return None if at_cross is None else at_cross + clearance
 
     async def _cleared(self, outcome: PressOutcome, clear_width: float,
                        opening: asyncio.Task[DeviceError | None]) -> bool:
-        """Whether the fingers are clear of the object (past ``clear_width``, the pads'
-        latest fresh frame under half of x_th) while ``opening`` still runs; False once it
-        has ended (the caller takes its result) or a read fails (the opening says what)."""
-        assert outcome.tare is not None
+        """Whether the fingers are clear of the object (the gripper trace's latest width past
+        ``clear_width``, the pads' latest fresh frame under half of x_th) while ``opening``
+        still runs; False once it has ended (the caller takes its result)."""
+        assert outcome.tare is not None and outcome.t_cross is not None
         release_level = self.cfg.press.x_th * CLEAR_LEVEL_FRACTION
+        ring = self.ring
         while not opening.done():
-            try:
-                width = (await self.gripper.state()).width_m
-            except DeviceError:
-                return False
-            ring = self.ring
-            if (width >= clear_width and ring.count
-                    and ring.latest_time() >= self.clock() - FRESH_FRAME_S):
-                raw = ring.raw[ring.latest_index].astype(np.float64)
-                level = float(np.linalg.norm(raw - outcome.tare)) / preprocess.UNITS_SCALE
-                if level < release_level:
-                    return True
-            await asyncio.wait({opening}, timeout=CLEAR_POLL_S)
+            # The press's gripper trace goes on reading the gripper while it opens: its
+            # latest width, not a read of our own beside the opening's and the trace's.
+            last = outcome.gripper_trace[-1] if outcome.gripper_trace else None
+            if (last is not None and last.t > outcome.t_cross and last.width_m >= clear_width
+                    and ring.latest_time() >= self.clock() - FRESH_FRAME_S
+                    and preprocess.norm(preprocess.to_units(ring.raw[ring.latest_index],
+                                                            outcome.tare)) < release_level):
+                return True
+            await asyncio.wait({opening}, timeout=GRIPPER_TRACE_PERIOD_S)
         return False
 
     async def open_gripper_retrying(self) -> DeviceError | None:
@@ -531,6 +525,11 @@ _ABORTABLE = frozenset({PressState.LOWERED, PressState.TARE, PressState.CLOSING}
 
 class _AbortRequested(Exception):
     """An abort request reached the press before the gripper closed."""
+
+
+def _say(outcome: PressOutcome, text: str) -> None:
+    """Add ``text`` to what the outcome says."""
+    outcome.message = f"{outcome.message}; {text}" if outcome.message else text
 
 
 def outcome_recording(outcome: PressOutcome, cfg: Config, label: str = "unknown"

@@ -18,12 +18,12 @@ from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
 
 
-async def press_once(robot: SimRobot, cfg: Config):
+async def press_once(robot: SimRobot, cfg: Config, on_state=None):
     rcfg = robot.runtime_config(cfg)
     devices = await open_devices(rcfg)
     await enable_torque(devices)
     ring = FrameRing(96, 4000)
-    controller = PressController(rcfg, devices.gripper, devices.arm, ring)
+    controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state)
     task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
     try:
         await asyncio.sleep(0.3)
@@ -116,27 +116,14 @@ async def test_a_gripper_lost_after_clearing_the_object_fails_the_press_saying_s
     cfg = base_config()
     cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=0.002))
     async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
-        rcfg = robot.runtime_config(cfg)
-        devices = await open_devices(rcfg)
-        await enable_torque(devices)
-        ring = FrameRing(96, 4000)
+        gripper_id = cfg.bus.gripper_id
 
         def on_state(state):
-            if state == "returning":  # the fingers are clear; the gripper drops out
-                robot.dxl.set_missing(rcfg.bus.gripper_id)
+            # The fingers are clear and the arm rises: the gripper drops out until the
+            # press has ended.
+            robot.dxl.set_missing(gripper_id, state == "returning")
 
-        controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state)
-        task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
-        try:
-            await asyncio.sleep(0.3)
-            outcome = await controller.run()
-        finally:
-            robot.dxl.set_missing(rcfg.bus.gripper_id, False)
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-            await devices.bus.close()
-            await devices.tactile.close()
+        _, outcome, _ = await press_once(robot, cfg, on_state)
     print(outcome.message)
     assert outcome.result == "error" and outcome.t_stop is not None
     assert "the gripper cleared the object but did not open fully" in outcome.message
