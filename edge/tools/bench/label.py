@@ -21,6 +21,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from edge.daemon.state import PressState
 from edge.tools.bench.controllers import BenchController
 from edge.tools.bench.figures import figure, target
@@ -42,7 +44,8 @@ def robot_move_time_s() -> float:
 
 
 async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, presses: int,
-                   move_time_s: float, warmup: bool) -> list[dict[str, float]]:
+                   move_time_s: float, vlm_latency_s: float, warmup: bool
+                   ) -> list[dict[str, float]]:
     import aiohttp
 
     from edge.core.config import load_config
@@ -97,12 +100,20 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                     continue
                 t_window = outcome.t_stop + last_s
                 states = dict(outcome.states)
+                # What the label waited for, from the stop: the VLM's answer (its request's
+                # arrival plus the fake's fixed latency) or the arm back above the object.
                 row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
                        "trigger_to_label_s": t_label - t_trigger,
-                       "pre_press_ms": 1e3 * (states[PressState.ABOVE] - t_trigger)}
+                       "pre_press_ms": 1e3 * (states[PressState.ABOVE] - t_trigger),
+                       "answer_after_stop_s": t_vlm + vlm_latency_s - outcome.t_stop,
+                       "arm_back_after_stop_s": ctl.ended_s - outcome.t_stop,
+                       "label_after_stop_s": t_label - outcome.t_stop}
                 progress(f"label press {i + 1}/{presses}: request "
                          f"{row['label_after_window_ms']:.1f} ms after the window, "
-                         f"label {row['trigger_to_label_s']:.2f} s after the trigger"
+                         f"label {row['trigger_to_label_s']:.2f} s after the trigger; after "
+                         f"the stop: answer {row['answer_after_stop_s']:.2f} s, arm back "
+                         f"{row['arm_back_after_stop_s']:.2f} s, label "
+                         f"{row['label_after_stop_s']:.2f} s"
                          + (" (warm-up, not counted)" if i < 0 else ""))
                 if i >= 0:
                     rows.append(row)
@@ -126,7 +137,7 @@ def measure(s: Settings, tmp: Path, presses: int) -> tuple[list[dict[str, float]
             lg.setLevel(logging.WARNING)
         with asyncio.Runner(loop_factory=new_event_loop) as runner:
             rows = runner.run(_presses(robot.info, vlm.info, tmp / "label-state", presses,
-                                       move_time_s, s.label_warmup))
+                                       move_time_s, s.vlm_latency_s, s.label_warmup))
     finally:
         for lg, level in zip(quiet, levels, strict=True):
             lg.setLevel(level)
@@ -134,6 +145,13 @@ def measure(s: Settings, tmp: Path, presses: int) -> tuple[list[dict[str, float]
             vlm.stop()
         robot.stop()
     return rows, move_time_s
+
+
+WAITED_FOR = ("answer_after_stop_s", "arm_back_after_stop_s", "label_after_stop_s")
+
+
+def _p50(rows: list[dict[str, float]], key: str) -> float | None:
+    return round(float(np.percentile([r[key] for r in rows], 50)), 3) if rows else None
 
 
 def label_phase(s: Settings, tmp: Path) -> PhaseResult:
@@ -149,8 +167,11 @@ def label_phase(s: Settings, tmp: Path) -> PhaseResult:
         "trigger_to_label_s": figure(
             [r["trigger_to_label_s"] for r in rows], "s", None,
             move_time_s=move_time_s, vlm_latency_s=s.vlm_latency_s,
+            **{k: _p50(rows, k) for k in WAITED_FOR},
             what="POST /v1/recognize -> the label's result event, arm moves as on the real "
-                 "arm, fake VLM at a fixed latency"),
+                 "arm, fake VLM at a fixed latency; after the stop (p50): the VLM's answer, "
+                 "the arm back above the object, the label, which waits for the later of "
+                 "the two"),
     }
     notes = [] if len(rows) == presses else [f"label: {presses - len(rows)} presses failed"]
     return PhaseResult(figs, notes)
