@@ -23,6 +23,7 @@ import logging
 import time
 from typing import Literal, Protocol, Self
 
+import msgspec
 import numpy as np
 from aiohttp import WSCloseCode, web
 
@@ -117,7 +118,7 @@ def encode_frame(
         if dialect == "1.7.7":
             sensor["data"] = ints
         else:
-            sensor["data"] = ",".join(f"{v:04X}" for v in ints)
+            sensor["data"] = _hex_words(words)
         if dialect == "1.8":
             # XR1944 has no calibration: 1.8 leaves `calibrated` out, 1.7 sends null.
             sensor |= {"integer": ints, "temp": [303.15] * taxels, "ups": [125.0] * taxels}
@@ -128,7 +129,22 @@ def encode_frame(
         frame[str(i + 1)] = sensor
     if dialect == "1.8":
         frame["sendtime"] = time.time()
-    return json.dumps(frame, separators=(",", ":"))
+    # msgspec: 6 us where json.dumps took 57 for the same compact JSON (a float may be written
+    # 0.00001 where json writes 1e-05; both are JSON numbers). The emulated robot sends 125
+    # of these a second beside the daemon on a test or bench host.
+    return _ENCODER.encode(frame).decode()
+
+
+_ENCODER = msgspec.json.Encoder()
+
+
+def _hex_words(words: np.ndarray) -> str:
+    """``"0A1B,FFFF,..."``: each uint16 as four upper-case hex digits, comma-separated (as
+    the 1.8 server writes ``data``), built in numpy rather than a format call per word."""
+    digits = np.frombuffer(words.astype(">u2").tobytes().hex().upper().encode(), np.uint8)
+    text = np.full((len(words), 5), ord(","), np.uint8)
+    text[:, :4] = digits.reshape(-1, 4)
+    return text.tobytes()[:-1].decode()
 
 
 def welcome_frame(sensors: int) -> str:
