@@ -199,6 +199,17 @@ def test_emulator_encoding_round_trips(dialect: str) -> None:
     np.testing.assert_array_equal(frame.raw, raw)
 
 
+def test_emulator_writes_data_words_as_the_server_does() -> None:
+    # xela_server 1.7/1.8: each word four upper-case hex digits, comma-separated.
+    raw = np.zeros(96, dtype=np.uint16)
+    raw[:5] = (0, 0xA, 0xFF, 0x1000, 0xFFFF)
+    frame = json.loads(encode_frame(1, 1.0, raw, dialect="1.8"))
+    assert frame["1"]["data"] == ",".join(["0000", "000A", "00FF", "1000", "FFFF"]
+                                          + ["0000"] * 43)
+    assert frame["2"]["data"] == ",".join(["0000"] * 48)
+    assert frame["1"]["integer"][:5] == [0, 10, 255, 4096, 65535]
+
+
 def test_welcome_is_skipped() -> None:
     assert parse_frame(welcome_frame(2), 2, 16) is None
     assert parse_frame('{"message": "Welcome"}', 2, 16) is None
