@@ -19,6 +19,7 @@ whole control group, must not kill an analysis the daemon is about to store).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import logging
 import multiprocessing
@@ -50,6 +51,8 @@ WORKER_NICE = 10
 WATCH_PERIOD_S = 1.0
 # Starting the worker (a fork of the preloaded server) and its first call.
 START_TIMEOUT_S = 30.0
+# Ending it: its current call finishes, then the pool is joined; past this it is killed.
+STOP_TIMEOUT_S = 5.0
 
 
 class ComputeWorker:
@@ -64,7 +67,7 @@ class ComputeWorker:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        self.close()
+        await self.stop()
 
     async def start(self) -> None:
         """Start the worker and wait until it answers (so the first press pays nothing)."""
@@ -97,15 +100,39 @@ class ComputeWorker:
                 f"the compute worker died during {getattr(fn, '__name__', fn)} "
                 "(a crash or out of memory); a new one is started for the next call") from None
 
-    def close(self) -> None:
+    async def stop(self) -> None:
+        """End the worker: calls not begun are cancelled, the current one finishes, and the
+        pool is joined (off the loop), or its process killed after ``STOP_TIMEOUT_S``.
+
+        Joined, not left to end on its own: the pool's manager thread, still closing its
+        wake-up pipe as the interpreter's exit hook wrote to that pipe, printed an
+        "OSError: [Errno 9] Bad file descriptor" traceback after a clean exit (a race in
+        Python 3.11's concurrent.futures, seen on a loaded host).
+        """
         pool, self._pool = self._pool, None
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
+        if pool is None:
+            return
+        pid = _pid_of(pool)
+        joining = asyncio.ensure_future(
+            asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True))
+        try:
+            await asyncio.wait_for(asyncio.shield(joining), STOP_TIMEOUT_S)
+        except TimeoutError:
+            log.warning("compute worker still busy %.1f s after it was asked to end: killed",
+                        STOP_TIMEOUT_S)
+            if pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            await joining
 
     def pid(self) -> int | None:
         """The worker's process ID once started (for CPU and memory accounting)."""
-        procs = getattr(self._pool, "_processes", None) or {}
-        return next(iter(procs), None)
+        return _pid_of(self._pool)
+
+
+def _pid_of(pool: ProcessPoolExecutor | None) -> int | None:
+    procs = getattr(pool, "_processes", None) or {}
+    return next(iter(procs), None)
 
 
 # --------------------------------------------------------------------------------------

@@ -140,7 +140,7 @@ class McapRecorder:
                 except (TimeoutError, EdgeError, asyncio.CancelledError) as exc:
                     log.error("live MCAP recording: the last segment was not closed: %r", exc)
             if own:
-                worker.close()
+                await worker.stop()
 
     def _batch(self) -> Batch:
         """The rows and events that arrived since the last batch."""

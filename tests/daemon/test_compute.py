@@ -7,6 +7,8 @@ import json
 import os
 import shutil
 import signal
+import threading
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -15,6 +17,7 @@ import pytest
 from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ImageError, ModelError, PreprocessError
 from edge.core.model import load_model, model_ref
+from edge.daemon import compute
 from edge.daemon.compute import ComputeWorker, analyse_press
 from edge.vlm.images import check_image, prepare_for_vlm
 from tests.support.daemon import ROOT
@@ -124,6 +127,34 @@ async def test_a_model_changed_on_disk_is_refused_until_reloaded(tmp_path, model
             await worker.run(analyse_press, loaded, rec)
         reloaded = model_ref(copy)  # what SIGHUP does
         assert (await worker.run(analyse_press, reloaded, rec)).description
+
+
+def _pool_threads() -> list[threading.Thread]:
+    # concurrent.futures' manager thread: one left running when the interpreter exits raced
+    # the exit hook and printed an EBADF traceback after a clean exit.
+    return [t for t in threading.enumerate() if type(t).__name__ == "_ExecutorManagerThread"]
+
+
+async def test_ending_the_worker_joins_its_pool_and_kills_a_call_that_does_not_end(
+        monkeypatch):
+    async with ComputeWorker() as worker:
+        assert await worker.run(check_image, image_bytes(32, 32)) == ("JPEG", 32, 32)
+    assert _pool_threads() == []
+
+    monkeypatch.setattr(compute, "STOP_TIMEOUT_S", 0.5)
+    worker = ComputeWorker()
+    await worker.start()
+    pid = worker.pid()
+    call = asyncio.create_task(worker.run(time.sleep, 60))
+    await asyncio.sleep(0.3)  # the call has begun in the worker
+    t0 = time.monotonic()
+    await worker.stop()
+    took = time.monotonic() - t0
+    print(f"a worker stuck in a call ended after {took:.2f} s")
+    assert 0.5 <= took < 10 and _gone(pid) and _pool_threads() == []
+    with pytest.raises(ComputeError, match="died during sleep"):
+        await call
+    assert worker.restarts == 0  # ended by its owner: not replaced
 
 
 async def test_the_worker_outlives_sigint_and_sigterm(model):
