@@ -11,7 +11,7 @@ import pytest
 from edge.daemon.serve import model_ref
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
-from tests.support.daemon import Daemon, base_config
+from tests.support.daemon import QUICK_OBJECT, Daemon, base_config
 from tests.support.fakes import FakeButton
 from tests.support.waits import wait_until
 
@@ -31,7 +31,7 @@ async def next_episode(d, before):
 @pytest.mark.asyncio
 async def test_button_and_sigusr1_trigger_with_the_default_candidates(tmp_path):
     cfg = with_defaults(base_config())
-    async with SimRobot("raw_kiri_mochi", seed=21, cfg=cfg) as robot:
+    async with SimRobot(QUICK_OBJECT, seed=21, cfg=cfg) as robot:
         d = Daemon(robot, cfg, tmp_path)
         button = FakeButton()
         d.button = button
@@ -48,7 +48,7 @@ async def test_button_and_sigusr1_trigger_with_the_default_candidates(tmp_path):
 
 @pytest.mark.asyncio
 async def test_events_stream_the_press_states_and_the_result(tmp_path):
-    async with SimRobot("wood_cube", seed=22, cfg=base_config()) as robot:
+    async with SimRobot(QUICK_OBJECT, seed=22, cfg=base_config()) as robot:
         async with Daemon(robot, base_config(), tmp_path) as d:
             events = []
 
@@ -116,7 +116,7 @@ async def test_systemd_ready_watchdog_only_while_frames_arrive_and_stopping(tmp_
             except BlockingIOError:
                 return out
 
-    async with SimRobot("wood_cube", seed=24, cfg=base_config()) as robot:
+    async with SimRobot(QUICK_OBJECT, seed=24, cfg=base_config()) as robot:
         d = Daemon(robot, base_config(), tmp_path)
         d.notifier = Notifier(str(path))
         async with d:

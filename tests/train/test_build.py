@@ -19,7 +19,7 @@ from edge.core import recording
 from edge.core.errors import RecordingError
 from edge.core.model import load_model, model_ref
 from edge.sim.robot import SimRobot
-from tests.support.daemon import ROOT, Daemon, base_config
+from tests.support.daemon import QUICK_OBJECT, ROOT, Daemon, base_config
 from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
 from tests.support.waits import wait_until
 from train import evaluate
@@ -50,7 +50,7 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
     models = Path(shutil.copytree(ROOT / "models", tmp_path / "models"))
     cfg = base_config()
     cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)))
-    async with SimRobot("wood_cube", seed=31, cfg=base_config()) as robot, \
+    async with SimRobot(QUICK_OBJECT, seed=31, cfg=base_config()) as robot, \
             Daemon(robot, cfg, tmp_path / "state") as d:
         _, health = await d.get("/healthz")
         t0 = time.perf_counter()
