@@ -11,7 +11,6 @@ controller's public hooks: ``on_outcome``, ``check`` and ``armed``.
 from __future__ import annotations
 
 import asyncio
-import time
 from typing import Any
 
 import numpy as np
@@ -34,17 +33,11 @@ class BenchController(PressController):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.outcomes: asyncio.Queue[PressOutcome] = asyncio.Queue()
-        # When the last press ended (the arm back above the object), monotonic seconds.
-        self.ended_s: float | None = None
-        super().__init__(*args, on_outcome=self._ended, **kwargs)
+        super().__init__(*args, on_outcome=self.outcomes.put_nowait, **kwargs)
         self.name = "per_frame"
         self.period_s: float | None = None
         self.rng = np.random.default_rng(TICK_PHASE_SEED)
         self.latest: tuple[np.ndarray, float] | None = None
-
-    def _ended(self, outcome: PressOutcome) -> None:
-        self.ended_s = time.monotonic()
-        self.outcomes.put_nowait(outcome)
 
     def use(self, name: str) -> None:
         """From the next press on, the threshold checked as controller ``name`` does

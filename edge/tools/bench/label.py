@@ -21,11 +21,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from edge.daemon.state import PressState
 from edge.tools.bench.controllers import BenchController
-from edge.tools.bench.figures import figure, target
+from edge.tools.bench.figures import figure, stats, target
 from edge.tools.bench.load import Helper
 from edge.tools.bench.results import PhaseResult, progress
 from edge.tools.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
@@ -101,12 +99,13 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                 t_window = outcome.t_stop + last_s
                 states = dict(outcome.states)
                 # What the label waited for, from the stop: the VLM's answer (its request's
-                # arrival plus the fake's fixed latency) or the arm back above the object.
+                # arrival plus the fake's fixed latency) or the arm back above the object
+                # (the press enters idle once it is).
                 row = {"label_after_window_ms": 1e3 * (t_vlm - t_window),
                        "trigger_to_label_s": t_label - t_trigger,
                        "pre_press_ms": 1e3 * (states[PressState.ABOVE] - t_trigger),
                        "answer_after_stop_s": t_vlm + vlm_latency_s - outcome.t_stop,
-                       "arm_back_after_stop_s": ctl.ended_s - outcome.t_stop,
+                       "arm_back_after_stop_s": states[PressState.IDLE] - outcome.t_stop,
                        "label_after_stop_s": t_label - outcome.t_stop}
                 progress(f"label press {i + 1}/{presses}: request "
                          f"{row['label_after_window_ms']:.1f} ms after the window, "
@@ -150,10 +149,6 @@ def measure(s: Settings, tmp: Path, presses: int) -> tuple[list[dict[str, float]
 WAITED_FOR = ("answer_after_stop_s", "arm_back_after_stop_s", "label_after_stop_s")
 
 
-def _p50(rows: list[dict[str, float]], key: str) -> float | None:
-    return round(float(np.percentile([r[key] for r in rows], 50)), 3) if rows else None
-
-
 def label_phase(s: Settings, tmp: Path) -> PhaseResult:
     presses = s.label_presses
     rows, move_time_s = measure(s, tmp, presses)
@@ -167,7 +162,7 @@ def label_phase(s: Settings, tmp: Path) -> PhaseResult:
         "trigger_to_label_s": figure(
             [r["trigger_to_label_s"] for r in rows], "s", None,
             move_time_s=move_time_s, vlm_latency_s=s.vlm_latency_s,
-            **{k: _p50(rows, k) for k in WAITED_FOR},
+            **{k: stats([r[k] for r in rows])["p50"] for k in WAITED_FOR},
             what="POST /v1/recognize -> the label's result event, arm moves as on the real "
                  "arm, fake VLM at a fixed latency; after the stop (p50): the VLM's answer, "
                  "the arm back above the object, the label, which waits for the later of "
