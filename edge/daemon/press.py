@@ -227,11 +227,14 @@ class PressController:
             # at this step instead of going on to close on the object.
             raise _AbortRequested
 
-    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
-                  ) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None,
+                  checked: asyncio.Future[None] | None = None) -> PressOutcome:
         """One press; ``window_ready`` gets the outcome as soon as the model's crop is
         complete (the first frame at or past its last sample received), while the gripper
-        opens and the arm returns (the press goes on after, and records the margin)."""
+        opens and the arm returns (the press goes on after, and records the margin).
+        ``checked`` is resolved once the stream and the motors have been checked, before
+        anything moves: work that would compete with the check's round trips for the host
+        waits for it."""
         outcome = PressOutcome()
         self._outcome = outcome
         self._user_abort.clear()
@@ -242,6 +245,8 @@ class PressController:
             await self._await_fresh()
             if self.recover is not None:
                 await self.recover()
+            if checked is not None and not checked.done():
+                checked.set_result(None)
             self._enter(outcome, PressState.ABOVE)
             # Open before anything moves: a gripper left closed (a crash, a motor that
             # dropped out) would lift the object and tare on a squeeze.

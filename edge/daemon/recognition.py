@@ -158,11 +158,11 @@ class Recognizer:
                                  "status": "running"})
             loop = asyncio.get_running_loop()
             window: asyncio.Future[PressOutcome] = loop.create_future()
-            # The press's task first: its motor check goes to the bus before the photo's
-            # work takes the loop.
-            pressing = self._start_press(window)
+            checked: asyncio.Future[None] = loop.create_future()
+            pressing = self._start_press(window, checked)
             # Taken (unless given) and prepared for the VLM while the arm moves.
-            photo = asyncio.create_task(self._photo(setup, episode_id, image), name="photo")
+            photo = asyncio.create_task(self._photo(setup, episode_id, image, checked),
+                                        name="photo")
             try:
                 # The press as of its complete window (it goes on: the gripper opens, the arm
                 # returns), or as it ended without one.
@@ -225,15 +225,23 @@ class Recognizer:
             self.events.publish({"type": "episode", "episode": episode_id,
                                  "status": "finished"})
 
-    def _start_press(self, window: asyncio.Future[PressOutcome]) -> asyncio.Task:
+    def _start_press(self, window: asyncio.Future[PressOutcome],
+                     checked: asyncio.Future[None]) -> asyncio.Task:
         """The press as a task that releases the lock once it has ended: the arm is back
-        (or left where it stands), whatever the recognition does meanwhile."""
+        (or left where it stands), whatever the recognition does meanwhile. ``checked``
+        is resolved by its motor check, or by its end where it never got that far."""
         try:
-            pressing = asyncio.create_task(self.press.run(window), name="press")
+            pressing = asyncio.create_task(self.press.run(window, checked), name="press")
         except BaseException:
             self.lock.release()
             raise
-        pressing.add_done_callback(lambda _: self.lock.release())
+
+        def ended(_: asyncio.Task) -> None:
+            self.lock.release()
+            if not checked.done():
+                checked.set_result(None)
+
+        pressing.add_done_callback(ended)
         return pressing
 
     async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
@@ -253,12 +261,17 @@ class Recognizer:
         except Exception:
             log.exception("episode %s: the failure could not be stored", episode_id)
 
-    async def _photo(self, setup: Recognition, episode_id: str, image: bytes | None
+    async def _photo(self, setup: Recognition, episode_id: str, image: bytes | None,
+                     checked: asyncio.Future[None]
                      ) -> tuple[bytes | None, VLMImage | None, str | None]:
         """(the photo, its form for the VLM, why the camera gave none): the camera's photo
         unless one was given, prepared in the compute process while the press runs, so
         that the question leaves with no image work once the window is complete."""
         if image is None and self.camera is not None:
+            # Taken once the press has checked the motors (or ended): the capture's work (a
+            # request, a grab, an encode) would otherwise hold the host while the check's
+            # round trips wait for it, and the press would start later.
+            await asyncio.shield(checked)
             try:
                 image = await self.camera.capture()
             except (EdgeError, OSError) as exc:

@@ -200,6 +200,27 @@ async def test_a_failed_stop_aborts_and_opens():
     assert outcome.t_stop is None and opened(gripper, cfg)
 
 
+async def test_checked_is_resolved_by_the_motor_check_before_anything_moves():
+    # The photo waits for it (the recognition): it must come after the check, and before
+    # the press's moves, which the photo does not need to wait out.
+    seen = []
+    async with rig() as (ctl, gripper, arm, _p, _s, _o):
+        checked = asyncio.get_running_loop().create_future()
+        arm.history.clear()
+
+        async def recover():
+            seen.append(("recover", checked.done()))
+
+        def on_state(state: str) -> None:
+            if state == "above":
+                seen.append(("above", checked.done(), list(gripper.calls), list(arm.history)))
+
+        ctl.recover, ctl.on_state = recover, on_state
+        outcome = await ctl.run(None, checked)
+    assert outcome.result == "ok"
+    assert seen == [("recover", False), ("above", True, [], [])]
+
+
 async def test_a_gripper_that_cannot_open_leaves_the_arm_where_it_stands():
     cfg = config()
     recoveries = []

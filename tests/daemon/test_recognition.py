@@ -47,15 +47,22 @@ def pressed(seed: int = 3) -> PressOutcome:
 
 class ScriptedPress:
     """Returns the next outcome; ``gate`` (when set) holds the press until released, after
-    handing its outcome over as the window is complete when ``hand_over`` is set."""
+    handing its outcome over as the window is complete when ``hand_over`` is set;
+    ``check_gate`` (when set) holds its motor check until released."""
 
     def __init__(self, *outcomes: PressOutcome) -> None:
         self.outcomes = list(outcomes)
         self.gate: asyncio.Event | None = None
+        self.check_gate: asyncio.Event | None = None
         self.hand_over = False
         self.state = PressState.IDLE
 
-    async def run(self, window_ready: asyncio.Future | None = None) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future | None = None,
+                  checked: asyncio.Future | None = None) -> PressOutcome:
+        if self.check_gate is not None:
+            await self.check_gate.wait()
+        if checked is not None:
+            checked.set_result(None)
         self.state = PressState.CLOSING
         outcome = self.outcomes.pop(0)
         if self.hand_over and window_ready is not None:
@@ -152,6 +159,36 @@ async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
     kinds = [e["type"] for e in seen]
     assert kinds[0] == "hello" and "tactile" in kinds and kinds[-1] == "episode"
     assert any(e["type"] == "result" and e["label"] == "macaron" for e in seen)
+
+
+async def test_the_photo_is_taken_once_the_press_has_checked_the_motors(tmp_path):
+    # The capture's work beside the check's round trips would start the press later.
+    camera = FakeCamera(image_bytes(640, 480))
+    press = ScriptedPress(pressed())
+    press.check_gate = asyncio.Event()
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]), camera=camera)
+    running = asyncio.create_task(rec.recognize(CANDIDATES, None, True, 10, "api"))
+    for _ in range(20):
+        await asyncio.sleep(0)
+    assert camera.captures == 0 and not running.done()
+    press.check_gate.set()
+    episode = await running
+    assert camera.captures == 1 and episode.status == Status.DONE
+
+
+async def test_a_press_failing_before_its_check_still_keeps_the_photo(tmp_path):
+    # No check, no wait forever: the press's end releases the photo, kept with the failure.
+    camera = FakeCamera(image_bytes(640, 480))
+    stale = PressOutcome(result=PressResult.STALE, message="tactile stream is stale")
+
+    class Unchecked(ScriptedPress):
+        async def run(self, window_ready=None, checked=None):
+            return await super().run(window_ready, None)
+
+    rec, _ = recognizer(tmp_path, Unchecked(stale), ScriptedVLM([]), camera=camera)
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
+    assert episode.status == Status.FAILED and camera.captures == 1
+    assert (tmp_path / "episodes" / episode.id / "image.jpg").exists()
 
 
 async def test_an_unreachable_vlm_leaves_it_pending_then_the_retry_completes_it(tmp_path):

@@ -58,14 +58,14 @@ class BenchController(PressController):
     async def _keep_latest(self, raw: np.ndarray, recv_time: float) -> None:
         self.latest = (raw, recv_time)
 
-    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None
-                  ) -> PressOutcome:
+    async def run(self, window_ready: asyncio.Future[PressOutcome] | None = None,
+                  checked: asyncio.Future[None] | None = None) -> PressOutcome:
         if self.period_s is None:
-            return await super().run(window_ready)
+            return await super().run(window_ready, checked)
         ticker = asyncio.create_task(self._tick(self.period_s),
                                      name=f"bench-{self.name}-ticker")
         try:
-            return await super().run(window_ready)
+            return await super().run(window_ready, checked)
         finally:
             await cancel_and_wait(ticker)
 
