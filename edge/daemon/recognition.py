@@ -267,11 +267,11 @@ class Recognizer:
         """(the photo, its form for the VLM, why the camera gave none): the camera's photo
         unless one was given, prepared in the compute process while the press runs, so
         that the question leaves with no image work once the window is complete."""
+        # Once the press has checked the motors (or ended): the photo's work (a capture, an
+        # encode, a megabyte handed to the compute process) would otherwise hold the host
+        # while the check's round trips wait for it, and the press would start later.
+        await asyncio.shield(checked)
         if image is None and self.camera is not None:
-            # Taken once the press has checked the motors (or ended): the capture's work (a
-            # request, a grab, an encode) would otherwise hold the host while the check's
-            # round trips wait for it, and the press would start later.
-            await asyncio.shield(checked)
             try:
                 image = await self.camera.capture()
             except (EdgeError, OSError) as exc:

@@ -161,19 +161,24 @@ async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
     assert any(e["type"] == "result" and e["label"] == "macaron" for e in seen)
 
 
-async def test_the_photo_is_taken_once_the_press_has_checked_the_motors(tmp_path):
-    # The capture's work beside the check's round trips would start the press later.
+@pytest.mark.parametrize("uploaded", [False, True], ids=["camera", "uploaded"])
+async def test_the_photo_waits_for_the_press_to_check_the_motors(tmp_path, uploaded):
+    # The photo's work beside the check's round trips would start the press later.
     camera = FakeCamera(image_bytes(640, 480))
+    compute = InProcessCompute()
     press = ScriptedPress(pressed())
     press.check_gate = asyncio.Event()
-    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]), camera=camera)
-    running = asyncio.create_task(rec.recognize(CANDIDATES, None, True, 10, "api"))
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]), compute,
+                        None if uploaded else camera)
+    image = camera.image if uploaded else None
+    running = asyncio.create_task(rec.recognize(CANDIDATES, image, True, 10, "api"))
     for _ in range(20):
         await asyncio.sleep(0)
-    assert camera.captures == 0 and not running.done()
+    assert camera.captures == 0 and compute.calls == [] and not running.done()
     press.check_gate.set()
     episode = await running
-    assert camera.captures == 1 and episode.status == Status.DONE
+    assert camera.captures == (0 if uploaded else 1) and "prepare_for_vlm" in compute.calls
+    assert episode.status == Status.DONE
 
 
 async def test_a_press_failing_before_its_check_still_keeps_the_photo(tmp_path):
