@@ -63,6 +63,10 @@ def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
     assert 0 <= results["overhead_ms"]["p50"] < 5000
     # The VLM request leaves after the window is complete, well before the arm is back.
     assert 0 < results["label_after_window_ms"]["p50"] < 500
+    # Part of it: the wait for the frame that completes the window (one press, so its p50
+    # is that press's, which the request can only follow).
+    after = results["label_after_window_ms"]
+    assert 0 <= after["frame_wait_ms"] <= after["p50"], after
     label = results["trigger_to_label_s"]
     assert label["move_time_s"] > 0
     # The label waits for the later of the VLM's answer and the arm back above the object

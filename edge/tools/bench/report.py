@@ -124,13 +124,17 @@ WHY: dict[str, str] = {
         "stop_latency_ms_loop100. Closing the per-frame tail (above) closes this."),
     "overhead_ms": (
         "What remains: the API request and the pre-press motor check (pre_press_ms: a SYNC "
-        "READ of torque, one of the watchdogs, each a round trip to the emulated robot, a "
-        "process of this host), the wait for the first frame at or past the crop's last "
-        "sample (up to one frame period), one round trip to the compute process (the crop, "
-        "encoder and top-k; the photo was prepared during the press and the press is "
-        "serialised after the request), JSON and the POST. The p99 of 8 presses is their "
-        "slowest, on a host shared with the emulated robot (and with other jobs when the CPU "
-        "line above says so). To close it: the host as for the sampler."),
+        "READ of torque and one of the watchdogs, round trips to the emulated robot, a "
+        "process of this host; the photo waits for it); the wait for the first frame at or "
+        "past the crop's last sample (label_after_window_ms's frame_wait_ms, up to one frame "
+        "period and usually most of one: that sample lies 74 frame periods after the stop, "
+        "which follows the crossing frame's arrival by a fraction of a millisecond, so the "
+        "frame 74 periods on arrives just before it and the crop needs the next); one round "
+        "trip to the compute process (the crop, encoder and top-k); JSON and the POST. The "
+        "p99 of 8 presses is their slowest, on a host shared with the emulated robot (and "
+        "with other jobs when the CPU line above says so). To close it: the host as for the "
+        "sampler, or a crop whose last sample needs no further frame, which changes the "
+        "method's preprocessing (a new release)."),
     "encode_ms": (
         "onnxruntime itself needs about 0.1 ms per sequence on a quiet core (0.094 ms p50 "
         "in a separate run of this code); see host_cores_busy and the other tenants' share "
