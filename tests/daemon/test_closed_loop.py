@@ -17,6 +17,14 @@ from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
 
+# Elastic and firm, with no yield: a stop 100 ms late takes its force past the abort level
+# (25 x_th) and the press fails, so these tests see a stop that does not come. Not a rigid
+# cube: with the emulated robot in the test's process, a host stall of 30 ms before the stop
+# already takes a stainless cube there (the press rightly aborts); the rubber ball stays
+# under it with the stop 60 ms late (measured by stalling the process before the stop). The
+# rigid objects' stops are soaked in the slow tier (tests/hw/test_dxl_stop.py) and benched.
+OBJECT = "rubber_ball"
+
 
 async def press_once(robot: SimRobot, cfg: Config, on_state=None):
     rcfg = robot.runtime_config(cfg)
@@ -41,7 +49,7 @@ async def press_once(robot: SimRobot, cfg: Config, on_state=None):
 @pytest.mark.asyncio
 async def test_press_stops_on_the_threshold_and_records(tmp_path):
     cfg = base_config()
-    async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
+    async with SimRobot(OBJECT, seed=1, cfg=cfg) as robot:
         rcfg, outcome, width = await press_once(robot, cfg)
         peak_n = robot.world.peak_force_n
     assert outcome.result == "ok", outcome.message
@@ -50,12 +58,12 @@ async def test_press_stops_on_the_threshold_and_records(tmp_path):
           f"norm at crossing {outcome.level_at_cross:.4f}")
     assert lat_ms < 20.0  # generous: the figure is benchmarked, not tested
     assert outcome.level_at_cross > rcfg.press.x_th
-    assert peak_n < 10.0  # the stop held: far below the gripper's force cap
+    assert peak_n < 5.0  # the stop held: far below the gripper's force cap (about 10 N)
     assert width > 0.005  # the gripper opened again
     states = [s for s, _ in outcome.states]
     assert states[:4] == ["above", "lowered", "tare", "closing"]
     assert "holding" in states and states[-1] == "idle"
-    rec = outcome_recording(outcome, rcfg, label="stainless_cube")
+    rec = outcome_recording(outcome, rcfg, label=OBJECT)
     path = recording.save(rec, tmp_path / "p.press.npz")
     back = recording.load(path)
     x = preprocess.model_input(back.recv_time, preprocess.recording_units(back), back.t_stop)
@@ -96,7 +104,7 @@ async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
     lifts = {}
     for clearance in (0.0, 0.002, 0.02):
         press_cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=clearance))
-        async with SimRobot("stainless_cube", seed=1, cfg=press_cfg) as robot:
+        async with SimRobot(OBJECT, seed=1, cfg=press_cfg) as robot:
             rcfg, outcome, width = await press_once(robot, press_cfg)
         assert outcome.result == "ok", outcome.message
         states = dict(outcome.states)
@@ -115,7 +123,7 @@ async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
 async def test_a_gripper_lost_after_clearing_the_object_fails_the_press_saying_so():
     cfg = base_config()
     cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=0.002))
-    async with SimRobot("stainless_cube", seed=1, cfg=cfg) as robot:
+    async with SimRobot(OBJECT, seed=1, cfg=cfg) as robot:
         gripper_id = cfg.bus.gripper_id
 
         def on_state(state):

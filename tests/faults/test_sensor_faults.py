@@ -82,10 +82,13 @@ async def test_sensor_reconnecting_mid_press_is_survived_or_refused_safely(tmp_p
               f"{gap_ms:.0f} ms; episode {ep['status']}: {ep.get('error')}")
         assert stats.reconnects >= 1
         # Whatever the timing, the robot is safe and the answer is honest: either the
-        # client was back within stale_timeout_s and the press is whole, or it failed stale.
+        # client was back within stale_timeout_s and the press is whole, or it failed stale,
+        # or the stream came back after contact with the force already past the abort level
+        # (no stop can come while no frame does; seen with a 60 ms gap on a loaded host).
         assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
         if ep["status"] == "failed":
-            assert "stale" in ep["error"]
+            assert "stale" in ep["error"] or ep["error"].startswith(
+                "force far past the threshold"), ep["error"]
         else:
             assert ep["press"]["contact"]
             rec = recording.load(d.store.root / ep["id"] / "press.press.npz")
