@@ -50,8 +50,11 @@ async def start_press(d: Daemon, state: str) -> str:
     return ep["id"]
 
 
-async def next_press_works(robot: SimRobot, d: Daemon) -> dict:
+async def next_press_works(robot: SimRobot, d: Daemon, place: str | None = None) -> dict:
+    """A press after the fault works; ``place``: on this object (with the gripper open)."""
     await wait_health(d, True)
+    if place is not None:
+        robot.world.place(place)
     status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
     assert status == 200 and ep["status"] == "not_configured", ep
     assert ep["press"]["result"] == "ok"
@@ -168,7 +171,7 @@ async def test_motor_missing_at_daemon_start_process_exits_with_the_reason(tmp_p
 
 
 async def test_one_corrupted_status_packet_is_retried(tmp_path):
-    async with sim_daemon(tmp_path, "canele") as (robot, d):
+    async with sim_daemon(tmp_path) as (robot, d):
         episode = await start_press(d, "closing")
         await asyncio.sleep(0.1)  # past the close's writes: a read gets the bad packet
         robot.dxl.corrupt_crc(GRIPPER, 1)
@@ -224,7 +227,7 @@ async def test_stalled_host_trips_the_watchdog_mid_press_and_the_next_press_reco
         assert "stale" in ep["error"] or "Bus Watchdog has tripped" in ep["error"]
         # Opening found the trip, cleared it and opened; the next press re-arms all.
         assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
-        await next_press_works(robot, d)
+        await next_press_works(robot, d, place=QUICK_OBJECT)
         assert all(robot.dxl.get_register(i, "Bus Watchdog") == 15
                    for i in (11, 12, 13, 14, 15))
 
@@ -247,7 +250,7 @@ async def test_a_watchdog_trip_short_of_the_object_is_named_not_called_no_contac
         assert ep["status"] == "failed" and ep["press"]["result"] == "error"
         assert "Bus Watchdog has tripped on motors [15]" in ep["error"]
         assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
-        await next_press_works(robot, d)
+        await next_press_works(robot, d, place=QUICK_OBJECT)
 
 
 async def test_overload_shutdown_is_reported_and_further_presses_refused(tmp_path):
