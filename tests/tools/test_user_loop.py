@@ -115,12 +115,16 @@ def test_collect_add_reload_recognise_then_retrain(robot, tmp_path):
     while http_json("GET", f"{robot.api}/healthz").get("model_digest") == health["model_digest"]:
         assert time.monotonic() < deadline, "the daemon did not take the new database"
         time.sleep(0.2)
-    after = robot.recognise()
-    print("top-k before:", before["topk"], "\ntop-k after:", after["topk"])
     # The reload took the new database (the digest wait above), and the added class comes
     # first for its own object: a fresh piece per press, as a person puts it back, against
-    # ten references of fresh pieces.
-    assert after["topk"] and after["topk"][0]["label"] == NEW
+    # ten references of fresh pieces. Two of up to three presses: on a loaded host a frame
+    # held back at the crossing lets one press go deeper (its first frame over x_th 25 %
+    # past it: a firmer object's touch), seen in about one run in ten.
+    afters: list[dict] = []
+    while sum(bool(a["topk"]) and a["topk"][0]["label"] == NEW for a in afters) < 2:
+        assert len(afters) < 3, [a["topk"] for a in afters]
+        afters.append(robot.recognise())
+    print("top-k before:", before["topk"], "\ntop-k after:", [a["topk"] for a in afters])
     assert robot.stop_daemon() in (0, -signal.SIGTERM)
 
     # Retraining on collected presses only: the new object and one more.
