@@ -59,9 +59,7 @@ async def test_sensor_fault_mid_press_opens_and_refuses_until_fresh(tmp_path, fa
         robot.xela.fault = Fault.NONE
         await wait_health(d, True)
         if fault == "killed":  # (the same path for all three: one press shows it)
-            # A soft object: on a loaded host the canele's stiff crust can take the force past
-            # the abort level before the stop, which is not what this press is about.
-            robot.world.place(QUICK_OBJECT)
+            robot.world.place(QUICK_OBJECT)  # (the canele's stiff crust can abort it)
             status, ok = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
             assert status == 200 and ok["status"] == "not_configured"
             assert ok["press"]["contact"] and gripper_open(robot)

@@ -23,7 +23,7 @@ from edge.tools.collect import CollectReport, collect, collect_plan
 from edge.tools.plan import load_plan
 from edge.tools.stack import http_json
 from tests.support import processes
-from tests.support.daemon import CUBE, ROOT, Daemon, base_config, fast_config
+from tests.support.daemon import CUBE, QUICK_OBJECT, ROOT, Daemon, base_config, fast_config
 from tests.support.processes import COMMAND_TIMEOUT_S, VT_EDGE, Output, clean_env
 from tests.support.waits import wait_until
 
@@ -273,11 +273,8 @@ def test_ctrl_c_at_the_prompt_exits_at_once(sim_serve, tmp_path):
 
 @pytest.mark.asyncio
 async def test_collect_beside_the_daemon_is_refused_and_the_daemon_unaffected(tmp_path):
-    # A soft object: a rigid one's force can pass the abort level (25 x_th) before the stop
-    # on a loaded host, with the emulated robot in this process, which is not what this
-    # test is about.
     async with FakeVLM(model="fake-vlm") as fake, \
-            SimRobot("sponge_cube", seed=15, cfg=base_config()) as robot:
+            SimRobot(QUICK_OBJECT, seed=15, cfg=base_config()) as robot:
         fake.script(Reply(label="raw_kiri_mochi"), Reply(label="raw_kiri_mochi"))
         async with Daemon(robot, base_config(fake.base_url), tmp_path / "state") as d:
             status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
@@ -286,7 +283,7 @@ async def test_collect_beside_the_daemon_is_refused_and_the_daemon_unaffected(tm
             tomledit.update(ROOT / "configs" / "sim.toml", config, {
                 "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port}})
             proc = await asyncio.create_subprocess_exec(
-                *VT_EDGE, "collect", "--config", str(config), "--label", "sponge_cube",
+                *VT_EDGE, "collect", "--config", str(config), "--label", QUICK_OBJECT,
                 "--presses", "1", "--out", str(tmp_path / "data"), "--no-prompt", cwd=ROOT,
                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
             stdout, stderr = await asyncio.wait_for(proc.communicate(), COMMAND_TIMEOUT_S)

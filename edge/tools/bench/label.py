@@ -160,18 +160,22 @@ WAITED_FOR = ("answer_after_stop_s", "arm_back_after_stop_s", "label_after_stop_
 def label_phase(s: Settings, tmp: Path) -> PhaseResult:
     presses = s.label_presses
     rows, move_time_s = measure(s, tmp, presses)
+
+    def p50(key: str) -> float:
+        return stats([r[key] for r in rows])["p50"]
+
     figs = {
         "label_after_window_ms": figure(
             [r["label_after_window_ms"] for r in rows], "ms",
             target(("p50", "<=", AFTER_WINDOW_P50_MS), ("p99", "<=", AFTER_WINDOW_P99_MS)),
-            frame_wait_ms=stats([r["frame_wait_ms"] for r in rows])["p50"],
+            frame_wait_ms=p50("frame_wait_ms"),
             what="the press's crop window complete (the stop + its last sample's time) -> "
                  "its VLM request received by the fake VLM; the wait for the first frame at "
                  "or past that sample is in it (frame_wait_ms, p50)"),
         "trigger_to_label_s": figure(
             [r["trigger_to_label_s"] for r in rows], "s", None,
             move_time_s=move_time_s, vlm_latency_s=s.vlm_latency_s,
-            **{k: stats([r[k] for r in rows])["p50"] for k in WAITED_FOR},
+            **{k: p50(k) for k in WAITED_FOR},
             what="POST /v1/recognize -> the label's result event, arm moves as on the real "
                  "arm, fake VLM at a fixed latency; after the stop (p50): the VLM's answer, "
                  "the arm back above the object, the label, which waits for the later of "
