@@ -73,7 +73,10 @@ class SimRobot:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
-        await self.xela.stop()
+        try:
+            await self.xela.stop()
+        finally:
+            self.xela.release_port()
         self.dxl.stop()
 
     async def __aenter__(self) -> SimRobot:

@@ -20,6 +20,7 @@ import contextlib
 import enum
 import json
 import logging
+import socket
 import time
 from typing import Literal, Protocol, Self
 
@@ -194,6 +195,11 @@ class XelaServerEmulator:
         self._handlers: set[asyncio.Task[object]] = set()
         self._runner: web.AppRunner | None = None
         self._ticker: asyncio.Task[None] | None = None
+        # Between a stop() and the next start(), the port stays bound (not listening), so
+        # that a client sees the server gone (connection refused) while no other server on
+        # the host can be given the port: the kernel hands out a port that any socket holds
+        # to nobody else, so a restart serves the clients' URL again, not a stranger's.
+        self._reserved: socket.socket | None = None
 
     @property
     def port(self) -> int:
@@ -214,9 +220,10 @@ class XelaServerEmulator:
             app, access_log=None, handle_signals=False, shutdown_timeout=_CLOSE_TIMEOUT_S
         )
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self._host, self._port)
-        await site.start()
-        self._port = self._runner.addresses[0][1]
+        sock, self._reserved = self._reserved or self._bind(), None
+        site = web.SockSite(self._runner, sock)
+        await site.start()  # listens on the socket itself: no moment with the port free
+        self._port = sock.getsockname()[1]
         if self._replay is not None:
             ticks = self._replay_loop()
             log.info(
@@ -238,8 +245,24 @@ class XelaServerEmulator:
             )
         self._ticker = asyncio.create_task(ticks, name=f"xela-emulator:{self._port}")
 
+    def _bind(self) -> socket.socket:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            self._host, self._port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+        sock = socket.socket(family, kind, proto)
+        try:
+            # As a listening server would: the last run's closed connections in TIME_WAIT
+            # must not keep the restart off its port.
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind(address)
+        except OSError:
+            sock.close()
+            raise
+        return sock
+
     async def stop(self) -> None:
-        """Stop ticking, close every connection, free the port. Idempotent."""
+        """Stop ticking and close every connection. Idempotent. The port is kept for a
+        ``start()`` (clients meanwhile are refused); leaving the context frees it."""
         ticker, self._ticker = self._ticker, None
         failure: Exception | None = None
         if ticker is not None:
@@ -255,6 +278,8 @@ class XelaServerEmulator:
         runner, self._runner = self._runner, None
         if runner is not None:
             await runner.cleanup()
+            if self._reserved is None:
+                self._reserved = self._bind()
         if failure is not None:
             raise failure
 
@@ -263,7 +288,16 @@ class XelaServerEmulator:
         return self
 
     async def __aexit__(self, *exc_info: object) -> None:
-        await self.stop()
+        try:
+            await self.stop()
+        finally:
+            self.release_port()
+
+    def release_port(self) -> None:
+        """Free the port kept by ``stop()``."""
+        reserved, self._reserved = self._reserved, None
+        if reserved is not None:
+            reserved.close()
 
     async def drop_connections(self, *, abrupt: bool = False) -> None:
         """Close every client connection (``abrupt``: reset TCP, no close handshake)."""

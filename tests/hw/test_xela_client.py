@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -185,6 +186,7 @@ async def test_reconnects_with_backoff_after_server_restart(
         async with XelaServerEmulator(port=port) as second:
             frame = await next_frame(client, STARTUP_TIMEOUT_S, after=time.monotonic())
             assert frame.seq >= 1 and second.clients == 1
+        first.release_port()
         stats = client.stats
     attempts = [r for r in caplog.records if "failed" in r.getMessage()]
     warned = [r for r in attempts if r.levelno >= logging.WARNING]
@@ -292,9 +294,32 @@ async def test_nobody_listening_reads_as_stale_not_a_hang() -> None:
             async for _ in client.frames(first_timeout_s=0.3):
                 pass
         waited = time.monotonic() - t0
+    srv.release_port()
     print(f"\n  no server: StaleSensorError after {waited * 1e3:.0f} ms")
     assert waited < 2.0
     assert issubclass(StaleSensorError, SensorError) and issubclass(StaleSensorError, TimeoutError)
+
+
+@pytest.mark.asyncio
+async def test_a_stopped_emulator_refuses_clients_and_keeps_its_port_for_the_restart() -> None:
+    # Tests stop and restart the sensor server under a running client; meanwhile a server of
+    # another test (port 0) once took the port, and the client reached a stranger.
+    async with XelaServerEmulator(port=0) as srv:
+        port = srv.port
+        await srv.stop()
+        with pytest.raises(ConnectionRefusedError):
+            await asyncio.open_connection("127.0.0.1", port)
+        taken = socket.socket()
+        with pytest.raises(OSError, match="in use"):
+            taken.bind(("127.0.0.1", port))  # as any other server's bind would be
+        taken.close()
+        await srv.start()
+        assert srv.port == port
+        async with XelaClient(config_for(srv)) as client:
+            assert (await next_frame(client, STARTUP_TIMEOUT_S)).seq >= 1
+    free = socket.socket()
+    free.bind(("127.0.0.1", port))  # the context's exit frees it
+    free.close()
 
 
 class WrongShapeSource:
@@ -309,6 +334,7 @@ async def test_emulator_with_a_broken_source_fails_loudly_at_stop() -> None:
     await asyncio.sleep(0.05)
     with pytest.raises(ValueError, match="need uint16"):
         await srv.stop()
-    await srv.stop()  # idempotent, and the port is free again
+    await srv.stop()  # idempotent
+    srv.release_port()
     await asyncio.sleep(0)
     assert not asyncio.all_tasks() - {asyncio.current_task()}
