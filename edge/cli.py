@@ -76,6 +76,9 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from edge.daemon import forkserver
+
+    forkserver.start()  # its imports beside the daemon's below (edge/daemon/forkserver.py)
     from edge.daemon.serve import run
 
     return run(args.config)

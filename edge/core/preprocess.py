@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 from edge.core.errors import PreprocessError
 
@@ -148,6 +147,10 @@ def subsample(window: np.ndarray, offset: int, spec: WindowSpec = DEFAULT_WINDOW
 
 def smooth(window: np.ndarray, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
     """Gaussian smoothing along time (edges padded with their nearest sample)."""
+    # Imported here: scipy.ndimage takes a third of a second to import, and the daemon's
+    # own process never smooths (its compute process, which does, preloads it).
+    from scipy.ndimage import gaussian_filter1d
+
     return gaussian_filter1d(window, spec.sigma_samples, axis=0, mode="nearest",
                              truncate=GAUSSIAN_TRUNCATE)
 

@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import io
 import logging
-import multiprocessing
 import os
 import select
 import signal
@@ -39,6 +38,7 @@ import numpy as np
 from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ModelError
 from edge.core.model import Model, ModelRef, load_model
+from edge.daemon import forkserver
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +75,8 @@ class ComputeWorker:
         await asyncio.wait_for(self.run(_ready), START_TIMEOUT_S)
 
     def _new_pool(self) -> ProcessPoolExecutor:
-        ctx = multiprocessing.get_context("forkserver")
-        # Imported once by the server; each worker is a fork of it (no effect once running).
-        # The images module (Pillow): the photo is prepared there too.
-        ctx.set_forkserver_preload([__name__, "onnxruntime", "edge.vlm.images"])
-        return ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker,
+        return ProcessPoolExecutor(max_workers=1, mp_context=forkserver.context(),
+                                   initializer=_init_worker,
                                    initargs=(os.getpid(),))
 
     async def run(self, fn: Callable[..., T], *args: Any) -> T:
