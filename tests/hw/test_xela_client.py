@@ -12,6 +12,7 @@ import time
 from collections.abc import AsyncIterator
 from typing import Any
 
+import aiohttp
 import numpy as np
 import pytest
 import pytest_asyncio
@@ -331,10 +332,30 @@ class WrongShapeSource:
 async def test_emulator_with_a_broken_source_fails_loudly_at_stop() -> None:
     srv = XelaServerEmulator(WrongShapeSource(), port=0)
     await srv.start()
-    await asyncio.sleep(0.05)
-    with pytest.raises(ValueError, match="need uint16"):
-        await srv.stop()
+    # A client: the emulator renders no frame that nobody receives.
+    async with aiohttp.ClientSession() as session, session.ws_connect(srv.url):
+        await asyncio.sleep(0.05)
+        with pytest.raises(ValueError, match="need uint16"):
+            await srv.stop()
     await srv.stop()  # idempotent
     srv.release_port()
     await asyncio.sleep(0)
     assert not asyncio.all_tasks() - {asyncio.current_task()}
+
+
+@pytest.mark.asyncio
+async def test_the_emulator_renders_frames_only_while_a_client_listens() -> None:
+    class Counting:
+        calls = 0
+
+        def frame(self, t: float) -> np.ndarray:
+            Counting.calls += 1
+            return np.zeros(96, dtype=np.uint16)
+
+    async with XelaServerEmulator(Counting(), port=0) as srv:
+        await asyncio.sleep(0.1)
+        assert Counting.calls == 0 and srv.frames_sent == 0
+        async with XelaClient(config_for(srv)) as client:
+            first = await next_frame(client, STARTUP_TIMEOUT_S)
+            await asyncio.sleep(0.1)
+        assert Counting.calls >= 5 and first.seq >= 1
