@@ -27,7 +27,7 @@ from tests.support.waits import free_port, wait_until_sync
 # none is rigid enough to overshoot to the abort level on a loaded host.
 REFERENCE = ("otedama", "foam_ball", "sponge_cube", "marshmallow")
 TEST = ("melon_pan", "cream_puff")
-PRESSES = 3
+PRESSES = 2
 REFERENCE_PLAN = f"""
 [dataset]
 name = "lab_reference"
