@@ -181,13 +181,17 @@ async def test_real_daemon_killed_9_while_writing_then_restarted(tmp_path):
         cfg = robot.runtime_config(base_config())
 
         async def start() -> asyncio.subprocess.Process:
-            proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "edge", "run", "--config", str(run_cfg), cwd=ROOT,
-                env=env, stderr=subprocess.DEVNULL)
+            # Its stderr into a file: a start that fails says why in the assertion.
+            log = tmp_path / f"daemon-{len(list(tmp_path.glob('daemon-*.log')))}.log"
+            with log.open("wb") as err:
+                proc = await asyncio.create_subprocess_exec(
+                    sys.executable, "-m", "edge", "run", "--config", str(run_cfg), cwd=ROOT,
+                    env=env, stderr=err)
             deadline = time.monotonic() + 60
             async with aiohttp.ClientSession() as http:
                 while True:
-                    assert proc.returncode is None and time.monotonic() < deadline
+                    assert proc.returncode is None and time.monotonic() < deadline, \
+                        (proc.returncode, log.read_text()[-2000:])
                     try:
                         async with http.get(api + "/healthz") as resp:
                             if resp.status == 200:

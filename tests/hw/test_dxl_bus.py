@@ -26,6 +26,7 @@ from edge.hw.dynamixel import (
     BlockingPortHandler,
     DynamixelBus,
 )
+from edge.hw.dynamixel.port import PTY_LATENCY_TIMER_MS
 from edge.sim.dxl_emulator import INST_READ, INST_SYNC_READ, INST_WRITE, DxlEmulator
 from tests.support.waits import wait_until
 
@@ -155,6 +156,13 @@ async def test_latency_timer_warning_names_the_udev_rule(emu, tmp_path, caplog):
             pass
     assert "latency timer" not in caplog.text
     assert made[1].latency_timer_ms == 1.0
+    # No latency timer, and a pseudo-terminal (the emulated robot): its replies are waited
+    # for longer than a motor's.
+    (tmp_path / tty / "latency_timer").unlink()
+    async with DynamixelBus(BusConfig(port=emu.port), port_handler_factory=factory,
+                            latency_timer_dir=tmp_path):
+        pass
+    assert made[2].latency_timer_ms == PTY_LATENCY_TIMER_MS
 
 
 # ------------------------------------------------------------------ reads, writes, errors
@@ -338,7 +346,8 @@ async def test_a_late_reply_is_never_taken_for_the_next_answer(emu, bus):
     # arrive. Motor 15's 10-byte sync-read status must not be taken for its answer to a
     # 4-byte READ of Present Position: that reads as a wild position, and a stop computed
     # from it is a wild goal.
-    emu.reply_latency_s = 0.05  # past the SDK's ~34 ms packet timeout
+    # Past the packet timeout on a pty (about 2 x PTY_LATENCY_TIMER_MS).
+    emu.reply_latency_s = 2 * PTY_LATENCY_TIMER_MS / 1000 + 0.05
     with pytest.raises(MotorError):
         await bus.read_state()
     emu.reply_latency_s = 0.0

@@ -15,7 +15,7 @@ from edge.core.config import BusConfig
 from edge.core.errors import MotorError
 from edge.hw.dynamixel import DynamixelBus
 from edge.hw.dynamixel.executor import STOP_HANDOVER_MAX_S, ThreadExecutor
-from edge.hw.dynamixel.port import BlockingPortHandler
+from edge.hw.dynamixel.port import PTY_LATENCY_TIMER_MS, BlockingPortHandler
 from edge.hw.dynamixel.stop import StopPacket
 from edge.hw.dynamixel.transactions import GOAL_POSITION
 from edge.sim.dxl_emulator import INST_WRITE, DxlEmulator
@@ -91,10 +91,12 @@ async def test_stop_flushes_only_when_a_reply_may_be_left(caplog):
             await asyncio.sleep(0.02)  # past STOP_STATE_SETTLE_S after that goal
             await bus.read_state()
             # A read the motor answers too late: its reply lands on the input afterwards.
-            emu.reply_latency_s = 0.06
+            # (Past the packet timeout on a pty, about 2 x PTY_LATENCY_TIMER_MS.)
+            late_s = 2 * PTY_LATENCY_TIMER_MS / 1000 + 0.05
+            emu.reply_latency_s = late_s
             with pytest.raises(MotorError, match="no status packet"):
                 await bus.read(gid, "Present Position")
-            await asyncio.sleep(0.1)
+            await asyncio.sleep(late_s)
             emu.reply_latency_s = 0.0
             mark = len(emu.received)
             flushes = _CountingPort.flushes

@@ -25,6 +25,13 @@ LATENCY_TIMER_UDEV_RULE = (
 )
 # What the SDK's packet timeouts assume (dynamixel_sdk.port_handler.LATENCY_TIMER).
 SDK_LATENCY_TIMER_MS = 16.0
+# A pseudo-terminal is no USB adapter: what answers on it (the emulated robot, or a bridge to
+# a bus elsewhere) is a process sharing the host or a network, whose reply can come tens of
+# milliseconds late on a busy host. A daemon started beside a loaded test run once missed
+# the SDK's 34 ms wait twice on one read and refused to start. Replies on a pty are waited
+# for as through a 100 ms latency timer (about 0.2 s a packet); a missing motor takes that
+# much longer to name.
+PTY_LATENCY_TIMER_MS = 100.0
 # Past the SDK's packet deadline, so the SDK's own timeout check fires after our wait.
 _READ_DEADLINE_SLACK_S = 0.0002
 # Status packet offsets (dynamixel_sdk.protocol2_packet_handler).
