@@ -279,7 +279,11 @@ class XelaServerEmulator:
         if runner is not None:
             await runner.cleanup()
             if self._reserved is None:
-                self._reserved = self._bind()
+                try:
+                    self._reserved = self._bind()
+                except OSError as exc:  # taken in the moment it was free
+                    log.warning("XELA emulator: cannot keep port %d for a restart: %s",
+                                self._port, exc)
         if failure is not None:
             raise failure
 
