@@ -147,8 +147,8 @@ def subsample(window: np.ndarray, offset: int, spec: WindowSpec = DEFAULT_WINDOW
 
 def smooth(window: np.ndarray, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
     """Gaussian smoothing along time (edges padded with their nearest sample)."""
-    # Imported here: scipy.ndimage takes a third of a second to import, and the daemon's
-    # own process never smooths (its compute process, which does, preloads it).
+    # Imported here: scipy.ndimage takes a third of a second to import, and only training
+    # smooths (the model input never is), so the daemon's processes need not pay for it.
     from scipy.ndimage import gaussian_filter1d
 
     return gaussian_filter1d(window, spec.sigma_samples, axis=0, mode="nearest",

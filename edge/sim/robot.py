@@ -73,10 +73,7 @@ class SimRobot:
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
-        try:
-            await self.xela.stop()
-        finally:
-            self.xela.release_port()
+        await self.xela.stop(keep_port=False)
         self.dxl.stop()
 
     async def __aenter__(self) -> SimRobot:

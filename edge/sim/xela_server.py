@@ -260,9 +260,10 @@ class XelaServerEmulator:
             raise
         return sock
 
-    async def stop(self) -> None:
-        """Stop ticking and close every connection. Idempotent. The port is kept for a
-        ``start()`` (clients meanwhile are refused); leaving the context frees it."""
+    async def stop(self, *, keep_port: bool = True) -> None:
+        """Stop ticking and close every connection. Idempotent. ``keep_port``: the port is
+        kept for a ``start()`` (clients meanwhile are refused); otherwise it is freed, as
+        leaving the context does."""
         ticker, self._ticker = self._ticker, None
         failure: Exception | None = None
         if ticker is not None:
@@ -278,12 +279,14 @@ class XelaServerEmulator:
         runner, self._runner = self._runner, None
         if runner is not None:
             await runner.cleanup()
-            if self._reserved is None:
+            if keep_port:  # (start() took any earlier reservation)
                 try:
                     self._reserved = self._bind()
                 except OSError as exc:  # taken in the moment it was free
                     log.warning("XELA emulator: cannot keep port %d for a restart: %s",
                                 self._port, exc)
+        if not keep_port:
+            self.release_port()
         if failure is not None:
             raise failure
 
@@ -292,10 +295,7 @@ class XelaServerEmulator:
         return self
 
     async def __aexit__(self, *exc_info: object) -> None:
-        try:
-            await self.stop()
-        finally:
-            self.release_port()
+        await self.stop(keep_port=False)
 
     def release_port(self) -> None:
         """Free the port kept by ``stop()``."""

@@ -181,9 +181,10 @@ async def test_real_daemon_killed_9_while_writing_then_restarted(tmp_path):
         cfg = robot.runtime_config(base_config())
 
         async def start() -> asyncio.subprocess.Process:
-            # Its stderr into a file: a start that fails says why in the assertion.
-            log = tmp_path / f"daemon-{len(list(tmp_path.glob('daemon-*.log')))}.log"
-            with log.open("wb") as err:
+            # Its stderr into a file (both starts'): a start that fails says why in the
+            # assertion.
+            log = tmp_path / "daemon.log"
+            with log.open("ab") as err:
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, "-m", "edge", "run", "--config", str(run_cfg), cwd=ROOT,
                     env=env, stderr=err)

@@ -337,8 +337,7 @@ async def test_emulator_with_a_broken_source_fails_loudly_at_stop() -> None:
         await asyncio.sleep(0.05)
         with pytest.raises(ValueError, match="need uint16"):
             await srv.stop()
-    await srv.stop()  # idempotent
-    srv.release_port()
+    await srv.stop(keep_port=False)  # idempotent
     await asyncio.sleep(0)
     assert not asyncio.all_tasks() - {asyncio.current_task()}
 
