@@ -13,7 +13,7 @@ from edge.hw.arm import gripper_raw
 from edge.sim.catalogue import names
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from tests.support.daemon import CUBE, Daemon, base_config
+from tests.support.daemon import CUBE, OPEN_WIDTH_M, Daemon, base_config
 
 
 @pytest.mark.asyncio
@@ -93,7 +93,7 @@ async def test_sensor_dies_mid_press_gripper_opens_daemon_keeps_serving(tmp_path
             await robot.xela.stop()  # the sensor server dies mid-press
             failed = await d.wait_status(ep["id"], {"failed"})
             assert "stale" in failed["error"]
-            assert robot.dxl.true_position(15) > gripper_raw(0.008) - 20  # gripper opened
+            assert robot.dxl.true_position(15) > gripper_raw(OPEN_WIDTH_M) - 20  # gripper opened
             status, health = await d.get("/healthz")
             assert status == 503 and health["state"] == "idle"  # serving, says why
             status, refused = await d.post("/v1/recognize", {"candidates": CUBE,
