@@ -155,3 +155,8 @@ class BadRequest(EdgeError, ValueError):
 
 class StartError(EdgeError, RuntimeError):
     """The daemon cannot start; the message is the one line a person needs to fix it."""
+
+
+class PressRefusedError(EdgeError, RuntimeError):
+    """A press stopped before the gripper closed: what it found makes the press meaningless
+    (the object already touches the fingers)."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from edge.core import preprocess, recording
 from edge.core.config import Config
-from edge.core.errors import DeviceError, EdgeError, StaleSensorError
+from edge.core.errors import DeviceError, EdgeError, PressRefusedError, StaleSensorError
 from edge.core.layout import PadLayout
 from edge.core.tasks import cancel_and_wait
 from edge.daemon.ring import FrameRing, Window
@@ -56,6 +56,9 @@ OPEN_TRIES = 3
 # With press.lift_clearance_m: the fraction of x_th the pads read under once the fingers
 # have left the object.
 CLEAR_LEVEL_FRACTION = 0.5
+# The pads' reading with the arm above the object, the fingers free, over this long: what
+# the tare at the object is checked against before the gripper closes.
+FREE_WINDOW_S = 0.1
 # After the press, how long the recording waits for a late stream to cover its window.
 STREAM_CATCH_UP_S = 1.0
 
@@ -254,10 +257,12 @@ class PressController:
             await self.open_gripper()
             moved = True
             await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+            free = self._pads_now()
             self._enter(outcome, PressState.LOWERED)
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, PressState.TARE)
             outcome.tare = await self._tare()
+            self._check_untouched(free, outcome.tare)
             press = self.cfg.press
             armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
             self._armed = armed
@@ -369,6 +374,30 @@ class PressController:
             raise StaleSensorError(
                 f"tactile stream is stale (last frame {age:.2f} s ago): not pressing; check "
                 "that xela_server runs and the pads are connected")
+
+    def _pads_now(self) -> np.ndarray | None:
+        """The pads' mean over the last ``FREE_WINDOW_S`` (the arm above the object, the
+        fingers free); None with too few frames to tell (the tare then stands alone)."""
+        now = self.clock()
+        window = self.ring.window(now - FREE_WINDOW_S, now)
+        return preprocess.tare(window.raw) if len(window.raw) >= 3 else None
+
+    def _check_untouched(self, free: np.ndarray | None, tare: np.ndarray) -> None:
+        """Refuse to close when lowering the arm alone moved the pads as far as contact
+        (x_th): the object already touches the fingers, the press would take its tare on
+        it and stop on nothing, and the gripper would never let go of it."""
+        if free is None:
+            return
+        level = float(preprocess.norm(preprocess.to_units(tare, free)))
+        log.debug("lowering the arm moved the pads by a norm of %.5f (x_th %s)", level,
+                  self.cfg.press.x_th)
+        if level >= self.cfg.press.x_th:
+            raise PressRefusedError(
+                f"not closing: the pads read contact before the gripper closed (norm "
+                f"{level:.4f} >= x_th {self.cfg.press.x_th} against their reading above the "
+                "object): the object touched the fingers as the arm lowered. It is wider "
+                f"than the open gripper (press.open_width_m = {self.cfg.press.open_width_m} "
+                "m) or off centre: widen open_width_m or centre the object")
 
     async def _tare(self) -> np.ndarray:
         tare_s = self.cfg.press.tare_s

@@ -13,6 +13,7 @@ from edge.daemon.devices import enable_torque, open_devices
 from edge.daemon.press import PressController, outcome_recording
 from edge.daemon.ring import FrameRing
 from edge.daemon.sensor import SensorTask
+from edge.daemon.state import PressResult, PressState
 from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
@@ -74,6 +75,28 @@ async def test_press_stops_on_the_threshold_and_records(tmp_path):
     level = preprocess.norm(preprocess.recording_units(back))
     assert level.max() > rcfg.press.x_th and level[-1] < rcfg.press.x_th
     assert len(back.gripper_time) > 10
+
+
+@pytest.mark.asyncio
+async def test_a_piece_that_touches_the_fingers_as_the_arm_lowers_is_not_closed_on():
+    # A press.open_width_m narrower than the object (a 28 mm gap, a 34 mm melon pan): the
+    # piece comes between the fingers as the arm lowers (put there as the arm starts down).
+    cfg = base_config()
+    cfg = replace(cfg, press=replace(cfg.press, open_width_m=0.004))
+    async with SimRobot("chocolate", seed=1, cfg=cfg) as robot:
+        def on_state(state):
+            if state == PressState.LOWERED:
+                robot.world.place("melon_pan")
+
+        rcfg, outcome, width = await press_once(robot, cfg, on_state)
+    print(outcome.message)
+    assert outcome.result == PressResult.ERROR
+    assert "not closing: the pads read contact before the gripper closed" in outcome.message
+    assert "press.open_width_m = 0.004" in outcome.message
+    states = [state for state, _ in outcome.states]
+    assert PressState.CLOSING not in states and states[-2:] == [PressState.RETURNING,
+                                                                 PressState.IDLE]
+    assert width == pytest.approx(rcfg.press.open_width_m, abs=0.001)
 
 
 @pytest.mark.asyncio
