@@ -74,6 +74,9 @@ class PressOutcome:
     peak_level: float = 0.0
     level_at_cross: float = 0.0
     tare: np.ndarray | None = None
+    # How far lowering the arm moved the pads (the norm of the tare against their reading
+    # above the object); None without a reading above it.
+    lowering_level: float | None = None
     # The frames around the stop: handed over (``run``'s window_ready) through the first
     # frame at or past the crop's last sample; once the press has ended, the whole recording
     # (its margins too).
@@ -262,7 +265,7 @@ class PressController:
             await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
             self._enter(outcome, PressState.TARE)
             outcome.tare = await self._tare()
-            self._check_untouched(free, outcome.tare)
+            self._check_untouched(outcome, free)
             press = self.cfg.press
             armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
             self._armed = armed
@@ -382,13 +385,14 @@ class PressController:
         window = self.ring.window(now - FREE_WINDOW_S, now)
         return preprocess.tare(window.raw) if len(window.raw) >= 3 else None
 
-    def _check_untouched(self, free: np.ndarray | None, tare: np.ndarray) -> None:
+    def _check_untouched(self, outcome: PressOutcome, free: np.ndarray | None) -> None:
         """Refuse to close when lowering the arm alone moved the pads as far as contact
         (x_th): the object already touches the fingers, the press would take its tare on
         it and stop on nothing, and the gripper would never let go of it."""
-        if free is None:
+        if free is None or outcome.tare is None:
             return
-        level = float(preprocess.norm(preprocess.to_units(tare, free)))
+        level = float(preprocess.norm(preprocess.to_units(outcome.tare, free)))
+        outcome.lowering_level = level
         log.debug("lowering the arm moved the pads by a norm of %.5f (x_th %s)", level,
                   self.cfg.press.x_th)
         if level >= self.cfg.press.x_th:

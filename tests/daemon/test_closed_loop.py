@@ -93,6 +93,7 @@ async def test_a_piece_that_touches_the_fingers_as_the_arm_lowers_is_not_closed_
     assert outcome.result == PressResult.ERROR
     assert "not closing: the pads read contact before the gripper closed" in outcome.message
     assert "press.open_width_m = 0.004" in outcome.message
+    assert outcome.lowering_level >= rcfg.press.x_th
     states = [state for state, _ in outcome.states]
     assert PressState.CLOSING not in states and states[-2:] == [PressState.RETURNING,
                                                                  PressState.IDLE]

@@ -53,6 +53,16 @@ def test_every_object_is_free_of_the_open_fingers(config):
     assert widest.width_m + 5 * widest.width_sd_m < gap
 
 
+def test_lowering_the_arm_leaves_the_pads_far_under_x_th():
+    # The press refuses to close where lowering the arm alone moves the pads by x_th (the
+    # object already touches the fingers): never so for a piece that fits, the widest ones
+    # included.
+    levels = {name: press(name, seed=seed).outcome.lowering_level
+              for seed, name in enumerate(("melon_pan", "cream_puff", "cotton_ball", "canele"))}
+    print("lowering moved the pads by", {n: round(v, 5) for n, v in levels.items()})
+    assert all(0 < level < 0.25 * 0.004 for level in levels.values())
+
+
 def test_unknown_object_is_named():
     with pytest.raises(KeyError, match="unknown object 'brick'"):
         catalogue.get("brick")
