@@ -59,8 +59,10 @@ def test_lowering_the_arm_leaves_the_pads_far_under_x_th():
     # included.
     levels = {name: press(name, seed=seed).outcome.lowering_level
               for seed, name in enumerate(("melon_pan", "cream_puff", "cotton_ball", "canele"))}
-    print("lowering moved the pads by", {n: round(v, 5) for n, v in levels.items()})
-    assert all(0 < level < 0.25 * 0.004 for level in levels.values())
+    x_th = load_config(ROOT / "configs" / "sim.toml").press.x_th
+    print("lowering moved the pads by", {n: round(v, 5) for n, v in levels.items()},
+          "x_th", x_th)
+    assert all(0 < level < 0.25 * x_th for level in levels.values())
 
 
 def test_unknown_object_is_named():
