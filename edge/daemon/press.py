@@ -101,6 +101,7 @@ class PressOutcome:
             level_at_cross=self.level_at_cross,
             peak_squeeze_ma=max((s.squeeze_ma for s in self.gripper_trace), default=None),
             states=tuple(self.states),
+            lowering_level=self.lowering_level,
         )
 
 

@@ -55,10 +55,12 @@ class PressSummary:
          "peak_level": float,             # the highest norm over the tare
          "level_at_cross": float,         # the norm of the frame that crossed x_th
          "peak_squeeze_ma": float | null, # the highest gripper current traced
-         "states": [[state, t], ...]}     # every state entered, in order (s)
+         "states": [[state, t], ...],     # every state entered, in order (s)
+         "lowering_level": float | null}  # the norm lowering the arm moved the pads by
 
     Times are on the daemon's monotonic clock. Keys this version does not know (written by
-    a newer one) are carried through in ``extra``, as the episode's are.
+    a newer one) are carried through in ``extra``, as the episode's are; ``lowering_level``,
+    which older episodes lack, reads as null there.
     """
 
     result: PressResult
@@ -71,6 +73,7 @@ class PressSummary:
     level_at_cross: float
     peak_squeeze_ma: float | None
     states: tuple[tuple[PressState, float], ...]
+    lowering_level: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def entered(self, state: PressState) -> float | None:
@@ -91,7 +94,7 @@ class PressSummary:
         is not one."""
         if not isinstance(data, dict):
             raise StoreError(f"{where}: not a JSON object")
-        missing = [k for k in _PRESS_KEYS if k not in data]
+        missing = [k for k in _REQUIRED_PRESS_KEYS if k not in data]
         if missing:
             raise StoreError(f"{where}: missing {', '.join(missing)}")
         try:
@@ -104,7 +107,8 @@ class PressSummary:
         except (TypeError, ValueError):
             raise StoreError(f"{where}: 'states' must be a list of [state, time] with a "
                              "state of " + ", ".join(PressState)) from None
-        return cls(**{k: data[k] for k in _PRESS_KEYS} | {"result": result, "states": states},
+        return cls(**{k: data[k] for k in _PRESS_KEYS if k in data}
+                   | {"result": result, "states": states},
                    extra={k: v for k, v in data.items() if k not in _PRESS_KEYS})
 
     @classmethod
@@ -118,6 +122,10 @@ class PressSummary:
 
 
 _PRESS_KEYS = tuple(f.name for f in dataclasses.fields(PressSummary) if f.name != "extra")
+# What an episode written by any version holds (the others have a default).
+_REQUIRED_PRESS_KEYS = tuple(f.name for f in dataclasses.fields(PressSummary)
+                             if f.default is dataclasses.MISSING
+                             and f.default_factory is dataclasses.MISSING)
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,8 @@ def test_the_docstring_documents_every_field(cls):
 
 def _outcome() -> PressOutcome:
     outcome = PressOutcome(result=PressResult.OK, t_cross=10.25, t_stop=10.2503,
-                           stop_latency_s=0.0003, peak_level=0.0051, level_at_cross=0.0042)
+                           stop_latency_s=0.0003, peak_level=0.0051, level_at_cross=0.0042,
+                           lowering_level=0.0004)
     outcome.gripper_trace = [GripperState(10.1, 0.03, 40.0, 1900),
                              GripperState(10.3, 0.02, 95.5, 2000)]
     outcome.states = [(PressState.ABOVE, 8.0), (PressState.CLOSING, 9.5),
@@ -99,11 +100,19 @@ def test_the_summary_on_the_wire_is_the_plain_json_it_always_was():
         "result": "ok", "message": "", "contact": True, "t_cross": 10.25, "t_stop": 10.2503,
         "stop_latency_ms": pytest.approx(0.3), "peak_level": 0.0051, "level_at_cross": 0.0042,
         "peak_squeeze_ma": 95.5,
-        "states": [["above", 8.0], ["closing", 9.5], ["idle", 12.0]]}
+        "states": [["above", 8.0], ["closing", 9.5], ["idle", 12.0]], "lowering_level": 0.0004}
     assert list(wire) == [f.name for f in dataclasses.fields(PressSummary)][:-1]
     back = PressSummary.from_json(wire)
     assert back == summary and back.result is PressResult.OK
     assert back.entered(PressState.CLOSING) == 9.5 and back.entered(PressState.HOLDING) is None
+
+
+def test_a_press_stored_before_the_lowering_check_reads_without_its_level():
+    wire = _outcome().summary().to_json()
+    del wire["lowering_level"]
+    press = PressSummary.from_json(wire)
+    assert press.lowering_level is None and press.extra == {}
+    assert press.to_json()["lowering_level"] is None
 
 
 def test_an_episode_keeps_its_press_typed_and_carries_unknown_keys():
