@@ -86,6 +86,10 @@ class McapRecorder:
         self._after = 0
         self._in_segment = 0  # frames the open segment holds
         self._unwritten = 0  # frames lost since the last batch sent, not counted in one yet
+        # The batch handed to the writer and not yet answered, with its row count: a
+        # shutdown waits for it rather than cutting it off (cancelled before the writer
+        # began it, its rows would be in no segment and counted nowhere).
+        self._appending: tuple[asyncio.Future[None], int] | None = None
 
     async def run(self) -> None:
         from edge.daemon.compute import ComputeWorker
@@ -115,12 +119,16 @@ class McapRecorder:
                         log.info("recording the live stream to %s", self.directory)
                     await asyncio.sleep(FLUSH_PERIOD_S)
                     batch = self._batch()
-                    await worker.run(segment_append, batch)
+                    appending = asyncio.ensure_future(worker.run(segment_append, batch))
+                    self._appending = (appending, len(batch.rows))
+                    await asyncio.shield(appending)
+                    self._appending = None
                     self._in_segment += len(batch.rows)
                     if time.monotonic() - started >= self.segment_s:
                         opened = False
                         self._done(await worker.run(segment_close))
                 except EdgeError as exc:  # the writer died (ComputeError) or the disk failed
+                    self._appending = None
                     log.error("live MCAP recording: %s; a new segment in %.0f s", exc,
                               RETRY_S)
                     opened = False
@@ -153,7 +161,15 @@ class McapRecorder:
         return Batch(rows, events, self.runtime.cfg.sensor.pads, lost)
 
     async def _close(self, worker: Any) -> None:
-        """What arrived since the last flush, then the segment completed."""
+        """The batch still being appended, what arrived since, then the segment completed."""
+        if self._appending is not None:
+            (appending, rows), self._appending = self._appending, None
+            try:
+                await appending
+                self._in_segment += rows
+            except EdgeError as exc:
+                log.error("live MCAP recording: the last batch was not written: %s", exc)
+                self._unwritten += rows
         self._done(await worker.run(segment_finish, self._batch()))
 
     def _done(self, path: str | None) -> None:

@@ -198,11 +198,13 @@ class _Runtime:
 class _Writer:
     """The real writer process with a fault injected at one call: ``hold`` answers the call
     never (done in the writer, its reply held back, as when a cancellation meets it in
-    flight); ``fail`` refuses it as a full disk does."""
+    flight); ``fail`` refuses it as a full disk does; ``late`` reaches the writer only
+    after a while (queued behind other work)."""
 
-    def __init__(self, worker, hold=None, fail=None):
-        self.worker, self.hold, self.fail = worker, hold, fail
+    def __init__(self, worker, hold=None, fail=None, late=None):
+        self.worker, self.hold, self.fail, self.late = worker, hold, fail, late
         self.held = asyncio.Event()
+        self.queued = asyncio.Event()
 
     async def run(self, fn, *args):
         from edge.core.errors import EdgeError
@@ -210,6 +212,10 @@ class _Writer:
         if fn is self.fail:
             self.fail = None
             raise EdgeError("live MCAP recording: cannot write: No space left on device")
+        if fn is self.late:
+            self.late = None
+            self.queued.set()
+            await asyncio.sleep(0.3)
         result = await self.worker.run(fn, *args)
         if fn is self.hold:
             self.held.set()
@@ -234,6 +240,30 @@ async def test_live_recording_stopped_while_a_segment_opens_completes_it(tmp_pat
     [path] = tmp_path.iterdir()  # whole, renamed: no .tmp left behind
     messages, _, metadata, _ = read_mcap(path)
     assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(40))
+    assert int(metadata["vtzero"]["frames_lost"]) == 0
+
+
+@pytest.mark.asyncio
+async def test_live_recording_stopped_before_a_write_began_keeps_its_frames(tmp_path):
+    # The daemon stopping while a batch waits to reach the writer: it is written, not lost.
+    from edge.daemon import mcap_live
+    from edge.daemon.compute import ComputeWorker
+
+    runtime = _Runtime()
+    async with ComputeWorker() as worker:
+        writer = _Writer(worker)
+        recorder = mcap_live.McapRecorder(runtime, tmp_path, worker=writer)
+        task = asyncio.create_task(recorder.run())
+        await wait_until(lambda: any(tmp_path.iterdir()), 30, "a segment opened")
+        writer.late = mcap_live.segment_append
+        runtime.push(40)
+        await asyncio.wait_for(writer.queued.wait(), 30)
+        runtime.push(10)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    [path] = tmp_path.iterdir()
+    messages, _, metadata, _ = read_mcap(path)
+    assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(50))
     assert int(metadata["vtzero"]["frames_lost"]) == 0
 
 
