@@ -49,7 +49,11 @@ def quick(data: Path, out: Path, **kw) -> BuildConfig:
 async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tmp_path):
     models = Path(shutil.copytree(ROOT / "models", tmp_path / "models"))
     cfg = base_config()
-    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)))
+    # The daemon shares this process with the build's training (torch, in a thread): on a
+    # loaded host the stream stalled 0.53 s right after it and failed the press as stale,
+    # which is not what this test is about.
+    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)),
+                  sensor=replace(cfg.sensor, stale_timeout_s=1.0))
     async with SimRobot(QUICK_OBJECT, seed=31, cfg=base_config()) as robot, \
             Daemon(robot, cfg, tmp_path / "state") as d:
         _, health = await d.get("/healthz")
@@ -69,7 +73,7 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
         await wait_until(reloaded, 30, "the daemon took the built model", interval_s=0.1)
         assert d.runtime.model.digest == model_ref(models).digest
         _, ep = await d.post("/v1/recognize", {"candidates": list(TEST), "wait": True})
-        assert ep["status"] == "not_configured", ep  # no VLM: the touch part only
+        assert ep["status"] == "not_configured", ep.get("error")  # no VLM: touch only
         assert {t["label"] for t in ep["topk"]} <= set(REFERENCE) and len(ep["topk"]) == 3
 
     model = load_model(models)  # hashes verified, prompts included
