@@ -3,6 +3,7 @@ back with the mcap library."""
 
 import asyncio
 import base64
+import contextlib
 import json
 import os
 import subprocess
@@ -243,9 +244,11 @@ async def test_live_recording_stopped_while_a_segment_opens_completes_it(tmp_pat
     assert int(metadata["vtzero"]["frames_lost"]) == 0
 
 
-@pytest.mark.asyncio
-async def test_live_recording_stopped_before_a_write_began_keeps_its_frames(tmp_path):
-    # The daemon stopping while a batch waits to reach the writer: it is written, not lost.
+@contextlib.asynccontextmanager
+async def _recording(tmp_path):
+    """A live recorder on a fake runtime, its writer the real process behind a
+    :class:`_Writer`, running until the block ends (then stopped as the daemon stops it),
+    once its first segment is open."""
     from edge.daemon import mcap_live
     from edge.daemon.compute import ComputeWorker
 
@@ -255,12 +258,21 @@ async def test_live_recording_stopped_before_a_write_began_keeps_its_frames(tmp_
         recorder = mcap_live.McapRecorder(runtime, tmp_path, worker=writer)
         task = asyncio.create_task(recorder.run())
         await wait_until(lambda: any(tmp_path.iterdir()), 30, "a segment opened")
+        yield runtime, writer, recorder
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+
+@pytest.mark.asyncio
+async def test_live_recording_stopped_before_a_write_began_keeps_its_frames(tmp_path):
+    # The daemon stopping while a batch waits to reach the writer: it is written, not lost.
+    from edge.daemon import mcap_live
+
+    async with _recording(tmp_path) as (runtime, writer, _):
         writer.late = mcap_live.segment_append
         runtime.push(40)
         await asyncio.wait_for(writer.queued.wait(), 30)
         runtime.push(10)
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
     [path] = tmp_path.iterdir()
     messages, _, metadata, _ = read_mcap(path)
     assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(50))
@@ -270,16 +282,10 @@ async def test_live_recording_stopped_before_a_write_began_keeps_its_frames(tmp_
 @pytest.mark.asyncio
 async def test_live_recording_counts_the_frames_a_failed_write_lost(tmp_path, monkeypatch):
     from edge.daemon import mcap_live
-    from edge.daemon.compute import ComputeWorker
 
     monkeypatch.setattr(mcap_live, "RETRY_S", 0.0)
     monkeypatch.setattr(mcap_live, "FLUSH_PERIOD_S", 0.01)
-    runtime = _Runtime()
-    async with ComputeWorker() as worker:
-        writer = _Writer(worker)
-        recorder = mcap_live.McapRecorder(runtime, tmp_path, worker=writer)
-        task = asyncio.create_task(recorder.run())
-        await wait_until(lambda: any(tmp_path.iterdir()), 30, "a segment opened")
+    async with _recording(tmp_path) as (runtime, writer, recorder):
         runtime.push(30)  # in the open segment, then that segment's next write fails
         await wait_until(lambda: recorder._in_segment >= 30, 30, "30 frames written")
         writer.fail = mcap_live.segment_append
@@ -287,8 +293,6 @@ async def test_live_recording_counts_the_frames_a_failed_write_lost(tmp_path, mo
         await wait_until(lambda: writer.fail is None, 30, "the write refused")
         runtime.push(10)
         await wait_until(lambda: recorder._in_segment >= 10, 30, "10 frames written")
-        task.cancel()
-        await asyncio.gather(task, return_exceptions=True)
     [path] = tmp_path.iterdir()  # the failed segment was abandoned (its .tmp removed)
     messages, _, metadata, _ = read_mcap(path)
     assert [m["seq"] for m in messages["/tactile/raw"]] == list(range(50, 60))
