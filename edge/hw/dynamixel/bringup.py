@@ -29,7 +29,6 @@ from edge.hw.control_table import (
 )
 from edge.hw.dynamixel.port import (
     LATENCY_TIMER_UDEV_RULE,
-    PTY_LATENCY_TIMER_MS,
     BlockingPortHandler,
     latency_timer_path,
     read_latency_timer,
@@ -208,9 +207,6 @@ def _check_latency_timer(port_name: str, port: sdk.PortHandler, timer_dir: Path)
         return
     if value is None:
         _log.debug("no USB latency timer at %s (not a USB serial adapter)", path)
-        if (isinstance(port, BlockingPortHandler)
-                and os.path.realpath(port_name).startswith("/dev/pts/")):
-            port.latency_timer_ms = PTY_LATENCY_TIMER_MS
         return
     if isinstance(port, BlockingPortHandler):
         port.latency_timer_ms = float(value)

@@ -60,13 +60,16 @@ class BlockingPortHandler(sdk.PortHandler):
     ``isPacketTimeout()``; the stock handler returns at once (pyserial timeout 0), so the loop
     spins holding the GIL. Here ``readPort`` first waits, GIL released, until a byte is
     readable or the SDK's packet deadline passes, then returns what is there. The SDK's
-    deadlines stay its own; ``latency_timer_ms`` replaces its hard-coded 16 ms in them once the
-    driver has read the adapter's real latency timer.
+    deadlines stay its own; ``latency_timer_ms`` replaces its hard-coded 16 ms in them: on a
+    pseudo-terminal ``PTY_LATENCY_TIMER_MS``, on a USB adapter its real latency timer once
+    the driver has read it.
     """
 
     def __init__(self, port_name: str) -> None:
         super().__init__(port_name)
-        self.latency_timer_ms = SDK_LATENCY_TIMER_MS
+        self.latency_timer_ms = (PTY_LATENCY_TIMER_MS
+                                 if os.path.realpath(port_name).startswith("/dev/pts/")
+                                 else SDK_LATENCY_TIMER_MS)
         # Monotonic time of the last write call (the packet goes to the kernel from here:
         # the stop latency ends here), and when that call returned (later by the system
         # call, and by any wait of this thread for a CPU or the GIL after it).
