@@ -286,7 +286,7 @@ class XelaServerEmulator:
                     log.warning("XELA emulator: cannot keep port %d for a restart: %s",
                                 self._port, exc)
         if not keep_port:
-            self.release_port()
+            self._release_port()
         if failure is not None:
             raise failure
 
@@ -297,8 +297,7 @@ class XelaServerEmulator:
     async def __aexit__(self, *exc_info: object) -> None:
         await self.stop(keep_port=False)
 
-    def release_port(self) -> None:
-        """Free the port kept by ``stop()``."""
+    def _release_port(self) -> None:
         reserved, self._reserved = self._reserved, None
         if reserved is not None:
             reserved.close()

@@ -187,7 +187,7 @@ async def test_reconnects_with_backoff_after_server_restart(
         async with XelaServerEmulator(port=port) as second:
             frame = await next_frame(client, STARTUP_TIMEOUT_S, after=time.monotonic())
             assert frame.seq >= 1 and second.clients == 1
-        first.release_port()
+        await first.stop(keep_port=False)
         stats = client.stats
     attempts = [r for r in caplog.records if "failed" in r.getMessage()]
     warned = [r for r in attempts if r.levelno >= logging.WARNING]
@@ -295,7 +295,7 @@ async def test_nobody_listening_reads_as_stale_not_a_hang() -> None:
             async for _ in client.frames(first_timeout_s=0.3):
                 pass
         waited = time.monotonic() - t0
-    srv.release_port()
+    await srv.stop(keep_port=False)
     print(f"\n  no server: StaleSensorError after {waited * 1e3:.0f} ms")
     assert waited < 2.0
     assert issubclass(StaleSensorError, SensorError) and issubclass(StaleSensorError, TimeoutError)
