@@ -17,7 +17,7 @@ from typing import Any
 
 import aiohttp
 
-from edge.core.config import Config
+from edge.core.config import Config, load_config
 from edge.daemon.serve import assemble, running
 from edge.daemon.store import EPISODE_FILE
 from edge.hw.arm import gripper_raw
@@ -27,11 +27,10 @@ from tests.support.waits import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 CUBE = names("cube")
-# As configs/sim.toml: narrower than the shipped 0.019 m (shorter presses) but with every
-# catalogue object free of the fingers once open: the widest (melon_pan, cream_puff: 34 mm,
-# 1 mm sd) is 5 sd short of the 40 mm gap. At 0.008 m (a 36 mm gap) 7 % of their draws
-# were still squeezed once the press had "opened".
-OPEN_WIDTH_M = 0.010
+# The emulated robot's (configs/sim.toml): narrower than the shipped 0.019 m (shorter
+# presses), with every catalogue object free of the open fingers (tests/sim/test_physics.py).
+# The tests' daemons and the `vt-edge run` processes they start on sim.toml open alike.
+OPEN_WIDTH_M = load_config(ROOT / "configs" / "sim.toml").press.open_width_m
 # Generous: a start on a loaded two-core host (model warm-up, the first frames).
 READY_TIMEOUT_S = 10.0
 
