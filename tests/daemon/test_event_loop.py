@@ -9,16 +9,16 @@ from edge.daemon.serve import FD_SETSIZE, new_event_loop
 DELAY_S = 0.0023  # 2.3 ms: epoll's whole-millisecond timeout makes it at least 3 ms
 
 
-async def _best_lateness(n: int = 20) -> float:
-    """The smallest lateness of n timers (noise on a shared box only ever adds to it)."""
+async def _lateness(n: int = 20) -> list[float]:
+    """The lateness of n timers, sorted."""
     loop = asyncio.get_running_loop()
-    best = float("inf")
+    late = []
     for _ in range(n):
         t0 = loop.time()
         await asyncio.sleep(DELAY_S)
-        best = min(best, loop.time() - t0 - DELAY_S)
+        late.append(loop.time() - t0 - DELAY_S)
         await asyncio.sleep(0.0007)  # a fresh phase against the clock
-    return best
+    return sorted(late)
 
 
 def test_timers_are_not_rounded_up_to_a_millisecond():
@@ -29,13 +29,18 @@ def test_timers_are_not_rounded_up_to_a_millisecond():
         soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
         assert soft <= FD_SETSIZE  # select(2) never sees a descriptor it cannot take
         with asyncio.Runner(loop_factory=lambda: loop) as runner:
-            ours = runner.run(_best_lateness())
+            ours_all = runner.run(_lateness())
     finally:
         resource.setrlimit(resource.RLIMIT_NOFILE, limits)
     with asyncio.Runner(loop_factory=asyncio.new_event_loop) as runner:
-        default = runner.run(_best_lateness())
-    print(f"\nbest lateness of a {DELAY_S * 1e3} ms timer: daemon loop {ours * 1e3:.3f} ms, "
-          f"default (epoll) loop {default * 1e3:.3f} ms")
+        default_all = runner.run(_lateness())
+    # The daemon's loop: its best timer (a busy host only ever adds to select's microsecond
+    # wait). The default loop: its median, not its best: epoll rounds up the time left when
+    # it is entered, so a timer whose loop was held back before the wait comes out less
+    # late (a loaded run's best was 0.55 ms, where 0.7 is typical).
+    ours, default = ours_all[0], default_all[len(default_all) // 2]
+    print(f"\nlateness of a {DELAY_S * 1e3} ms timer: daemon loop {ours * 1e3:.3f} ms (best), "
+          f"default (epoll) loop {default * 1e3:.3f} ms (median)")
     assert ours < 0.0005
     probe = asyncio.new_event_loop()
     epoll = isinstance(probe._selector, selectors.EpollSelector)  # type: ignore[attr-defined]
