@@ -13,7 +13,7 @@ import pytest
 
 from edge.core.config import BusConfig
 from edge.core.errors import MotorError
-from edge.hw.dynamixel import DynamixelBus
+from edge.hw.dynamixel import DynamixelBus, transactions
 from edge.hw.dynamixel.executor import STOP_HANDOVER_MAX_S, ThreadExecutor
 from edge.hw.dynamixel.port import PTY_LATENCY_TIMER_MS, BlockingPortHandler
 from edge.hw.dynamixel.stop import StopPacket
@@ -75,7 +75,7 @@ class _CountingPort(BlockingPortHandler):
 
 
 @pytest.mark.asyncio
-async def test_stop_flushes_only_when_a_reply_may_be_left(caplog):
+async def test_stop_flushes_only_when_a_reply_may_be_left(caplog, monkeypatch):
     emu = DxlEmulator().start()
     try:
         async with DynamixelBus(BusConfig(port=emu.port),
@@ -91,12 +91,17 @@ async def test_stop_flushes_only_when_a_reply_may_be_left(caplog):
             await asyncio.sleep(0.02)  # past STOP_STATE_SETTLE_S after that goal
             await bus.read_state()
             # A read the motor answers too late: its reply lands on the input afterwards.
-            # (Past the packet timeout on a pty, about 2 x PTY_LATENCY_TIMER_MS.)
-            late_s = 2 * PTY_LATENCY_TIMER_MS / 1000 + 0.05
+            # A timed-out read is tried again after LATE_REPLY_DRAIN_S, so the first reply
+            # must land after the first try gives up (about 2 x PTY_LATENCY_TIMER_MS) and
+            # before the drain's flush, and the second after the second try gives up: each
+            # by 150 ms here, far more than a loaded host holds a thread back (the SDK takes
+            # a reply that is there when its thread wakes).
+            monkeypatch.setattr(transactions, "LATE_REPLY_DRAIN_S", 0.5)
+            late_s = 2 * PTY_LATENCY_TIMER_MS / 1000 + 0.15
             emu.reply_latency_s = late_s
             with pytest.raises(MotorError, match="no status packet"):
                 await bus.read(gid, "Present Position")
-            await asyncio.sleep(late_s)
+            await asyncio.sleep(2 * late_s)  # the second try's reply, on the input by now
             emu.reply_latency_s = 0.0
             mark = len(emu.received)
             flushes = _CountingPort.flushes
