@@ -158,6 +158,10 @@ class PressConfig:
     # x_th, and the pads back under half of x_th) while the gripper opens on: the label and
     # the next press come sooner by the rest of the opening.
     lift_clearance_m: float = 0.0
+    # Refuse to close when lowering the arm alone moved the pads by x_th or more (an object
+    # already touching the fingers). false only for pads that shift that much with the arm's
+    # motion while nothing touches them: each press's tare then stands alone.
+    refuse_contact_before_closing: bool = True
 
     def validate(self, path: str) -> None:
         _require(0 < self.x_th < 1, path, "x_th", self.x_th, "must be in (0, 1)")

@@ -397,12 +397,19 @@ class PressController:
         log.debug("lowering the arm moved the pads by a norm of %.5f (x_th %s)", level,
                   self.cfg.press.x_th)
         if level >= self.cfg.press.x_th:
+            if not self.cfg.press.refuse_contact_before_closing:
+                log.warning("lowering the arm moved the pads by a norm of %.4f (>= x_th %s); "
+                            "pressing on (press.refuse_contact_before_closing = false)",
+                            level, self.cfg.press.x_th)
+                return
             raise PressRefusedError(
                 f"not closing: the pads read contact before the gripper closed (norm "
                 f"{level:.4f} >= x_th {self.cfg.press.x_th} against their reading above the "
                 "object): the object touched the fingers as the arm lowered. It is wider "
                 f"than the open gripper (press.open_width_m = {self.cfg.press.open_width_m} "
-                "m) or off centre: widen open_width_m or centre the object")
+                "m) or off centre: widen open_width_m or centre the object. If nothing was "
+                "between the fingers, the pads shift with the arm's motion alone: set "
+                "press.refuse_contact_before_closing = false")
 
     async def _tare(self) -> np.ndarray:
         tare_s = self.cfg.press.tare_s

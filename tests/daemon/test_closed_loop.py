@@ -2,6 +2,7 @@
 
 import asyncio
 import contextlib
+import logging
 from dataclasses import replace
 
 import numpy as np
@@ -77,27 +78,46 @@ async def test_press_stops_on_the_threshold_and_records(tmp_path):
     assert len(back.gripper_time) > 10
 
 
-@pytest.mark.asyncio
-async def test_a_piece_that_touches_the_fingers_as_the_arm_lowers_is_not_closed_on():
+async def press_on_a_piece_between_the_fingers(refuse: bool):
     # A press.open_width_m narrower than the object (a 28 mm gap, a 34 mm melon pan): the
     # piece comes between the fingers as the arm lowers (put there as the arm starts down).
     cfg = base_config()
-    cfg = replace(cfg, press=replace(cfg.press, open_width_m=0.004))
+    cfg = replace(cfg, press=replace(cfg.press, open_width_m=0.004,
+                                     refuse_contact_before_closing=refuse))
     async with SimRobot("chocolate", seed=1, cfg=cfg) as robot:
         def on_state(state):
             if state == PressState.LOWERED:
                 robot.world.place("melon_pan")
 
-        rcfg, outcome, width = await press_once(robot, cfg, on_state)
+        return await press_once(robot, cfg, on_state)
+
+
+@pytest.mark.asyncio
+async def test_a_piece_that_touches_the_fingers_as_the_arm_lowers_is_not_closed_on():
+    rcfg, outcome, width = await press_on_a_piece_between_the_fingers(refuse=True)
     print(outcome.message)
     assert outcome.result == PressResult.ERROR
     assert "not closing: the pads read contact before the gripper closed" in outcome.message
     assert "press.open_width_m = 0.004" in outcome.message
+    assert "press.refuse_contact_before_closing = false" in outcome.message
     assert outcome.lowering_level >= rcfg.press.x_th
     states = [state for state, _ in outcome.states]
     assert PressState.CLOSING not in states and states[-2:] == [PressState.RETURNING,
                                                                  PressState.IDLE]
     assert width == pytest.approx(rcfg.press.open_width_m, abs=0.001)
+
+
+@pytest.mark.asyncio
+async def test_with_the_refusal_off_the_press_goes_on_and_says_its_lowering_level(caplog):
+    # For pads that shift with the arm alone: the press closes on its own tare, and the
+    # level it would have been refused for is kept on the press and logged.
+    with caplog.at_level(logging.WARNING, logger="edge.daemon.press"):
+        rcfg, outcome, _ = await press_on_a_piece_between_the_fingers(refuse=False)
+    assert outcome.lowering_level >= rcfg.press.x_th
+    assert PressState.CLOSING in [state for state, _ in outcome.states]
+    assert "not closing" not in (outcome.message or "")
+    assert any("pressing on (press.refuse_contact_before_closing = false)" in r.getMessage()
+               for r in caplog.records)
 
 
 @pytest.mark.asyncio
