@@ -22,12 +22,10 @@ run: $(STAMP)
 	$(PY) -m edge demo
 
 # The behaviour tier on TEST_WORKERS workers (pytest-xdist). More workers than cores pays
-# while tests wait on the emulated robot, but the suite now keeps both cores busy (about
-# 600 s of CPU on 2 cores), and each worker collects every module again (about 9 s of
-# CPU). On 2 cores: 333 s with 4 workers, 346-354 s with 5, 359 s with 3 in a checkout; on
-# a fresh clone 367 s with 4 against 364 s with 5, the same wall for 11 % less CPU (580 s
-# against 654 s), which leaves more to a loaded host. Tests sharing a module- or
-# session-wide fixture stay on one worker (tests/conftest.py).
+# while tests wait on the emulated robot, but the suite keeps both cores busy and each
+# worker collects every module again: on 2 cores 4 workers take the wall of 5 (367 s
+# against 364 s on a fresh clone) for 11 % less CPU, and 3 are slower. Tests sharing a
+# module- or session-wide fixture stay on one worker (tests/conftest.py).
 TEST_WORKERS ?= 4
 
 test: $(STAMP)

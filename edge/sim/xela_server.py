@@ -286,7 +286,9 @@ class XelaServerEmulator:
                     log.warning("XELA emulator: cannot keep port %d for a restart: %s",
                                 self._port, exc)
         if not keep_port:
-            self._release_port()
+            reserved, self._reserved = self._reserved, None
+            if reserved is not None:
+                reserved.close()
         if failure is not None:
             raise failure
 
@@ -296,11 +298,6 @@ class XelaServerEmulator:
 
     async def __aexit__(self, *exc_info: object) -> None:
         await self.stop(keep_port=False)
-
-    def _release_port(self) -> None:
-        reserved, self._reserved = self._reserved, None
-        if reserved is not None:
-            reserved.close()
 
     async def drop_connections(self, *, abrupt: bool = False) -> None:
         """Close every client connection (``abrupt``: reset TCP, no close handshake)."""
