@@ -1,13 +1,16 @@
 """Atomic file writes: temp file in the same directory, fsync, rename, fsync the directory.
 
 A reader sees either the old file or the complete new one, never a half-written file, even
-if the process is killed or the machine loses power mid-write.
+if the process is killed or the machine loses power mid-write. A new file gets the mode a
+plain ``open`` would (0666 less the umask: datasets, models and reports are for the lab's
+people); a secret asks for ``SECRET_MODE``. A replaced file keeps its owner and mode.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import shutil
 import stat
 import tempfile
@@ -17,14 +20,32 @@ from typing import BinaryIO
 
 # A directory :func:`swap_in` replaces is kept beside it under this suffix.
 PREVIOUS_SUFFIX = ".previous"
+# A new file's mode before the umask (what ``open(path, "w")`` asks for), and a secret's.
+FILE_MODE = 0o666
+SECRET_MODE = 0o600
+# Names tried for the temp file before giving up (each is random: a clash is a stale one).
+TEMP_NAME_TRIES = 100
+
+
+def _create_temp(path: Path, mode: int) -> tuple[int, str]:
+    """A new temp file beside ``path`` with ``mode`` (the umask applies, as to any new
+    file; mkstemp would force 0600)."""
+    for _ in range(TEMP_NAME_TRIES):
+        tmp = str(path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp"))
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, mode), tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{path.parent}: no free temp file name for {path.name}")
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
-    """Open a binary temp file that replaces ``path`` only if the block completes."""
+def atomic_open(path: str | Path, mode: int = FILE_MODE) -> Iterator[BinaryIO]:
+    """Open a binary temp file that replaces ``path`` only if the block completes; a new
+    file gets ``mode`` less the umask."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = _create_temp(path, mode)
     try:
         with os.fdopen(fd, "wb") as fh:
             yield fh
@@ -39,13 +60,13 @@ def atomic_open(path: str | Path) -> Iterator[BinaryIO]:
     _fsync_dir(path.parent)
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    with atomic_open(path) as fh:
+def atomic_write_bytes(path: str | Path, data: bytes, mode: int = FILE_MODE) -> None:
+    with atomic_open(path, mode) as fh:
         fh.write(data)
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+def atomic_write_text(path: str | Path, text: str, mode: int = FILE_MODE) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"), mode)
 
 
 @contextlib.contextmanager
@@ -111,8 +132,8 @@ def _fsync_tree(root: Path) -> None:
 
 
 def _keep_owner_and_mode(path: Path, tmp: str) -> None:
-    # A replaced file keeps its owner and permissions (mkstemp makes 0600): a config the
-    # service user reads stays readable to it after `sudo vt-edge pose teach` edits it.
+    # A replaced file keeps its owner and permissions: a config the service user reads
+    # stays readable to it after `sudo vt-edge pose teach` edits it.
     try:
         st = os.stat(path)
     except FileNotFoundError:
