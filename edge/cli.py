@@ -14,6 +14,20 @@ from edge.daemon.episode import Status
 
 log = logging.getLogger(__name__)
 
+# `--config` is taken before or after the subcommand (`vt-edge --config F episodes list` and
+# `vt-edge episodes list --config F`): every parser that reads one declares it with no
+# default of its own (argparse copies a subcommand's defaults over what the main parser
+# read), and _resolve_config fills in the command's default afterwards.
+CONFIG_HELP = "the configuration file (TOML); before or after the subcommand"
+# `vt-edge sim place`: the emulated robot answers on loopback at once.
+SIM_CONTROL_TIMEOUT_S = 5.0
+# `vt-edge episodes list`: the width of the reason column.
+LIST_TEXT_CHARS = 60
+# The emulated robot's camera, under its control API.
+SIM_CAMERA_PATH = "/camera.jpg"
+# Where `vt-edge models install` puts a model without --to or --config.
+MODELS_DIR = "/opt/vtzero/models"
+
 
 def _cmd_sim_record(args: argparse.Namespace) -> int:
     from edge.core.config import load_config
@@ -114,8 +128,9 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
             print(f"control + camera:     {robot.control_url}", flush=True)
             if args.write_config:
                 tomledit.update(args.config, args.write_config, {
+                    **_absolute_paths(args.config),
                     "sensor": {"url": robot.xela.url}, "bus": {"port": robot.dxl.port},
-                    "camera": {"kind": "http", "url": f"{robot.control_url}/camera.jpg"}})
+                    "camera": {"kind": "http", "url": robot.control_url + SIM_CAMERA_PATH}})
                 print(f"runtime config:       {args.write_config}", flush=True)
             stop = asyncio.Event()
             loop = asyncio.get_running_loop()
@@ -125,6 +140,75 @@ def _cmd_sim_serve(args: argparse.Namespace) -> int:
 
     asyncio.run(serve())
     return 0
+
+
+# The settings that name a file or directory, by table.
+PATH_SETTINGS = {
+    "runtime": ("models_dir", "state_dir", "record_mcap_dir"),
+    "api": ("token_file",),
+    "vlm": ("prompt_dir", "api_key_file"),
+    "mqtt": ("password_file", "ca_file"),
+}
+
+
+def _absolute_paths(config: str) -> dict[str, dict[str, str]]:
+    """The path settings of ``config`` (the file's, defaults included, not the
+    environment's) that are relative, made absolute from the current directory, where this
+    process reads them: a config written elsewhere still finds the same files."""
+    import tomllib
+    from pathlib import Path
+
+    from edge.core.config import config_from_dict
+
+    with open(config, "rb") as f:
+        cfg = config_from_dict(tomllib.load(f), source=config)
+    changes: dict[str, dict[str, str]] = {}
+    for table, keys in PATH_SETTINGS.items():
+        for key in keys:
+            value = getattr(getattr(cfg, table), key)
+            if value and not Path(value).is_absolute():
+                changes.setdefault(table, {})[key] = str(Path(value).resolve())
+    return changes
+
+
+def _cmd_sim_place(args: argparse.Namespace) -> int:
+    import json
+    import urllib.error
+    import urllib.request
+
+    url = _control_url(args)
+    request = urllib.request.Request(f"{url}/object", data=json.dumps({"name": args.name})
+                                     .encode(), headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=SIM_CONTROL_TIMEOUT_S) as reply:
+            placed = json.load(reply)["object"]
+    except urllib.error.HTTPError as exc:
+        why = json.loads(exc.read() or b"{}").get("error", exc.reason)
+        raise EdgeError(f"the emulated robot at {url} refused {args.name!r}: {why}") from None
+    except (urllib.error.URLError, OSError) as exc:
+        raise EdgeError(f"no emulated robot answers at {url} ({exc}): start `vt-edge sim "
+                        "serve` and pass its control address (--url) or the config it "
+                        "wrote (--config)") from None
+    print(f"{placed} is on the emulated table ({url})")
+    return 0
+
+
+def _control_url(args: argparse.Namespace) -> str:
+    """The emulated robot's control API: --url, or the one a config written by
+    `sim serve --write-config` points its camera at (CONTROL/camera.jpg)."""
+    if args.url:
+        return args.url.rstrip("/")
+    if args.config is None:
+        raise EdgeError("sim place: give --url (the control address `vt-edge sim serve` "
+                        "prints) or --config (the file its --write-config wrote)")
+    from edge.core.config import load_config
+
+    camera = load_config(args.config).camera
+    if camera.kind != "http" or not camera.url.endswith(SIM_CAMERA_PATH):
+        raise EdgeError(f"{args.config} was not written by `vt-edge sim serve --write-config` "
+                        f"(its camera.url is not the emulated robot's ...{SIM_CAMERA_PATH}): "
+                        "pass --url")
+    return camera.url.removesuffix(SIM_CAMERA_PATH)
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
@@ -213,9 +297,11 @@ def _cmd_models_install(args: argparse.Namespace) -> int:
     if args.config is not None:
         from edge.core.config import load_config
 
+        if args.to is not None:
+            raise EdgeError("models install: give --to DIR or --config FILE, not both")
         dest = load_config(args.config).runtime.models_dir
     else:
-        dest = args.to
+        dest = args.to or MODELS_DIR
     manifest, previous = install_models(args.src, dest)
     kept = f" (the one it replaced is {previous})" if previous else ""
     print(f"installed {args.src} as {dest}{kept}: {describe(manifest)}")
@@ -257,8 +343,9 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
     if args.episodes_command == "list":
         status = Status(args.status) if args.status else None
         for ep in store.list(status=status, limit=args.limit):
-            print(f"{ep.id}  {ep.status:15s} {ep.label or '-':28s} "
-                  f"{(ep.error or ep.description or '')[:60]}")
+            # Why it failed (a press error, or the VLM's last one), else what touch said.
+            why = ep.error or ep.last_error or ep.description or ""
+            print(f"{ep.id}  {ep.status:15s} {ep.label or '-':28s} {_first_words(why)}")
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id).to_json(), indent=2))
     elif args.format in ("rosbag2", "lerobot"):
@@ -272,6 +359,15 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
             print(export_episode(store, eid, args.out) if args.format == "mcap"
                   else store.export(eid, args.out))
     return 0
+
+
+def _first_words(text: str, width: int = LIST_TEXT_CHARS) -> str:
+    """``text`` on one line, cut at a word with an ellipsis past ``width`` characters."""
+    line = " ".join(text.split())
+    if len(line) <= width:
+        return line
+    cut = line[:width - 3].rsplit(" ", 1)[0]
+    return f"{cut}..."
 
 
 def _cmd_dataset_export(args: argparse.Namespace) -> int:
@@ -288,29 +384,57 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
                            write=args.install)
 
 
+def _config_option(parser: argparse.ArgumentParser, default: str | None = None, *,
+                   required: bool = False, help: str = CONFIG_HELP) -> None:
+    """``--config`` on ``parser``; ``default`` (or ``required``) applies when it is given
+    neither there nor before the subcommand."""
+    parser.add_argument("--config", default=argparse.SUPPRESS, help=help)
+    parser.set_defaults(config_default=default, config_required=required)
+
+
+def _resolve_config(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``args.config``: as given (before or after the subcommand), else the command's
+    default; an error for a command that needs one and got none, or takes none."""
+    if not hasattr(args, "config_required"):
+        if hasattr(args, "config"):
+            parser.error(f"{_command_name(args)} takes no --config")
+        return
+    if not hasattr(args, "config"):
+        if args.config_required:
+            parser.error(f"{_command_name(args)}: the following arguments are required: "
+                         "--config")
+        args.config = args.config_default
+
+
+def _command_name(args: argparse.Namespace) -> str:
+    words = [args.command, getattr(args, f"{args.command}_command", None) or ""]
+    return "vt-edge " + " ".join(w for w in words if w)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vt-edge", description=__doc__)
     parser.add_argument("--version", action="version", version=f"vtzero {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--config", default=argparse.SUPPRESS, help=CONFIG_HELP)
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="the main job: recognitions on the emulated robot")
-    demo.add_argument("--config", default="configs/sim.toml")
+    _config_option(demo, "configs/sim.toml")
     demo.set_defaults(func=_cmd_demo)
 
     doc = sub.add_parser("doctor", help="check every part of the setup before the first "
                          "press, without moving the arm (exit 1 on any FAIL)")
-    doc.add_argument("--config", required=True)
+    _config_option(doc, required=True)
     doc.add_argument("--json", action="store_true", help="the checks as JSON")
     doc.set_defaults(func=_cmd_doctor)
 
     run = sub.add_parser("run", help="run the daemon")
-    run.add_argument("--config", required=True)
+    _config_option(run, required=True)
     run.set_defaults(func=_cmd_run)
 
     col = sub.add_parser("collect", help="record the presses of a collection plan (or of "
                                          "one object)")
-    col.add_argument("--config", required=True)
+    _config_option(col, required=True)
     col.add_argument("--plan", default=None,
                      help="a collection plan (TOML, see README 'Collecting a dataset'); run "
                           "again, it goes on up to each class's count")
@@ -341,11 +465,11 @@ def build_parser() -> argparse.ArgumentParser:
     posesub = pose.add_subparsers(dest="pose_command", required=True)
     teach = posesub.add_parser("teach", help="store the arm's present pose by name")
     teach.add_argument("name", help="e.g. above, lowered, rest")
-    teach.add_argument("--config", required=True)
+    _config_option(teach, required=True)
     teach.set_defaults(func=_cmd_pose_teach)
     goto = posesub.add_parser("goto", help="move slowly to a taught pose to check it")
     goto.add_argument("name")
-    goto.add_argument("--config", required=True)
+    _config_option(goto, required=True)
     goto.set_defaults(func=_cmd_pose_goto)
 
     models = sub.add_parser("models", help="the model directory the daemon loads")
@@ -354,17 +478,17 @@ def build_parser() -> argparse.ArgumentParser:
                               "(the one it replaces kept as DIR.previous)")
     minst.add_argument("src", help="a model directory (manifest.json, encoder, database)")
     where = minst.add_mutually_exclusive_group()
-    where.add_argument("--to", default="/opt/vtzero/models", help="default: %(default)s")
-    where.add_argument("--config", default=None,
+    where.add_argument("--to", default=None, help=f"default: {MODELS_DIR}")
+    where.add_argument("--config", default=argparse.SUPPRESS,
                        help="install to this configuration's [runtime] models_dir")
-    minst.set_defaults(func=_cmd_models_install)
+    minst.set_defaults(func=_cmd_models_install, config_default=None, config_required=False)
 
     cal = sub.add_parser("calibrate", help="find settings for this robot's own hardware")
     calsub = cal.add_subparsers(dest="calibrate_command", required=True)
     th = calsub.add_parser(
         "threshold", help="find [press] x_th for these pads: idle noise, a slow probing "
         "press on a reference object, the norm at a gentle force (docs/hardware.md)")
-    th.add_argument("--config", required=True)
+    _config_option(th, required=True)
     force = th.add_mutually_exclusive_group()
     force.add_argument("--force-ma", type=float, default=None,
                        help="the gentle force as gripper motor current above its free-closing "
@@ -397,14 +521,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=_cmd_bench)
 
     eps = sub.add_parser("episodes", help="stored recognitions")
-    eps.add_argument("--config", default="configs/robot.toml")
+    _config_option(eps, "configs/robot.toml")
     epsub = eps.add_subparsers(dest="episodes_command", required=True)
     ls = epsub.add_parser("list")
+    _config_option(ls, "configs/robot.toml")
     ls.add_argument("--status", default=None, choices=[s.value for s in Status])
     ls.add_argument("--limit", type=int, default=50)
     show = epsub.add_parser("show")
+    _config_option(show, "configs/robot.toml")
     show.add_argument("id")
     export = epsub.add_parser("export")
+    _config_option(export, "configs/robot.toml")
     export.add_argument("id", nargs="+")
     export.add_argument("--out", default=".",
                         help="a file, or a directory for ID.tar.gz/ID.mcap; the bag or dataset "
@@ -417,6 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "LeRobotDataset v3.0 (both: pip install 'vtzero[export]')")
     retry = epsub.add_parser("retry", help="ask the VLM again about a vlm_error or "
                              "invalid_answer episode, through the running daemon")
+    _config_option(retry, "configs/robot.toml")
     which = retry.add_mutually_exclusive_group(required=True)
     which.add_argument("id", nargs="?", default=None)
     which.add_argument("--all-failed", action="store_true",
@@ -433,7 +561,7 @@ def build_parser() -> argparse.ArgumentParser:
     dexp.set_defaults(func=_cmd_dataset_export)
 
     svc = sub.add_parser("install-service", help="print (or install) the systemd unit")
-    svc.add_argument("--config", default="/etc/vtzero/robot.toml")
+    _config_option(svc, "/etc/vtzero/robot.toml")
     svc.add_argument("--user", default="vtzero", help="the system user the daemon runs as")
     svc.add_argument("--create-user", action="store_true",
                      help="create the user (useradd --system) and the device groups the "
@@ -458,8 +586,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, help="output directory")
     rec.add_argument("--seed", type=int, default=0)
     rec.add_argument("--workers", type=int, default=None, help="processes (default: cores)")
-    rec.add_argument("--config", default="configs/sim.toml",
-                     help="the emulated robot's configuration (press settings)")
+    _config_option(rec, "configs/sim.toml",
+                   help="the emulated robot's configuration (press settings)")
     rec.add_argument("--x-th", type=float, default=None,
                      help="stop threshold for every class (default: [press] x_th, the "
                           "catalogue's per-class threshold for fragile classes)")
@@ -467,7 +595,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.set_defaults(func=_cmd_sim_record)
 
     serve = simsub.add_parser("serve", help="run the emulated robot until stopped")
-    serve.add_argument("--config", default="configs/sim.toml")
+    _config_option(serve, "configs/sim.toml")
     serve.add_argument("--object", default="stainless_cube")
     serve.add_argument("--xela-port", type=int, default=0, help="0: any free port")
     serve.add_argument("--dialect", choices=["1.7", "1.7.7", "1.8"], default="1.8")
@@ -486,6 +614,16 @@ def build_parser() -> argparse.ArgumentParser:
                             "does for the models XELA calibrates (the XR1944 is not)")
     serve.set_defaults(func=_cmd_sim_serve)
 
+    place = simsub.add_parser(
+        "place", help="put an object on the emulated table (the control API of a running "
+        "`vt-edge sim serve`); the next press presses it")
+    place.add_argument("name", help="an object of the catalogue, e.g. wood_cube")
+    place.add_argument("--url", default=None,
+                       help="the control address `sim serve` prints (control + camera)")
+    _config_option(place, help="instead of --url: the config `sim serve --write-config` "
+                   "wrote")
+    place.set_defaults(func=_cmd_sim_place)
+
     cons = simsub.add_parser(
         "consistency", help="the daemon's presses on the emulated robot against the dataset "
         "recorder's, encoded by the shipped model (exit 1 if the targets are missed)")
@@ -498,7 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "targets must hold in each (run k: dataset seed SEED+k)")
     cons.add_argument("--seed", type=int, default=0)
     cons.add_argument("--models", default="models")
-    cons.add_argument("--config", default="configs/sim.toml")
+    _config_option(cons, "configs/sim.toml")
     cons.add_argument("--out", default=None, help="write consistency.md/.json here")
     cons.set_defaults(func=_cmd_sim_consistency)
 
@@ -518,7 +656,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _resolve_config(parser, args)
     setup_logging(logging.DEBUG if args.verbose else None)
     try:
         return int(args.func(args) or 0)

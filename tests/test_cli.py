@@ -67,3 +67,84 @@ def test_a_file_the_command_cannot_write_is_one_line_not_a_traceback(tmp_path, m
     assert main(["install-udev", "--install"]) == 2
     assert "Permission denied" in caplog.text and "sudo" in caplog.text
     assert "Traceback" not in caplog.text
+
+
+def test_config_before_or_after_the_subcommand_and_the_retry_line(tmp_path):
+    from edge.cli import build_parser, main
+
+    env = {**__import__("os").environ, "VTZERO_STATE_DIR": str(tmp_path)}
+    for argv in (["--config", "configs/sim.toml", "episodes", "list"],
+                 ["episodes", "--config", "configs/sim.toml", "list"],
+                 ["episodes", "list", "--config", "configs/sim.toml"]):
+        out = run(*argv, env=env)
+        assert out.returncode == 0, (argv, out.stderr)
+    parser = build_parser()
+    for argv in (["episodes", "retry", "--all-failed", "--config", "robot.toml"],
+                 ["--config", "robot.toml", "episodes", "retry", "--all-failed"]):
+        args = parser.parse_args(argv)
+        assert args.all_failed and args.id is None and args.config == "robot.toml"
+    # Where a command needs one, it is asked for by name; where it takes none, it is refused.
+    out = run("doctor")
+    assert out.returncode == 2 and "vt-edge doctor" in out.stderr and "--config" in out.stderr
+    out = run("--config", "configs/sim.toml", "bench")
+    assert out.returncode == 2 and "vt-edge bench takes no --config" in out.stderr
+    assert main(["--config", "configs/sim.toml", "models", "install", "models", "--to",
+                 str(tmp_path / "m")]) == 2
+    assert not (tmp_path / "m").exists()
+
+
+def test_episodes_list_shows_why_an_episode_failed(tmp_path):
+    from edge.daemon.store import EpisodeStore
+
+    store = EpisodeStore(tmp_path / "episodes")
+    why = ("HTTP 400 from http://vlm.lab:8000/v1: model 'qwen' does not support images; "
+           "send a text-only question or pick a vision model")
+    store.create(Episode(new_id(), Status.VLM_ERROR, last_error=why), {})
+    env = {**__import__("os").environ, "VTZERO_STATE_DIR": str(tmp_path)}
+    out = run("episodes", "list", "--config", "configs/sim.toml", env=env)
+    print(out.stdout)
+    assert out.returncode == 0 and "vlm_error" in out.stdout
+    assert "HTTP 400 from http://vlm.lab:8000/v1: model 'qwen' does..." in out.stdout
+
+
+def test_sim_serve_writes_absolute_paths_and_sim_place_puts_an_object_on_the_table(tmp_path):
+    import json
+    import os
+    import time
+    import urllib.request
+    from pathlib import Path
+
+    from edge.core.config import load_config
+
+    root = Path(__file__).resolve().parents[1]
+    written = tmp_path / "run.toml"
+    serve = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config",
+                              str(root / "configs/sim.toml"), "--write-config", str(written)],
+                             cwd=root, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                             text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not written.exists():
+            assert serve.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        elsewhere = tmp_path / "elsewhere"
+        elsewhere.mkdir()
+        os.chdir(elsewhere)
+        try:
+            cfg = load_config(written)
+        finally:
+            os.chdir(root)
+        assert cfg.runtime.models_dir == str(root / "models")
+        assert (Path(cfg.runtime.models_dir) / "manifest.json").is_file()
+        assert cfg.runtime.state_dir == str(root / "state")
+        out = run("sim", "place", "wood_cube", "--config", str(written), cwd=elsewhere)
+        assert out.returncode == 0, out.stderr
+        assert "wood_cube is on the emulated table" in out.stdout
+        control = cfg.camera.url.removesuffix("/camera.jpg")
+        with urllib.request.urlopen(f"{control}/object", timeout=5) as reply:
+            assert json.load(reply)["object"] == "wood_cube"
+        out = run("sim", "place", "no_such_thing", "--url", control)
+        assert out.returncode == 2 and "unknown object 'no_such_thing'" in out.stderr
+    finally:
+        serve.terminate()
+        serve.wait(timeout=30)
