@@ -17,9 +17,10 @@ import logging
 import os
 import shutil
 import stat
+import sys
 import tempfile
 import time
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,10 +45,11 @@ from edge.core.errors import (
 )
 from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
-from edge.daemon.devices import make_camera
+from edge.daemon.devices import make_button, make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
 from edge.daemon.serve import vlm_config
 from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
+from edge.daemon.store import MIN_FREE_BYTES as STORE_MIN_FREE_BYTES
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
     MIN_FIRMWARE,
@@ -78,14 +80,17 @@ FIRST_FRAME_TIMEOUT_S = 2.0
 NOISE_PERCENTILE = 99.9
 # Below this rate the press refuses its tare (edge.daemon.press: 50 frames per second).
 MIN_RATE_HZ = 50.0
-# Below this fraction of the model's grid rate the input is mostly interpolated.
-RATE_WARN_FRACTION = 0.5
-# Free space under which the state directory (episodes, photos, MCAP) is short.
-MIN_FREE_BYTES = 1 << 30
+# Free space under which the state directory (episodes, photos, MCAP) is short; below
+# STORE_MIN_FREE_BYTES the daemon refuses every press.
+LOW_FREE_BYTES = 1 << 30
 SERIAL_BY_ID = Path("/dev/serial/by-id")
 # HTTP statuses of a VLM server that wants another key (or one at all).
 KEY_REFUSED = (401, 403)
 DOCTOR_DIR = "doctor"
+# While a part is slow to answer (a VLM taking 40 s), a line this often says which.
+PROGRESS_EVERY_S = 5.0
+# Mode bits that let the group or others read a secret.
+READABLE_BY_OTHERS = 0o044
 
 
 class Level(enum.StrEnum):
@@ -152,22 +157,33 @@ class Report:
                 "checks": [c.to_json() for c in self.checks]}
 
 
+Progress = Callable[[str], None]
+
+
+def to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 async def run_doctor(cfg: Config, config_path: str = "<config>", *,
-                     noise_window_s: float = NOISE_WINDOW_S) -> Report:
-    """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side."""
+                     noise_window_s: float = NOISE_WINDOW_S,
+                     progress: Progress | None = None,
+                     progress_every_s: float = PROGRESS_EVERY_S) -> Report:
+    """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side.
+    ``progress`` gets a line every ``progress_every_s`` while a part has not answered."""
     started = time.monotonic()
     state = Path(cfg.runtime.state_dir)
     vlm, vlm_checks = _vlm_client(cfg)
     needs_photo = vlm is not None and vlm.template.uses_image
     try:
-        groups = await asyncio.gather(
-            _guard("bus", _check_bus(cfg)),
-            _guard("xela server", _check_xela(cfg, noise_window_s)),
-            _guard("camera", _check_camera(cfg, state, needs_photo)),
-            _guard("vlm", _check_vlm(vlm, vlm_checks)),
-            _guard("model", asyncio.to_thread(_check_model, cfg)),
-            _guard("mqtt", _check_mqtt(cfg)),
-        )
+        groups = await _all_parts({
+            "bus": _check_bus(cfg),
+            "xela server": _check_xela(cfg, noise_window_s),
+            "camera": _check_camera(cfg, state, needs_photo),
+            "vlm": _check_vlm(vlm, vlm_checks),
+            "model": asyncio.to_thread(_check_model, cfg),
+            "mqtt": _check_mqtt(cfg),
+            "button": _check_button(cfg),
+        }, started, progress, progress_every_s)
     finally:
         if vlm is not None:
             await vlm.close()
@@ -178,6 +194,25 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
         checks = [c for c in checks if c.part != MODEL_PADS]
     checks += [_check_state_dir(state), _check_api(cfg)]
     return Report(config_path, tuple(checks), time.monotonic() - started)
+
+
+async def _all_parts(parts: dict[str, Coroutine[Any, Any, list[Check]]], started: float,
+                     progress: Progress | None, every_s: float) -> list[list[Check]]:
+    """Each part's lines, the parts run side by side; while some have not answered,
+    ``progress`` hears which every ``every_s``."""
+    tasks = {asyncio.ensure_future(_guard(part, coro)): part for part, coro in parts.items()}
+    try:
+        pending = set(tasks)
+        while pending:
+            _, pending = await asyncio.wait(pending, timeout=every_s)
+            if pending and progress is not None:
+                waiting = ", ".join(tasks[t] for t in tasks if t in pending)
+                progress(f"doctor: waiting for {waiting} "
+                         f"({time.monotonic() - started:.0f} s so far)")
+    finally:
+        for task in tasks:
+            task.cancel()
+    return [task.result() for task in tasks]
 
 
 async def _guard(part: str, checks: Awaitable[list[Check]]) -> list[Check]:
@@ -475,7 +510,12 @@ def _check_rate(cfg: Config, sample: _Sample) -> Check:
     if rate < MIN_RATE_HZ:
         return fail("xela rate", found, f"the press needs at least {MIN_RATE_HZ:g} frames/s: "
                     "check xela_server's rate setting and the CAN adapter's load", **data)
-    if rate < RATE_WARN_FRACTION * expected or stats.repeats or sample.malformed:
+    off = preprocess.rate_problem(rate, expected)
+    if off is not None:
+        return warn("xela rate", found, f"{off} ({source}): presses at this rate embed "
+                    f"elsewhere than the model's references; {preprocess.RATE_SETTING}",
+                    **data)
+    if stats.repeats or sample.malformed:
         return warn("xela rate", found, "check xela_server's configuration and the computer's "
                     "load: the model's input is interpolated between frames", **data)
     return ok("xela rate", found, **data)
@@ -620,17 +660,20 @@ async def _check_vlm(vlm: OpenAIVLM | None, checks: list[Check]) -> list[Check]:
             "label": probe.label, "fallbacks": list(probe.fallbacks)}
     found = (f"a tiny question answered in {probe.latency_s:.2f} s with structured output "
              f"{probe.structured_output!r}")
+    # Each mode the server refused or ignored, and why (VLMProbe.reasons).
+    found += "".join(f"; {mode} {why}" for mode, why in
+                     zip(probe.fallbacks, probe.reasons, strict=False))
+    if probe.label is None:  # the daemon's own answer reader: the same verdict
+        return [listed, key, warn("vlm probe", f"{found}; its answer {probe.raw[:80]!r} is "
+                                  "none of the candidates: recognitions would end "
+                                  "invalid_answer",
+                                  f"try another model than {vc.model!r}, or a server that "
+                                  "honours response_format", **data)]
     if probe.fallbacks:
-        refused = "; ".join(f"{mode} refused ({why})" for mode, why in
-                            zip(probe.fallbacks, probe.reasons, strict=False))
-        return [listed, key, warn("vlm probe", f"{found}; {refused}",
+        return [listed, key, warn("vlm probe", found,
                                   f"set vlm.structured_output = {probe.structured_output!r}: "
                                   "the client steps down by itself, but asks in vain first "
                                   "every session", **data)]
-    if probe.label is None:
-        return [listed, key, warn("vlm probe", f"{found}, but it named none of the candidates",
-                                  f"try another model than {vc.model!r}: recognitions would "
-                                  "end invalid_answer", **data)]
     return [listed, key, ok("vlm probe", found, **data)]
 
 
@@ -693,11 +736,20 @@ def _check_state_dir(state: Path) -> Check:
                     "or set runtime.state_dir")
     free = shutil.disk_usage(existing).free
     made = "" if existing == state else f" (created at start, in {existing})"
-    found = f"{state} writable{made}, {free / 2**30:.1f} GiB free"
-    if free < MIN_FREE_BYTES:
+    found = f"{state} writable{made}, {_size(free)} free"
+    if free < STORE_MIN_FREE_BYTES:
+        return fail("state dir", found + f": the daemon refuses every press below "
+                    f"{_size(STORE_MIN_FREE_BYTES)}", "free space on its filesystem (old "
+                    "episodes, MCAP segments), or set runtime.state_dir to a larger one",
+                    free_bytes=free, floor_bytes=STORE_MIN_FREE_BYTES)
+    if free < LOW_FREE_BYTES:
         return warn("state dir", found, "free space: each recognition keeps its press and "
                     "photo, MCAP recording far more", free_bytes=free)
     return ok("state dir", found, free_bytes=free)
+
+
+def _size(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
 def _check_api(cfg: Config) -> Check:
@@ -708,10 +760,39 @@ def _check_api(cfg: Config) -> Check:
         return fail("api", str(exc), "bind api.host = '127.0.0.1', or put a token of "
                     f"{MIN_TOKEN_CHARS}+ characters in api.token_file")
     if ac.loopback_only:
-        return ok("api", f"bound to {ac.host}:{ac.port}, this machine only"
-                  + (" (a token is set too)" if token else ""))
-    return ok("api", f"bound to {ac.host}:{ac.port} with a bearer token of {len(token)} "
-              f"characters (at least {MIN_TOKEN_CHARS})")
+        found = f"bound to {ac.host}:{ac.port}, this machine only" + (
+            " (a token is set too)" if token else "")
+    else:
+        found = (f"bound to {ac.host}:{ac.port} with a bearer token of {len(token)} "
+                 f"characters (at least {MIN_TOKEN_CHARS})")
+    mode = Path(ac.token_file).stat().st_mode & 0o777 if ac.token_file else 0
+    if mode & READABLE_BY_OTHERS:
+        # Anyone who can log in to this computer could drive the arm with it.
+        level = warn if ac.loopback_only else fail
+        return level("api", f"{found}; api.token_file {ac.token_file} is readable by "
+                     f"{'others' if mode & 0o004 else 'its group'} (mode {mode:o})",
+                     f"chmod 600 {ac.token_file} (owned by the daemon's user)", mode=mode)
+    return ok("api", found)
+
+
+async def _check_button(cfg: Config) -> list[Check]:
+    """The daemon's own opening of the button (a serial port's modem lines, a GPIO line),
+    closed again at once; what it refuses at start fails here."""
+    bc = cfg.button
+    if bc.kind == "none":
+        return [ok("button", "none configured (recognitions come from the API)")]
+    where = f"{bc.port} {bc.line.upper()}" if bc.kind == "serial" else f"{bc.chip} line {bc.line}"
+    try:
+        button = await asyncio.to_thread(make_button, cfg)
+    except DeviceError as exc:
+        fix = ("check button.port (ls -l; the dialout group); a serial button needs a port "
+               "with modem lines (a USB-serial adapter), else use [button] kind = \"gpio\""
+               if bc.kind == "serial" else
+               "check button.chip and button.line (gpioinfo), the gpio group, and the gpio "
+               "extra (pip install 'vtzero[gpio]')")
+        return [fail("button", str(exc), fix)]
+    await button.close()
+    return [ok("button", f"{bc.kind} {where} opens and reads")]
 
 
 async def _check_mqtt(cfg: Config) -> list[Check]:
@@ -744,7 +825,7 @@ async def _check_mqtt(cfg: Config) -> list[Check]:
 def main(config_path: str, as_json: bool) -> int:
     """``vt-edge doctor``: 0 when nothing FAILs, 1 otherwise."""
     cfg = load_config(config_path)
-    report = asyncio.run(run_doctor(cfg, config_path))
+    report = asyncio.run(run_doctor(cfg, config_path, progress=to_stderr))
     print(json.dumps(report.to_json(), indent=2) if as_json else report.table())
     return 1 if report.failed else 0
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import shutil
 import threading
 import time
@@ -98,6 +99,25 @@ def sub(cfg: Config, section: str, **changes) -> Config:
     return replace(cfg, **{section: replace(getattr(cfg, section), **changes)})
 
 
+def _pty() -> str:
+    """A serial device without modem lines (a pseudo-terminal), open for the module."""
+    main, tty = os.openpty()
+    _KEPT_OPEN.extend((main, tty))
+    return os.ttyname(tty)
+
+
+_KEPT_OPEN: list[int] = []
+
+
+def _token(mode: int, host: str) -> Callable[[Config, Lab], Config]:
+    def make(cfg: Config, lab: Lab) -> Config:
+        path = Path(cfg.runtime.state_dir).parent / "api-token"
+        path.write_text("a-lab-token-of-32-characters-000\n")
+        path.chmod(mode)
+        return sub(cfg, "api", host=host, token_file=str(path))
+    return make
+
+
 def _not_a_dir(cfg: Config, lab: Lab) -> Config:
     blocker = Path(cfg.runtime.state_dir).parent / "a-file"
     blocker.write_text("")
@@ -151,6 +171,16 @@ CASES = [
     ("MQTT broker unreachable",
      lambda c, lab: sub(c, "mqtt", enabled=True, port=free_port(), connect_timeout_s=1.0),
      {"mqtt": Level.FAIL}, ["Connection refused", "start the broker"]),
+    ("button port without modem lines",
+     lambda c, lab: sub(c, "button", kind="serial", port=_pty(), line="cts"),
+     {"button": Level.FAIL}, ["has no modem lines", "/dev/pts/", "kind = \"gpio\""]),
+    ("GPIO button line missing",
+     lambda c, lab: sub(c, "button", kind="gpio", chip="/dev/vtzero-no-gpiochip", line="17"),
+     {"button": Level.FAIL}, ["GPIO", "button.chip and button.line"]),
+    ("API token world-readable off loopback", _token(0o644, "0.0.0.0"),
+     {"api": Level.FAIL}, ["api-token is readable by others (mode 644)", "chmod 600"]),
+    ("API token group-readable on loopback", _token(0o640, "127.0.0.1"),
+     {"api": Level.WARN}, ["readable by its group (mode 640)", "chmod 600"]),
     ("state dir not a directory", _not_a_dir,
      {"state dir": Level.FAIL}, ["a-file is not a directory", "runtime.state_dir"]),
 ]
@@ -309,3 +339,37 @@ def test_the_server_version_is_told_from_its_frames(dialect, says):
     assert doctor_module._dialect(frame) == says
     real = json.loads((ROOT / "tests/fixtures/xela/v1.8_uSPa46_two_sensors.json").read_text())
     assert doctor_module._dialect(real) == "xela_server 1.8.0b_208601"
+
+
+def test_a_disk_below_the_daemons_floor_fails(lab, tmp_path, monkeypatch):
+    from edge.daemon import store
+
+    # The daemon's own floor, not a second one.
+    assert doctor_module.STORE_MIN_FREE_BYTES is store.MIN_FREE_BYTES
+    state = tmp_path / "state"
+    assert doctor_module._check_state_dir(state).level is Level.OK
+    # This disk's real free space, against a floor just above it.
+    free = shutil.disk_usage(tmp_path).free
+    monkeypatch.setattr(doctor_module, "STORE_MIN_FREE_BYTES", free + (64 << 20))
+    check = doctor_module._check_state_dir(state)
+    print(check.found)
+    assert check.level is Level.FAIL
+    assert "the daemon refuses every press below" in check.found and "free space" in check.fix
+
+
+def test_a_slow_part_is_told_every_few_seconds(lab, tmp_path):
+    slow = FakeVLM(model=MODEL, latency_s=1.5)
+    lab.call(slow.start())
+    lines: list[str] = []
+    try:
+        cfg = sub(good_config(lab, tmp_path / "state"), "vlm", base_url=slow.base_url)
+        report = asyncio.run(run_doctor(cfg, noise_window_s=TEST_NOISE_WINDOW_S,
+                                        progress=lines.append, progress_every_s=0.25))
+    finally:
+        lab.call(slow.stop())
+    print("\n".join(lines))
+    assert not_ok(report) == {}, report.table()
+    # The probe alone took 1.5 s: several lines, the last naming only the VLM.
+    assert len(lines) >= 3 and all(line.startswith("doctor: waiting for ") for line in lines)
+    assert lines[-1].startswith("doctor: waiting for vlm (")
+    assert "xela server" not in lines[-1]
