@@ -2,7 +2,8 @@
 
 Tasks: ``sensor`` (frames -> ring buffer + the threshold on every frame), ``sampler``
 (125 Hz), ``watchdog`` (sd_notify only while frames keep arriving, or while torque is off),
-``button``, ``vlm-retry`` (pending episodes), one ``recognize`` task per request, and, after
+``button``, ``vlm-retry`` (pending episodes), ``store-retry`` (a store that could not
+write, tried again), one ``recognize`` task per request, and, after
 a start without the sensor stream, ``power-on`` (torque on when the stream arrives). The bus
 has its own owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT
 stop taking work and make the arm safe; SIGHUP reloads configuration, model, database and
@@ -28,8 +29,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from edge import __version__
+from edge.core import preprocess
 from edge.core.config import Config
-from edge.core.errors import EdgeError
+from edge.core.errors import EdgeError, StoreError
 from edge.core.model import ModelRef
 from edge.daemon.compute import ComputeWorker, warm_up
 from edge.daemon.episode import Episode
@@ -52,6 +54,9 @@ T = TypeVar("T")
 SAMPLE_RATE_HZ = 125.0
 RING_SECONDS = 30.0
 FIRST_FRAME_TIMEOUT_S = 5.0
+# How long of the stream the start measures its rate over (once; a warning if it is off the
+# model's grid).
+RATE_CHECK_S = 2.0
 # On SIGTERM: how long a recognition in flight (its press, the VLM question) may take to
 # finish before the daemon goes on without it.
 DRAIN_TIMEOUT_S = 10.0
@@ -59,6 +64,9 @@ DRAIN_TIMEOUT_S = 10.0
 HEALTH_FRAME_AGE_S = 1.0
 # After a start without the sensor stream: how often the power-on task looks for a frame.
 STREAM_POLL_S = 0.02
+# While the episode store cannot write: how often it is tried again (a small write and
+# fsync), the episodes held in memory written once it can.
+STORE_RETRY_S = 1.0
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
@@ -150,7 +158,7 @@ class Runtime:
         fresh = age < HEALTH_FRAME_AGE_S and not self.press.sensor_is_stale
         bus = self.devices.bus
         bus_error = (bus.fault if bus is not None else None) or self._torque_error
-        store_error = self.store.space_error()
+        store_error = self.store.error()
         vlm_error = self.vlm.unreachable
         sensor_error = self.sensor_error
         return Health(ok=(self.ready.is_set() and fresh and bus_error is None and not store_error
@@ -167,7 +175,8 @@ class Runtime:
                       version=__version__)
 
     def metrics_text(self) -> str:
-        return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm)
+        return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm,
+                                   self.store)
 
     async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T:
         """``fn(*args)`` in the compute process (CPU work that must not hold the GIL here)."""
@@ -198,7 +207,9 @@ class Runtime:
                 tg.create_task(self.sampler.run(), name="sampler")
                 tg.create_task(self._watchdog(), name="watchdog")
                 tg.create_task(self._button(), name="button")
+                tg.create_task(self._check_stream_rate(), name="rate-check")
                 tg.create_task(self.recognizer.retry_pending(), name="vlm-retry")
+                tg.create_task(self._store_retry(), name="store-retry")
                 # What the configuration turns on besides: live MCAP recording, MQTT.
                 for name, service in optional_services(self):
                     tg.create_task(service, name=name)
@@ -264,6 +275,21 @@ class Runtime:
             log.warning("no tactile frame within %.0f s; serving anyway (presses are "
                         "refused)", FIRST_FRAME_TIMEOUT_S)
 
+    async def _check_stream_rate(self) -> None:
+        """Once, ``RATE_CHECK_S`` into the stream: a warning where its rate is off the
+        model's grid (doctor's xela rate check says the same)."""
+        while self.ring.count == 0:  # noqa: ASYNC110
+            await asyncio.sleep(STREAM_POLL_S)  # polled: the sensor task stays as it is
+        t0 = time.monotonic()
+        await asyncio.sleep(RATE_CHECK_S)
+        frames = self.ring.window(t0, time.monotonic())
+        off = preprocess.rate_problem(preprocess.fresh_rate(frames.recv_time, frames.seq),
+                                      self.model.window.rate_hz)
+        if off is not None:
+            log.warning("the tactile stream at %s, the model's grid: presses at this rate "
+                        "embed elsewhere than its references; %s", off,
+                        preprocess.RATE_SETTING)
+
     def stop(self) -> None:
         if not self._stopping.is_set():
             log.info("stopping: no new work; making the arm safe")
@@ -307,6 +333,17 @@ class Runtime:
             if (time.monotonic() - self.ring.latest_time() < max(1.0, period)
                     or self._power_on is not None):
                 self.notifier.watchdog()
+
+    async def _store_retry(self) -> None:
+        """While the store cannot write (or holds episodes in memory): try it again every
+        ``STORE_RETRY_S``, and write what it holds once it can."""
+        while True:
+            await asyncio.sleep(STORE_RETRY_S)
+            if self.store.write_error is None and not self.store.held:
+                continue
+            with contextlib.suppress(StoreError):  # (the store has said why, once)
+                await asyncio.to_thread(self.store.check_writable)
+                await asyncio.to_thread(self.store.flush)
 
     async def _button(self) -> None:
         button = self.devices.button

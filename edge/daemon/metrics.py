@@ -10,6 +10,7 @@ from edge.hw.contracts import BusStatus
 
 if TYPE_CHECKING:
     from edge.daemon.press import PressOutcome
+    from edge.daemon.store import EpisodeStore
     from edge.vlm.client import VLMClient
 
 
@@ -58,10 +59,10 @@ class Metrics:
             self.vlm_answers[structured_output] = self.vlm_answers.get(structured_output, 0) + 1
 
     def render(self, st: Any, sensor: Any, bus: BusStatus | None = None,
-               vlm: VLMClient | None = None) -> str:
+               vlm: VLMClient | None = None, store: EpisodeStore | None = None) -> str:
         """Prometheus text: these counters, the sampler's stats ``st``, the sensor task's
-        frame and stale counts, with a motor ``bus`` its stops, and whether the ``vlm``
-        client reaches its server."""
+        frame and stale counts, with a motor ``bus`` its stops, whether the ``vlm`` client
+        reaches its server, and whether the episode ``store`` writes."""
         lines = [
             "# HELP vtzero_presses_total Presses by result.",
             "# TYPE vtzero_presses_total counter",
@@ -106,6 +107,25 @@ class Metrics:
             "# TYPE vtzero_loop_lag_max_seconds gauge",
             f"vtzero_loop_lag_max_seconds {st.max_late_s:.6f}",
         ]
+        if store is not None:
+            lines += [
+                "# HELP vtzero_store_ok 1 while the episode store writes (and has space), "
+                "else 0 (see /healthz store_error; presses are refused).",
+                "# TYPE vtzero_store_ok gauge",
+                f"vtzero_store_ok {0 if store.error() else 1}",
+                "# HELP vtzero_store_write_failures_total Writes of the episode store that "
+                "failed.",
+                "# TYPE vtzero_store_write_failures_total counter",
+                f"vtzero_store_write_failures_total {store.write_failures}",
+                "# HELP vtzero_store_held_episodes Episodes held in memory until the store "
+                "writes again.",
+                "# TYPE vtzero_store_held_episodes gauge",
+                f"vtzero_store_held_episodes {store.held}",
+                "# HELP vtzero_store_lost_total Episodes neither written nor held (the "
+                "memory's bound reached).",
+                "# TYPE vtzero_store_lost_total counter",
+                f"vtzero_store_lost_total {store.lost}",
+            ]
         if bus is not None:
             lines += [
                 "# HELP vtzero_stops_total Stops sent to the gripper.",

@@ -2,9 +2,11 @@
 episode; and the retry of episodes whose VLM question is still due.
 
 One press at a time (a second trigger gets :class:`BusyError` and never moves the arm). An
-episode is noted as accepted before the press runs, kept whole (the store writes
-atomically) whatever happens to the press, and waits ``pending`` while the VLM cannot be
-reached; the retry task asks again with capped exponential backoff, also after a restart.
+episode is noted as accepted (written and fsynced) before the press runs, so a store that
+cannot write refuses the press before the arm moves; it is kept whole (the store writes
+atomically, or holds it in memory until it can) whatever happens to the press, and waits
+``pending`` while the VLM cannot be reached; the retry task asks again with capped
+exponential backoff, also after a restart.
 """
 
 from __future__ import annotations
@@ -107,6 +109,13 @@ class Recognizer:
         episode_id = new_id()
         self.current = episode_id
         await self.lock.acquire()  # free: checked above, no await in between
+        try:
+            # Written and fsynced before anything moves: no press without a place to keep it.
+            await asyncio.to_thread(self.store.accept, episode_id, candidates, source)
+        except StoreError as exc:
+            self.current = None
+            self.lock.release()
+            raise StoreError(f"not pressing: {exc}") from None
         done = asyncio.get_running_loop().create_future()
         task = self._spawn(self._recognize(episode_id, candidates, image, source, done),
                            name=f"recognize {episode_id}")
@@ -147,10 +156,6 @@ class Recognizer:
                          source: str, done: asyncio.Future) -> None:
         t0 = time.monotonic()
         setup = self.setup  # one configuration for the whole episode
-        # Noted while the press starts (its fsyncs off the loop): a crash before the episode
-        # is kept leaves it "interrupted" after the restart, not unknown.
-        noted = asyncio.get_running_loop().run_in_executor(
-            None, self.store.accept, episode_id, candidates, source)
         asking: asyncio.Task | None = None
         photo: asyncio.Task | None = None
         try:
@@ -199,7 +204,6 @@ class Recognizer:
             if asking is not None and not outcome.contact:
                 # The return failed after the window: said on the episode, as without a label.
                 episode = episode.with_(status=Status.FAILED, error=outcome.message)
-            await _noted(noted)
             if asking is None:
                 await asyncio.to_thread(self.store.create, episode, files)
                 return
@@ -210,9 +214,12 @@ class Recognizer:
             await created
             stored.set_result(episode)
             await asking
+        except EdgeError as exc:
+            log.error("episode %s failed: %s", episode_id, exc)
+            await self._keep_failure(episode_id, candidates, source, exc)
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
-            await self._keep_failure(episode_id, candidates, source, exc, noted)
+            await self._keep_failure(episode_id, candidates, source, exc)
         finally:
             if photo is not None and not photo.done():
                 photo.cancel()  # the episode failed before it needed the photo
@@ -245,10 +252,9 @@ class Recognizer:
         return pressing
 
     async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
-                            exc: Exception, noted: asyncio.Future) -> None:
+                            exc: Exception) -> None:
         error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
         try:
-            await _noted(noted)
             await asyncio.to_thread(self.store.create, Episode(
                 episode_id, Status.FAILED, candidates, source, error=error), {})
         except StoreError as store_exc:
@@ -456,11 +462,3 @@ class Recognizer:
                 image = await asyncio.to_thread(path.read_bytes)
         await self._ask(episode, image, self.setup.vlm)
 
-
-async def _noted(noted: asyncio.Future) -> None:
-    """Wait for the acceptance note before the episode is written (else the note could land
-    after it, and outlive it until the next start)."""
-    try:
-        await noted
-    except StoreError as exc:
-        log.warning("%s: a crash before this episode is kept would lose it", exc)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from edge.core.config import Config, load_config
-from edge.core.errors import StartError
+from edge.core.errors import StartError, StoreError
 from edge.core.model import ModelRef
 from edge.core.model import model_ref as _model_ref
 from edge.daemon.api import Api, listen, load_token
@@ -142,6 +142,11 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         # The client in use at the end (a reload replaces it, and closes the old one).
         stack.push_async_callback(_close_vlm, lambda: runtime.vlm if runtime else vlm)
         store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
+        # Written and fsynced before torque goes on. A store that cannot write leaves the
+        # daemon serving with presses refused (/healthz store_error) until it can (the store
+        # has logged why).
+        with contextlib.suppress(StoreError):
+            await asyncio.to_thread(store.check_writable)
         try:
             sockets = listen(cfg.api)
         except OSError as exc:

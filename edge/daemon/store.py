@@ -22,6 +22,7 @@ import re
 import secrets
 import shutil
 import tarfile
+import threading
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -44,6 +45,11 @@ INTERRUPTED = ("interrupted: the daemon stopped (a crash, kill or power loss) be
 # Below this much free space (or 100 free inodes) the store counts as full: an episode
 # takes a few hundred kB; keep room for the rest of the system too.
 MIN_FREE_BYTES = 20 * 1024 * 1024
+# Episodes held in memory while the store cannot write (each a few hundred kB with its
+# photo). Presses are refused once a write fails, so only those under way then get here.
+HELD_MAX = 20
+# Written and fsynced (among the acceptance notes) to tell whether the store can write.
+_PROBE = "probe"
 
 
 def new_id(now: float | None = None) -> str:
@@ -62,6 +68,65 @@ class EpisodeStore:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StoreError(f"episode store {self.root} cannot be created: {exc}") from None
+        # Why the last write failed; None once one works (see the module's docstring).
+        self.write_error: str | None = None
+        self.write_failures = 0  # writes that failed
+        self.lost = 0  # episodes neither written nor held (the memory's bound reached)
+        # Episodes finished while the store could not write: id -> (episode, files).
+        self._held: dict[str, tuple[Episode, dict[str, bytes]]] = {}
+        self._held_lock = threading.Lock()  # the methods run in threads
+
+    @property
+    def held(self) -> int:
+        """Episodes held in memory, waiting for the store to write again."""
+        return len(self._held)
+
+    def error(self) -> str | None:
+        """Why a new episode cannot be kept now (a write failed, or the disk is full)."""
+        return self.write_error or self.space_error()
+
+    def _failed(self, error: StoreError) -> StoreError:
+        if self.write_error is None:
+            log.error("%s; presses are refused until the store can write again", error)
+        self.write_error = str(error)
+        self.write_failures += 1
+        return error
+
+    def _worked(self) -> None:
+        if self.write_error is not None:
+            log.info("episode store %s writes again", self.root)
+            self.write_error = None
+
+    def check_writable(self) -> None:
+        """Write and fsync a small file: :class:`StoreError` saying why if the store cannot
+        (the start checks this before torque goes on; the daemon again while it cannot)."""
+        try:
+            (self.root / _ACCEPTED).mkdir(exist_ok=True)
+            atomic_write_text(self.root / _ACCEPTED / _PROBE, f"{time.time()}\n")
+        except OSError as exc:
+            raise self._failed(_store_error(f"episode store {self.root} cannot write",
+                                            exc)) from None
+        self._worked()
+
+    def flush(self) -> int:
+        """Write the episodes held in memory, oldest first (how many were written); stops at
+        the first that fails (:class:`StoreError`)."""
+        written = 0
+        while self._held:
+            with self._held_lock:
+                episode_id = next(iter(self._held))
+                episode, files = self._held[episode_id]
+            episode = episode.with_(note=None)
+            if (self.root / episode_id).is_dir():  # written before; its update was not
+                self._rewrite(episode)
+            else:
+                self._write(episode, files)
+            with self._held_lock:
+                self._held.pop(episode_id, None)
+            log.info("episode %s written (held in memory while the store could not write)",
+                     episode_id)
+            written += 1
+        return written
 
     def recover(self) -> int:
         """After a crash: remove episodes that were never completed (returns how many), and
@@ -72,7 +137,8 @@ class EpisodeStore:
             removed += 1
         for tmp in [*self.root.glob(f"*/.{EPISODE_FILE}.*.tmp"),
                     *self.root.glob(f"{_ACCEPTED}/.*.tmp")]:
-            tmp.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # (a read-only store: left for next time)
+                tmp.unlink(missing_ok=True)
         if removed:
             log.warning("discarded %d incomplete episode(s) left by an interrupted write",
                         removed)
@@ -90,18 +156,22 @@ class EpisodeStore:
                                     source=accepted.get("source"),
                                     accepted=accepted.get("accepted")), {})
                 log.warning("episode %s: %s", episode_id, INTERRUPTED)
-            note.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                note.unlink(missing_ok=True)
         return removed
 
     def accept(self, episode_id: str, candidates: list[str], source: str) -> None:
-        """Note a press as accepted, before it runs (see ``_ACCEPTED``)."""
+        """Note a press as accepted (written and fsynced), before anything moves (see
+        ``_ACCEPTED``): :class:`StoreError` if the store cannot write."""
         notes = self.root / _ACCEPTED
         try:
             notes.mkdir(exist_ok=True)
             atomic_write_text(notes / f"{episode_id}.json", json.dumps(
                 {"candidates": candidates, "source": source, "accepted": time.time()}))
         except OSError as exc:
-            raise _store_error(f"episode {episode_id} could not be noted", exc) from None
+            raise self._failed(_store_error(f"episode store {self.root} cannot write",
+                                            exc)) from None
+        self._worked()
 
     def space_error(self) -> str | None:
         """Why a new episode cannot be kept (the filesystem is full), or None.
@@ -125,12 +195,33 @@ class EpisodeStore:
         return self.root / episode_id
 
     def create(self, episode: Episode, files: dict[str, bytes]) -> str:
-        """Write a new episode with its data files; returns its id."""
-        episode_id = episode.id
+        """Write a new episode with its data files; returns its id. Where the store cannot
+        write, the episode is held in memory (readable, written by :meth:`flush`) unless
+        ``HELD_MAX`` are already: then :class:`StoreError`."""
         now = time.time()
         # The monotonic clock at the same instant: exports map the press's times to wall time.
         episode = episode.with_(created=now, updated=now, extra={
             **episode.extra, "created_monotonic": time.monotonic()})
+        try:
+            self._write(episode, files)
+        except StoreError as exc:
+            self._hold(episode, files, exc)
+        return episode.id
+
+    def _hold(self, episode: Episode, files: dict[str, bytes], exc: StoreError) -> None:
+        """Keep ``episode`` in memory until :meth:`flush` (re-raises ``exc`` when full)."""
+        with self._held_lock:
+            if episode.id not in self._held and len(self._held) >= HELD_MAX:
+                self.lost += 1
+                raise exc
+            self._held[episode.id] = (episode.with_(note=(
+                f"held in memory, not yet written: {exc}; written once the store can "
+                "write again")), files)
+        log.warning("episode %s held in memory until the store can write: %s", episode.id,
+                    exc)
+
+    def _write(self, episode: Episode, files: dict[str, bytes]) -> None:
+        episode_id = episode.id
         tmp = self.root / f"{_TMP_PREFIX}{episode_id}"
         try:
             tmp.mkdir()
@@ -146,21 +237,37 @@ class EpisodeStore:
             _fsync_dir(self.root)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise _store_error(f"episode {episode_id} could not be written", exc) from None
+            raise self._failed(_store_error(f"episode {episode_id} could not be written",
+                                            exc)) from None
+        self._worked()
         # Kept: the note is done with (one left by a crash here is removed by recover()).
         with contextlib.suppress(OSError):
             (self.root / _ACCEPTED / f"{episode_id}.json").unlink(missing_ok=True)
-        return episode_id
 
     def update(self, episode_id: str, **fields: Any) -> Episode:
-        """Change ``fields`` of the episode (names of :class:`Episode` fields), atomically."""
-        path = self._dir(episode_id) / EPISODE_FILE
+        """Change ``fields`` of the episode (names of :class:`Episode` fields), atomically
+        (in memory for one held there)."""
+        with self._held_lock:
+            held = self._held.get(episode_id)
+            if held is not None:
+                episode = held[0].with_(**fields, updated=time.time())
+                self._held[episode_id] = (episode, held[1])
+                return episode
         episode = self.get(episode_id).with_(**fields, updated=time.time())
         try:
-            atomic_write_text(path, _dumps(episode.to_json()).decode())
-        except OSError as exc:
-            raise _store_error(f"episode {episode_id} could not be updated", exc) from None
+            self._rewrite(episode)
+        except StoreError as exc:
+            self._hold(episode, {}, exc)
         return episode
+
+    def _rewrite(self, episode: Episode) -> None:
+        try:
+            atomic_write_text(self._dir(episode.id) / EPISODE_FILE,
+                              _dumps(episode.to_json()).decode())
+        except OSError as exc:
+            raise self._failed(_store_error(f"episode {episode.id} could not be updated",
+                                            exc)) from None
+        self._worked()
 
     def add_file(self, episode_id: str, name: str, data: bytes) -> None:
         if "/" in name or name.startswith(".") or name == EPISODE_FILE:
@@ -172,6 +279,9 @@ class EpisodeStore:
                                exc) from None
 
     def get(self, episode_id: str) -> Episode:
+        held = self._held.get(episode_id)
+        if held is not None:
+            return held[0]
         path = self._dir(episode_id) / EPISODE_FILE
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
@@ -236,4 +346,8 @@ def _store_error(what: str, exc: OSError) -> StoreError:
     if exc.errno == errno.ENOSPC:
         return StoreError(f"{what}: the disk is full; free space on the store's filesystem "
                           "(older episodes are intact)")
+    if exc.errno == errno.EROFS:
+        return StoreError(f"{what}: its filesystem is read-only (an SD card turns read-only "
+                          "after an error: see dmesg, check it, remount it read-write); older "
+                          "episodes are intact")
     return StoreError(f"{what}: {exc}")

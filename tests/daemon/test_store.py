@@ -9,7 +9,7 @@ import pytest
 
 from edge.core.errors import NotFoundError, StoreError
 from edge.daemon.episode import Episode, Status
-from edge.daemon.store import EpisodeStore, new_id, valid_id
+from edge.daemon.store import HELD_MAX, EpisodeStore, new_id, valid_id
 
 
 def ep(status: str, episode_id: str | None = None, **fields) -> Episode:
@@ -82,12 +82,48 @@ def test_disk_full_is_a_clear_error_and_keeps_older_episodes(tmp_path, monkeypat
         return real_open(path, mode, *a, **k)
 
     monkeypatch.setattr("builtins.open", full)
-    with pytest.raises(StoreError, match="disk is full"):
-        store.create(ep("pending"), {"x": b"1"})
-    monkeypatch.undo()
+    held = store.create(ep("pending"), {"x": b"1"})
+    # Not written, held in memory and readable, saying why.
+    assert "disk is full" in store.write_error and "disk is full" in store.error()
+    assert store.held == 1 and store.get(held).note.startswith("held in memory")
+    assert store.update(held, status="done").status == Status.DONE  # (in memory)
     assert [e.id for e in store.list()] == [old]
     assert not list(tmp_path.glob(".tmp-*"))
     assert json.loads((tmp_path / old / "episode.json").read_text())["status"] == "done"
+    with pytest.raises(StoreError, match="disk is full"):
+        store.flush()
+    monkeypatch.undo()
+    # Space again: written as it stands now, without the note.
+    assert store.flush() == 1 and store.held == 0 and store.write_error is None
+    assert [e.id for e in store.list()] == [held, old]
+    back = json.loads((tmp_path / held / "episode.json").read_text())
+    assert back["status"] == "done" and "note" not in back
+    assert (tmp_path / held / "x").read_bytes() == b"1"
+
+
+def test_memory_holds_a_bounded_number_of_episodes(tmp_path, monkeypatch):
+    store = EpisodeStore(tmp_path)
+
+    def erofs(*a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+
+    # (EROFS where the store writes: root ignores file modes, see
+    # tests/faults/test_read_only_store.py for a real read-only filesystem)
+    monkeypatch.setattr("edge.daemon.store.open", erofs, raising=False)
+    monkeypatch.setattr("edge.daemon.store.atomic_write_text", erofs)
+    for _ in range(HELD_MAX):
+        store.create(ep("done"), {})
+    with pytest.raises(StoreError):
+        store.create(ep("done"), {})
+    with pytest.raises(StoreError, match="read-only"):
+        store.accept(new_id(), ["a"], "api")
+    with pytest.raises(StoreError, match="read-only"):
+        store.check_writable()
+    assert store.held == HELD_MAX and store.lost == 1 and store.write_failures >= HELD_MAX
+    monkeypatch.undo()
+    store.check_writable()
+    assert store.write_error is None
+    assert store.flush() == HELD_MAX and len(store.ids()) == HELD_MAX
 
 
 def test_a_press_accepted_but_never_kept_comes_back_interrupted(tmp_path):
