@@ -12,7 +12,9 @@ it received (``fake.requests``, each with the monotonic time it arrived) for ass
 What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.script`
 (a label, raw content, a status with ``Retry-After``, a non-JSON or huge body, a slow
 trickle, a dropped connection, latency); when the queue is empty it answers the label that
-``choose`` picks (default: the first candidate). The simulated VLM
+``choose`` picks (default: the first candidate), as a model that follows the prompt would:
+``{"label": ...}`` to a request with a ``response_format`` or whose last message asks for
+JSON, else the label alone. The simulated VLM
 (:mod:`edge.sim.standin_vlm`, a chooser that knows only what a VLM would know) is served by
 this same class.
 
@@ -23,8 +25,9 @@ this same class.
 ``structured`` makes it act like servers that do not support every structured-output mode,
 answering as they do (:data:`REFUSALS`): ``"json_object_only"`` refuses ``json_schema`` (an
 older llama.cpp server), ``"none_only"`` refuses any ``response_format`` (vLLM without it,
-TGI, ...), ``"ignored"`` takes any ``response_format`` without looking and answers prose
-("The object is most likely the ... because ...").
+TGI, ...), ``"ignored"`` takes any ``response_format`` without looking and answers ``prose``
+whatever it is asked (default "The object is most likely the <label> because ...";
+``{label}`` stands for the chosen label).
 
 Standalone, for demos: ``python -m edge.sim.fake_vlm --port 8011``.
 """
@@ -84,8 +87,10 @@ REFUSALS: dict[str, tuple[int, str, str]] = {
                  json.dumps({"error": "'response_format.type' must be 'json_schema' or "
                                       "'text'"})),
 }
-# What a model behind a server that ignores response_format says.
+# What a chatty model behind a server that ignores response_format says.
 PROSE = "The object is most likely the {label} because the photo and the touch both fit it."
+# How a request asks for JSON in its text (the shipped templates, the corrective retry).
+ASKS_JSON = '{"label"'
 
 
 @dataclass(frozen=True)
@@ -261,6 +266,17 @@ def prompt_candidates(prompt: str) -> list[str]:
     return [x for x in labels if isinstance(x, str) and x]
 
 
+def _asks_json(body: Any) -> bool:
+    """Whether a well-formed request asks for JSON: a response_format, or its last message
+    says so (free-text mode asks for the label alone)."""
+    if body.get("response_format") is not None:
+        return True
+    content = body["messages"][-1]["content"]
+    if isinstance(content, list):
+        content = " ".join(p["text"] for p in content if p["type"] == "text")
+    return ASKS_JSON in content
+
+
 def _decode_data_url(url: str) -> tuple[str | None, str, bytes]:
     if url.startswith(("http://", "https://")):
         return "only data: URLs are accepted (like Ollama), not http(s) URLs", "", b""
@@ -324,6 +340,7 @@ class FakeVLM:
         fingerprint: str = "fake-vlm",
         structured: str = "any",
         refusal: str | None = None,
+        prose: str = PROSE,
     ) -> None:
         if structured not in STRUCTURED:
             raise ValueError(f"structured={structured!r}: one of {', '.join(STRUCTURED)}")
@@ -347,6 +364,8 @@ class FakeVLM:
         # Which response formats it supports, and whose words it refuses the others with.
         self.structured = structured
         self.refusal = refusal or ("llamacpp" if structured == "json_object_only" else "vllm")
+        # What it answers when it ignores response_format.
+        self.prose = prose
         if self.refusal not in REFUSALS:
             raise ValueError(f"refusal={self.refusal!r}: one of {', '.join(REFUSALS)}")
         self.requests: list[FakeRequest] = []
@@ -458,8 +477,12 @@ class FakeVLM:
             content = reply.content
             if content is None:
                 label = reply.label if reply.label is not None else self.choose(rec)
-                content = (PROSE.format(label=label) if self.structured == "ignored"
-                           else json.dumps({"label": label}))
+                if self.structured == "ignored":
+                    content = self.prose.replace("{label}", label)
+                elif _asks_json(rec.body):
+                    content = json.dumps({"label": label})
+                else:
+                    content = label
             body = json.dumps(self._completion(rec, content)).encode()
         headers = {"Content-Type": "application/json", **reply.headers}
         if not reply.chunked and not reply.chunk_delay_s:

@@ -5,8 +5,9 @@ for one label.
 the loop, POSTs ``{base_url}/chat/completions`` with the image as a base64 data URL,
 ``temperature: 0``, ``seed`` and the configured structured output (``vlm.structured_output``:
 a strict ``json_schema`` whose enum is the candidates, ``json_object``, or ``none``), and
-checks the answer: a candidate (or a case/spacing variant of one) is ``ok``; anything else
-gets one corrective retry, then an explicit ``invalid_answer``. A label is never invented.
+reads the answer with :func:`edge.vlm.answer.read_answer`: a candidate (or a case/spacing
+variant of one) is ``ok``; anything else gets one corrective retry, then an explicit
+``invalid_answer``. A label is never invented.
 
 Transport failures (408, 409, 429, 5xx, connection errors, timeouts) are retried with capped
 exponential backoff and jitter, honouring ``Retry-After``; other statuses are never retried.
@@ -17,10 +18,13 @@ without any HTTP answer the client reports the server as unreachable (``unreacha
 A server that refuses the structured-output mode (400, 422, or an old llama.cpp's 500, whose
 body names ``response_format`` or an equivalent) makes the client step down one mode at a
 time, json_schema -> json_object -> none, log it once and keep the lower mode for the rest
-of its life (a client made after SIGHUP starts again from the configured mode). Every answer
-records the mode that answered. ``list_models()`` and ``probe()`` check an endpoint before
-anything is pressed (``vt-edge doctor``). The API key is read from the environment or a file, sent
-as a Bearer token, and never logged, stored or put in an exception.
+of its life (a client made after SIGHUP starts again from the configured mode). So does a
+server that ignores the mode: a 200 whose answer is not the requested JSON (prose) is asked
+again one mode down, so free text is only ever read where the prompt asked for the label
+alone. Every answer records the mode that answered. ``list_models()`` and ``probe()`` check
+an endpoint before anything is pressed (``vt-edge doctor``). The API key is read from the
+environment or a file, sent as a Bearer token, and never logged, stored or put in an
+exception.
 
 ``NoVLM`` stands in when no VLM is configured: it answers ``not_configured`` with the exact
 prompt that would have been sent.
@@ -65,14 +69,9 @@ from edge.core.errors import (
     VLMTimeoutError,
     VLMUnavailableError,
 )
+from edge.vlm.answer import ask_for, correction_message, read_answer
 from edge.vlm.images import PreparedImage, VLMImage, prepare_for_vlm
-from edge.vlm.prompt import (
-    PromptMode,
-    PromptTemplate,
-    check_candidates,
-    format_candidates,
-    load_template,
-)
+from edge.vlm.prompt import PromptMode, PromptTemplate, check_candidates, load_template
 
 log = logging.getLogger(__name__)
 
@@ -80,8 +79,6 @@ log = logging.getLogger(__name__)
 RETRYABLE_STATUSES = frozenset({408, 409, 429, *range(500, 600)})
 # The most of an error body quoted in an exception or a log line.
 EXCERPT_CHARS = 200
-# Answers longer than this are not a label (and not worth a regex).
-MAX_ANSWER_CHARS = 100_000
 # The most of a bad answer echoed back in the corrective retry.
 MAX_ECHO_CHARS = 2_000
 SCHEMA_NAME = "label"
@@ -97,8 +94,6 @@ FORMAT_REFUSAL_STATUSES = frozenset({400, 422, 500})
 _FORMAT_REFUSAL = re.compile(
     r"response[_ .-]?format|json[_ ]?schema|json[_ ]?object|structured[_ ]outputs?|"
     r"guided[_ ](?:json|decoding)|grammar|json mode", re.I)
-# JSON mode needs the prompt to ask for JSON (OpenAI refuses it otherwise).
-JSON_REPLY = 'Reply only with JSON: {"label": "<candidate>"}'
 # Attempts in a row that got no HTTP answer at all (refused, DNS, timeout) after which the
 # server counts as unreachable: one question's worth with the default vlm.max_retries = 3.
 UNREACHABLE_AFTER_ATTEMPTS = 4
@@ -112,26 +107,6 @@ BACKOFF_SPREAD = (0.5, 1.0)
 Status = Literal["ok", "invalid_answer", "not_configured"]
 
 
-# --- errors -------------------------------------------------------------------------------
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-# --- configuration -----------------------------------------------------------------------
-
 # --- the answer --------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -142,7 +117,8 @@ class VLMAnswer:
     label: str | None
     # The text content of the last answer ("" when none came).
     raw: str
-    # The rendered template (JSON mode may add a line asking for JSON; see ``request``).
+    # The rendered template (the mode's answer line, edge.vlm.answer.ask_for, is in
+    # ``request``).
     prompt: str
     candidates: tuple[str, ...]
     model: str
@@ -169,14 +145,16 @@ class VLMAnswer:
 @dataclass(frozen=True)
 class VLMProbe:
     """What :meth:`OpenAIVLM.probe` found: the mode that answered, how fast, the label it
-    gave (None: no candidate), and the modes the server refused on the way (``reasons``:
-    the server's words for each)."""
+    gave (None: no candidate, as a recognition would end ``invalid_answer``) and its last
+    answer, and the modes the server refused or ignored on the way (``reasons``: "refused
+    (the server's words)" or "ignored (what it answered)")."""
 
     structured_output: str
     latency_s: float
     label: str | None
     fallbacks: tuple[str, ...]
     reasons: tuple[str, ...] = ()
+    raw: str = ""
 
 
 @runtime_checkable
@@ -205,80 +183,6 @@ class VLMClient(Protocol):
         ...
 
     async def close(self) -> None: ...
-
-
-# --- answer parsing ----------------------------------------------------------------------
-
-_FENCE = re.compile(r"```[A-Za-z0-9_+-]*[ \t]*\n?(.*?)```", re.S)
-_SEPARATORS = re.compile(r"[\s_\-]+")
-
-
-def normalise_label(text: str) -> str:
-    """The comparison key of a label: "Raw Kiri-Mochi." -> "raw_kiri_mochi"."""
-    text = text.strip().strip("\"'`").strip().rstrip(".").casefold()
-    return _SEPARATORS.sub("_", text).strip("_")
-
-
-def match_label(value: str, candidates: Sequence[str]) -> str | None:
-    """``value`` as a candidate: exactly, else by :func:`normalise_label` if unambiguous."""
-    if value in candidates:
-        return value
-    key = normalise_label(value)
-    if not key:
-        return None
-    found = [c for c in candidates if normalise_label(c) == key]
-    return found[0] if len(found) == 1 else None
-
-
-def parse_label(text: str, candidates: Sequence[str]) -> str | None:
-    """The candidate an answer names, or None. Never raises on any answer text.
-
-    Accepts ``{"label": "..."}``, the same inside a code fence or after a ``<think>`` block,
-    a JSON string, or a bare label; each mapped by :func:`match_label`. A JSON label that is
-    not a candidate is None, never a guess. Free text (a server that ignores the response
-    format) is read only where it names exactly one candidate, spelled exactly as given.
-    """
-    if not isinstance(text, str) or len(text) > MAX_ANSWER_CHARS:
-        return None
-    end_think = text.lower().rfind("</think>")  # reasoning models: the answer follows
-    if end_think >= 0:
-        text = text[end_think + len("</think>"):]
-    text = text.strip()
-    fence = _FENCE.search(text)
-    bodies = [fence.group(1).strip(), text] if fence else [text]
-    for body in bodies:
-        value = _json_label(body)
-        if value is None and "{" in body and "}" in body:
-            value = _json_label(body[body.find("{"): body.rfind("}") + 1])
-        if value is not None:
-            return match_label(value, candidates)
-        if body and "\n" not in body:
-            found = match_label(body, candidates)
-            if found is not None:
-                return found
-    if _is_json(text):
-        return None  # JSON without a label is not free text
-    named = [c for c in candidates
-             if re.search(rf"(?<![\w-]){re.escape(c)}(?![\w-])", text) is not None]
-    return named[0] if len(named) == 1 else None
-
-
-def _is_json(text: str) -> bool:
-    try:
-        json.loads(text)
-    except (ValueError, RecursionError):
-        return False
-    return True
-
-
-def _json_label(text: str) -> str | None:
-    try:
-        value = json.loads(text)
-    except (ValueError, RecursionError):
-        return None
-    if isinstance(value, dict):
-        value = value.get("label")
-    return value if isinstance(value, str) else None
 
 
 # --- request pieces ----------------------------------------------------------------------
@@ -310,14 +214,6 @@ def response_format(candidates: Sequence[str]) -> dict[str, Any]:
             },
         },
     }
-
-
-def correction_message(candidates: Sequence[str]) -> str:
-    return (
-        "That answer is not one of the candidates. Answer again with exactly one label from "
-        f"the candidates, spelled exactly as given: {format_candidates(candidates)}. "
-        'Reply only with JSON: {"label": "<candidate>"}'
-    )
 
 
 def _user_message(prompt: str, image_url: str | None) -> dict[str, Any]:
@@ -385,8 +281,8 @@ class _Trace:
     def __init__(self) -> None:
         self.latency_s: list[float] = []
         self.outcomes: list[str] = []
-        # Structured-output modes the server refused, and its words for each.
-        self.refused: list[str] = []
+        # Structured-output modes the server refused or ignored, and why for each.
+        self.stepped_down: list[str] = []
         self.reasons: list[str] = []
 
     def add(self, started: float, outcome: str) -> None:
@@ -500,7 +396,8 @@ class OpenAIVLM:
         answer, trace = await self._ask(image, PROBE_DESCRIPTION, PROBE_CANDIDATES, 0)
         return VLMProbe(structured_output=answer.structured_output or self._structured,
                         latency_s=answer.elapsed_s, label=answer.label,
-                        fallbacks=tuple(trace.refused), reasons=tuple(trace.reasons))
+                        fallbacks=tuple(trace.stepped_down), reasons=tuple(trace.reasons),
+                        raw=answer.raw)
 
     async def ask(self, image: bytes | VLMImage | None, description: str,
                   candidates: Sequence[str]) -> VLMAnswer:
@@ -534,31 +431,33 @@ class OpenAIVLM:
         while True:
             mode = self._structured
             head = request_head(self.config.model, self.config.seed, mode, labels)
-            prompt = rendered
-            if mode == "json_object" and '"label"' not in prompt:
-                prompt += "\n" + JSON_REPLY
+            prompt = ask_for(rendered, mode)
             # Both name the image; _encode_json puts the data URL in what goes on the wire.
             wire = [_user_message(prompt, stored_url)]
             stored = [_user_message(prompt, stored_url)]
             try:
                 response, raw = await self._complete({**head, "messages": wire}, trace,
                                                      splice, max_retries, mode != "none")
-                break
             except VLMFormatRefusedError as exc:
-                trace.refused.append(mode)
-                trace.reasons.append(exc.excerpt)
-                self._step_down(mode, exc)
-        label = parse_label(raw, labels)
+                self._step_down(mode, trace, "refused", f"HTTP {exc.status}: {exc.excerpt}")
+                continue
+            reading = read_answer(raw, labels, mode)
+            if reading.honoured:
+                break
+            # A 200 that is not the requested JSON: the server took the mode and ignored it.
+            self._step_down(mode, trace, "ignored",
+                            f"answered {self._excerpt(raw.encode())!r}, not JSON")
+        label = reading.label
         if label is None:
             log.warning("VLM answer %r is not a candidate; asking once more",
                         self._redact(raw[:EXCERPT_CHARS]))
-            correction = {"role": "user", "content": correction_message(labels)}
+            correction = {"role": "user", "content": correction_message(labels, mode)}
             echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
             wire += [{"role": "assistant", "content": echo}, correction]
             stored += [{"role": "assistant", "content": self._redact(echo)}, correction]
             response, raw = await self._complete({**head, "messages": wire}, trace, splice,
                                                  max_retries, False)
-            label = parse_label(raw, labels)
+            label = read_answer(raw, labels, mode).label
         status: Status = "ok" if label is not None else "invalid_answer"
         elapsed = time.monotonic() - started
         if label is None:
@@ -576,15 +475,17 @@ class OpenAIVLM:
             elapsed_s=elapsed, structured_output=mode,
         ), trace
 
-    def _step_down(self, mode: str, refusal: VLMFormatRefusedError) -> None:
-        """The next mode after a refusal of ``mode``, for this client's life; logged once
-        (questions in flight together may each meet the refusal)."""
+    def _step_down(self, mode: str, trace: _Trace, verb: str, why: str) -> None:
+        """The next mode after the server ``verb`` ("refused" or "ignored") ``mode``, for
+        this client's life; logged once (questions in flight together may each meet it)."""
+        trace.stepped_down.append(mode)
+        trace.reasons.append(f"{verb} ({why})")
         lower = STRUCTURED_MODES[STRUCTURED_MODES.index(mode) + 1]
         if self._structured == mode:
             self._structured = lower
-            log.warning("VLM at %s refused structured output %s (HTTP %d: %s); asking with "
-                        "%s from now on (set vlm.structured_output = %r to start there)",
-                        self.url, mode, refusal.status, refusal.excerpt, lower, lower)
+            log.warning("VLM at %s %s structured output %s (%s); asking with %s from now on "
+                        "(set vlm.structured_output = %r to start there)", self.url, verb,
+                        mode, why, lower, lower)
 
     # -- one round: POST with transport retries, then the answer text --
 
@@ -870,6 +771,5 @@ __all__ = [
     "VLMConnectionError", "VLMFormatRefusedError", "VLMHTTPError", "VLMProbe",
     "VLMRejectedError", "VLMResponseError",
     "VLMResponseTooLargeError", "VLMServerError", "VLMTimeoutError", "VLMUnavailableError",
-    "make_vlm", "match_label", "normalise_label", "parse_label",
-    "parse_retry_after", "request_head", "response_format",
+    "make_vlm", "parse_retry_after", "request_head", "response_format",
 ]

@@ -87,18 +87,18 @@ async def test_request_has_image_temperature_seed_and_schema(fake, jpeg):
 
 @pytest.mark.asyncio
 @pytest.mark.parametrize(
-    ("content", "label"),
+    ("content", "mode", "label"),
     [
-        ("Raw Kiri Mochi", "raw_kiri_mochi"),
-        ('```json\n{"label": "BOILED KIRI MOCHI"}\n```', "boiled_kiri_mochi"),
-        ('"raw_kabocha_squash"', "raw_kabocha_squash"),
+        ("Raw Kiri Mochi", "none", "raw_kiri_mochi"),
+        ('```json\n{"label": "BOILED KIRI MOCHI"}\n```', "json_schema", "boiled_kiri_mochi"),
+        ('"raw_kabocha_squash"', "none", "raw_kabocha_squash"),
     ],
 )
-async def test_variants_map_to_the_candidate(fake, jpeg, content, label):
+async def test_variants_map_to_the_candidate(fake, jpeg, content, mode, label):
     fake.script(Reply(content=content))
-    answer = await ask(vlm_config(fake.base_url), jpeg)
+    answer = await ask(vlm_config(fake.base_url, structured_output=mode), jpeg)
     assert (answer.status, answer.label, answer.attempts) == ("ok", label, 1)
-    assert answer.raw == content
+    assert answer.raw == content and answer.structured_output == mode
 
 
 @pytest.mark.asyncio
@@ -116,10 +116,13 @@ async def test_label_outside_candidates_gets_one_corrective_retry(fake, jpeg):
 
 
 @pytest.mark.asyncio
-async def test_two_bad_answers_give_invalid_answer_never_a_label(fake, jpeg):
-    fake.script(Reply(content="{not json"), Reply(content="It is a delicious rice cake."))
-    answer = await ask(vlm_config(fake.base_url), jpeg)
+@pytest.mark.parametrize(("first", "mode"), [("{not json", "none"),
+                                             ('{"label": "rice_cake"}', "json_schema")])
+async def test_two_bad_answers_give_invalid_answer_never_a_label(fake, jpeg, first, mode):
+    fake.script(Reply(content=first), Reply(content="It is a delicious rice cake."))
+    answer = await ask(vlm_config(fake.base_url, structured_output=mode), jpeg)
     assert answer.status == "invalid_answer" and answer.label is None
+    assert answer.structured_output == mode
     assert answer.raw == "It is a delicious rice cake." and answer.attempts == 2
     assert len(fake.requests) == 2  # exactly one corrective retry
 
@@ -286,15 +289,17 @@ async def test_api_key_never_leaks(monkeypatch, caplog, tmp_path, jpeg):
         assert planted in fake.requests[0].error  # the server did quote it...
         seen += [str(err.value), repr(err.value), err.value.excerpt, repr(err.value.args)]
         assert "<redacted>" in str(err.value)  # ...and the client redacted it
-    # 2. The right key, a server that echoes it in the answer; from a key file.
+    # 2. The right key, a server that echoes it in the answer (taken for ignoring both JSON
+    # modes, then in free text and the corrective retry); from a key file.
     key_file = tmp_path / "vlm.key"
     key_file.write_text(planted + "\n")
     key_file.chmod(0o644)
     async with FakeVLM(model=MODEL, api_key=planted) as fake:
-        fake.script(Reply(content=f"my key is {planted}"), Reply(content=planted))
+        fake.script(*[Reply(content=f"my key is {planted}")] * 3, Reply(content=planted))
         cfg = vlm_config(fake.base_url, api_key_env="", api_key_file=key_file)
         answer = await ask(cfg, jpeg)
-        assert answer.status == "invalid_answer"
+        assert (answer.status, answer.attempts) == ("invalid_answer", 4)
+        assert caplog.text.count("ignored structured output") == 2
         seen.append(json.dumps(answer.to_dict()))
         seen.append(repr(answer))
     assert "readable by group or others" in caplog.text

@@ -14,6 +14,7 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.sim.fake_vlm import REFUSALS, FakeVLM, Reply
+from edge.vlm.answer import LABEL_ALONE
 from edge.vlm.client import (
     PROBE_CANDIDATES,
     UNREACHABLE_AFTER_ATTEMPTS,
@@ -50,8 +51,12 @@ async def test_each_mode_sends_its_response_format(jpeg, mode, expected):
         answer = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
     body = fake.chat_requests[0].body
     assert body.get("response_format") == expected
-    assert f"Candidates: {format_candidates(CANDIDATES)}" in fake.chat_requests[0].prompt
-    assert '{"label": "<candidate>"}' in fake.chat_requests[0].prompt
+    prompt = fake.chat_requests[0].prompt
+    assert f"Candidates: {format_candidates(CANDIDATES)}" in prompt
+    # JSON modes ask for JSON; free text for the label alone (and the fake answers so).
+    assert ('{"label": "<candidate>"}' in prompt) is (mode != "none")
+    assert prompt.endswith(LABEL_ALONE) is (mode == "none")
+    assert (answer.raw == SECOND) is (mode == "none")
     assert (answer.status, answer.label, answer.structured_output) == ("ok", SECOND, mode)
     assert answer.request.get("response_format") == expected and answer.attempts == 1
 
@@ -104,28 +109,61 @@ async def test_questions_in_flight_together_log_each_step_once(jpeg, caplog):
     assert len(fallback_warnings(caplog)) == 2
 
 
+def ignored_warnings(caplog):
+    return [r for r in caplog.records
+            if r.levelno == logging.WARNING and "ignored structured output" in r.getMessage()]
+
+
+FOOD = ["macaron", "resin_replica_macaron", "melon_pan"]
+NEGATION = "This is not a real macaron; it is a resin replica."
+
+
 @pytest.mark.asyncio
-async def test_a_server_ignoring_response_format_answers_prose_that_is_read(jpeg, caplog):
-    """(b) Takes response_format without looking and answers prose: no step down (nothing
-    was refused), the prose names one candidate and is read as it, no corrective retry."""
+@pytest.mark.parametrize(("prose", "label"), [
+    (NEGATION, None),
+    ("macaron, resin_replica_macaron", None),  # a list of two candidates
+    ("Macarons.", None),  # a candidate inside a longer word
+    ("The object is most likely the {label} because it is soft.", None),
+    ("Label: {label}.", "macaron"),  # the label alone, as free text asks
+])
+async def test_a_server_ignoring_response_format_is_asked_in_free_text(jpeg, caplog, prose,
+                                                                       label):
+    """Takes response_format without looking and answers prose: in a JSON mode that is the
+    mode ignored (step down, logged once); in free text only the label alone is a label,
+    else the corrective retry, then invalid_answer with the text kept."""
     caplog.set_level(logging.WARNING, "edge.vlm.client")
-    async with FakeVLM(model=MODEL, choose=pick_second, structured="ignored") as fake, \
+    async with FakeVLM(model=MODEL, structured="ignored", prose=prose) as fake, \
             OpenAIVLM(vlm_config(fake.base_url)) as vlm:
-        answer = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
-        assert vlm.structured_output == "json_schema"
-    assert answer.raw.startswith(f"The object is most likely the {SECOND} because")
-    assert (answer.status, answer.label, answer.attempts) == ("ok", SECOND, 1)
-    assert answer.structured_output == "json_schema" and not fallback_warnings(caplog)
+        first = await vlm.ask(jpeg, DESCRIPTION, FOOD)
+        second = await vlm.ask(jpeg, DESCRIPTION, FOOD)
+        assert vlm.structured_output == "none"
+    said = prose.replace("{label}", FOOD[0])
+    print(f"\n{said!r}: {first.status} {first.label} via {first.structured_output}, "
+          f"then {second.status}, {len(fake.chat_requests)} requests")
+    sent = [(r.body.get("response_format") or {}).get("type") for r in fake.chat_requests]
+    asked = 1 if label else 2  # with the corrective retry
+    assert sent == ["json_schema", "json_object"] + [None] * (2 * asked)
+    assert all(r.status == 200 for r in fake.chat_requests)
+    for answer in (first, second):
+        assert (answer.label, answer.structured_output, answer.raw) == (label, "none", said)
+        assert answer.status == ("ok" if label else "invalid_answer")
+        assert LABEL_ALONE in answer.request["messages"][0]["content"][0]["text"]
+    assert (first.attempts, second.attempts) == (2 + asked, asked)
+    warnings = ignored_warnings(caplog)
+    assert [w.getMessage().split(" structured output ")[1][:11] for w in warnings] == [
+        "json_schema", "json_object"]
+    assert said[:40] in warnings[0].getMessage()
 
 
 @pytest.mark.asyncio
-async def test_prose_naming_no_single_candidate_is_invalid_not_guessed(jpeg):
-    async with FakeVLM(model=MODEL, structured="ignored") as fake, \
-            OpenAIVLM(vlm_config(fake.base_url)) as vlm:
-        fake.script(Reply(content=f"Either {CANDIDATES[0]} or {SECOND}."),
-                    Reply(content="I cannot tell from this photo."))
-        answer = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
-    assert (answer.status, answer.label, answer.attempts) == ("invalid_answer", None, 2)
+async def test_markdown_around_json_is_json(jpeg, caplog):
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
+    async with FakeVLM(model=MODEL) as fake, OpenAIVLM(vlm_config(fake.base_url)) as vlm:
+        fake.script(Reply(content='```json\n{"label": "resin_replica_macaron"}\n```'))
+        answer = await vlm.ask(jpeg, DESCRIPTION, FOOD)
+        assert vlm.structured_output == "json_schema"
+    assert (answer.status, answer.label, answer.attempts) == ("ok", "resin_replica_macaron", 1)
+    assert answer.structured_output == "json_schema" and not ignored_warnings(caplog)
 
 
 @pytest.mark.asyncio
@@ -177,13 +215,28 @@ async def test_probe_reports_the_mode_that_answered_and_the_refused_ones():
     print(f"\nprobe: {probe}")
     assert probe.structured_output == "none"
     assert probe.fallbacks == ("json_schema", "json_object")
-    assert "extra_forbidden" in probe.reasons[0] and len(probe.reasons) == 2
+    assert probe.reasons[0].startswith("refused (HTTP 400: [{'type': 'extra_forbidden'")
+    assert len(probe.reasons) == 2
     assert probe.label == PROBE_CANDIDATES[0] and 0 < probe.latency_s < 5
     assert models == [MODEL]
     # The tiny photo went along (the prompt mode sends one), and only two candidates.
     req = fake.chat_requests[-1]
     assert len(req.images) == 1 and len(req.images[0]) < 2000
     assert req.candidates == list(PROBE_CANDIDATES)
+
+
+@pytest.mark.asyncio
+async def test_probe_reads_the_answer_as_a_recognition_does():
+    """A server that ignores response_format and answers the negation: the probe says, before
+    any press, what every recognition would end as."""
+    async with FakeVLM(model=MODEL, structured="ignored", prose=NEGATION) as fake, \
+            OpenAIVLM(vlm_config(fake.base_url)) as vlm:
+        probe = await vlm.probe()
+    print(f"\nprobe: {probe}")
+    assert (probe.label, probe.raw, probe.structured_output) == (None, NEGATION, "none")
+    assert probe.fallbacks == ("json_schema", "json_object")
+    assert all(why.startswith(f"ignored (answered {NEGATION!r}") for why in probe.reasons)
+    assert len(fake.chat_requests) == 4  # two modes ignored, free text and its retry
 
 
 @pytest.mark.asyncio
