@@ -184,19 +184,34 @@ def model_for(ref: ModelRef) -> Model:
     """The daemon's model, loaded here once per model (a reload gives a new digest)."""
     global _model
     if _model is None or _model.directory != ref.directory or _model.digest != ref.digest:
-        model = load_model(ref.directory)
-        if model.digest != ref.digest:
-            raise ModelError(
-                f"{ref.directory}: the model files changed since the daemon loaded them; send "
-                "SIGHUP (systemctl reload vtzero-edge) to load the new ones")
-        _model = model
+        _model = _loaded(ref)
     return _model
+
+
+def _loaded(ref: ModelRef) -> Model:
+    model = load_model(ref.directory)
+    if model.digest != ref.digest:
+        raise ModelError(
+            f"{ref.directory}: the model files changed since the daemon loaded them; send "
+            "SIGHUP (systemctl reload vtzero-edge) to load the new ones")
+    return model
 
 
 def warm_up(ref: ModelRef) -> None:
     """Load the model here and run it once (onnxruntime allocates on its first run)."""
     model = model_for(ref)
     model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
+
+
+def reload_model(ref: ModelRef) -> None:
+    """Load the model again from its files, every one re-hashed against the manifest even
+    where the manifest is unchanged (one byte flipped in the encoder leaves its digest as it
+    was), run it once, and make it the one that answers. :class:`ModelError` naming the
+    file if one does not match: the running model stays."""
+    global _model
+    model = _loaded(ref)
+    model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
+    _model = model
 
 
 @dataclass(frozen=True)
@@ -233,4 +248,4 @@ def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
 
 
 __all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for",
-           "warm_up"]
+           "reload_model", "warm_up"]

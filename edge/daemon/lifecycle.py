@@ -33,7 +33,7 @@ from edge.core import preprocess
 from edge.core.config import Config
 from edge.core.errors import EdgeError, StoreError
 from edge.core.model import ModelRef
-from edge.daemon.compute import ComputeWorker, warm_up
+from edge.daemon.compute import ComputeWorker, reload_model, warm_up
 from edge.daemon.episode import Episode
 from edge.daemon.events import EventBus, Subscription
 from edge.daemon.metrics import Metrics
@@ -374,7 +374,8 @@ class Runtime:
             return False
         async with self.recognizer.lock:  # never swap under a press in progress
             try:
-                await self.compute.run(warm_up, model)
+                # Every file re-hashed, not only the manifest's digest compared.
+                await self.compute.run(reload_model, model)
             except EdgeError as exc:
                 log.error("reload refused, keeping the running model: %s", exc)
                 if vlm is not self.vlm:

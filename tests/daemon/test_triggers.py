@@ -131,3 +131,30 @@ async def test_systemd_ready_watchdog_only_while_frames_arrive_and_stopping(tmp_
             assert "WATCHDOG=1" not in drain()  # systemd will restart us
         assert "STOPPING=1" in drain()
     server.close()
+
+
+@pytest.mark.asyncio
+async def test_sighup_rehashes_every_model_file_and_refuses_a_damaged_one(tmp_path, caplog):
+    import shutil
+
+    models = tmp_path / "models"
+    shutil.copytree(base_config().runtime.models_dir, models)
+    cfg = base_config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(models)))
+    async with SimRobot(QUICK_OBJECT, seed=25, cfg=cfg) as robot, \
+            Daemon(robot, cfg, tmp_path / "state") as d:
+        running = d.runtime.model
+        encoder = models / "encoder.onnx"
+        data = bytearray(encoder.read_bytes())
+        data[len(data) // 2] ^= 0x01  # one byte flipped; the manifest as it was
+        encoder.write_bytes(bytes(data))
+        os.kill(os.getpid(), signal.SIGHUP)
+        refused = await wait_until(
+            lambda: [r.getMessage() for r in caplog.records
+                     if r.getMessage().startswith("reload refused")], 20, "the reload refused")
+        print(refused)
+        assert "encoder.onnx" in refused[0] and "does not match the manifest" in refused[0]
+        assert d.runtime.model is running
+        # The running model keeps answering.
+        status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+        assert status == 200 and ep["status"] == "not_configured" and ep["description"], ep
