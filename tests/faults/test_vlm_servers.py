@@ -1,7 +1,8 @@
 """The daemon with VLM servers that are not OpenAI: one refusing ``response_format`` (the
-fallback), a failing one whose episodes are asked again (``POST /v1/episodes/{id}/retry``,
-``vt-edge episodes retry``), and a wrong URL (``/healthz`` and ``/metrics`` say so). Every
-recognition presses the emulated robot through the real drivers."""
+fallback), one ignoring it and answering prose (never a wrong label), a failing one whose
+episodes are asked again (``POST /v1/episodes/{id}/retry``, ``vt-edge episodes retry``), and
+a wrong URL (``/healthz`` and ``/metrics`` say so). Every recognition presses the emulated
+robot through the real drivers."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import pytest
 from edge.core.errors import EdgeError, NotFoundError
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
+from edge.tools.doctor import Level, _check_vlm, _vlm_client
 from edge.tools.episode_retry import run_retry
 from edge.vlm.client import UNREACHABLE_AFTER_ATTEMPTS
 from tests.support.daemon import (
@@ -68,6 +70,42 @@ async def test_a_server_refusing_response_format_still_recognises(tmp_path):
         stored = d.store.get(first["id"])
         assert stored.structured_output == "none"
     assert [r.status for r in fake.chat_requests] == [400, 400, 200, 200]
+
+
+NEGATION = "This is not a real macaron; it is a resin replica."
+
+
+async def test_a_server_ignoring_response_format_never_turns_prose_into_a_label(tmp_path):
+    """Takes response_format without looking and answers the negation to everything: doctor's
+    probe says, before any press, that recognitions would end invalid_answer; 8 of 8 do (none
+    macaron), each recording the mode that answered (free text) and the text it gave."""
+    assert "macaron" in FOOD
+    async with FakeVLM(choose=truth, structured="ignored", prose=NEGATION) as fake:
+        cfg = fast_config(fake.base_url)
+        vlm, _ = _vlm_client(cfg)
+        assert vlm is not None
+        async with vlm:
+            *_, probe = await _check_vlm(vlm, [])
+        print(f"doctor: {probe.level} {probe.part}: {probe.found} -> {probe.fix}")
+        assert (probe.part, probe.level) == ("vlm probe", Level.WARN)
+        assert "recognitions would end invalid_answer" in probe.found
+        assert NEGATION in probe.found and "json_schema ignored" in probe.found
+        assert probe.data["structured_output"] == "none" and probe.data["label"] is None
+        probed = len(fake.chat_requests)
+        async with sim_daemon(tmp_path, OBJECT, cfg=cfg) as (_robot, d):
+            episodes = [await recognize(d) for _ in range(8)]
+            answers = await metric(d, 'vtzero_vlm_answers_total{structured_output="none"}')
+        outcomes = [ep["vlm"]["outcomes"] for ep in episodes]
+        print(f"{len(episodes)} recognitions: {[ep['status'] for ep in episodes]}, "
+              f"outcomes {outcomes}")
+        for ep in episodes:
+            assert (ep["status"], ep["label"]) == ("invalid_answer", None), ep["id"]
+            assert ep["structured_output"] == ep["vlm"]["structured_output"] == "none"
+            assert ep["vlm"]["raw"] == NEGATION
+            assert "response_format" not in ep["vlm"]["request"]
+        # The first asked both JSON modes in vain; every one got its corrective retry.
+        assert outcomes == [["200"] * 4] + [["200"] * 2] * 7
+        assert answers == 8 and len(fake.chat_requests) == probed + 4 + 7 * 2
 
 
 async def test_failed_episodes_are_asked_again_by_route_and_command(tmp_path):
