@@ -143,10 +143,12 @@ async def test_planted_vlm_key_never_leaks(tmp_path, monkeypatch, caplog):
     seen: list = []
 
     async with FakeVLM(api_key=KEY, choose=lambda req: QUICK_OBJECT) as fake:
-        # A 500 quoting the key, then (retried) answers that are the key itself twice
-        # (invalid_answer, the corrective request echoing it back), then a good answer.
+        # A 500 quoting the key, then (retried) prose quoting it (taken for the JSON mode
+        # ignored, and logged), answers that are the key itself twice (invalid_answer, the
+        # corrective request echoing it back), then a good answer.
         fake.script(Reply.error(500, f"upstream auth {KEY} failed"),
-                    Reply(content=f"my key is {KEY}"), Reply(content=f'{{"label": "{KEY}"}}'))
+                    Reply(content=f"my key is {KEY}"), Reply(content=f'{{"label": "{KEY}"}}'),
+                    Reply(content=KEY))
         async with key_daemon(tmp_path / "a", fake) as (_, d):
             assert "api_key=set" in repr(d.vlm) and KEY not in repr(d.vlm)
             status, first = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
@@ -159,7 +161,7 @@ async def test_planted_vlm_key_never_leaks(tmp_path, monkeypatch, caplog):
             on_disk = store_bytes(d.store.root)
         # The key was really sent (the test means something)...
         assert all(r.headers.get("Authorization") == f"Bearer {KEY}" for r in fake.requests)
-        assert len(fake.chat_requests) == 4
+        assert len(fake.chat_requests) == 5
 
     # ...and a server that refuses it and quotes it back.
     async with FakeVLM(api_key="the-right-key", echo_key_in_errors=True) as liar:
