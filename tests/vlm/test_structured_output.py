@@ -156,6 +156,23 @@ async def test_a_server_ignoring_response_format_is_asked_in_free_text(jpeg, cap
 
 
 @pytest.mark.asyncio
+async def test_prose_to_json_schema_is_asked_again_in_json_mode_first(jpeg, caplog):
+    """One mode down at a time: a server that ignores json_schema may honour json_object."""
+    caplog.set_level(logging.WARNING, "edge.vlm.client")
+    async with FakeVLM(model=MODEL, choose=pick_second) as fake, \
+            OpenAIVLM(vlm_config(fake.base_url)) as vlm:
+        fake.script(Reply(content=f"It is {SECOND}."))
+        answer = await vlm.ask(jpeg, DESCRIPTION, CANDIDATES)
+        assert vlm.structured_output == "json_object"
+    assert (answer.status, answer.label, answer.structured_output) == ("ok", SECOND,
+                                                                       "json_object")
+    assert answer.outcomes == ("200", "200") and answer.request["response_format"] == {
+        "type": "json_object"}
+    (warning,) = ignored_warnings(caplog)
+    assert f"answered 'It is {SECOND}.', not JSON" in warning.getMessage()
+
+
+@pytest.mark.asyncio
 async def test_markdown_around_json_is_json(jpeg, caplog):
     caplog.set_level(logging.WARNING, "edge.vlm.client")
     async with FakeVLM(model=MODEL) as fake, OpenAIVLM(vlm_config(fake.base_url)) as vlm:
