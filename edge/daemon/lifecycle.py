@@ -7,7 +7,9 @@ write, tried again), one ``recognize`` task per request, and, after
 a start without the sensor stream, ``power-on`` (torque on when the stream arrives). The bus
 has its own owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT
 stop taking work and make the arm safe; SIGHUP reloads configuration, model, database and
-VLM client between presses; SIGUSR1 triggers a recognition with the default candidates.
+VLM client between presses (deferred until the daemon serves); SIGUSR1 triggers a
+recognition with the default candidates. Those held while the daemon started
+(:mod:`edge.daemon.signals`) are acted on when it runs.
 
 Whatever makes the arm safe runs in ``finally`` on every path out of :meth:`Runtime.run`,
 including a task that died: the running press is aborted (its controller opens the
@@ -33,6 +35,7 @@ from edge.core import preprocess
 from edge.core.config import Config
 from edge.core.errors import EdgeError, StoreError
 from edge.core.model import ModelRef
+from edge.daemon import signals
 from edge.daemon.compute import ComputeWorker, reload_model, warm_up
 from edge.daemon.episode import Episode
 from edge.daemon.events import EventBus, Subscription
@@ -107,6 +110,9 @@ class Runtime:
         self._no_stream: str | None = None  # why, until the stream arrives
         # Why torque stayed off when the stream arrived: the bus's trouble then, not the sensor's.
         self._torque_error: str | None = None
+        # Serving (ready, or degraded with torque off); until then a SIGHUP is deferred.
+        self._serving = False
+        self._reload_due = False
 
     # The configuration, model and VLM client in force (replaced together on reload).
     @property
@@ -196,8 +202,16 @@ class Runtime:
             for sig, handler in ((signal.SIGTERM, self.stop), (signal.SIGINT, self.stop),
                                  (signal.SIGHUP, self._sighup),
                                  (signal.SIGUSR1, self._sigusr1)):
+                previous = signal.getsignal(sig)
                 loop.add_signal_handler(sig, handler)
-                installed.append(sig)
+                installed.append((sig, previous))
+        # Sent while the daemon started, held until now (edge/daemon/signals.py).
+        early = signals.take_pending()
+        if signal.SIGHUP in early:
+            self._sighup()
+        if signal.SIGTERM in early:
+            log.info("SIGTERM during the start")
+            self.stop()
         try:
             removed = await asyncio.to_thread(self.store.recover)
             self.metrics.discarded_partial = removed
@@ -227,14 +241,22 @@ class Runtime:
                                         "its stream arrives")
                     log.warning("%s: serving with torque off; presses are refused until its "
                                 "stream arrives", self._no_stream)
+                self._serving = True
+                if self._reload_due:
+                    self._reload_due = False
+                    self._sighup()
                 await self._stopping.wait()
                 await self._drain()
                 raise _Stop
         except* _Stop:
             pass
         finally:
-            for sig in installed:
+            for sig, previous in installed:
                 loop.remove_signal_handler(sig)
+                if previous is not None:
+                    # Held again (or as they were): a signal now must not cut the arm's
+                    # way to safety short.
+                    signal.signal(sig, previous)
             await _unless_cancelled_twice(self._make_safe())
 
     def _set_ready(self) -> None:
@@ -286,8 +308,8 @@ class Runtime:
         off = preprocess.rate_problem(preprocess.fresh_rate(frames.recv_time, frames.seq),
                                       self.model.window.rate_hz)
         if off is not None:
-            log.warning("the tactile stream at %s, the model's grid: presses at this rate "
-                        "embed elsewhere than its references; %s", off,
+            log.warning("the tactile stream at %s, the model's grid, the rate its references "
+                        "were pressed at: %s; or build a model from presses at this rate", off,
                         preprocess.RATE_SETTING)
 
     def stop(self) -> None:
@@ -359,6 +381,12 @@ class Runtime:
     def _sighup(self) -> None:
         if self.reloader is None:
             log.warning("SIGHUP: nothing to reload")
+            return
+        if not self._serving:
+            # The start loads the same files: reloading under it would race it.
+            if not self._reload_due:
+                log.info("SIGHUP while the daemon starts: the reload follows once it serves")
+            self._reload_due = True
             return
         asyncio.get_running_loop().create_task(self.reload(), name="reload")
 

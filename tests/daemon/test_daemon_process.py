@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from edge.core import tomledit
@@ -75,3 +76,41 @@ def test_a_start_that_cannot_listen_says_why_in_one_line_and_exits_2(tmp_path):
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == (
         f"vt-edge: cannot listen on 127.0.0.1:{port}: address already in use")
+
+
+def test_sighup_and_sigterm_while_the_daemon_starts_are_never_fatal(tmp_path):
+    """`systemctl reload` or a deployment script's reload right after a start: the daemon
+    reaches ready (the reload follows); a stop during the start is a clean exit."""
+    env = dict(os.environ, VTZERO_STATE_DIR=str(tmp_path / "state"), PYTHONUNBUFFERED="1")
+    env.pop("VTZERO_VLM_URL", None)
+    run_cfg = tmp_path / "run.toml"
+    sim = subprocess.Popen([sys.executable, "-m", "edge", "sim", "serve", "--config",
+                            str(ROOT / "configs" / "sim.toml"), "--write-config", str(run_cfg)],
+                           env=env, cwd=ROOT)
+    daemon = None
+    try:
+        _wait_for(run_cfg.exists, 30, "sim", sim)
+        port = free_port()
+        tomledit.update(run_cfg, run_cfg, {"api": {"port": port}})
+        api = f"http://127.0.0.1:{port}"
+        for sig, after_s in ((signal.SIGHUP, 0.1), (signal.SIGHUP, 0.3), (signal.SIGHUP, 0.6),
+                             (signal.SIGTERM, 0.1), (signal.SIGTERM, 0.6)):
+            daemon = subprocess.Popen([sys.executable, "-m", "edge", "run", "--config",
+                                       str(run_cfg)], env=env, cwd=ROOT,
+                                      stderr=subprocess.PIPE, text=True)
+            time.sleep(after_s)
+            daemon.send_signal(sig)
+            if sig == signal.SIGHUP:
+                _wait_for(lambda: http_json("GET", f"{api}/healthz").get("ready"), 60,
+                          "daemon", daemon)
+                daemon.send_signal(signal.SIGTERM)
+            _, err = daemon.communicate(timeout=60)
+            print(f"{sig.name} at {after_s} s: exit {daemon.returncode}")
+            assert daemon.returncode == 0, err[-2000:]
+            if sig == signal.SIGHUP:
+                assert "reloaded configuration, model, database" in err, err[-2000:]
+    finally:
+        if daemon is not None and daemon.poll() is None:
+            daemon.kill()
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(20)
