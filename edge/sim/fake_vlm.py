@@ -556,7 +556,7 @@ async def _serve(args: argparse.Namespace) -> None:
 
     fake = FakeVLM(host=args.host, port=args.port, model=args.model or None,
                    choose=choose, latency_s=args.latency_s, structured=args.structured,
-                   refusal=args.refusal)
+                   refusal=args.refusal, prose=args.prose)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -583,6 +583,9 @@ def main(argv: list[str] | None = None) -> int:
                         "(default any)")
     parser.add_argument("--refusal", choices=sorted(REFUSALS), default=None,
                         help="whose words it refuses a response format with")
+    parser.add_argument("--prose", default=PROSE,
+                        help="what it answers with --structured ignored ({label}: the chosen "
+                        "label; default %(default)r)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     asyncio.run(_serve(args))

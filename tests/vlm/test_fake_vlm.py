@@ -15,6 +15,7 @@ import pytest
 
 from edge.sim.fake_vlm import FakeVLM
 from edge.vlm.client import response_format
+from edge.vlm.prompt import format_candidates
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes
 
@@ -118,31 +119,38 @@ async def test_on_request_sees_each_answered_request_with_its_arrival_time():
     assert [r.status for r in seen] == [200, 400] and seen == fake.requests
     assert t0 <= seen[0].received_at <= seen[1].received_at <= t1
 
-def test_standalone_server_runs_and_stops():
+@pytest.mark.parametrize(("args", "content"), [
+    ((), json.dumps({"label": CANDIDATES[1]})),
+    (("--structured", "ignored", "--prose", "Not a {label}."), f"Not a {CANDIDATES[1]}."),
+], ids=["json", "ignored"])
+def test_standalone_server_runs_and_stops(args, content):
     port = free_port()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with subprocess.Popen(
         [sys.executable, "-m", "edge.sim.fake_vlm", "--port", str(port), "--choose",
-         f"label:{CANDIDATES[1]}"],
+         f"label:{CANDIDATES[1]}", *args],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=ROOT,
     ) as proc:
         try:
-            _check_standalone(proc, port)
+            _check_standalone(proc, port, content)
         finally:
             proc.terminate()
             assert proc.wait(timeout=10) == 0
 
 
-def _check_standalone(proc, port):
+def _check_standalone(proc, port, content):
     line = proc.stdout.readline()
     assert f"http://127.0.0.1:{port}/v1" in line, line
+
+    body = good_body()  # the candidates in the prompt too, for a server ignoring the schema
+    body["messages"][0]["content"][0]["text"] += f"\nCandidates: {format_candidates(CANDIDATES)}"
 
     async def call():
         async with aiohttp.ClientSession() as session:
             url = f"http://127.0.0.1:{port}/v1/chat/completions"
-            async with session.post(url, json=good_body()) as resp:
+            async with session.post(url, json=body) as resp:
                 return resp.status, await resp.json()
 
     status, data = asyncio.run(call())
     assert status == 200
-    assert json.loads(data["choices"][0]["message"]["content"])["label"] == CANDIDATES[1]
+    assert data["choices"][0]["message"]["content"] == content
