@@ -67,6 +67,7 @@ from edge.hw.dynamixel import (
 )
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.tools.calibrate import NOISE_FLOOR_FACTOR
+from edge.tools.hosttiming import MEASURE_S, HostTiming, measure
 from edge.vlm.client import OpenAIVLM, _is_loopback, load_api_key
 from edge.vlm.images import check_image
 
@@ -89,6 +90,9 @@ KEY_REFUSED = (401, 403)
 DOCTOR_DIR = "doctor"
 # While a part is slow to answer (a VLM taking 40 s), a line this often says which.
 PROGRESS_EVERY_S = 5.0
+# The sampler's period error (p99) past which the host is too busy for the 125 Hz path:
+# a tick that late samples a frame 1/8 of a period off, and a stop waits as long.
+LATE_P99_WARN_S = 1e-3
 # Mode bits that let the group or others read a secret.
 READABLE_BY_OTHERS = 0o044
 
@@ -165,11 +169,13 @@ def to_stderr(line: str) -> None:
 
 
 async def run_doctor(cfg: Config, config_path: str = "<config>", *,
-                     noise_window_s: float = NOISE_WINDOW_S,
+                     noise_window_s: float = NOISE_WINDOW_S, timing_s: float = MEASURE_S,
                      progress: Progress | None = None,
                      progress_every_s: float = PROGRESS_EVERY_S) -> Report:
-    """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side.
-    ``progress`` gets a line every ``progress_every_s`` while a part has not answered."""
+    """Every check of ``cfg``; the slow ones (the pads' noise, the VLM) run side by side,
+    then the host's timing for ``timing_s`` alone (the doctor's own work would disturb
+    it). ``progress`` gets a line every ``progress_every_s`` while a part has not
+    answered."""
     started = time.monotonic()
     state = Path(cfg.runtime.state_dir)
     vlm, vlm_checks = _vlm_client(cfg)
@@ -187,6 +193,8 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
     finally:
         if vlm is not None:
             await vlm.close()
+    groups += await _all_parts({"host timing": _check_timing(cfg, timing_s)}, started,
+                               progress, progress_every_s)
     checks = [c for group in groups for c in group]
     if any(c.part == "xela layout" and c.level is Level.FAIL for c in checks):
         # [sensor] is not what the server sends: that is the cause, and a model that does
@@ -512,9 +520,9 @@ def _check_rate(cfg: Config, sample: _Sample) -> Check:
                     "check xela_server's rate setting and the CAN adapter's load", **data)
     off = preprocess.rate_problem(rate, expected)
     if off is not None:
-        return warn("xela rate", found, f"{off} ({source}): presses at this rate embed "
-                    f"elsewhere than the model's references; {preprocess.RATE_SETTING}",
-                    **data)
+        return warn("xela rate", found, f"{off} ({source}), the rate its references were "
+                    f"pressed at: {preprocess.RATE_SETTING}; or build a model from presses at "
+                    "this rate", **data)
     if stats.repeats or sample.malformed:
         return warn("xela rate", found, "check xela_server's configuration and the computer's "
                     "load: the model's input is interpolated between frames", **data)
@@ -793,6 +801,37 @@ async def _check_button(cfg: Config) -> list[Check]:
         return [fail("button", str(exc), fix)]
     await button.close()
     return [ok("button", f"{bc.kind} {where} opens and reads")]
+
+
+async def _check_timing(cfg: Config, duration_s: float) -> list[Check]:
+    t: HostTiming = await asyncio.to_thread(measure, cfg, duration_s)
+    data = {"sampler_late_p50_ms": 1e3 * t.late_p50_s, "sampler_late_p99_ms": 1e3 * t.late_p99_s,
+            "sampler_late_max_ms": 1e3 * t.late_max_s, "ticks": t.ticks,
+            "missed_ticks": t.missed_ticks, "stop_p50_ms": 1e3 * t.stop_p50_s,
+            "stop_p99_ms": 1e3 * t.stop_p99_s, "stop_max_ms": 1e3 * t.stop_max_s,
+            "stops": t.stops, "realtime_applied": t.realtime_applied,
+            "realtime_refused": t.realtime_refused}
+    rt = ("on" if t.realtime_applied else
+          "allowed, off" if t.realtime_refused is None else f"refused ({t.realtime_refused})")
+    found = (f"125 Hz sampler period error p99 {1e3 * t.late_p99_s:.2f} ms (p50 "
+             f"{1e3 * t.late_p50_s:.2f}, max {1e3 * t.late_max_s:.1f}; {t.missed_ticks} of "
+             f"{t.ticks} ticks missed); frame to Goal Position write p50 "
+             f"{1e3 * t.stop_p50_s:.2f} / p99 {1e3 * t.stop_p99_s:.2f} ms ({t.stops} stops "
+             f"on a loopback port); real-time scheduling {rt}")
+    if t.late_p99_s <= LATE_P99_WARN_S and not t.missed_ticks:
+        return [ok("host timing", found, **data)]
+    free_cpu = ("keep a CPU free for the daemon (boot with isolcpus=N, set [runtime] "
+                "realtime_cpu = N) or move other work off this computer")
+    if t.realtime_applied:
+        fix = free_cpu
+    elif t.realtime_refused is None:
+        fix = f"set [runtime] realtime = true (docs/hardware.md 'Real-time scheduling'); {free_cpu}"
+    else:
+        fix = ("allow real-time scheduling (the service: `vt-edge install-service` writes "
+               "LimitRTPRIO= once the config sets realtime = true; a shell: root or "
+               f"CAP_SYS_NICE), set [runtime] realtime = true; {free_cpu}")
+    return [warn("host timing", found + f": past {1e3 * LATE_P99_WARN_S:g} ms, presses stop "
+                 "late and overshoot", fix, **data)]
 
 
 async def _check_mqtt(cfg: Config) -> list[Check]:
