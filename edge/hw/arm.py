@@ -79,6 +79,8 @@ class DynamixelGripper:
         return 1 if self._reverse else -1
 
     async def open(self, width_m: float, current_cap_ma: float) -> None:
+        # The gripper's own ID only, every read and write: opening is every press's way out,
+        # and must work while another motor does not answer.
         goal = gripper_raw(width_m, self._reverse)
         # Not checked against the Current Limit as close() does: opening is every press's
         # way out, and a cap the motor refuses comes back as a MotorError the caller retries,
@@ -89,7 +91,7 @@ class DynamixelGripper:
         await self._bus.write(self._id, "Goal Position", goal)
         deadline = asyncio.get_running_loop().time() + self._timeout_s
         while True:
-            state = await self._bus.read_state()
+            state = await self._bus.read_motor_state(self._id)
             if abs(state.motors[self._id].position - goal) <= self._tolerance_raw:
                 return
             if asyncio.get_running_loop().time() > deadline:
@@ -120,7 +122,7 @@ class DynamixelGripper:
         return GripperStop(record.goal, record.t_write_call)
 
     async def state(self) -> GripperState:
-        bus_state = await self._bus.read_state()
+        bus_state = await self._bus.read_motor_state(self._id)
         motor = bus_state.motors[self._id]
         # Closing draws current of the closing direction's sign.
         squeeze = motor.current * self.closing_sign * CURRENT_MA_PER_UNIT
@@ -167,6 +169,9 @@ class DynamixelArm:
 
     async def move_to(self, pose: str, timeout_s: float = DEFAULT_MOVE_TIMEOUT_S) -> None:
         goals = dict(zip(self._joint_ids, named_pose(self._poses, pose), strict=True))
+        # Every joint answers before any is sent anywhere: with one silent, the others would
+        # go and leave the arm bent between two poses.
+        await self._bus.read_state()
         await self._bus.sync_write("Profile Acceleration",
                                    dict.fromkeys(self._joint_ids, self._accel_time_ms))
         await self._bus.sync_write("Profile Velocity",

@@ -19,13 +19,14 @@ import pytest_asyncio
 
 from edge.core.config import BusConfig
 from edge.core.errors import BusInUseError, DeviceError, MotorError
-from edge.hw.arm import DynamixelGripper, gripper_raw
+from edge.hw.arm import DynamixelArm, DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import (
     LATENCY_TIMER_UDEV_RULE,
     STOP_STATE_MAX_AGE_S,
     BlockingPortHandler,
     DynamixelBus,
 )
+from edge.hw.dynamixel.bus import PORT_BACK_WAIT_S
 from edge.hw.dynamixel.port import PTY_LATENCY_TIMER_MS
 from edge.sim.dxl_emulator import INST_READ, INST_SYNC_READ, INST_WRITE, DxlEmulator
 from tests.support.waits import wait_until
@@ -264,6 +265,46 @@ async def test_watchdog_fed_while_the_loop_runs_trips_when_it_stalls(emu, bus):
 
 
 @pytest.mark.asyncio
+async def test_a_silent_joint_starves_no_other_motor_and_the_gripper_still_opens(emu):
+    """A sync read fails as a whole at one silent motor: the feed, the trip's clearing and
+    the gripper's opening ask each motor on its own, the silent one last and alone."""
+    # 300 ms, the shipped watchdog: past the pty's reply timeout (~0.2 s) that each ask of
+    # the silent motor costs everyone else.
+    async with DynamixelBus(BusConfig(port=emu.port, watchdog_ms=300)) as bus:
+        await bus.set_torque(True)
+        emu.set_missing(12)
+        await asyncio.sleep(1.5)  # idle: only the feed talks, several asks of motor 12
+        watchdogs = {i: emu.get_register(i, "Bus Watchdog") for i in IDS}
+        print(f"\n  Bus Watchdog after 1.5 s with motor 12 silent: {watchdogs}; "
+              f"fault: {bus.fault}")
+        assert all(watchdogs[i] == 15 for i in (11, 13, 14, 15))
+        assert bus.fault is not None and "motor 12" in bus.fault
+        assert "no status packet" in bus.fault
+        # A trip of the gripper's own (a stall elsewhere) is cleared without motor 12, which
+        # is named once the others are seen to.
+        emu.trip_watchdog(15)
+        with pytest.raises(MotorError, match="motor 12") as caught:
+            await bus.recover_watchdog()
+        assert caught.value.motor_id == 12
+        assert emu.get_register(15, "Bus Watchdog") == 15
+        gripper = DynamixelGripper(bus, timeout_s=3.0)
+        await gripper.open(0.015, 200 * 2.69)
+        assert abs(emu.true_position(15) - gripper_raw(0.015)) <= 15
+        state = await gripper.state()
+        assert state.width_m == pytest.approx(0.015, abs=0.001)
+        # The arm refuses to move before any joint is sent anywhere.
+        before = [emu.true_position(i) for i in IDS[:4]]
+        arm = DynamixelArm(bus, {"away": (1500, 1500, 1500, 1500)}, move_time_s=0.2)
+        with pytest.raises(MotorError, match="motor 12"):
+            await arm.move_to("away")
+        await asyncio.sleep(0.3)
+        assert [emu.true_position(i) for i in IDS[:4]] == pytest.approx(before, abs=2)
+        # Back: the fault clears by itself.
+        emu.set_missing(12, False)
+        await wait_until(lambda: bus.fault is None, 3.0, "the fault to clear")
+
+
+@pytest.mark.asyncio
 async def test_close_runs_the_safe_pose_then_torque_off(emu):
     order: list[str] = []
     bus = DynamixelBus(BusConfig(port=emu.port))
@@ -279,6 +320,74 @@ async def test_close_runs_the_safe_pose_then_torque_off(emu):
     assert all(emu.get_register(i, "Bus Watchdog") == 0 for i in IDS)
     with pytest.raises(DeviceError, match="not connected"):
         await bus.read_state()
+
+
+# ------------------------------------------------------------------ the port's faults
+
+
+@pytest.mark.asyncio
+async def test_a_serial_error_inside_a_transaction_is_survived(emu):
+    """The SDK leaves its port handler marked in use after an I/O error inside a
+    transaction: every later call would answer "Port is in use!" until a restart."""
+    async with DynamixelBus(BusConfig(port=emu.port)) as bus:
+        emu.serial_error_once()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match=r"sync read state: .*\(device disconnected"):
+            await bus.read_state()
+        assert bus.fault is not None and "reopening it" in bus.fault
+        # Waits for the reopened port (PORT_BACK_WAIT_S), then reads: no "Port is in use!".
+        state = await bus.read_state()
+        back_s = time.monotonic() - t0
+        print(f"\n  back {back_s:.2f} s after the error; fault then: {bus.fault}")
+        assert set(state.motors) == set(IDS) and bus.fault is None
+        assert back_s < PORT_BACK_WAIT_S + 1.0
+        await bus.write(15, "Goal Current", 150)
+        assert emu.get_register(15, "Goal Current") == 150
+
+
+@pytest.mark.asyncio
+async def test_an_unplugged_adapter_plugged_back_is_reopened(emu):
+    async with DynamixelBus(BusConfig(port=emu.port, watchdog_ms=300)) as bus:
+        await bus.set_torque(True)
+        emu.unplug()
+        # The watchdog's feed finds the line gone; /healthz's bus_error says so meanwhile.
+        await wait_until(lambda: bus.fault is not None, 3.0, "the port's fault")
+        print(f"\n  fault: {bus.fault}")
+        assert emu.port in bus.fault and "reopening it" in bus.fault
+        with pytest.raises(DeviceError, match=emu.port):
+            await bus.read_state()
+        assert not os.path.exists(emu.port)  # noqa: ASYNC240 - a stat of a link, at once
+        await asyncio.sleep(1.0)  # still out: the reopening goes on trying
+        assert bus.fault is not None
+        emu.plug()
+        await wait_until(lambda: bus.fault is None, 5.0, "the port back")
+        # Silent past their watchdogs meanwhile, the motors stopped; the check before the
+        # next press clears them, and they take goals again.
+        assert all(emu.get_register(i, "Bus Watchdog") == -1 for i in IDS)
+        assert await bus.recover_watchdog() == list(IDS)
+        await bus.write(15, "Goal Position", 1900)
+        await wait_until(lambda: abs(emu.true_position(15) - 1900) < 5, 3.0, "the gripper moving")
+
+
+@pytest.mark.asyncio
+async def test_torque_off_goes_out_at_shutdown_after_the_port_failed(emu):
+    bus = DynamixelBus(BusConfig(port=emu.port, watchdog_ms=300))
+    await bus.connect()
+    await bus.set_torque(True)
+    failed: list[str] = []
+
+    async def safe_pose() -> None:
+        emu.serial_error_once()  # the line fails while the arm goes to its safe pose
+        try:
+            await bus.write(11, "Goal Position", 2100)
+        except DeviceError as exc:
+            failed.append(str(exc))
+
+    await bus.close(safe_pose)
+    print(f"\n  safe pose: {failed}")
+    assert failed and "device disconnected" in failed[0]
+    assert all(emu.get_register(i, "Torque Enable") == 0 for i in IDS)
+    assert all(emu.get_register(i, "Bus Watchdog") == 0 for i in IDS)
 
 
 # ------------------------------------------------------------------ stop preempts the queue

@@ -10,7 +10,7 @@ import errno
 import fcntl
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -271,49 +271,69 @@ def torque_off(tx: Transactions) -> None:
         raise first
 
 
-def clear_watchdog_trips(tx: Transactions, rearm_units: int | None) -> list[int]:
-    """Before every press: one sync read (the common case: nothing tripped); a tripped
-    motor is cleared, holds its present position and is re-armed with ``rearm_units``
-    (None: torque is off, left disarmed). Returns the IDs that had tripped."""
-    watchdogs = tx.sync_read_register(BUS_WATCHDOG)
-    tripped = [i for i in tx.ids if watchdogs[i] == -1]
-    for motor_id in tripped:
-        tx.write(motor_id, BUS_WATCHDOG, 0)
-        tx.write(motor_id, GOAL_POSITION, tx.read(motor_id, PRESENT_POSITION))
-        if rearm_units is not None:
-            tx.write(motor_id, BUS_WATCHDOG, rearm_units)
+@dataclass
+class MotorCheck:
+    """What :func:`check_motors` found: ``tripped`` the motors whose Bus Watchdog had tripped
+    (cleared now), ``torque_fault`` (motor, why) for the first motor with torque off where
+    torque should be on, ``errors`` each motor that did not answer or refused, by ID."""
+
+    tripped: list[int]
+    torque_fault: tuple[int, str] | None
+    errors: dict[int, MotorError]
+
+
+def check_motors(tx: Transactions, *, torque_expected: bool, rearm_units: int | None,
+                 suspect: Collection[int] = ()) -> MotorCheck:
+    """Before every press and between tries to open the gripper: each motor on its own (a
+    sync read fails as a whole at one silent motor, and a silent joint must not keep the
+    gripper's trip from being cleared), its Torque Enable, Hardware Error Status and Bus
+    Watchdog in one READ. A tripped motor is cleared (write 0), holds its present position
+    and is re-armed with ``rearm_units`` (None: torque is off, left disarmed).
+
+    ``suspect``: motors that did not answer lately, asked last and once: each try waits
+    out the reply's timeout while no other motor hears anything.
+    """
+    tripped: list[int] = []
+    fault: tuple[int, str] | None = None
+    errors: dict[int, MotorError] = {}
+    for motor_id in sorted(tx.ids, key=lambda i: i in suspect):
+        try:
+            values = tx.read_span(motor_id, (TORQUE_ENABLE, HARDWARE_ERROR_STATUS, BUS_WATCHDOG),
+                                  1 if motor_id in suspect else READ_ATTEMPTS)
+            if values[BUS_WATCHDOG] == -1:
+                tx.write(motor_id, BUS_WATCHDOG, 0)
+                tx.write(motor_id, GOAL_POSITION, tx.read(motor_id, PRESENT_POSITION))
+                if rearm_units is not None:
+                    tx.write(motor_id, BUS_WATCHDOG, rearm_units)
+                tripped.append(motor_id)
+        except MotorError as exc:
+            errors[motor_id] = exc
+            continue
+        if torque_expected and not values[TORQUE_ENABLE] and fault is None:
+            fault = motor_id, _torque_off_why(tx, motor_id, values[HARDWARE_ERROR_STATUS])
     if tripped:
         _log.warning("Bus Watchdog had tripped on motors %s; cleared, holding position",
                      tripped)
-    return tripped
+    return MotorCheck(tripped, fault, errors)
 
 
-def torque_fault(tx: Transactions) -> tuple[int, str] | None:
-    """(motor, why) for the first motor found with torque off, or None.
+def _torque_off_why(tx: Transactions, motor_id: int, status: int) -> str:
+    """Why a motor found with torque off has it off.
 
     A motor that shut itself down (overload, overheating...) has torque off: any goal is
-    ignored, so a press would close nothing and open nothing. While the alert is on, the
-    read itself raises with the Hardware Error Status. One SYNC READ for all motors: this
-    runs before every press.
+    ignored, so a press would close nothing and open nothing. (While its alert is on, every
+    read of it raises with the Hardware Error Status instead.)
     """
-    torque = tx.sync_read_register(TORQUE_ENABLE)
-    for motor_id in tx.ids:
-        if torque[motor_id]:
-            continue
-        status = tx.read(motor_id, HARDWARE_ERROR_STATUS)
-        if status:
-            return motor_id, (
-                f"motor {motor_id}: torque is off (Hardware Error Status 0x{status:02x}: "
+    if status:
+        return (f"motor {motor_id}: torque is off (Hardware Error Status 0x{status:02x}: "
                 f"{describe_hardware_error(status)}): the motor shut itself down; remove "
                 "the cause, power-cycle or reboot it, then restart the daemon")
-        # A motor that shuts itself down keeps its alert until it is rebooted; with none,
-        # torque was turned off from the bus (a second program on it: the port lock keeps
-        # out only programs that take it) or the motor lost power.
-        return motor_id, (
-            f"motor {motor_id}: torque is off with no hardware error: not a shutdown of the "
+    # A motor that shuts itself down keeps its alert until it is rebooted; with none,
+    # torque was turned off from the bus (a second program on it: the port lock keeps
+    # out only programs that take it) or the motor lost power.
+    return (f"motor {motor_id}: torque is off with no hardware error: not a shutdown of the "
             f"motor; another program on {tx.port_name} turned it off (one bus, one owner: "
             "stop it), or the motor was power-cycled or rebooted; then restart the daemon")
-    return None
 
 
 def _lock_holder(fd: int) -> str | None:

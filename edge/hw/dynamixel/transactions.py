@@ -3,7 +3,8 @@
 Every SDK failure becomes :class:`MotorError` with the motor ID and the SDK's own message
 (``getTxRxResult`` / ``getRxPacketError``). Reads and single-register writes are tried twice
 before a timeout or a bad reply is an error. Every state read is remembered per motor
-(:class:`SeenState`) for the stop to extrapolate from.
+(:class:`SeenState`) for the stop to extrapolate from, and every answer per motor
+(``heard``) for the Bus Watchdog's feed.
 """
 
 from __future__ import annotations
@@ -102,6 +103,9 @@ class Transactions:
         # Per motor: the state last read, and when its last Goal Position write completed.
         self.seen: dict[int, SeenState] = {}
         self.goal_t: dict[int, float] = {}
+        # Per motor: when it last answered a packet (it heard the bus then: its Bus Watchdog
+        # started counting again).
+        self.heard: dict[int, float] = {}
 
     def refuse_if_read_only(self, what: str) -> None:
         if self.read_only:
@@ -112,6 +116,7 @@ class Transactions:
         if result != sdk.COMM_SUCCESS:
             raise MotorError(f"motor {motor_id}: {what}: {self.ph.getTxRxResult(result)}",
                              motor_id, transient=result in _TRANSIENT)
+        self.heard[motor_id] = self.clock()
         if error:
             message = self.ph.getRxPacketError(error)
             if error & sdk.ERRBIT_ALERT:
@@ -159,21 +164,41 @@ class Transactions:
             value, result, _ = self.ph.read1ByteTxRx(self.port, motor_id, BUS_WATCHDOG.address)
         return result == sdk.COMM_SUCCESS and BUS_WATCHDOG.from_unsigned(value) == -1
 
-    def read(self, motor_id: int, reg: Register) -> int:
-        read = {1: self.ph.read1ByteTxRx, 2: self.ph.read2ByteTxRx,
-                4: self.ph.read4ByteTxRx}[reg.size]
-        with self.expect(reg.size):
-            for _ in range(READ_ATTEMPTS - 1):
+    def read(self, motor_id: int, reg: Register, attempts: int = READ_ATTEMPTS) -> int:
+        """One register of one motor; ``attempts`` 1 for a motor that may be silent (each
+        try waits out the reply's timeout while every other motor hears nothing)."""
+        return self.read_span(motor_id, (reg,), attempts)[reg]
+
+    def read_span(self, motor_id: int, regs: tuple[Register, ...],
+                  attempts: int = READ_ATTEMPTS) -> dict[Register, int]:
+        """Several registers of one motor in one READ (from the first one's address to the
+        last one's end)."""
+        start = min(r.address for r in regs)
+        length = max(r.end for r in regs) - start
+        what = f"read {regs[0].name}" if len(regs) == 1 else f"read {regs[0].name}..{regs[-1].name}"
+        with self.expect(length):
+            for _ in range(attempts - 1):
                 # A lost or garbled reply is retried once: reads have no side effect.
-                raw, result, error = read(self.port, motor_id, reg.address)
+                data, result, error = self.ph.readTxRx(self.port, motor_id, start, length)
                 if result not in _TRANSIENT:
                     break
                 self.drain_late_replies()
             else:
-                raw, result, error = read(self.port, motor_id, reg.address)
+                data, result, error = self.ph.readTxRx(self.port, motor_id, start, length)
         self.settle(result)
-        self.check(motor_id, f"read {reg.name}", result, error)
-        return reg.from_unsigned(raw)
+        self.check(motor_id, what, result, error)
+        return {r: r.decode(bytes(data[r.address - start:r.end - start])) for r in regs}
+
+    def read_motor_state(self, motor_id: int) -> MotorState:
+        """One motor's present state in a READ of its own: a silent other motor, which fails
+        a sync read of them all, does not fail this."""
+        t_sent = self.clock()  # the motor samples after this: see SeenState
+        values = self.read_span(motor_id, (PRESENT_CURRENT, PRESENT_VELOCITY, PRESENT_POSITION))
+        state = MotorState(position=values[PRESENT_POSITION], velocity=values[PRESENT_VELOCITY],
+                           current=values[PRESENT_CURRENT])
+        self.seen[motor_id] = SeenState(t_sent, state.position,
+                                        state.velocity * RAW_PER_S_PER_VELOCITY_UNIT)
+        return state
 
     def write(self, motor_id: int, reg: Register, value: int,
               packet: bytes | None = None) -> None:
@@ -212,13 +237,15 @@ class Transactions:
         for motor_id, value in values.items():
             param += [motor_id, *reg.encode(value)]
         result = self.ph.syncWriteTxOnly(self.port, reg.address, reg.size, param, len(param))
+        now = self.clock()
         if reg is GOAL_POSITION:
-            now = self.clock()
             self.goal_t.update(dict.fromkeys(values, now))
         if result != sdk.COMM_SUCCESS:
             first = next(iter(values), None)
             raise MotorError(f"motors {sorted(values)}: sync write {reg.name}: "
                              f"{self.ph.getTxRxResult(result)}", first)
+        # (No status packets: each motor named in the packet heard it.)
+        self.heard.update(dict.fromkeys(values, now))
 
     def read_state(self) -> BusState:
         return self._sync_read(self._read_state_once)

@@ -44,7 +44,9 @@ stop that backed off the squeeze.
 
 Fault switches: ``set_missing`` (a motor that does not answer at all), ``corrupt_crc`` (replies
 with a wrong CRC), ``set_hardware_error`` (Hardware Error Status bits, the alert bit in every
-status packet and torque off, as a real shutdown does).
+status packet and torque off, as a real shutdown does), and the line's (:mod:`.pty`):
+``unplug`` / ``plug`` (the adapter, its path gone then back), ``serial_error_once`` (an I/O
+error inside the next transaction, then a working line). Torque changes are logged (INFO).
 """
 
 from __future__ import annotations
@@ -296,6 +298,25 @@ class DxlEmulator:
     def stop(self) -> None:
         self._pty.stop()
 
+    @property
+    def plugged(self) -> bool:
+        """Whether the emulated adapter is plugged in (its port's path exists)."""
+        return self._pty.plugged
+
+    def unplug(self) -> None:
+        """Pull the emulated adapter out: the client's line fails, the port's path is gone.
+        The motors keep their power: with torque on, their Bus Watchdogs trip."""
+        self._pty.unplug()
+
+    def plug(self) -> None:
+        """Plug the emulated adapter back in, under the same path."""
+        self._pty.plug()
+
+    def serial_error_once(self) -> None:
+        """Fail the line inside the next transaction (its client reads an I/O error while it
+        waits for the reply), then serve a working one under the same path at once."""
+        self._pty.serial_error_once()
+
     def __enter__(self) -> DxlEmulator:
         return self.start()
 
@@ -406,6 +427,8 @@ class DxlEmulator:
             motor = self._motors[motor_id]
             motor.put("Hardware Error Status", bits)
             if bits:
+                _log.info("emulated motor %d: hardware error 0x%02x, torque off", motor_id,
+                          bits)
                 motor.put("Torque Enable", 0)
                 motor.profile = None
                 motor.vel = 0.0
@@ -553,6 +576,7 @@ class DxlEmulator:
         if name == "Torque Enable":
             m.profile = None
             m.vel = 0.0
+            _log.info("emulated motor %d: torque %s", m.id, "on" if value else "off")
             if value:
                 self.torque_enables += 1
                 m.put("Goal Position", round(m.pos))
