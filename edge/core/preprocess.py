@@ -9,6 +9,13 @@ stream smoothed with a Gaussian (sigma 3 samples) *before* the crop, then croppe
 subsampled the same way: the stream is resampled on the same 125 Hz grid extended by the
 filter's reach on both sides, smoothed, and the window cut out of the middle, so its first and
 last samples average real neighbours instead of a padded edge.
+
+A stream at another rate than the grid's (some xela_server installs send about 100 frames/s)
+is interpolated onto the same 125 Hz grid: the window keeps its length in time, its 125
+samples and its 25 steps, but each step is made of fewer real frames, and the stop that
+starts it comes later after the crossing. Presses at 100 Hz are therefore comparable with
+one another, not with presses at 125 Hz: :func:`stream_rate` measures a press's rate and
+:func:`rate_problem` says when it is more than ``RATE_TOLERANCE`` off a grid or a reference.
 """
 
 from __future__ import annotations
@@ -69,6 +76,53 @@ class WindowSpec:
 
 DEFAULT_WINDOW = WindowSpec()
 
+# Rates further apart than this (relative) are two rates: presses at one embed elsewhere than
+# presses at the other (the model's crop is interpolated from a different stream).
+RATE_TOLERANCE = 0.10
+# Where a stream's rate is set, for whoever is told it is off.
+RATE_SETTING = ("the pads' rate is set in xela_server's configuration ([sim] sensor_rate_hz "
+                "on the emulated robot)")
+
+
+@dataclass(frozen=True)
+class StreamRate:
+    """The stream's measured rate around one press, fresh frames per second (None: fewer
+    than two fresh frames)."""
+
+    window_hz: float | None  # over the model's crop window
+    press_hz: float | None  # over the whole press recording
+
+
+def fresh_rate(times: np.ndarray, seq: np.ndarray, t0: float = -np.inf,
+               t1: float = np.inf) -> float | None:
+    """Fresh frames per second received in ``[t0, t1)``: frames whose sequence number differs
+    from the previous frame's (a repeated frame brings nothing new), counted from the first
+    to the last; None with fewer than two."""
+    times = np.asarray(times, dtype=np.float64)
+    seq = np.asarray(seq)
+    fresh = np.ones(len(seq), dtype=bool)
+    fresh[1:] = seq[1:] != seq[:-1]
+    t = times[fresh & (times >= t0) & (times < t1)]
+    if len(t) < 2 or t[-1] <= t[0]:
+        return None
+    return float((len(t) - 1) / (t[-1] - t[0]))
+
+
+def stream_rate(times: np.ndarray, seq: np.ndarray, t_stop: float,
+                spec: WindowSpec = DEFAULT_WINDOW) -> StreamRate:
+    """The rate over the crop window around ``t_stop`` and over all the frames given."""
+    return StreamRate(fresh_rate(times, seq, t_stop - spec.before_s, t_stop + spec.after_s),
+                      fresh_rate(times, seq))
+
+
+def rate_problem(rate_hz: float | None, expected_hz: float) -> str | None:
+    """Why ``rate_hz`` is not ``expected_hz`` (more than ``RATE_TOLERANCE`` apart), else
+    None (also where no rate was measured)."""
+    if rate_hz is None or abs(rate_hz / expected_hz - 1) <= RATE_TOLERANCE:
+        return None
+    return (f"{rate_hz:.1f} frames/s is {abs(rate_hz / expected_hz - 1) * 100:.0f} % off "
+            f"{expected_hz:g} Hz (more than {RATE_TOLERANCE * 100:.0f} %)")
+
 
 def tare(raw: np.ndarray) -> np.ndarray:
     """Per-channel mean of unloaded raw samples, shape (C,)."""
@@ -86,6 +140,19 @@ def to_units(raw: np.ndarray, tare_counts: np.ndarray) -> np.ndarray:
 def norm(units: np.ndarray) -> np.ndarray | float:
     """L2 norm over channels: the quantity compared with x_th."""
     return np.linalg.norm(units, axis=-1)
+
+
+def peak_norm(times: np.ndarray, units: np.ndarray, t_open: float | None = None) -> float:
+    """A press's peak norm, the one figure collect, ``dataset summary``, episodes and the
+    operator page show as "peak": the highest tactile norm over the press's tare from the
+    gripper closing to its opening (``t_open``; None: every frame), the hold's squeeze
+    included. The press controller keeps the same maximum over the frames it checks while
+    it watches the threshold; the frames before closing (the tare) stay below x_th."""
+    times = np.asarray(times, dtype=np.float64)
+    level = np.asarray(norm(units))
+    if t_open is not None:
+        level = level[times < t_open]
+    return float(level.max()) if level.size else 0.0
 
 
 def tared_norms(times: np.ndarray, raw: np.ndarray, tare_s: float) -> np.ndarray:
@@ -195,6 +262,18 @@ def training_pairs(times: np.ndarray, units: np.ndarray, t_stop: float,
 def recording_units(rec) -> np.ndarray:
     """A recording's frames in tactile units against its own tare, (N, C) float32."""
     return to_units(rec.frames, rec.tare)
+
+
+def recording_peak(rec) -> float:
+    """:func:`peak_norm` of a :class:`edge.core.recording.Recording` (up to its ``t_open``)."""
+    t_open = rec.extra.get("t_open")
+    return peak_norm(rec.recv_time, recording_units(rec),
+                     t_open if isinstance(t_open, int | float) else None)
+
+
+def recording_rate(rec, spec: WindowSpec = DEFAULT_WINDOW) -> StreamRate:
+    """The stream's rate in a :class:`edge.core.recording.Recording`."""
+    return stream_rate(rec.recv_time, rec.seq, rec.t_stop, spec)
 
 
 def recording_pairs(rec, spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:

@@ -89,6 +89,9 @@ class PressOutcome:
         return self.result == PressResult.OK
 
     def summary(self) -> PressSummary:
+        win, t_stop = self.window, self.t_stop
+        rate = (preprocess.stream_rate(win.recv_time, win.seq, t_stop)
+                if win is not None and t_stop is not None else preprocess.StreamRate(None, None))
         return PressSummary(
             result=self.result,
             message=self.message,
@@ -102,6 +105,8 @@ class PressOutcome:
             peak_squeeze_ma=max((s.squeeze_ma for s in self.gripper_trace), default=None),
             states=tuple(self.states),
             lowering_level=self.lowering_level,
+            window_rate_hz=rate.window_hz,
+            press_rate_hz=rate.press_hz,
         )
 
 
@@ -281,6 +286,8 @@ class PressController:
                 hold_left = outcome.t_stop + press.dt_stopping_s - self.clock()
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
+                # The peak norm takes the hold's squeeze in (preprocess.peak_norm).
+                outcome.peak_level = armed.peak
                 if armed.abort.is_set():
                     self._abort_reason(outcome, armed)
         except _AbortRequested:

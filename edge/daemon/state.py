@@ -56,11 +56,14 @@ class PressSummary:
          "level_at_cross": float,         # the norm of the frame that crossed x_th
          "peak_squeeze_ma": float | null, # the highest gripper current traced
          "states": [[state, t], ...],     # every state entered, in order (s)
-         "lowering_level": float | null}  # the norm lowering the arm moved the pads by
+         "lowering_level": float | null,  # the norm lowering the arm moved the pads by
+         "window_rate_hz": float | null,  # the stream's fresh frames/s over the crop window
+         "press_rate_hz": float | null}   # ... and over the press's recording
 
     Times are on the daemon's monotonic clock. Keys this version does not know (written by
-    a newer one) are carried through in ``extra``, as the episode's are; ``lowering_level``,
-    which older episodes lack, reads as null there.
+    a newer one) are carried through in ``extra``, as the episode's are; ``lowering_level``
+    and the rates, which older episodes lack, read as null there. ``peak_level`` is the
+    press's peak norm (:func:`edge.core.preprocess.peak_norm`).
     """
 
     result: PressResult
@@ -74,6 +77,8 @@ class PressSummary:
     peak_squeeze_ma: float | None
     states: tuple[tuple[PressState, float], ...]
     lowering_level: float | None = None
+    window_rate_hz: float | None = None
+    press_rate_hz: float | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     def entered(self, state: PressState) -> float | None:

@@ -44,7 +44,7 @@ def press_trace(path: str) -> dict[str, Any]:
         "t_stop": 0.0,
         "t_cross": None if not isinstance(t_cross, int | float) else t_cross - rec.t_stop,
         "window": [-spec.before_s, spec.after_s],
-        "peak": float(norm.max()),
+        "peak": preprocess.recording_peak(rec),  # the press's peak norm, as episodes show it
         "frames": len(norm),
         "gripper": {"t": np.round(gt, 4).tolist(),
                     "width_mm": np.round(rec.gripper_width_m * 1e3, 4).tolist()},

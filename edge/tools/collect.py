@@ -9,6 +9,11 @@ it continues every class up to its planned count: numbers are never reused. A fa
 (no contact, a stale stream, over the force cap) is shown with its reason and not kept; after
 ``MAX_FAILED_IN_A_ROW`` in a row the class is skipped. ``--label NAME --presses N`` is a plan
 of one class.
+
+Each kept press prints its peak norm (:func:`edge.core.preprocess.peak_norm`, as ``dataset
+summary`` and episodes show it) and the stream's rate over its crop window; ``dataset.json``
+keeps each class's rate. On the emulated robot, the prompt to place an object says which
+object the emulated table holds (its control API, where the configuration's camera is).
 """
 
 from __future__ import annotations
@@ -49,6 +54,10 @@ RING_FRAMES = 8000
 FIRST_FRAME_POLL_S = 0.02
 # Thresholds closer than this (relative) are one threshold.
 X_TH_RTOL = 1e-9
+# The emulated robot's camera is its control API's /camera.jpg (`vt-edge sim serve
+# --write-config`); the same API says which object its table holds (GET /object).
+SIM_CAMERA_PATH = "/camera.jpg"
+SIM_CONTROL_TIMEOUT_S = 5.0
 
 
 @dataclass
@@ -171,6 +180,25 @@ def _to_jpeg(data: bytes) -> bytes:
     return buf.getvalue()
 
 
+def _sim_table(cfg: Config) -> str:
+    """On the emulated robot, what its table holds and how to change it, for the prompt to
+    place an object ("" on a robot, or where the control API does not answer)."""
+    from edge.tools.stack import http_json
+
+    camera = cfg.camera
+    if cfg.mode != "sim" or camera.kind != "http" or not camera.url.endswith(SIM_CAMERA_PATH):
+        return ""
+    control = camera.url.removesuffix(SIM_CAMERA_PATH)
+    try:
+        held = http_json("GET", f"{control}/object", timeout=SIM_CONTROL_TIMEOUT_S)["object"]
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("the emulated robot's control API (%s) did not say what its table "
+                    "holds: %s", control, exc)
+        return ""
+    return (f" (the emulated table holds {held}; `vt-edge sim place NAME --url {control}` "
+            "puts another there)")
+
+
 def _failure(outcome: PressOutcome) -> dict[str, Any]:
     return {"result": outcome.result, "message": outcome.message,
             "peak_level": outcome.peak_level,
@@ -266,8 +294,9 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
     have = len(presses)
     print(f"{c.label}: {have}/{c.presses} pressed; x_th {ccfg.press.x_th:g}", flush=True)
     if prompt is not None:
-        await ask(prompt, f"place the {c.label} ({c.description}) between the fingers, "
-                          "then Enter ", NO_PROMPT)
+        table = await asyncio.to_thread(_sim_table, cfg)
+        await ask(prompt, f"place the {c.label} ({c.description}) between the fingers"
+                          f"{table}, then Enter ", NO_PROMPT)
     failures = 0
     first = True
     while have < c.presses:
@@ -311,9 +340,13 @@ async def _collect_class(cfg: Config, c: PlanClass, out: Path, index: dict[str, 
         have += 1
         report.have[c.label] = have
         report.kept.append(path)
+        entry["rate_hz"] = await asyncio.to_thread(dataset.class_rate, out, c.label)
         await asyncio.to_thread(dataset.write_index, out, index)
-        print(f"{c.label} press {have}/{c.presses}: peak {outcome.peak_level:.4f}, stop "
-              f"latency {(outcome.stop_latency_s or 0) * 1e3:.1f} ms -> {path}"
+        press = outcome.summary()
+        rate = (f"{press.window_rate_hz:.1f} frames/s" if press.window_rate_hz is not None
+                else "no rate")
+        print(f"{c.label} press {have}/{c.presses}: peak norm {press.peak_level:.4f}, stop "
+              f"latency {(outcome.stop_latency_s or 0) * 1e3:.1f} ms, stream {rate} -> {path}"
               f"{' + photo' if photo is not None else ''}", flush=True)
 
 

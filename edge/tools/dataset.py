@@ -2,12 +2,14 @@
 (a press's photo beside it: ``<label>_NNN.jpg``).
 
 ``dataset.json`` keeps the recorder's keys (``dataset``; ``classes`` with ``label``,
-``split``, ``description``, ``x_th``) plus ``recorder`` (a sentence), ``origin`` (as in a
-model's manifest), ``plan_sha256`` and, per class, ``presses`` (planned), ``photo`` and
-``failed`` (the presses collect did not keep, with their reasons).
+``split``, ``description``, ``x_th``, ``rate_hz``) plus ``recorder`` (a sentence), ``origin``
+(as in a model's manifest), ``plan_sha256`` and, per class, ``presses`` (planned), ``photo``
+and ``failed`` (the presses collect did not keep, with their reasons). ``rate_hz`` is the
+median over the class's kept presses of the stream's fresh frames/s over the crop window.
 
 :func:`summarize` (``vt-edge dataset summary DIR``) reads it all back per class and flags
-what looks wrong.
+what looks wrong. A press's "peak" is its peak norm (:func:`edge.core.preprocess.peak_norm`),
+the figure collect prints and episodes keep.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import json
 import re
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -66,6 +69,19 @@ def read_index(out: Path) -> dict[str, Any] | None:
     return data
 
 
+def class_rate(out: Path, label: str) -> float | None:
+    """``rate_hz`` of ``label`` in ``out``: the median of its kept presses' window rates
+    (None: none measured)."""
+    return median_rate(preprocess.recording_rate(recording.load(p)).window_hz
+                       for p in existing_presses(out, label).values())
+
+
+def median_rate(rates: Iterable[float | None]) -> float | None:
+    """The median of the rates measured (None among them: not measured), to 0.1 Hz."""
+    measured = [r for r in rates if r is not None]
+    return round(float(np.median(measured)), 1) if measured else None
+
+
 def write_index(out: Path, index: dict[str, Any]) -> None:
     atomic_write_text(out / DATASET_INDEX, json.dumps(index, indent=2) + "\n")
 
@@ -97,9 +113,10 @@ GAP_PERIODS = 3.0
 class PressCheck:
     path: Path
     x_th: float
-    peak: float  # peak tactile norm over the recording (tactile units)
+    peak: float  # the press's peak norm (tactile units)
     stop_latency_ms: float | None
     flags: tuple[str, ...]
+    rate_hz: float | None = None  # the stream's fresh frames/s over the crop window
 
 
 @dataclass(frozen=True)
@@ -115,6 +132,10 @@ class ClassSummary:
     @property
     def thresholds(self) -> list[float]:
         return sorted({p.x_th for p in self.presses})
+
+    @property
+    def rate_hz(self) -> float | None:
+        return median_rate(p.rate_hz for p in self.presses)
 
 
 @dataclass(frozen=True)
@@ -132,7 +153,6 @@ class Summary:
 def check_press(path: Path, window: WindowSpec = DEFAULT_WINDOW) -> PressCheck:
     rec = recording.load(path)
     norms = preprocess.norm(preprocess.recording_units(rec))
-    peak = float(norms.max()) if len(norms) else 0.0
     flags = []
     # Late is judged by when the first frame over x_th came, not by how far past x_th the
     # norm is: on a rigid object one frame period takes it from below x_th to 10x and more
@@ -153,8 +173,9 @@ def check_press(path: Path, window: WindowSpec = DEFAULT_WINDOW) -> PressCheck:
             flags.append(f"stream gap of {gaps.max() * 1e3:.0f} ms in the crop window "
                          f"({at * 1e3:+.0f} ms from the stop)")
     latency = rec.extra.get("stop_latency_s")
-    return PressCheck(path, rec.threshold, peak,
-                      None if latency is None else float(latency) * 1e3, tuple(flags))
+    return PressCheck(path, rec.threshold, preprocess.recording_peak(rec),
+                      None if latency is None else float(latency) * 1e3, tuple(flags),
+                      preprocess.recording_rate(rec, window).window_hz)
 
 
 def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
@@ -191,7 +212,18 @@ def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
         classes.append(ClassSummary(label, entry.get("split", split), entry.get("x_th", x_th),
                                     planned, failed, presses, tuple(problems)))
     return Summary(out, str(index.get("dataset", out.name)), index.get("origin"),
-                   tuple(classes))
+                   tuple(_check_rates(classes)))
+
+
+def _check_rates(classes: list[ClassSummary]) -> list[ClassSummary]:
+    """A class whose stream rate is off the dataset's (the median of the classes') has a
+    problem: its presses embed elsewhere, and ``vt-train build`` refuses the mix."""
+    usual = median_rate(c.rate_hz for c in classes)
+    if usual is None:
+        return classes
+    return [c if (why := preprocess.rate_problem(c.rate_hz, usual)) is None else replace(
+        c, problems=(*c.problems, f"stream at {why}, the dataset's rate: re-collect it at "
+                     f"the others' rate ({preprocess.RATE_SETTING})")) for c in classes]
 
 
 def _describe_origin(origin: dict[str, Any] | None) -> str:
@@ -209,7 +241,7 @@ def format_summary(summary: Summary) -> str:
     lines = [f"dataset {summary.dataset} in {summary.directory}",
              f"origin: {_describe_origin(summary.origin)}", "",
              f"{'class':<24} {'split':<5} {'kept':>9} {'failed':>6} {'x_th':>8} "
-             f"{'peak median':>11} {'IQR':>7} {'stop ms':>7}"]
+             f"{'peak median':>11} {'IQR':>7} {'stop ms':>7} {'rate Hz':>7}"]
     flagged = []
     for c in summary.classes:
         peaks = [p.peak for p in c.presses]
@@ -223,8 +255,9 @@ def format_summary(summary: Summary) -> str:
         else:
             peak = f"{'-':>11} {'-':>7}"
         latency = f"{np.median(lat):7.2f}" if lat else f"{'-':>7}"
+        rate = f"{c.rate_hz:7.1f}" if c.rate_hz is not None else f"{'-':>7}"
         lines.append(f"{c.label:<24} {c.split:<5} {kept:>9} {sum(c.failed.values()):>6} "
-                     f"{x_th:>8} {peak} {latency}")
+                     f"{x_th:>8} {peak} {latency} {rate}")
         if c.failed:
             flagged.append(f"{c.label}: not kept: " + ", ".join(
                 f"{n} {why}" for why, n in sorted(c.failed.items())))
@@ -232,6 +265,8 @@ def format_summary(summary: Summary) -> str:
     if flagged:
         lines += ["", "look at:"] + [f"  {f}" for f in flagged]
     problems = summary.problems
+    lines += ["", "peak: a press's peak norm over its tare, closing to opening (the hold "
+              "included)", "rate: the stream's fresh frames/s over a press's crop window"]
     lines += ["", "problems:" if problems else "no problems: every class complete, one "
-              "threshold per class"] + [f"  {p}" for p in problems]
+              "threshold per class, one stream rate"] + [f"  {p}" for p in problems]
     return "\n".join(lines)

@@ -38,6 +38,7 @@ from edge.sim.catalogue import DATASETS, ObjectClass, get
 from edge.sim.skin import DRIFT_TAU_S, SkinDraw
 from edge.sim.virtual import Transport, VirtualClockLoop, VirtualRobot
 from edge.sim.world import robot_pads
+from edge.tools.dataset import class_rate
 
 log = logging.getLogger(__name__)
 
@@ -207,7 +208,8 @@ def record_dataset(dataset: str, presses: int, out: str | Path, seed: int = 0, *
         "transport": asdict(transport),
         "pads_age_mean_s": PADS_AGE_MEAN_S,
         "classes": [{"label": c.name, "split": c.split, "description": c.description,
-                     "x_th": class_config(cfg, c, x_th).press.x_th} for c in classes],
+                     "x_th": class_config(cfg, c, x_th).press.x_th,
+                     "rate_hz": class_rate(out, c.name)} for c in classes],
         "retried": retried,
     }
     atomic_write_text(out / DATASET_INDEX, json.dumps(index, indent=2) + "\n")

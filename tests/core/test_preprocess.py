@@ -110,3 +110,53 @@ def test_tared_norms_tare_the_first_frames_as_the_press_does():
     assert norms.shape == (7,)
     with pytest.raises(PreprocessError, match=r"none left after a 1.0 s tare"):
         preprocess.tared_norms(times, raw, 1.0)
+
+
+def _stream(rate_hz: float, seconds: float = 3.0, seed: int = 0):
+    """A stream at ``rate_hz`` (2 ms of receive jitter) of a known signal: a 1.3 Hz sine in
+    every channel, scaled per channel."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, seconds, 1 / rate_hz) + rng.uniform(0, 0.002, int(seconds * rate_hz))
+    t.sort()
+    values = np.sin(2 * np.pi * 1.3 * t)[:, None] * np.linspace(0.5, 1.0, 6)[None, :]
+    return t, values.astype(np.float32), np.arange(len(t))
+
+
+def test_a_100_hz_stream_crops_onto_the_same_grid_as_a_125_hz_one():
+    # docs/method.md 'A stream that is not 125 Hz': the crop places its samples by time, so
+    # a 100 Hz stream gives the same 125 samples and 25 steps of the same signal, each
+    # interpolated from fewer frames.
+    t_stop = 1.5
+    x125 = preprocess.model_input(*_stream(125.0)[:2], t_stop)
+    t100, v100, seq100 = _stream(100.0, seed=1)
+    x100 = preprocess.model_input(t100, v100, t_stop)
+    assert x100.shape == x125.shape == (25, 6)
+    gap = float(np.abs(x100 - x125).max())
+    print(f"largest difference of the 100 and 125 Hz crops: {gap:.5f} (signal amplitude 1)")
+    assert gap < 0.01
+    rate = preprocess.stream_rate(t100, seq100, t_stop)
+    print(f"100 Hz stream measured at {rate}")
+    assert rate.window_hz == pytest.approx(100, abs=1) and rate.press_hz == pytest.approx(
+        100, abs=1)
+
+
+def test_the_rate_counts_fresh_frames_only():
+    t, _, seq = _stream(100.0)
+    # Every frame sent twice (a server repeating its last frame): still 100 new frames/s.
+    assert preprocess.fresh_rate(np.repeat(t, 2), np.repeat(seq, 2)) == pytest.approx(100, abs=1)
+    assert preprocess.fresh_rate(t[:1], seq[:1]) is None
+    assert preprocess.fresh_rate(t, seq, 10.0, 11.0) is None  # no frame there
+
+
+def test_a_rate_more_than_10_percent_off_is_a_problem_naming_both():
+    assert preprocess.rate_problem(104.4, 125.0) == (
+        "104.4 frames/s is 16 % off 125 Hz (more than 10 %)")
+    assert preprocess.rate_problem(115.0, 125.0) is None  # 8 % off
+    assert preprocess.rate_problem(None, 125.0) is None  # not measured
+
+
+def test_the_peak_norm_runs_from_closing_to_opening():
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    units = np.array([[0.001, 0], [0.003, 0.004], [0.002, 0], [0.0, 0.009]])
+    assert preprocess.peak_norm(t, units, t_open=0.3) == pytest.approx(0.005)
+    assert preprocess.peak_norm(t, units) == pytest.approx(0.009)

@@ -100,7 +100,8 @@ def test_the_summary_on_the_wire_is_the_plain_json_it_always_was():
         "result": "ok", "message": "", "contact": True, "t_cross": 10.25, "t_stop": 10.2503,
         "stop_latency_ms": pytest.approx(0.3), "peak_level": 0.0051, "level_at_cross": 0.0042,
         "peak_squeeze_ma": 95.5,
-        "states": [["above", 8.0], ["closing", 9.5], ["idle", 12.0]], "lowering_level": 0.0004}
+        "states": [["above", 8.0], ["closing", 9.5], ["idle", 12.0]], "lowering_level": 0.0004,
+        "window_rate_hz": None, "press_rate_hz": None}  # (no frames kept)
     assert list(wire) == [f.name for f in dataclasses.fields(PressSummary)][:-1]
     back = PressSummary.from_json(wire)
     assert back == summary and back.result is PressResult.OK

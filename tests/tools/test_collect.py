@@ -12,8 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from edge.core import recording, tomledit
+from edge.core import preprocess, recording, tomledit
 from edge.core.errors import ConfigError
+from edge.daemon import lifecycle
 from edge.sim.catalogue import DATASETS
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
@@ -90,6 +91,9 @@ async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_pat
         assert index["origin"]["sensor"]["model"] == "XR1944"
         assert isinstance(index["recorder"], str) and "test" in index["recorder"]
         classes = {c["label"]: c for c in index["classes"]}
+        rate = classes["otedama"].pop("rate_hz")
+        print(f"otedama's stream rate over its crop windows: {rate} frames/s")
+        assert 100 < rate < 135  # the emulator's 125 Hz
         assert classes["otedama"] == {
             "label": "otedama", "split": "train", "x_th": cfg.press.x_th, "presses": 2,
             "photo": True, "failed": [],
@@ -126,6 +130,56 @@ async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_pat
         with pytest.raises(ConfigError, match=r"wood_cube_000\.press\.npz was pressed at "
                                               r"x_th 0\.003, the plan .* says 0\.0035"):
             await collect_plan(cfg, load_plan(other), out, None)
+
+
+@pytest.mark.asyncio
+async def test_a_100_hz_stream_is_measured_kept_and_said_by_doctor_and_the_daemon(tmp_path,
+                                                                                   caplog):
+    from edge.tools import dataset, doctor
+
+    plan = load_plan(write_plan(tmp_path, """
+[dataset]
+name = "slow_pads"
+recorder = "test"
+presses = 2
+test = true
+
+[[class]]
+label = "wood_cube"
+description = "wood cube"
+"""))
+    out = tmp_path / "data"
+    # Some xela_server installs send about 100 frames/s; the shipped model's grid is 125 Hz.
+    async with SimRobot("wood_cube", seed=17, cfg=base_config(), rate_hz=100.0) as robot:
+        cfg = robot.runtime_config(fast_config())
+        report = await collect_plan(cfg, plan, out, None)
+        assert report.complete and len(report.kept) == 2
+        for path in report.kept:
+            rate = recording.load(path)
+            print(f"{path.name}: {preprocess.recording_rate(rate)}")
+        entry = json.loads((out / "dataset.json").read_text())["classes"][0]
+        print(f"dataset.json: wood_cube at {entry['rate_hz']} frames/s")
+        assert 80 < entry["rate_hz"] < 110
+        text = dataset.format_summary(dataset.summarize(out))
+        print(text)
+        row = re.search(r"^wood_cube\s.*\s(\d+\.\d)$", text, re.M)
+        assert "rate Hz" in text and row and float(row.group(1)) == entry["rate_hz"]
+
+        xela = {c.part: c for c in await doctor._check_xela(cfg, 1.0)}
+        check = xela["xela rate"]
+        print(f"doctor: {check.level} {check.found} -> {check.fix}")
+        assert str(check.level) == "WARN" and "expected 125" in check.found
+        assert "% off 125 Hz" in check.fix and "xela_server's configuration" in check.fix
+
+        async with Daemon(robot, base_config(), tmp_path / "state"):
+            warned = ("the tactile stream at", "the model's grid")
+            said = lambda: [r.getMessage() for r in caplog.records  # noqa: E731
+                            if all(w in r.getMessage() for w in warned)]
+            await wait_until(said, 30, "the daemon's warning about the stream's rate",
+                             interval_s=0.1)
+            await asyncio.sleep(2 * lifecycle.RATE_CHECK_S)
+            print("the daemon:", said())
+            assert len(said()) == 1 and "% off 125 Hz" in said()[0]
 
 
 @pytest.mark.asyncio
