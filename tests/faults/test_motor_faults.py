@@ -173,6 +173,63 @@ async def test_motor_missing_at_daemon_start_process_exits_with_the_reason(tmp_p
         assert gripper_open(robot)
 
 
+async def _faults_seen(d: Daemon, seen: list[str]) -> None:
+    """Every bus_error the daemon's health says (what /healthz serves), into ``seen``:
+    polled in the daemon's loop every 10 ms, which no fault of the port can slip between
+    (the bus's first wait before it reopens the port is longer, on that loop)."""
+    while True:
+        error = d.runtime.health().bus_error
+        if error is not None and error not in seen:
+            seen.append(error)
+        await asyncio.sleep(0.01)
+
+
+@pytest.mark.parametrize("fault", ["serial error", "unplugged adapter"])
+async def test_the_bus_comes_back_by_itself_after_a_line_fault(tmp_path, fault):
+    from edge.sim.fake_vlm import FakeVLM
+
+    async with FakeVLM(choose=lambda req: QUICK_OBJECT) as fake, \
+            sim_daemon(tmp_path, cfg=fast_config(fake.base_url)) as (robot, d):
+        await wait_health(d, True)
+        seen: list[str] = []
+        watch = asyncio.create_task(_faults_seen(d, seen))
+        t0 = time.monotonic()
+        if fault == "serial error":
+            robot.dxl.serial_error_once()  # inside the watchdog feed's next read
+            await wait_until(lambda: seen, 5.0, "the port's fault said")
+        else:
+            robot.dxl.unplug()
+            health = await wait_health(d, False)
+            assert "reopening it" in health["bus_error"]
+            await asyncio.sleep(1.0)  # still out: still said
+            status, health = await d.get("/healthz")
+            assert status == 503 and "reopening it" in health["bus_error"]
+            robot.dxl.plug()
+        await wait_until(lambda: d.devices.bus.fault is None and d.runtime.health().ok, 10.0,
+                         "/healthz ok again")
+        watch.cancel()
+        print(f"{fault}: /healthz ok again after {time.monotonic() - t0:.2f} s; said {seen}")
+        assert any(robot.dxl.port in e and "reopening it" in e for e in seen)
+        await wait_health(d, True)
+        status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
+        assert status == 200 and ep["status"] == "done", ep
+        assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
+
+
+async def test_torque_off_goes_out_at_shutdown_after_the_port_failed(tmp_path):
+    async with SimRobot(QUICK_OBJECT, seed=1, cfg=base_config()) as robot:
+        async with Daemon(robot, fast_config(), tmp_path) as d:
+            bus = d.devices.bus
+            assert all(robot.dxl.get_register(i, "Torque Enable") == 1 for i in bus.ids)
+            robot.dxl.unplug()
+            await wait_until(lambda: bus.fault is not None, 5.0, "the port's fault")
+            await asyncio.sleep(0.8)  # the reopening backs off
+            robot.dxl.plug()
+            print("at shutdown:", bus.fault)
+        assert all(robot.dxl.get_register(i, "Torque Enable") == 0 for i in bus.ids)
+        assert all(robot.dxl.get_register(i, "Bus Watchdog") == 0 for i in bus.ids)
+
+
 async def test_one_corrupted_status_packet_is_retried(tmp_path):
     async with sim_daemon(tmp_path) as (robot, d):
         episode = await start_press(d, "closing")
