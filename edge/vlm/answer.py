@@ -100,8 +100,8 @@ def read_answer(text: str, candidates: Sequence[str], mode: str) -> Reading:
     if mode != "none":
         return Reading(None, honoured=False)
     bare = _trim(text)
-    if _LABEL_PREFIX.match(bare):
-        bare = _trim(bare[_LABEL_PREFIX.match(bare).end():])
+    if prefix := _LABEL_PREFIX.match(bare):
+        bare = _trim(bare[prefix.end():])
     return Reading(match_label(bare, candidates))
 
 
