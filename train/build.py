@@ -7,7 +7,9 @@ with the classes, their split, description, ``x_th`` and the data's ``origin``, 
 inputs, so a rerun after an interruption skips what is done and says so:
 
 1. check the presses: one threshold and one origin (recording source and sensor model) per
-   class, every reference class present (refused, naming the class and the presses);
+   class, every reference class present (refused, naming the class and the presses); every
+   class at one stream rate (within ``preprocess.RATE_TOLERANCE``: a class pressed at
+   100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``;
 2. train the VQ-VAE with the paper's decoder (and, with ``--variant``, the beta-VAE and the
    zero-input decoder for the comparison rows of the evaluation and of Table I);
 3. export the encoder to ONNX with its parity check;
@@ -15,7 +17,8 @@ inputs, so a rerun after an interruption skips what is done and says so:
 5. the prompt templates copied (the manifest hashes them);
 6. the retrieval evaluation (``eval/eval.md``, ``eval/eval.json``), the trivial baseline beside
    the encoder, on the test classes of the dataset and any ``--unseen`` sets;
-7. the manifest, written last, with the data's ``origin`` and ``plan_sha256``;
+7. the manifest, written last, with the data's ``origin``, ``plan_sha256`` and each class's
+   ``x_th`` and stream rate (``class_x_th``, ``class_rate_hz``);
 
 then ``OUT.partial`` is renamed to ``OUT`` (an ``OUT`` already there is kept as
 ``OUT.previous``). The daemon loads the result as it is; SIGHUP swaps it in.
@@ -29,12 +32,13 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from edge.core import preprocess
 from edge.core.atomic import atomic_write_text, swap_in
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
@@ -72,10 +76,12 @@ class BuildConfig:
     max_epochs: int = 300
     patience: int = 25
     threads: int = 1
+    mixed_rates: bool = False  # build from classes pressed at different stream rates
 
     def command(self) -> str:
         parts = [f"vt-train build --data {self.data} --out {self.out}",
                  *(f"--variant {v}" for v in self.variants),
+                 *(["--mixed-rates"] if self.mixed_rates else []),
                  *(f"--unseen {u}" for u in self.unseen),
                  f"--seed {self.seed}", f"--max-epochs {self.max_epochs}",
                  f"--patience {self.patience}"]
@@ -97,11 +103,14 @@ class Dataset:
     presses: dict[str, int]  # per class
     sha256: str  # of dataset.json and every press file
     layout: PadLayout = XR1944  # the pads every press was made with
+    rate_hz: dict[str, float | None] = field(default_factory=dict)  # per class, as pressed
 
 
-def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
+def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool = False
+                 ) -> Dataset:
     """Read and check a collected dataset directory; refuse mixed thresholds or origins within
-    a class, naming the class and its presses."""
+    a class, naming the class and its presses, and classes at different stream rates unless
+    ``mixed_rates``."""
     directory = Path(directory)
     path = directory / DATASET_INDEX
     try:
@@ -156,10 +165,19 @@ def read_dataset(directory: str | Path, progress: bool = True) -> Dataset:
     if problems:
         raise RecordingError(f"{directory}: " + "; ".join(problems)
                              + " (re-collect the class, or move the odd presses out)")
+    rates = database.class_rates(metas)
+    rate_mix = database.rate_mix({c: rates.get(c) for c in splits.classes + test})
+    if rate_mix and not mixed_rates:
+        raise RecordingError(f"{directory}: {rate_mix}: the crop interpolates each from a "
+                             "different number of frames (docs/method.md); re-collect the odd "
+                             f"classes at the others' rate ({preprocess.RATE_SETTING}), or say "
+                             "--mixed-rates to build from them anyway")
+    if rate_mix:
+        log.warning("--mixed-rates: %s", rate_mix)
     return Dataset(directory, index, origin, splits, test,
                    {c: next(iter(t)) for c, t in thresholds.items()},
                    {c: sum(map(len, t.values())) for c, t in thresholds.items()},
-                   digest.hexdigest(), next(iter(mixed_pads), XR1944))
+                   digest.hexdigest(), next(iter(mixed_pads), XR1944), rates)
 
 
 # --------------------------------------------------------------------------------------
@@ -227,7 +245,8 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     if not prompts:
         raise ModelError(f"{cfg.prompts}: no prompt templates (*.txt); the daemon needs them "
                          "(--prompts DIR)")
-    ds = read_dataset(cfg.data, progress=progress is None or progress.enabled)
+    ds = read_dataset(cfg.data, progress=progress is None or progress.enabled,
+                      mixed_rates=cfg.mixed_rates)
     out = Path(cfg.out)
     work = partial_dir(out)
     if not work.exists() and (out / STATE_FILE).exists():
@@ -320,6 +339,7 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
         "created_by": cfg.command(),
         "origin": ds.origin,
         database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
+        database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
         "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], model_config,
                                    exported["parity"]),
         "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
@@ -330,7 +350,8 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
                         "name": ds.index.get("dataset"), "recorder": ds.index.get("recorder"),
                         "train_classes": list(ds.splits.train),
                         "val_classes": list(ds.splits.val), "test_classes": list(ds.test),
-                        "presses": ds.presses, "x_th": ds.x_th},
+                        "presses": ds.presses, "x_th": ds.x_th, "rate_hz": ds.rate_hz,
+                        "mixed_rates": cfg.mixed_rates},
             **{VARIANT_DIRS[name]: t for name, t in trained.items()},
         },
         "evaluation": {"unseen": [str(ds.directory)] * bool(ds.test)

@@ -298,7 +298,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
                       unseen=tuple(Path(u) for u in args.unseen or ()),
                       prompts=Path(args.prompts) if args.prompts else SHIPPED_PROMPTS,
                       seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
-                      threads=args.threads)
+                      threads=args.threads, mixed_rates=args.mixed_rates)
     manifest = build(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     base = m["comparison"].get("baseline/z", {})
@@ -552,6 +552,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--mixed-rates", action="store_true",
+                   help="build from classes pressed at stream rates more than 10%% apart "
+                   "(refused by default: they embed the same object in two places)")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_build)
 

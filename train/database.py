@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from edge.core import recording
+from edge.core import preprocess, recording
 from edge.core.descriptions import check_description
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 DB_OFFSETS = (0, 1, 2, 3, 4)
 # The manifest's record of the stop threshold each class's presses were made at.
 CLASS_X_TH = "class_x_th"
+# ... and of the stream's rate they were made at (the median of their crop windows' rates).
+CLASS_RATE_HZ = "class_rate_hz"
 # Thresholds are compared to this many decimals (a setting written twice is one value).
 X_TH_DIGITS = 9
 
@@ -159,6 +161,7 @@ class PressMeta:
     x_th: float  # rounded to X_TH_DIGITS: one setting written twice is one value
     origin: str  # recording source and sensor model
     layout: PadLayout = XR1944  # the pads behind its channels
+    rate_hz: float | None = None  # the stream's fresh frames/s over the crop window
 
 
 def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta]:
@@ -170,9 +173,41 @@ def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta
             rec = recording.load(path)
             out.append(PressMeta(path, rec.label, round(rec.threshold, X_TH_DIGITS),
                                  f"source {rec.source}, sensor {rec.sensor_model}",
-                                 PadLayout.of_recording(rec.extra, rec.channels)))
+                                 PadLayout.of_recording(rec.extra, rec.channels),
+                                 preprocess.recording_rate(rec).window_hz))
             bar.update()
     return out
+
+
+def class_rates(presses: Sequence[PressMeta]) -> dict[str, float | None]:
+    """Per label: the median of its presses' rates (None: none measured), to 0.1 Hz."""
+    rates: dict[str, list[float]] = {}
+    for p in presses:
+        rates.setdefault(p.label, [])
+        if p.rate_hz is not None:
+            rates[p.label].append(p.rate_hz)
+    return {label: round(float(np.median(r)), 1) if r else None for label, r in rates.items()}
+
+
+def rate_mix(rates: dict[str, float | None]) -> str | None:
+    """One line naming the classes at each rate where ``rates`` holds rates more than
+    ``preprocess.RATE_TOLERANCE`` apart; else None."""
+    groups: list[tuple[float, list[str]]] = []
+    for label, rate in sorted(((lab, r) for lab, r in rates.items() if r is not None),
+                              key=lambda item: item[1]):
+        if groups and preprocess.rate_problem(rate, groups[-1][0]) is None:
+            groups[-1][1].append(label)
+        else:
+            groups.append((rate, [label]))
+    if len(groups) < 2:
+        return None
+    def span(labels: list[str]) -> str:
+        low, high = (f(rates[lab] for lab in labels) for f in (min, max))  # type: ignore[type-var]
+        return f"{low:.1f} Hz" if low == high else f"{low:.1f}-{high:.1f} Hz"
+
+    return (f"classes pressed at stream rates more than {preprocess.RATE_TOLERANCE * 100:.0f} "
+            "% apart: " + "; ".join(f"{span(labels)}: {_names(labels, 6)}"
+                                    for _, labels in groups))
 
 
 def grouped(presses: Sequence[PressMeta], field: str) -> dict[str, dict[Any, list[str]]]:

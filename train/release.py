@@ -269,6 +269,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                        "report": f"{EVAL_DIR}/eval.md"},
         "database": database.summary(db),
         database.CLASS_X_TH: {c["label"]: c["x_th"] for c in ref_index["classes"]},
+        database.CLASS_RATE_HZ: {c["label"]: c.get("rate_hz") for c in ref_index["classes"]},
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,

@@ -85,6 +85,9 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
         manifest["files"]["prompts/vision_tactile.txt"]["sha256"]
     assert len(model.database) == 4 * 3 * 5 and model.database.offsets == [0, 1, 2, 3, 4]
     assert manifest["training"]["dataset"]["test_classes"] == list(TEST)
+    # Each class's stream rate as pressed (the virtual robot's 125 Hz), beside its x_th.
+    assert set(manifest["class_rate_hz"]) == set(REFERENCE)
+    assert all(abs(r - 125) < 1 for r in manifest["class_rate_hz"].values())
     assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     report = json.loads((models / "eval" / "eval.json").read_text())
