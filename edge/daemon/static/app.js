@@ -234,7 +234,7 @@ function drawTrace(canvas, tr) {
   tr.t.forEach((t, i) => (i ? ctx.lineTo(X(t), Y(tr.norm[i])) : ctx.moveTo(X(t), Y(tr.norm[i]))));
   ctx.stroke();
   ctx.fillStyle = "#69717d";
-  ctx.fillText(`peak ${tr.peak.toFixed(4)} · ${tr.frames} frames`, pad.l, pad.t - 3);
+  ctx.fillText(`peak norm ${tr.peak.toFixed(4)} · ${tr.frames} frames`, pad.l, pad.t - 3);
   canvas.dataset.points = String(tr.t.length);
 }
 
