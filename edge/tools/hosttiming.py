@@ -96,6 +96,7 @@ async def _measure(cfg: Config, duration_s: float) -> HostTiming:
     emulator = DxlEmulator((*bc.joint_ids, bc.gripper_id)).start()
     bus = DynamixelBus(replace(bc, port=emulator.port))
     realtime = None
+    applied = False
     try:
         await bus.connect()
         gripper = DynamixelGripper(bus)
@@ -103,7 +104,7 @@ async def _measure(cfg: Config, duration_s: float) -> HostTiming:
         if cfg.runtime.realtime:
             realtime = Realtime(cfg.runtime.realtime_priority, cfg.runtime.realtime_cpu,
                                 lambda: [loop_thread, bus.native_thread_id or 0])
-            realtime.enable()
+            applied = realtime.enable()
         lateness, stops, missed, ticks = await _run(gripper, duration_s)
     finally:
         if realtime is not None:
@@ -116,7 +117,7 @@ async def _measure(cfg: Config, duration_s: float) -> HostTiming:
         duration_s, ticks, missed, float(np.percentile(late, 50)),
         float(np.percentile(late, 99)), float(late.max()), len(stops),
         float(np.percentile(stop, 50)), float(np.percentile(stop, 99)), float(stop.max()),
-        realtime is not None and realtime.active,
+        applied,
         realtime_refusal(cfg.runtime.realtime_priority))
 
 

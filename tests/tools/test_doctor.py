@@ -405,6 +405,11 @@ def test_the_host_timing_line_gives_the_figures_and_warns_past_1_ms(lab, tmp_pat
         assert "realtime" in check.fix and "CPU" in check.fix
     # The robot's own bus is untouched: the stops went to a motor of its own.
     assert lab.robot.dxl.get_register(15, "Torque Enable") == 0
+    assert not data["realtime_applied"]
+    # As the daemon runs with [runtime] realtime = true, where the host allows it.
+    timed = doctor_module.measure(sub(cfg, "runtime", realtime=True), TEST_TIMING_S)
+    print(timed)
+    assert timed.realtime_applied == (timed.realtime_refused is None)
 
 
 def test_the_host_timing_advice_follows_what_the_host_allows(monkeypatch):
