@@ -560,8 +560,10 @@ class DynamixelBus:
                 self._lock_fd = bringup.lock_port(self._config.port)
             self._open_port()
             answered = [i for i in self._ids if bringup.ping_once(self._tx, i)[0] is not None]
-        except _PORT_ERRORS as exc:  # DeviceError among them
+        except _PORT_ERRORS as exc:
             self._close_port()
+            if isinstance(exc, DeviceError):  # (it names the port)
+                raise
             raise DeviceError(f"Dynamixel port {self._config.port}: {_port_error(exc)}") from exc
         if not answered:
             self._close_port()

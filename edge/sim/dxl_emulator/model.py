@@ -408,6 +408,17 @@ class DxlEmulator:
             motor.mem[reg.address:reg.end] = reg.encode(value)
             self._after_write(motor, reg, value, self._sim_t)
 
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """The motors on the bus, by ID."""
+        with self._lock:
+            return tuple(sorted(self._motors))
+
+    def missing(self, motor_id: int) -> bool:
+        """Whether the motor is switched silent (:meth:`set_missing`)."""
+        with self._lock:
+            return self._motors[motor_id].missing
+
     def set_missing(self, motor_id: int, missing: bool = True) -> None:
         """A missing motor hears nothing and answers nothing (unplugged, wrong ID or baud)."""
         with self._lock:

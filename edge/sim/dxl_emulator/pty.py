@@ -59,6 +59,8 @@ class PtyTransport:
         # an I/O error at the next instruction packet.
         self._want_plugged = True
         self._error_next = False
+        # Set by the thread once it has done what _ask asked.
+        self._applied = threading.Event()
 
     @property
     def serving(self) -> bool:
@@ -119,9 +121,16 @@ class PtyTransport:
         self._error_next = True
 
     def _ask(self, *, plugged: bool) -> None:
+        """Have the thread plug or unplug, and return once it has (a caller then finds the
+        port's path there, or gone)."""
         self._want_plugged = plugged
-        if self._thread is not None:
-            os.write(self._wake_w, b"p")
+        if self._thread is None:
+            return
+        self._applied.clear()
+        os.write(self._wake_w, b"p")
+        if not self._applied.wait(STOP_JOIN_TIMEOUT_S):
+            _log.error("Dynamixel emulator thread did not %s the adapter within %.1f s",
+                       "plug in" if plugged else "unplug", STOP_JOIN_TIMEOUT_S)
 
     def _plug(self) -> None:
         self._master, self._slave = os.openpty()
@@ -175,6 +184,7 @@ class PtyTransport:
                     if self._stopping.is_set():
                         break
                     self._apply()
+                    self._applied.set()
                     buf.clear()
                     continue
                 last, woke = woke, time.monotonic()
