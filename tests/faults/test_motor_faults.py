@@ -95,15 +95,21 @@ async def test_gripper_stops_answering_while_squeezing(tmp_path):
 async def test_joint_stops_answering_mid_press(tmp_path):
     async with sim_daemon(tmp_path) as (robot, d):
         episode = await start_press(d, "closing")
-        robot.dxl.set_missing(JOINT)
+        # As a lab rehearses it, through the emulated robot's control API.
+        fault = {"fault": "motor_silent", "motor": JOINT}
+        async with d.http.post(f"{robot.control_url}/fault", json=fault) as resp:
+            assert resp.status == 200, await resp.text()
         ep = await d.wait_status(episode, {"failed"})
         await asyncio.sleep(0.5)
         # The gripper (its own ID answers) stopped on the threshold and was opened; the arm
         # stayed lowered: a press that cannot read the arm's joints does not move them.
+        async with d.http.get(f"{robot.control_url}/motors") as resp:
+            print("GET /motors:", await resp.json())
         assert gripper_open(robot)
         assert at_pose(robot, d.cfg, "lowered"), joints(robot, d.cfg)
         print("episode error:", ep["error"])
         assert "motor 12" in ep["error"]
+        assert "GRIPPER MAY STILL BE CLOSED" not in ep["error"]
         health = await wait_health(d, False)
         assert "motor 12" in health["bus_error"]
         robot.dxl.set_missing(JOINT, False)
