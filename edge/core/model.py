@@ -554,6 +554,8 @@ class ModelRef:
     origin: Origin = EMULATED_ORIGIN
     # The encoder's input channels and the pads they came from (the manifest's).
     layout: ModelLayout = field(default_factory=lambda: LEGACY_LAYOUT)
+    # The threshold the references were pressed at (model_x_th); None where not recorded.
+    x_th: float | None = None
 
 
 @dataclass(frozen=True)
@@ -610,7 +612,54 @@ def model_ref(models_dir: str | Path) -> ModelRef:
     directory = Path(models_dir).resolve()  # absolute: errors and logs say where
     manifest = read_manifest(directory)
     return ModelRef(directory, manifest_digest(manifest), _window(manifest),
-                    manifest_origin(manifest), manifest_layout(manifest, str(directory / MANIFEST)))
+                    manifest_origin(manifest), manifest_layout(manifest, str(directory / MANIFEST)),
+                    model_x_th(class_x_th(manifest)))
+
+
+# The manifest's record of the stop threshold each class's references were pressed at.
+CLASS_X_TH = "class_x_th"
+# How far (a factor, either way) a press's x_th may be from the one the references were
+# pressed at before it is said: a press stops where the norm crosses x_th, and the window
+# around that stop is what the model embeds, so presses at another threshold embed
+# elsewhere. A calibrated value rounded (0.00445 -> 0.004, 1.11x) passes; the fragile
+# threshold for every class (0.003 against 0.004, 1.33x) or a typo (0.02) does not.
+X_TH_TOLERANCE = 1.25
+
+
+def class_x_th(manifest: Mapping[str, Any]) -> dict[str, float]:
+    """The manifest's ``class_x_th`` (label -> x_th); empty where the model records none."""
+    raw = manifest.get(CLASS_X_TH)
+    if not isinstance(raw, dict):
+        return {}
+    return {str(k): float(v) for k, v in raw.items() if isinstance(v, int | float)}
+
+
+def model_x_th(thresholds: Mapping[str, float]) -> float | None:
+    """The model's threshold: the one most of its classes were pressed at (the larger on a
+    tie: fragile classes are pressed lower); None without any."""
+    if not thresholds:
+        return None
+    counts: dict[float, int] = {}
+    for value in thresholds.values():
+        counts[value] = counts.get(value, 0) + 1
+    return max(counts, key=lambda v: (counts[v], v))
+
+
+def x_th_mismatch(x_th: float, reference: float | None, what: str = "[press] x_th"
+                  ) -> str | None:
+    """Why ``x_th`` (named ``what``) is too far from ``reference``, the threshold the model's
+    references were pressed at (:func:`model_x_th`, or a class's own in
+    :func:`class_x_th`), past ``X_TH_TOLERANCE``; None when it is close enough or there is
+    nothing to compare with. For the daemon's start, doctor and collect alike."""
+    if reference is None or reference <= 0 or x_th <= 0:
+        return None
+    if max(x_th / reference, reference / x_th) <= X_TH_TOLERANCE:
+        return None
+    return (f"{what} = {x_th:g} is {x_th / reference:.3g} times the x_th = {reference:g} the "
+            f"model's references were pressed at (more than {X_TH_TOLERANCE:g}x either way): "
+            "presses at another threshold embed elsewhere. Use the model's value, or this "
+            "robot's calibrated one (`vt-edge calibrate threshold`) with a model built from "
+            "presses at it")
 
 
 def _read(path: Path) -> bytes:

@@ -97,7 +97,7 @@ class Runtime:
         # with it, the recognizer presses with it.
         self.press = controller_factory(
             cfg, devices.gripper, devices.arm, self.ring, on_state=self._on_press_state,
-            recover=devices.recover, window=model.window)
+            recover=devices.recover, window=model.window, model_x_th=model.x_th)
         self.recognizer = Recognizer(Recognition(cfg, model, vlm), self.press, compute, store,
                                      self.events, self.metrics, devices.camera)
         self.sensor = SensorTask(devices.tactile, self.ring, self.press,
@@ -417,6 +417,7 @@ class Runtime:
             self.recognizer.setup = Recognition(cfg, model, vlm)
             self.press.cfg = cfg
             self.press.window = model.window
+            self.press.model_x_th = model.x_th
         if old.vlm is not vlm:
             await old.vlm.close()
         log.info("reloaded configuration, model, database and VLM client")

@@ -6,9 +6,11 @@ The gripper is opened before the arm moves to ``above`` (it may have been left c
 
 The threshold is checked on every arriving frame by the sensor task (:meth:`check`),
 which sends the stop itself: the fastest reaction the stream allows. Timeouts and aborts:
-closing without crossing ``x_th`` ends with ``no_contact``; a norm far past the threshold
-(``abort_factor * x_th``) opens at once (``aborted``); a stale sensor opens and fails the
-press. Whatever happens, the gripper is opened before the press returns.
+closing without crossing ``x_th`` ends with ``no_contact``; the gripper stalled on the object
+at its current cap with the norm still under ``x_th`` (a threshold the pads never reach)
+opens at once (``below_threshold``, naming x_th, the peak and the model's threshold); a norm
+far past the threshold (``abort_factor * x_th``) opens at once (``aborted``); a stale sensor
+opens and fails the press. Whatever happens, the gripper is opened before the press returns.
 """
 
 from __future__ import annotations
@@ -61,6 +63,13 @@ CLEAR_LEVEL_FRACTION = 0.5
 FREE_WINDOW_S = 0.1
 # After the press, how long the recording waits for a late stream to cover its window.
 STREAM_CATCH_UP_S = 1.0
+# The gripper stalled on the object: its squeeze current at least this fraction of the cap
+# (Goal Current; a motor in current-based position mode holds it there, within noise), its
+# width within STALL_TRAVEL_M, for STALL_S on end. It squeezes as hard as it is allowed
+# to: a norm not over x_th by then will not be (the traced reads come every ~16 ms).
+STALL_CURRENT_FRACTION = 0.9
+STALL_TRAVEL_M = 0.0002
+STALL_S = 0.3
 
 
 @dataclass
@@ -121,6 +130,8 @@ class _Armed:
         self.abort_level = abort_level
         self.crossed = asyncio.Event()
         self.abort = asyncio.Event()
+        # The gripper stalled at its current cap with the norm under x_th (see STALL_S).
+        self.stalled = asyncio.Event()
         self.t_cross: float | None = None
         self.level_at_cross = 0.0
         self.peak = 0.0
@@ -135,16 +146,19 @@ class PressController:
     """One press at a time. Hooks: ``on_state(state)`` at every state change,
     ``on_outcome(outcome)`` when a press ends, ``clock`` the monotonic clock the frames'
     receive times are on; ``window`` is where the model's crop lies around the stop (the
-    recording covers it)."""
+    recording covers it); ``model_x_th`` the threshold the model's references were pressed
+    at (:attr:`edge.core.model.ModelRef.x_th`), named where a press ends under x_th."""
 
     def __init__(self, cfg: Config, gripper: Gripper, arm: Arm, ring: FrameRing,
                  on_state: Callable[[PressState], None] | None = None,
                  recover: Callable[[], Awaitable[object]] | None = None,
                  on_outcome: Callable[[PressOutcome], None] | None = None,
                  window: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 model_x_th: float | None = None) -> None:
         self.cfg = cfg
         self.window = window
+        self.model_x_th = model_x_th
         self.clock = clock
         self.on_outcome = on_outcome
         # Clears a tripped Bus Watchdog (a stalled loop stops the motors; that is the point,
@@ -432,13 +446,15 @@ class PressController:
     async def _wait_closing(self, armed: _Armed, outcome: PressOutcome) -> None:
         crossed = asyncio.create_task(armed.crossed.wait())
         aborted = asyncio.create_task(armed.abort.wait())
+        stalled = asyncio.create_task(armed.stalled.wait())
         try:
-            await asyncio.wait({crossed, aborted},
+            await asyncio.wait({crossed, aborted, stalled},
                                timeout=self.cfg.runtime.close_timeout_s,
                                return_when=asyncio.FIRST_COMPLETED)
         finally:
             crossed.cancel()
             aborted.cancel()
+            stalled.cancel()
         outcome.peak_level = armed.peak
         if armed.crossed.is_set():  # (set only once the stop went out)
             outcome.t_cross = armed.t_cross
@@ -448,9 +464,22 @@ class PressController:
         if armed.abort.is_set():
             self._abort_reason(outcome, armed)
             return
+        if armed.stalled.is_set():
+            outcome.result = PressResult.BELOW_THRESHOLD
+            model = ("" if self.model_x_th is None else
+                     f"; the model's references were pressed at x_th = {self.model_x_th:g}")
+            outcome.message = (
+                f"below the threshold: the gripper squeezed at its current cap "
+                f"({self._current_cap_ma():.0f} mA) and stalled on the object, but the pads "
+                f"peaked at a norm of {armed.peak:.4f}, under x_th = {armed.x_th:g}{model}. "
+                "x_th is likely wrong for these pads: set [press] x_th to this robot's "
+                "calibrated value (`vt-edge calibrate threshold`)")
+            log.warning("press: %s", outcome.message)
+            return
         outcome.result = PressResult.NO_CONTACT
-        outcome.message = (f"no contact: the norm stayed below x_th = {armed.x_th} for "
-                           f"{self.cfg.runtime.close_timeout_s} s of closing")
+        outcome.message = (f"no contact: the norm stayed below x_th = {armed.x_th} (peak "
+                           f"{armed.peak:.4f}) for {self.cfg.runtime.close_timeout_s} s of "
+                           "closing")
         # A host stall past the Bus Watchdog stops the gripper short of the object with no
         # error on any read: ask the motors before calling it no contact.
         tripped = await self._cleared_watchdog_trips()
@@ -570,6 +599,10 @@ class PressController:
                 outcome.gripper_trace.append(await self.gripper.state())
             except DeviceError as exc:
                 log.debug("gripper trace read failed: %s", exc)
+                continue
+            if armed.t_cross is None and _stalled(outcome.gripper_trace,
+                                                  self._current_cap_ma()):
+                armed.stalled.set()
 
 
 # The states a press can be stopped at by an abort request before the threshold is armed.
@@ -578,6 +611,19 @@ _ABORTABLE = frozenset({PressState.LOWERED, PressState.TARE, PressState.CLOSING}
 
 class _AbortRequested(Exception):
     """An abort request reached the press before the gripper closed."""
+
+
+def _stalled(trace: list[GripperState], cap_ma: float) -> bool:
+    """Whether the gripper has squeezed at its current cap without moving for ``STALL_S``
+    up to its latest traced state."""
+    last = trace[-1]
+    since = last.t
+    for s in reversed(trace):
+        if (s.squeeze_ma < STALL_CURRENT_FRACTION * cap_ma
+                or abs(s.width_m - last.width_m) > STALL_TRAVEL_M):
+            break
+        since = s.t
+    return last.t - since >= STALL_S
 
 
 def _say(outcome: PressOutcome, text: str) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 
 from edge.core.config import Config, load_config
 from edge.core.errors import StartError, StoreError
-from edge.core.model import ModelRef
+from edge.core.model import ModelRef, x_th_mismatch
 from edge.core.model import model_ref as _model_ref
 from edge.daemon.api import Api, listen, load_token
 from edge.daemon.compute import ComputeWorker, warm_up
@@ -168,11 +168,13 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         # After the pads are checked against the server, not before: a [sensor] layout
         # unlike the hardware is the cause to name, not the model that follows from it.
         check_model(cfg.sensor, model)
+        _warn_x_th(cfg, model)
 
         def reload() -> tuple[Config, ModelRef, Any]:
             new = load_config(config_path) if config_path else cfg
             new_model = model_ref(new)
             check_model(cfg.sensor, new_model)  # the pads stay the ones opened at start
+            _warn_x_th(new, new_model)
             return new, new_model, make_vlm(new, compute)
 
         runtime = Runtime(cfg, devices, model, vlm, store, compute, notifier, reload=reload,
@@ -192,6 +194,14 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         # way, so that its full collections (which stop the loop) walk only what came after.
         gc.freeze()
         yield Daemon(cfg, runtime, api, devices, store, compute, realtime)
+
+
+def _warn_x_th(cfg: Config, model: ModelRef) -> None:
+    """A warning where the configured x_th is far from the model's (presses embed elsewhere;
+    the daemon runs all the same: a lab may be trying a threshold on purpose)."""
+    problem = x_th_mismatch(cfg.press.x_th, model.x_th)
+    if problem is not None:
+        log.warning("%s", problem)
 
 
 def make_realtime(cfg: Config, devices: Devices) -> Realtime:

@@ -36,6 +36,8 @@ class PressResult(StrEnum):
 
     OK = "ok"  # the threshold was crossed and the stop went out
     NO_CONTACT = "no_contact"  # closed for close_timeout_s without crossing x_th
+    # The gripper stalled on the object at its current cap, the norm still under x_th.
+    BELOW_THRESHOLD = "below_threshold"
     ABORTED = "aborted"  # on request, or a norm far past x_th
     STALE = "stale"  # the tactile stream went stale
     ERROR = "error"  # a device or internal error; ``message`` says which
@@ -46,7 +48,7 @@ class PressSummary:
     """One press as the episode keeps it (``episode.json``'s ``"press"``, the API's
     episodes). JSON form::
 
-        {"result": "ok" | "no_contact" | "aborted" | "stale" | "error",
+        {"result": "ok" | "no_contact" | "below_threshold" | "aborted" | "stale" | "error",
          "message": str,                  # why, when not ok ("" when ok)
          "contact": bool,                 # result == "ok"
          "t_cross": float | null,         # receive time of the first frame over x_th (s)

@@ -28,12 +28,13 @@ from tests.support.daemon import base_config
 OBJECT = "rubber_ball"
 
 
-async def press_once(robot: SimRobot, cfg: Config, on_state=None):
+async def press_once(robot: SimRobot, cfg: Config, on_state=None, **controller):
     rcfg = robot.runtime_config(cfg)
     devices = await open_devices(rcfg)
     await enable_torque(devices)
     ring = FrameRing(96, 4000)
-    controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state)
+    controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state,
+                                 **controller)
     task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
     try:
         await asyncio.sleep(0.3)
@@ -182,3 +183,31 @@ async def test_a_gripper_lost_after_clearing_the_object_fails_the_press_saying_s
     assert outcome.result == "error" and outcome.t_stop is not None
     assert "the gripper cleared the object but did not open fully" in outcome.message
     assert [s for s, _ in outcome.states][-3:] == ["opening", "returning", "idle"]
+
+
+@pytest.mark.asyncio
+# The emulated robot's default piece (configs/sim.toml), another hard one, and a sponge that
+# the gripper compresses longer before its current reaches the cap.
+@pytest.mark.parametrize(("name", "within_s"), [("stainless_cube", 3.0), ("wood_cube", 3.0),
+                                                ("sponge_cube", 4.0)])
+async def test_a_threshold_the_pads_never_reach_ends_the_squeeze_at_the_stall(name, within_s):
+    """x_th = 0.2 (a typo for 0.002): the gripper squeezes at its current cap and stalls; the
+    press ends there, opens, and names x_th, the peak and the model's threshold, long before
+    close_timeout_s (8 s shipped)."""
+    cfg = base_config()
+    cfg = replace(cfg, press=replace(cfg.press, x_th=0.2),
+                  runtime=replace(cfg.runtime, close_timeout_s=8.0))
+    async with SimRobot(name, seed=4, cfg=cfg) as robot:
+        _, outcome, width = await press_once(robot, cfg, model_x_th=0.004)
+        squeezed_n = robot.world.peak_force_n
+    states = dict(outcome.states)
+    squeeze_s = states["opening"] - states["closing"]
+    print(f"{name}: {outcome.result} after {squeeze_s:.2f} s of closing, peak norm "
+          f"{outcome.peak_level:.4f}, {squeezed_n:.1f} N: {outcome.message}")
+    assert outcome.result == PressResult.BELOW_THRESHOLD
+    assert squeeze_s < within_s
+    assert "x_th = 0.2" in outcome.message and f"{outcome.peak_level:.4f}" in outcome.message
+    assert "pressed at x_th = 0.004" in outcome.message
+    assert "vt-edge calibrate threshold" in outcome.message
+    assert 0 < outcome.peak_level < 0.2
+    assert width > 0.005  # opened
