@@ -104,6 +104,8 @@ class Dataset:
     sha256: str  # of dataset.json and every press file
     layout: PadLayout = XR1944  # the pads every press was made with
     rate_hz: dict[str, float | None] = field(default_factory=dict)  # per class, as pressed
+    # The reference presses by content (database.press_digests).
+    press_sha256: dict[str, str] = field(default_factory=dict)
 
 
 def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool = False
@@ -177,7 +179,8 @@ def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool
     return Dataset(directory, index, origin, splits, test,
                    {c: next(iter(t)) for c, t in thresholds.items()},
                    {c: sum(map(len, t.values())) for c, t in thresholds.items()},
-                   digest.hexdigest(), next(iter(mixed_pads), XR1944), rates)
+                   digest.hexdigest(), next(iter(mixed_pads), XR1944), rates,
+                   database.press_digests(m for m in metas if m.label in splits.classes))
 
 
 # --------------------------------------------------------------------------------------
@@ -340,6 +343,7 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
         "origin": ds.origin,
         database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
         database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
+        database.PRESS_SHA256: ds.press_sha256,
         "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], model_config,
                                    exported["parity"]),
         "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,

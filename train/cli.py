@@ -94,7 +94,7 @@ def _cmd_db_add(args: argparse.Namespace) -> int:
     from train.database import add_class
 
     db = add_class(args.model, args.recordings, args.label, args.description,
-                   relabel=args.relabel, force=args.force)
+                   relabel=args.relabel, force=args.force, allow_test=args.allow_test)
     print(f"added {args.label!r}; database: {len(db)} references of {len(db.classes)} classes")
     return 0
 
@@ -384,6 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="file presses labelled otherwise in their metadata under --label")
     p.add_argument("--force", action="store_true",
                    help="add presses made at a threshold unlike the database's classes'")
+    p.add_argument("--allow-test", action="store_true",
+                   help="add presses their dataset.json splits test (the manifest records it, "
+                   "and Table I says so)")
     p.set_defaults(func=_cmd_db_add)
 
     p = sub.add_parser("eval", help="retrieval quality on unseen classes, pictures, tables")

@@ -12,8 +12,9 @@ given), which must name the object, never say how it feels (:mod:`edge.core.desc
 
 from __future__ import annotations
 
+import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,11 @@ DB_OFFSETS = (0, 1, 2, 3, 4)
 CLASS_X_TH = "class_x_th"
 # ... and of the stream's rate they were made at (the median of their crop windows' rates).
 CLASS_RATE_HZ = "class_rate_hz"
+# The presses the database holds, by content (recording.frames_sha256 -> "label/file name"):
+# a press copied under another name is still the same press.
+PRESS_SHA256 = "press_sha256"
+# Presses `db add --allow-test` took from a test split (Table I says so).
+TEST_PRESSES_ADDED = "test_presses_added"
 # Thresholds are compared to this many decimals (a setting written twice is one value).
 X_TH_DIGITS = 9
 
@@ -146,7 +152,10 @@ def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | N
         if label in splits.classes:
             thresholds[label] = next(iter(values))
     db.save(model_dir)
-    write_manifest(model_dir, {"database": summary(db), CLASS_X_TH: thresholds})
+    write_manifest(model_dir, {"database": summary(db), CLASS_X_TH: thresholds,
+                               PRESS_SHA256: press_digests(
+                                   m for m in press_index(recordings)
+                                   if m.label in splits.classes)})
     log.info("database: %d references of %d classes in %s", len(db), len(db.classes),
              model_dir)
     return db
@@ -162,6 +171,11 @@ class PressMeta:
     origin: str  # recording source and sensor model
     layout: PadLayout = XR1944  # the pads behind its channels
     rate_hz: float | None = None  # the stream's fresh frames/s over the crop window
+    sha256: str = ""  # its frames' (recording.frames_sha256)
+
+    @property
+    def name(self) -> str:
+        return f"{self.label}/{self.path.name}"
 
 
 def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta]:
@@ -174,7 +188,8 @@ def press_index(directory: str | Path, progress: bool = False) -> list[PressMeta
             out.append(PressMeta(path, rec.label, round(rec.threshold, X_TH_DIGITS),
                                  f"source {rec.source}, sensor {rec.sensor_model}",
                                  PadLayout.of_recording(rec.extra, rec.channels),
-                                 preprocess.recording_rate(rec).window_hz))
+                                 preprocess.recording_rate(rec).window_hz,
+                                 recording.frames_sha256(rec)))
             bar.update()
     return out
 
@@ -208,6 +223,11 @@ def rate_mix(rates: dict[str, float | None]) -> str | None:
     return (f"classes pressed at stream rates more than {preprocess.RATE_TOLERANCE * 100:.0f} "
             "% apart: " + "; ".join(f"{span(labels)}: {_names(labels, 6)}"
                                     for _, labels in groups))
+
+
+def press_digests(presses: Iterable[PressMeta]) -> dict[str, str]:
+    """The manifest's ``press_sha256``: each press's content digest -> label/file name."""
+    return {p.sha256: p.name for p in presses}
 
 
 def grouped(presses: Sequence[PressMeta], field: str) -> dict[str, dict[Any, list[str]]]:
@@ -246,15 +266,50 @@ def _check_threshold(label: str, x_th: float, known: dict[str, float]) -> None:
                          "(vt-edge collect --x-th), or say --force")
 
 
+def _test_split(recordings: Path, metas: Sequence[PressMeta]) -> tuple[Path, list[PressMeta]]:
+    """The ``dataset.json`` over ``recordings`` (a dataset directory or one class's folder in
+    it) and those of ``metas`` whose class it splits ``test``; no index: none."""
+    for directory in (recordings, recordings.parent):
+        path = directory / recording.DATASET_INDEX
+        try:
+            index = json.loads(path.read_text())
+        except FileNotFoundError:
+            continue
+        except (OSError, ValueError) as exc:
+            raise RecordingError(f"{path}: cannot read: {exc}") from None
+        classes = index.get("classes") if isinstance(index, dict) else None
+        test = {c.get("label") for c in classes or () if isinstance(c, dict)
+                and c.get("split") == "test"}
+        return path, [m for m in metas if m.label in test]
+    return recordings / recording.DATASET_INDEX, []
+
+
+def _check_new(metas: Sequence[PressMeta], known: dict[str, str]) -> None:
+    """Refuse presses the database holds already, or given twice, by content (a press
+    copied under another name is the same press)."""
+    seen: dict[str, str] = {}
+    held = []
+    for m in metas:
+        if m.sha256 in known:
+            held.append(f"{m.path.name} is {known[m.sha256]}")
+        elif m.sha256 in seen:
+            held.append(f"{m.path.name} is {seen[m.sha256]} (given twice)")
+        seen.setdefault(m.sha256, m.path.name)
+    if held:
+        raise ModelError(f"{len(held)} of these presses are in the database already (the same "
+                         f"frames, whatever the file name): {_names(held, 6)}. Nothing added")
+
+
 def add_class(model_dir: str | Path, recordings: str | Path, label: str,
-              description: str, *, relabel: bool = False, force: bool = False
-              ) -> ReferenceDatabase:
+              description: str, *, relabel: bool = False, force: bool = False,
+              allow_test: bool = False) -> ReferenceDatabase:
     """``vt-train db add``: encode the presses of a new (or existing) class with the shipped
     encoder (onnxruntime only: no torch or onnx on this path) and add them under ``label``; no
     retraining. Refused: presses labelled otherwise in their metadata (unless ``relabel``),
-    references the database already holds (same press file and offset), a threshold unlike
-    the database's classes' (unless ``force``). Database files and manifest are rewritten
-    atomically, the manifest last."""
+    presses the database already holds (by content: the same frames under any file name), a
+    threshold unlike the database's classes' (unless ``force``), presses whose dataset splits
+    them ``test`` (unless ``allow_test``: the manifest records it, and Table I says so).
+    Database files and manifest are rewritten atomically, the manifest last."""
     if not label.strip() or not description.strip():
         raise ModelError("db add needs a non-empty --label and --description")
     check_description(description, label)
@@ -272,12 +327,20 @@ def add_class(model_dir: str | Path, recordings: str | Path, label: str,
                                           for lab, n in others.items())
             + f" in their metadata, not {label!r}: add them under their own --label, or say "
             f"--relabel to file them as {label!r}")
+    index_path, test = _test_split(Path(recordings), metas)
+    if test and not allow_test:
+        raise RecordingError(
+            f"{recordings}: {len(test)} presses of {', '.join(sorted({m.label for m in test}))} "
+            f"are split test in {index_path}: a database that holds its test presses scores "
+            "Table I on what it learned. Add other presses, or say --allow-test (the manifest "
+            "records it, and Table I says so)")
     thresholds = grouped([replace(m, label=label) for m in metas], "x_th")[label]
     problem = mixed(label, "thresholds x_th", thresholds)
     if problem:
         raise RecordingError(f"{recordings}: {problem}")
     x_th = next(iter(thresholds))
-    known = {str(k): float(v) for k, v in read_raw(Path(model_dir)).get(CLASS_X_TH, {}).items()}
+    manifest = read_raw(Path(model_dir))
+    known = {str(k): float(v) for k, v in manifest.get(CLASS_X_TH, {}).items()}
     if not known:
         log.warning("%s records no class thresholds (built before vt-train build): the "
                     "threshold %g is not checked", Path(model_dir) / "manifest.json", x_th)
@@ -288,28 +351,30 @@ def add_class(model_dir: str | Path, recordings: str | Path, label: str,
             log.warning("--force: %s", exc)
     else:
         _check_threshold(label, x_th, known)
+    digests = manifest.get(PRESS_SHA256)
+    if digests is None:
+        log.warning("%s records no press digests (built before presses were identified by "
+                    "content): only presses added from now on are checked for copies",
+                    Path(model_dir) / "manifest.json")
+    _check_new(metas, digests or {})
     presses = load_presses(recordings)
     old = model.database
     sources = [Path(p).name for p in presses.paths for _ in DB_OFFSETS]
     offsets = np.tile(np.asarray(DB_OFFSETS, dtype=np.int8), len(presses))
-    have = set(zip(old.source.tolist(), old.offset.tolist(), strict=True))
-    dup: dict[str, list[int]] = {}
-    for source, offset in zip(sources, offsets.tolist(), strict=True):
-        if (source, offset) in have:
-            dup.setdefault(source, []).append(offset)
-    if dup:
-        listed = "; ".join(f"{source} (offsets {', '.join(map(str, offs))})"
-                           for source, offs in dup.items())
-        raise ModelError(f"{sum(map(len, dup.values()))} of these references are in the "
-                         f"database already (same press file and offset): {listed}. "
-                         "Nothing added")
     z, code = encode_presses(model.encoder, presses)
     db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code, sources,
                         offsets)
     db.save(model_dir)
-    sections: dict = {"database": summary(db)}
+    sections: dict = {"database": summary(db),
+                      PRESS_SHA256: (digests or {}) | press_digests(
+                          replace(m, label=label) for m in metas)}
     if known:
         sections[CLASS_X_TH] = known | {label: known.get(label, x_th)}
+    if test:
+        log.warning("--allow-test: %d presses of the test split of %s added; Table I will say "
+                    "so", len(test), index_path)
+        sections[TEST_PRESSES_ADDED] = [*manifest.get(TEST_PRESSES_ADDED, []), {
+            "label": label, "presses": len(test), "dataset": str(index_path)}]
     write_manifest(model_dir, sections)
     log.info("added %d presses (%d references) of %s (%s) at x_th %g; database now %d "
              "references of %d classes", len(presses), len(z), label,

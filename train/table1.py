@@ -41,6 +41,7 @@ from edge.core.config import VLMConfig
 from edge.core.errors import EvalVLMError
 from edge.core.model import read_manifest
 from train import eval_vlm
+from train.database import TEST_PRESSES_ADDED
 from train.eval_vlm import DATASET_TITLES, EvalVLMConfig
 
 log = logging.getLogger(__name__)
@@ -190,7 +191,8 @@ def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, A
                     "labels, temperature 0; invalid answers count as wrong",
         "tactile_model": {"dir": str(cfg.model_dir), "created_by": manifest.get("created_by"),
                           "decoder": facts["decoder"], "origin": facts["origin"],
-                          "database": manifest.get("database")},
+                          "database": manifest.get("database"),
+                          "test_presses_added": manifest.get(TEST_PRESSES_ADDED, [])},
         "sets": [{"name": d["name"], "paper_set": eval_vlm.paper_set(d["name"],
                                                                     cfg.paper_sets),
                   "origin": d.get("origin"), "presses": d["presses"]} for d in datasets],
@@ -231,6 +233,7 @@ def markdown(s: Mapping[str, Any]) -> str:
               f"{db.get('references')} references of {db.get('classes')} classes; "
               f"{s['protocol']}" + (f"; first {s['limit']} presses per set"
                                     if s["limit"] else "") + ".", "",
+              *_test_presses(tm.get("test_presses_added") or []),
               "| model | method | " + " | ".join(titles + [
                   f"paper: {eval_vlm.DATASET_TITLES[d['paper_set']]}" for d in beside]) + " |",
               "| --- | --- |" + " --- |" * (len(names) + len(beside))]
@@ -265,6 +268,16 @@ def markdown(s: Mapping[str, Any]) -> str:
                   f"`{mode}` sha256 {p['sha256'][:12]}" for mode, p in prompts.items())
               + ". Confusion matrices: `table1.json` and `confusion_<model>_<set>.png`.", ""]
     return "\n".join(lines)
+
+
+def _test_presses(added: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Lines saying the database holds presses of a test split (`db add --allow-test`)."""
+    if not added:
+        return []
+    return ["**The database holds test presses**: " + "; ".join(
+        f"{a['presses']} presses of {a['label']} from the test split of {a['dataset']}"
+        for a in added) + " (`vt-train db add --allow-test`). A set that shares them scores "
+        "on presses the database learned.", ""]
 
 
 def _decoders(s: Mapping[str, Any]) -> list[str]:

@@ -12,6 +12,7 @@ open as a zip.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -240,6 +241,14 @@ def _check(rec: Recording, name: str) -> None:
             f"[{rec.recv_time[0]:.3f}, {rec.recv_time[-1]:.3f}]")
     if not 0 < rec.threshold < 1:
         raise RecordingError(f"{name}: threshold {rec.threshold} must be in (0, 1)")
+
+
+def frames_sha256(rec: Recording) -> str:
+    """A press's identity by its content: the sha256 of its raw frames (their shape, then the
+    counts as little-endian uint16), whatever its file is called."""
+    digest = hashlib.sha256(np.asarray(rec.frames.shape, dtype="<i8").tobytes())
+    digest.update(np.ascontiguousarray(rec.frames, dtype="<u2").tobytes())
+    return digest.hexdigest()
 
 
 def find(directory: str | Path) -> list[Path]:

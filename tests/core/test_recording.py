@@ -1,6 +1,7 @@
 import io
 import json
 import zipfile
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -85,3 +86,14 @@ def test_missing_member_and_foreign_zip(tmp_path):
         recording.from_bytes(buf.getvalue())
     with pytest.raises(RecordingError, match="cannot read"):
         recording.load(tmp_path / "nope.press.npz")
+
+
+def test_a_press_is_identified_by_its_frames_not_its_file(tmp_path, rec):
+    first = recording.save(rec, tmp_path / "a" / "otedama_000.press.npz")
+    copy = recording.save(replace(rec, label="renamed", t_stop=rec.t_stop + 0.001),
+                          tmp_path / "b" / "mochi_900.press.npz")
+    digest = recording.frames_sha256(recording.load(first))
+    assert recording.frames_sha256(recording.load(copy)) == digest
+    frames = rec.frames.copy()
+    frames[10, 5] += 1  # one count of one channel
+    assert recording.frames_sha256(replace(rec, frames=frames)) != digest

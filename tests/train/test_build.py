@@ -197,16 +197,54 @@ def add(model: Path, recordings: Path, label: str, *flags: str) -> int:
                  *flags])
 
 
-def test_db_add_refuses_a_duplicate_with_the_list(model_dir, lab_food, caplog):
+def test_db_add_refuses_a_press_it_holds_whatever_its_file_name(model_dir, lab_food, tmp_path,
+                                                                caplog):
     raw = lab_food / "raw_kiri_mochi"
-    assert add(model_dir, raw, "raw_kiri_mochi") == 0
+    assert add(model_dir, raw, "raw_kiri_mochi", "--allow-test") == 0
     before = load_model(model_dir).database
     assert len(before) == 4 * 3 * 5 + 3 * 5
+    assert add(model_dir, raw, "raw_kiri_mochi", "--allow-test") == 2
+    err = caplog.text
+    assert "3 of these presses are in the database already (the same frames" in err
+    assert ("raw_kiri_mochi_000.press.npz is raw_kiri_mochi/raw_kiri_mochi_000.press.npz"
+            in err and "Nothing added" in err)
+    # The same press copied under another name (and a reference press of the build) is the
+    # same press.
+    copies = tmp_path / "copies"
+    copies.mkdir()
+    shutil.copyfile(raw / "raw_kiri_mochi_001.press.npz", copies / "mochi_900.press.npz")
+    shutil.copyfile(lab_food / "otedama" / "otedama_000.press.npz",
+                    copies / "otedama_777.press.npz")
+    caplog.clear()
+    assert add(model_dir, copies, "mochi", "--relabel") == 2
+    err = caplog.text
+    print(err)
+    assert "2 of these presses are in the database already" in err
+    assert "mochi_900.press.npz is raw_kiri_mochi/raw_kiri_mochi_001.press.npz" in err
+    assert "otedama_777.press.npz is otedama/otedama_000.press.npz" in err
+    assert len(load_model(model_dir).database) == len(before)
+
+
+def test_db_add_refuses_a_test_split_unless_allowed_and_table1_says_so(model_dir, lab_food,
+                                                                      tmp_path, caplog):
+    raw = lab_food / "raw_kiri_mochi"
     assert add(model_dir, raw, "raw_kiri_mochi") == 2
     err = caplog.text
-    assert "15 of these references are in the database already" in err
-    assert "raw_kiri_mochi_000.press.npz (offsets 0, 1, 2, 3, 4)" in err and "Nothing added" in err
-    assert len(load_model(model_dir).database) == len(before)
+    assert (f"3 presses of raw_kiri_mochi are split test in {lab_food / 'dataset.json'}"
+            in err and "--allow-test" in err)
+    assert "raw_kiri_mochi" not in load_model(model_dir).database.labels
+    assert add(model_dir, lab_food, "raw_kiri_mochi", "--relabel") == 2  # the whole dataset
+    assert add(model_dir, raw, "raw_kiri_mochi", "--allow-test") == 0
+    manifest = load_model(model_dir).manifest
+    assert manifest["test_presses_added"] == [
+        {"label": "raw_kiri_mochi", "presses": 3, "dataset": str(lab_food / "dataset.json")}]
+    out = tmp_path / "table1"
+    assert main(["table1", "--model-dir", str(model_dir), "--unseen", str(lab_food),
+                 "--work", str(tmp_path / "work"), "--out", str(out), "--limit", "1",
+                 "-q"]) == 0
+    md = (out / "table1.md").read_text()
+    assert ("**The database holds test presses**: 3 presses of raw_kiri_mochi from the test "
+            f"split of {lab_food / 'dataset.json'}") in md
 
 
 def test_db_add_refuses_another_label_unless_relabel(model_dir, lab_food, caplog):
@@ -216,7 +254,7 @@ def test_db_add_refuses_another_label_unless_relabel(model_dir, lab_food, caplog
     assert "3 presses labelled 'raw_kiri_mochi' in their metadata, not 'cherry_tomato'" in err
     assert "--relabel" in err
     assert "cherry_tomato" not in load_model(model_dir).database.labels
-    assert add(model_dir, raw, "kiri_mochi", "--relabel") == 0
+    assert add(model_dir, raw, "kiri_mochi", "--relabel", "--allow-test") == 0
     db = load_model(model_dir).database
     assert "kiri_mochi" in db.labels and "raw_kiri_mochi" not in db.labels
 
@@ -261,7 +299,7 @@ def test_db_add_works_on_an_edge_only_install(model_dir, lab_food):
     done = subprocess.run(
         [sys.executable, "-c", BLOCK_TORCH_AND_ONNX, "db", "add", "--model", str(model_dir),
          "--recordings", str(lab_food / "raw_kiri_mochi"), "--label", "raw_kiri_mochi",
-         "--description", "raw kiri mochi (a Japanese rice cake)"],
+         "--description", "raw kiri mochi (a Japanese rice cake)", "--allow-test"],
         cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert "raw_kiri_mochi" in load_model(model_dir).database.labels
