@@ -40,6 +40,10 @@ _RECONNECT_MIN_BACKOFF_S = 0.05
 _CLOSE_TIMEOUT_S = 0.5
 # A consumer this many frames behind loses the oldest ones (about 2 s at 125 Hz).
 _QUEUE_FRAMES = 256
+# A stale stream is warned about at most this often: a busy host stalls it for a moment now
+# and then (22 warnings in 3 idle minutes, seen), and each such spell is counted into the
+# next warning instead.
+STALE_WARN_INTERVAL_S = 60.0
 
 _HEX_WORD = re.compile(r"[0-9A-Fa-f]{1,4}")
 # Dropped from inside hex words: what a wrapped or indented capture puts there. Anything else
@@ -372,6 +376,11 @@ class XelaClient:
         self._connections = 0
         self._closed = False
         self._stale_reported = False
+        # The last stale warning (monotonic), the spells since it that were not warned about,
+        # and whether the present spell was (its end is said where its start was).
+        self._stale_warned_t = -math.inf
+        self._stale_unwarned = 0
+        self._stale_said = False
         # Set by the first fresh frame, or by a layout refused: what wait_first_frame awaits.
         self._arrived = asyncio.Event()
         self._last_failure: str | None = None  # why the last connection attempt failed
@@ -494,8 +503,24 @@ class XelaClient:
         )
         if not self._stale_reported:
             self._stale_reported = True
-            log.warning("%s", msg)
+            self._warn_stale(msg)
         return StaleSensorError(msg)
+
+    def _warn_stale(self, msg: str) -> None:
+        """A new stale spell: warned about, or counted into the next warning within
+        ``STALE_WARN_INTERVAL_S`` of the last one."""
+        now = time.monotonic()
+        since = now - self._stale_warned_t
+        self._stale_said = since >= STALE_WARN_INTERVAL_S
+        if not self._stale_said:
+            self._stale_unwarned += 1
+            log.debug("%s", msg)
+            return
+        if self._stale_unwarned:
+            log.warning("%s (%d more in the last %.0f s)", msg, self._stale_unwarned, since)
+        else:
+            log.warning("%s", msg)
+        self._stale_warned_t, self._stale_unwarned = now, 0
 
     def _put(self, item: object) -> None:
         if self._queue.full():
@@ -635,7 +660,8 @@ class XelaClient:
             return None
         if self._stale_reported:
             self._stale_reported = False
-            log.info("XELA stream fresh again (frame %d)", frame.seq)
+            log.log(logging.INFO if self._stale_said else logging.DEBUG,
+                    "XELA stream fresh again (frame %d)", frame.seq)
         self._last_fresh = recv_time
         self._arrived.set()
         if self.on_parsed is not None:

@@ -19,6 +19,7 @@ import pytest_asyncio
 
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
+from edge.hw import xela
 from edge.hw.contracts import TactileFrame, TactileSource
 from edge.hw.xela import XelaClient
 from edge.sim.xela_server import Fault, XelaServerEmulator
@@ -135,6 +136,36 @@ async def test_stale_when_server_goes_silent(server: XelaServerEmulator) -> None
         f"{from_last * 1e3:.0f} ms after the last fresh frame"
     )
     assert from_last < STALE_BOUND_S
+
+
+@pytest.mark.asyncio
+async def test_repeated_stale_spells_are_warned_once_then_counted(
+    server: XelaServerEmulator, caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A busy host stalls the stream for a moment now and then: one warning, then the
+    spells within STALE_WARN_INTERVAL_S are counted into the next one."""
+    monkeypatch.setattr(xela, "STALE_WARN_INTERVAL_S", 2.0)
+    caplog.set_level(logging.INFO, logger="edge.hw.xela")
+    async with XelaClient(config_for(server)) as client:
+        for spell in range(4):
+            if spell == 3:
+                await asyncio.sleep(2.0)  # past the interval: the next spell is warned
+            server.fault = Fault.SILENT
+            with pytest.raises(StaleSensorError):
+                async for _ in client.frames():
+                    pass
+            server.fault = Fault.NONE
+            await next_frame(client, STARTUP_TIMEOUT_S, after=time.monotonic())
+    lines = [(r.levelno, r.getMessage()) for r in caplog.records]
+    warned = [m for level, m in lines if level == logging.WARNING and "is stale" in m]
+    fresh = [m for level, m in lines if level == logging.INFO and "fresh again" in m]
+    print("\n  " + "\n  ".join(warned + fresh))
+    counted = [int(m.split(" more in the last")[0].rsplit("(", 1)[1]) for m in warned
+               if " more in the last" in m]
+    # Every spell is said once: a warning of its own or counted into the next one.
+    assert 2 <= len(warned) < 4 and len(warned) + sum(counted) == 4
+    assert "more in the last" in warned[-1] and len(fresh) == len(warned)
 
 
 @pytest.mark.asyncio
