@@ -566,9 +566,14 @@ def build_parser() -> argparse.ArgumentParser:
     svc.add_argument("--create-user", action="store_true",
                      help="create the user (useradd --system) and the device groups the "
                           "configuration needs where missing (as root)")
-    svc.add_argument("--install", action="store_true",
-                     help="write /etc/systemd/system/vtzero-edge.service (refused while the "
-                          "user or a group is missing)")
+    what = svc.add_mutually_exclusive_group()
+    what.add_argument("--print", action="store_true",
+                      help="print the unit (the default), with a warning for each thing it "
+                           "could not see or use")
+    what.add_argument("--install", action="store_true",
+                      help="write /etc/systemd/system/vtzero-edge.service (refused while the "
+                           "unit could not start: a path it could not see, a missing user or "
+                           "group)")
     svc.set_defaults(func=_cmd_install_service)
 
     udev = sub.add_parser("install-udev", help="print (or install) the udev rules: U2D2 "

@@ -83,6 +83,14 @@ def config_paths(cfg: Config, config: Path) -> tuple[Named, Named]:
 
 def check_paths(reads: Iterable[tuple[str, Path]], writes: Iterable[tuple[str, Path]]) -> None:
     """Raise :class:`EdgeError` (one line) naming every path the service could not use."""
+    if problem := path_problem(reads, writes):
+        raise EdgeError(problem)
+
+
+def path_problem(reads: Iterable[tuple[str, Path]],
+                 writes: Iterable[tuple[str, Path]]) -> str | None:
+    """One line naming every path the service could not use and what to do; None if it
+    could use them all."""
     problems: dict[str, bool] = {}  # message -> is it part of the Python install
     for what, path in reads:
         if not path.is_absolute():
@@ -94,9 +102,10 @@ def check_paths(reads: Iterable[tuple[str, Path]], writes: Iterable[tuple[str, P
         if not path.is_absolute() or STATE_DIR not in (PurePosixPath(path), *path.parents):
             problems[f"{what} {path} (not writable under ProtectSystem=strict: put it "
                      f"under {STATE_DIR})"] = False
-    if problems:
-        hint = VENV_HINT if any(problems.values()) else FILES_HINT
-        raise EdgeError("the service could not use " + ", ".join(problems) + f"; {hint}")
+    if not problems:
+        return None
+    hint = VENV_HINT if any(problems.values()) else FILES_HINT
+    return "the service could not use " + ", ".join(problems) + f"; {hint}"
 
 
 def needed_groups(cfg: Config) -> list[str]:
@@ -225,7 +234,9 @@ def readable_note(path: Path, acc: Accounts) -> str | None:
 
 def install_service(config_path: str | Path, user: str, *, create_user: bool = False,
                     write: bool = False) -> int:
-    """`vt-edge install-service`: check the host, then print the unit or install it."""
+    """`vt-edge install-service`: check the host, then print the unit or install it. A
+    unit that could not start as it is (a path it could not see, a missing user) is
+    refused for installing; printed, with a line on stderr for each problem."""
     from edge.daemon import systemd
 
     config = Path(config_path).resolve()
@@ -236,7 +247,9 @@ def install_service(config_path: str | Path, user: str, *, create_user: bool = F
     beside = Path(sys.executable).with_name("vt-edge")
     exe = str(beside) if beside.exists() else shutil.which("vt-edge") or f"{sys.executable} -m edge"
     reads, writes = config_paths(cfg, config)
-    check_paths([*interpreter_paths(exe), *reads], writes)
+    unseen = path_problem([*interpreter_paths(exe), *reads], writes)
+    if unseen and write:
+        raise EdgeError(unseen)
     acc = accounts(cfg, user)
     if create_user and (acc.missing_user or acc.missing_groups):
         for command in create_accounts(acc):
@@ -248,6 +261,8 @@ def install_service(config_path: str | Path, user: str, *, create_user: bool = F
     if todo and write:
         raise EdgeError("before installing the unit: " + "; ".join(todo))
     unit = service_unit(cfg, config, exe, acc)
+    if unseen:
+        print(f"warning: as printed, the unit would not start: {unseen}", file=sys.stderr)
     for line in todo:
         print(f"note: {line}", file=sys.stderr)
     if not Path(cfg.runtime.models_dir, "manifest.json").is_file():

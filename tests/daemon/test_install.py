@@ -107,7 +107,7 @@ def test_files_the_config_names_must_be_visible_absolute_and_writable(tmp_path):
 def test_the_cli_refuses_a_models_dir_under_home(tmp_path):
     path = tmp_path / "robot.toml"
     path.write_text('[runtime]\nmodels_dir = "/home/lab/vtzero/models"\n')
-    out = _cli("install-service", "--config", str(path))
+    out = _cli("install-service", "--config", str(path), "--install")
     assert out.returncode == 2 and out.stdout == ""
     assert len(out.stderr.strip().splitlines()) == 1
     assert "models_dir /home/lab/vtzero/models (hidden by ProtectHome=yes)" in out.stderr
@@ -157,9 +157,18 @@ def test_unit_names_only_existing_groups_and_verifies(tmp_path):
 
 
 def test_the_cli_names_a_hidden_config_and_interpreter(tmp_path):
-    out = _cli("install-service", "--config", str(_config(tmp_path)), "--user", NO_USER)
+    # Printed from anywhere (a checkout, a config under /tmp), with a warning naming what
+    # the unit could not see; installing it is refused with the same line.
+    config = str(_config(tmp_path))
+    out = _cli("install-service", "--config", config, "--user", NO_USER, "--print")
+    assert out.returncode == 0 and out.stdout.startswith("# vtzero")
+    assert f"run --config {config}\n" in out.stdout and "Documentation=" not in out.stdout
+    (warning,) = [line for line in out.stderr.splitlines() if line.startswith("warning: ")]
+    assert "as printed, the unit would not start" in warning
+    out = _cli("install-service", "--config", config, "--user", NO_USER, "--install")
     assert out.returncode == 2 and out.stdout == ""
     assert len(out.stderr.strip().splitlines()) == 1
+    assert warning.split("would not start: ")[1] in out.stderr
     assert "(hidden by PrivateTmp=yes)" in out.stderr  # the config, under pytest's /tmp
     hidden = [p for _, p in install.interpreter_paths(sys.executable) if install.hidden_by(p)]
     for path in hidden:  # a dev venv from pyenv, or a checkout in a home directory
