@@ -26,6 +26,7 @@ from edge.core.descriptions import check_description
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
 from edge.core.model import (
+    CLASS_X_TH,
     DEFAULT_K,
     ENCODER_FILE,
     ClassInfo,
@@ -43,9 +44,8 @@ log = logging.getLogger(__name__)
 
 # Every subsampling offset of every press (the paper's 5 per press).
 DB_OFFSETS = (0, 1, 2, 3, 4)
-# The manifest's record of the stop threshold each class's presses were made at.
-CLASS_X_TH = "class_x_th"
-# ... and of the stream's rate they were made at (the median of their crop windows' rates).
+# The manifest's record of the stream's rate each class's presses were made at (the median
+# of their crop windows' rates), beside its class_x_th.
 CLASS_RATE_HZ = "class_rate_hz"
 # The presses the database holds, by content (recording.frames_sha256 -> "label/file name"):
 # a press copied under another name is still the same press.

@@ -31,8 +31,9 @@ from edge import __version__
 from edge.core import recording
 from edge.core.atomic import atomic_write_bytes
 from edge.core.config import Config
-from edge.core.errors import ConfigError, EdgeError
+from edge.core.errors import ConfigError, EdgeError, ModelError
 from edge.core.layout import PadLayout
+from edge.core.model import class_x_th, model_x_th, read_manifest, x_th_mismatch
 from edge.core.tasks import cancel_and_wait
 from edge.daemon.press import PressController, PressOutcome, outcome_recording
 from edge.daemon.ring import FrameRing
@@ -99,6 +100,26 @@ def _check_existing(out: Path, plan: Plan, cfg: Config) -> dict[str, dict[int, P
                     "it into another --out")
         found[c.label] = presses
     return found
+
+
+def _warn_x_th(cfg: Config, plan: Plan) -> None:
+    """A warning (each once) where a class's x_th (the plan's, else [press] x_th) is far from
+    the one the model's references were pressed at (that class's own where the model has
+    it): its presses would embed elsewhere. Collecting goes on: a lab may be building a model
+    at another threshold on purpose."""
+    try:
+        per_class = class_x_th(read_manifest(cfg.runtime.models_dir))
+    except ModelError as exc:
+        log.info("x_th not compared with a model's: %s", exc)
+        return
+    problems = dict.fromkeys(
+        x_th_mismatch(c.threshold(cfg.press.x_th), per_class.get(c.label, model_x_th(per_class)),
+                      f"{c.label}'s x_th ({plan.source})" if c.x_th is not None
+                      else "[press] x_th")
+        for c in plan.classes)
+    for problem in problems:
+        if problem is not None:
+            log.warning("%s", problem)
 
 
 def _origin(cfg: Config, plan: Plan, models: tuple[str, ...] | None) -> dict[str, Any]:
@@ -224,6 +245,7 @@ async def collect_plan(cfg: Config, plan: Plan, out: str | Path,
             f"({plan.source}) is {plan.name!r}: collect each plan into its own --out (a test "
             "set's directory goes to vt-train build --unseen and vt-train table1 --unseen)")
     found = _check_existing(out, plan, cfg)
+    _warn_x_th(cfg, plan)
     for c in plan.classes:
         report.have[c.label] = len(found[c.label])
         report.planned[c.label] = c.presses
