@@ -387,6 +387,9 @@ class XelaClient:
         # Called with (seq, receive time, time parsed) for each fresh frame: a benchmark's
         # probe (the parse's share of the stop latency); None in production.
         self.on_parsed: Callable[[int, float, float], None] | None = None
+        # Called as each message arrives, before it is parsed: a benchmark's probe (the
+        # thread CPU time a frame costs up to its threshold check); None in production.
+        self.on_received: Callable[[], None] | None = None
         # Awaited with each fresh frame before it is queued (see the class docstring); it
         # must not raise.
         self.on_frame: Callable[[TactileFrame], Awaitable[None]] | None = None
@@ -609,6 +612,8 @@ class XelaClient:
                     )
                     return delivered
                 recv_time = time.monotonic()
+                if self.on_received is not None:
+                    self.on_received()
                 if msg.type in (aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.BINARY):
                     frame = self._handle(msg.data, recv_time)
                     if frame is not None:

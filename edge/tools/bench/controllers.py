@@ -5,7 +5,8 @@ a 100 Hz control loop as in the usual ROS 2 arrangement).
 They are one controller, the daemon's for its whole life (``assemble(...,
 controller_factory=BenchController)``), whose check is switched between presses
 (:meth:`BenchController.use`); it lives here, not in production code, and uses only the
-controller's public hooks: ``on_outcome``, ``check`` and ``armed``.
+controller's public hooks: ``on_outcome``, ``check``, ``armed`` and ``gripper`` (whose
+``stop_now`` the CPU probe sees handed over).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from edge.core.errors import BusyError
 from edge.core.tasks import cancel_and_wait
 from edge.daemon.press import PressController, PressOutcome
+from edge.tools.bench.probes import HotPathCPU
 
 # How each compared controller checks the threshold: on every frame (None), or on a tick of
 # this period (s). The names are settings.CONTROLLERS.
@@ -38,19 +40,37 @@ class BenchController(PressController):
         self.period_s: float | None = None
         self.rng = np.random.default_rng(TICK_PHASE_SEED)
         self.latest: tuple[np.ndarray, float] | None = None
+        # The thread CPU probe of the production check (:meth:`measure_cpu`).
+        self.cpu: HotPathCPU | None = None
+        self.gripper = _TimedGripper(self.gripper, self)
+
+    def measure_cpu(self, probe: HotPathCPU) -> None:
+        """From now on the production check tells ``probe`` when it ends."""
+        self.cpu = probe
+        self.use(self.name)
+
+    async def _timed_check(self, raw: np.ndarray, recv_time: float) -> None:
+        try:
+            await PressController.check(self, raw, recv_time)
+        finally:
+            if self.cpu is not None:
+                self.cpu.checked()
 
     def use(self, name: str) -> None:
         """From the next press on, the threshold checked as controller ``name`` does
         (:data:`TICK_PERIOD_S`): on every frame by the production check itself, which the
-        sensor task calls (no call added), or only on a periodic tick with the latest frame
-        (the sensor task's call keeps the frame)."""
+        sensor task calls (nothing added, but the CPU probe's call at its end once one
+        measures), or only on a periodic tick with the latest frame (the sensor task's call
+        keeps the frame)."""
         if self.state != "idle":
             raise BusyError(f"a press is running ({self.state}); switch between presses")
         period_s = TICK_PERIOD_S[name]
         self.name = name
         self.period_s = period_s
         # (set on the instance: the sensor task looks ``check`` up on every frame)
-        if period_s is None:
+        if period_s is None and self.cpu is not None:
+            vars(self)["check"] = self._timed_check
+        elif period_s is None:
             vars(self).pop("check", None)
         else:
             vars(self)["check"] = self._keep_latest
@@ -85,3 +105,19 @@ class BenchController(PressController):
             behind = loop.time() - deadline
             if behind > period:
                 deadline += (behind // period) * period
+
+
+class _TimedGripper:
+    """The controller's gripper; the CPU probe hears when a stop is handed over."""
+
+    def __init__(self, gripper: Any, controller: BenchController) -> None:
+        self._gripper = gripper
+        self._controller = controller
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._gripper, name)
+
+    async def stop_now(self, squeeze_raw: int) -> Any:
+        if self._controller.cpu is not None:
+            self._controller.cpu.handover()
+        return await self._gripper.stop_now(squeeze_raw)

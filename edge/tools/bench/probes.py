@@ -137,3 +137,76 @@ class SamplerWindow:
             "max_interval_ms": 1e3 * max(gaps, default=0.0),
             "intervals_over_16ms": sum(v > 0.016 for v in gaps),
         }
+
+
+# Protocol 2.0: the instruction byte of a packet's first 8 bytes (the bus's ``on_write``).
+_INSTRUCTION = 7
+_WRITE = 0x03
+
+
+class HotPathCPU:
+    """The thread CPU time (``time.thread_time_ns``: what a thread ran, not how long it
+    waited for a core, so another process's load does not inflate it) the production hot
+    path costs, through the runtime's hooks:
+
+    - per frame, on the loop thread, from the XELA client's ``on_received`` (the message
+      handed over by the WebSocket) to the end of the controller's threshold check, for
+      the frames whose check sent no stop;
+    - per stop: the loop thread from that frame's arrival to the stop's hand-over (the
+      controller's ``gripper.stop_now``), plus the bus thread from there to its stop packet's
+      write call returning (the bus's ``on_write``, read on the bus thread; the bus thread's
+      CPU clock read from the loop at the hand-over). ``in_flight`` stops, whose bus thread
+      was still finishing another transaction at the hand-over, count that remainder too.
+
+    Only the production controller's stops (checked on the frame) are recorded; each
+    sample carries its monotonic time, for the phase windows.
+    """
+
+    def __init__(self, bus: Any) -> None:
+        self.bus = bus
+        self.frames: list[tuple[float, float]] = []  # (time, loop µs)
+        self.stops: list[dict[str, Any]] = []  # time, loop_us, bus_us, in_flight
+        self._arrived: int | None = None
+        self._handover: tuple[int, int] | None = None  # (loop ns, bus thread's clock)
+        self._stop_written: int | None = None  # the bus thread's CPU at the stop's write
+        previous = bus.on_write
+
+        def written(t: float, head: bytes) -> None:
+            if previous is not None:
+                previous(t, head)
+            self._written(head)
+
+        bus.on_write = written
+
+    def arrived(self) -> None:
+        self._arrived = time.thread_time_ns()
+        self._handover = self._stop_written = None
+
+    def handover(self) -> None:
+        if self._arrived is None:  # a ticked controller's stop: no frame's path
+            return
+        loop_ns = time.thread_time_ns() - self._arrived
+        bus = self.bus.thread_id
+        self._handover = (loop_ns, time.clock_gettime_ns(time.pthread_getcpuclockid(bus)))
+
+    def _written(self, head: bytes) -> None:
+        # On the bus thread: the first WRITE after the hand-over is the stop's Goal Position
+        # (a stop without a fresh state reads Present Position first).
+        if (self._handover is not None and self._stop_written is None
+                and len(head) > _INSTRUCTION and head[_INSTRUCTION] == _WRITE):
+            self._stop_written = time.thread_time_ns()
+
+    def checked(self) -> None:
+        """The controller's check of the frame ended (on the loop thread)."""
+        if self._arrived is None:
+            return
+        now = time.monotonic()
+        if self._handover is None:
+            self.frames.append((now, (time.thread_time_ns() - self._arrived) / 1e3))
+        elif self._stop_written is not None:
+            loop_ns, bus_at_handover = self._handover
+            stop = self.bus.last_stop
+            self.stops.append({"t": now, "loop_us": loop_ns / 1e3,
+                               "bus_us": (self._stop_written - bus_at_handover) / 1e3,
+                               "in_flight": bool(stop and stop.in_flight_s > 0)})
+        self._arrived = self._handover = self._stop_written = None

@@ -17,6 +17,7 @@ FIGURES = (
     "stop_latency_ms_tick125",
     "stop_latency_ms_loop100", "stop_latency_ratio_loop100", "stop_latency_ratio_tick125",
     "stop_latency_ms_no_load", "stop_floor_ms_no_load", "stop_latency_ratio_floor_no_load",
+    "frame_check_cpu_us", "stop_cpu_us",
     "sampler_period_error_ms_two_pages", "stop_latency_ms_two_pages", "operator_page_feed_fps",
     *(f"force_overshoot_n_{o}_{c}" for o in OBJECTS for c in CONTROLLERS),
     "overhead_ms", "overhead_ms_under_load", "label_after_window_ms", "trigger_to_label_s",
@@ -51,6 +52,14 @@ READING = "\n".join([
     "stop), in_flight_ms (the rest of a transaction already on the wire; in_flight_stops "
     "counts them) and write_ms (the goal and its packet, to the write call); they add up "
     "to the latency. fallback_stops: stops that had to read Present Position first.",
+    "- frame_check_cpu_us and stop_cpu_us are what the hot path costs in thread CPU time "
+    "(time.thread_time_ns), which another process's load does not inflate: per frame, "
+    "the loop thread from the XELA message's arrival to the end of its threshold check; "
+    "per stop, the loop thread from the frame's arrival to the hand-over to the bus "
+    "thread, plus the bus thread from there to its stop packet's write call (loop_us, "
+    "bus_us). Each gives the same with no load beside it (no_load): a change to the "
+    "stop's path shows in them on any host, where the wall-clock figures move with the "
+    "host's load.",
     "- stop_floor_ms is the same path written the shortest way, measured on the same "
     "frames, host and load in a process of its own: an aiohttp client that parses each "
     "frame with json and numpy, takes the norm and writes a 16-byte packet to a pty from "

@@ -42,6 +42,7 @@ from edge.tools.bench.figures import figure, finish, ratio_figure, stats, target
 from edge.tools.bench.host import cpu_snapshot, cpu_times_since
 from edge.tools.bench.load import Helper, big_jpeg, encode_for
 from edge.tools.bench.probes import (
+    HotPathCPU,
     SamplerWindow,
     StopParts,
     first_crossing,
@@ -163,11 +164,14 @@ class RuntimeBench:
                 self.pids["compute worker"] = worker
             self.port_writes = instrument_port(daemon.devices.bus)
             self.parsed = instrument_parse(daemon.devices.tactile)
+            self.cpu = HotPathCPU(daemon.devices.bus)
+            daemon.devices.tactile.on_received = self.cpu.arrived
             self.bus = daemon.devices.bus
             self.realtime = daemon.realtime
             self.runtime = runtime
             assert isinstance(runtime.press, BenchController)
             self.controller = runtime.press
+            self.controller.measure_cpu(self.cpu)
             async with running(daemon, READY_TIMEOUT_S):
                 self.api_url = f"http://127.0.0.1:{daemon.api.port}"
                 floor = await asyncio.to_thread(Helper, "floor", "--url",
@@ -414,6 +418,32 @@ class RuntimeBench:
                                             if k.startswith("loop_thread")}
             self.windows["load_rt"] = (t0, time.monotonic())
 
+    def _cpu_figures(self) -> dict[str, Any]:
+        """The hot path's thread CPU time (:class:`HotPathCPU`), under the load and without."""
+        def within(window: str, t: float) -> bool:
+            t0, t1 = self.windows.get(window, (0.0, 0.0))
+            return t0 <= t <= t1
+
+        frames = {w: [us for t, us in self.cpu.frames if within(w, t)] for w in ("quiet", "load")}
+        stops = {w: [s for s in self.cpu.stops if within(w, s["t"]) and not s["in_flight"]]
+                 for w in ("quiet", "load")}
+        in_flight = sum(s["in_flight"] for s in self.cpu.stops if within("load", s["t"]))
+        return {
+            "frame_check_cpu_us": figure(
+                frames["load"], "us", None, no_load=stats(frames["quiet"]),
+                what="thread CPU time per frame on the loop thread, XELA message received -> "
+                     "threshold checked (the production controller), under load"),
+            "stop_cpu_us": figure(
+                [s["loop_us"] + s["bus_us"] for s in stops["load"]], "us", None,
+                loop_us=stats([s["loop_us"] for s in stops["load"]]),
+                bus_us=stats([s["bus_us"] for s in stops["load"]]),
+                no_load=stats([s["loop_us"] + s["bus_us"] for s in stops["quiet"]]),
+                in_flight_stops=in_flight,
+                what="thread CPU time per production stop, frame received -> stop packet "
+                     "written: the loop thread to the hand-over plus the bus thread to the "
+                     "write call, under load (stops with a transaction in flight left out)"),
+        }
+
     def _floor_in(self, window: str) -> list[tuple[float, float]]:
         """The floor's latencies (ms) of the frames received within a phase's window: to
         the write call, and to its return."""
@@ -505,6 +535,7 @@ class RuntimeBench:
             [lat for lat, _ in floor["quiet"]], "ms", None,
             to_write_return_ms=stats([ret for _, ret in floor["quiet"]]),
             what=FLOOR_TEXT + ", over the presses with no extra load")
+        figs.update(self._cpu_figures())
         figs["stop_latency_ratio_floor"] = ratio_figure(
             lat["per_frame"], figs["stop_floor_ms"], target(("p50", "<=", FLOOR_RATIO_P50)),
             what="stop_latency_ms / stop_floor_ms (statistic by statistic): vtzero's stop "
