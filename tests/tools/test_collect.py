@@ -4,6 +4,7 @@ refused beside a running daemon) against the emulated robot."""
 import asyncio
 import hashlib
 import json
+import os
 import re
 import signal
 import subprocess
@@ -58,11 +59,14 @@ def digests(out: Path) -> dict[str, str]:
             for p in sorted(out.rglob("*")) if p.is_file() and p.name != "dataset.json"}
 
 
-def person(robot: SimRobot, placed: list[str]):
-    """The prompt's answer: the person puts the object the prompt names in the gripper."""
+def person(robot: SimRobot, placed: list[str], asked: list[str] | None = None):
+    """The prompt's answer: the person puts the object the prompt names in the gripper
+    (``asked`` keeps each request to place one)."""
     def answer(message: str) -> None:
         if message.startswith("place the "):
             name = message.split()[2]
+            if asked is not None:
+                asked.append(message)
             robot.world.place(name)
             placed.append(name)
     return answer
@@ -73,14 +77,21 @@ async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_pat
     plan_path = write_plan(tmp_path)
     out = tmp_path / "data"
     placed: list[str] = []
+    asked: list[str] = []
     async with SimRobot("stainless_cube", seed=13, cfg=base_config()) as robot:
         cfg = robot.runtime_config(fast_config())  # shorter moves and tare: 7 presses
         t0 = time.monotonic()
-        report = await collect_plan(cfg, load_plan(plan_path), out, person(robot, placed))
+        report = await collect_plan(cfg, load_plan(plan_path), out,
+                                    person(robot, placed, asked))
         elapsed = time.monotonic() - t0
         print(f"2 classes x 2 presses in {elapsed:.1f} s; pieces placed "
               f"{robot.world.placements}")
         assert placed == ["otedama", "wood_cube"] and report.complete and not report.failed
+        # On the emulated robot, each request says what its table holds and how to change it.
+        print(asked)
+        place = f"`vt-edge sim place NAME --url {robot.control_url}` puts another there"
+        assert [m.split("(the emulated table holds ")[1] for m in asked] == [
+            f"stainless_cube; {place}), then Enter ", f"otedama; {place}), then Enter "]
         # The plan's wood_cube at 0.003 against the shipped model's 0.004 (1.33x) is said,
         # once; otedama at [press] x_th, the model's own, is not.
         x_th = [r.getMessage() for r in caplog.records if "references were pressed at" in
@@ -174,6 +185,11 @@ description = "wood cube"
         print(text)
         row = re.search(r"^wood_cube\s.*\s(\d+\.\d)$", text, re.M)
         assert "rate Hz" in text and row and float(row.group(1)) == entry["rate_hz"]
+        # Files for people follow the umask (the test's own, typically 022: 0644).
+        umask = os.umask(0)
+        os.umask(umask)
+        assert all(p.stat().st_mode & 0o777 == 0o666 & ~umask
+                   for p in [out / "dataset.json", *report.kept])
 
         xela = {c.part: c for c in await doctor._check_xela(cfg, 1.0)}
         check = xela["xela rate"]
@@ -181,7 +197,12 @@ description = "wood cube"
         assert str(check.level) == "WARN" and "expected 125" in check.found
         assert "% off 125 Hz" in check.fix and "xela_server's configuration" in check.fix
 
-        async with Daemon(robot, base_config(), tmp_path / "state"):
+        async with Daemon(robot, base_config(), tmp_path / "state") as d:
+            # The episode keeps the press's rate.
+            _, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            print("episode's press:", ep["press"])
+            assert 80 < ep["press"]["window_rate_hz"] < 110
+            assert 80 < ep["press"]["press_rate_hz"] < 110
             warned = ("the tactile stream at", "the model's grid")
             said = lambda: [r.getMessage() for r in caplog.records  # noqa: E731
                             if all(w in r.getMessage() for w in warned)]
