@@ -258,6 +258,11 @@ def format_summary(summary: Summary) -> str:
         rate = f"{c.rate_hz:7.1f}" if c.rate_hz is not None else f"{'-':>7}"
         lines.append(f"{c.label:<24} {c.split:<5} {kept:>9} {sum(c.failed.values()):>6} "
                      f"{x_th:>8} {peak} {latency} {rate}")
+        off_grid = preprocess.rate_problem(c.rate_hz, DEFAULT_WINDOW.rate_hz)
+        if off_grid is not None:
+            flagged.append(f"{c.label}: stream at {off_grid}, the crop's grid and the shipped "
+                           "model's rate: recognise these presses with a model built from "
+                           f"presses at this rate ({preprocess.RATE_SETTING})")
         if c.failed:
             flagged.append(f"{c.label}: not kept: " + ", ".join(
                 f"{n} {why}" for why, n in sorted(c.failed.items())))
