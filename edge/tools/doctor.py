@@ -43,7 +43,16 @@ from edge.core.errors import (
     SensorLayoutError,
     VLMHTTPError,
 )
-from edge.core.model import DEFAULT_WINDOW, Model, load_model, manifest_layout, model_ref
+from edge.core.model import (
+    DEFAULT_WINDOW,
+    Model,
+    class_x_th,
+    load_model,
+    manifest_layout,
+    model_ref,
+    model_x_th,
+    x_th_mismatch,
+)
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_button, make_camera
 from edge.daemon.mqtt import _password, _tls, check_config
@@ -704,6 +713,7 @@ def _check_model(cfg: Config) -> list[Check]:
     why = model_mismatch(cfg.sensor, manifest_layout(model.manifest))
     if why is not None:
         checks.append(fail(MODEL_PADS, f"the model {why}", BUILD_FOR_THESE_PADS))
+    checks.append(_check_x_th(cfg, model))
     origin = model.origin
     data = {"origin": origin.to_json()}
     if origin.emulated:
@@ -725,6 +735,23 @@ def _check_model(cfg: Config) -> list[Check]:
     else:
         checks.append(ok("references", found, **data))
     return checks
+
+
+def _check_x_th(cfg: Config, model: Model) -> Check:
+    """press.x_th against the threshold the model's references were pressed at."""
+    x_th = cfg.press.x_th
+    reference = model_x_th(class_x_th(model.manifest))
+    if reference is None:
+        return ok("x_th", f"press.x_th = {x_th:g}; the model records no threshold of its "
+                  "references to compare with", x_th=x_th)
+    data = {"x_th": x_th, "model_x_th": reference}
+    why = x_th_mismatch(x_th, reference)
+    if why is not None:
+        return warn("x_th", why, f"set press.x_th = {reference:g}, or build a model from "
+                    "presses at this robot's calibrated x_th (`vt-edge collect`, `vt-train "
+                    "build`)", **data)
+    return ok("x_th", f"press.x_th = {x_th:g}, the model's references were pressed at "
+              f"{reference:g}", **data)
 
 
 def _check_state_dir(state: Path) -> Check:

@@ -168,7 +168,8 @@ CASES = [
      {"vlm probe": Level.WARN},
      ["structured output 'json_object'", "json_schema", "vlm.structured_output = 'json_object'"]),
     ("threshold inside the idle noise", lambda c, lab: sub(c, "press", x_th=0.0001),
-     {"idle noise": Level.FAIL},
+     # (0.0001 is also far from the x_th the model's references were pressed at.)
+     {"idle noise": Level.FAIL, "x_th": Level.WARN},
      ["press.x_th = 0.0001", "inside the noise", "raise press.x_th above 0.00"]),
     ("emulated database on a robot", lambda c, lab: replace(c, mode="robot"),
      {"references": Level.WARN}, ["pressed by the emulated robot", "vt-edge collect"]),
@@ -329,10 +330,10 @@ def test_a_lab_database_is_ok_on_its_robot_and_warned_with_other_pads(tmp_path):
     (models / "manifest.json").write_text(json.dumps(manifest))
     cfg = Config(mode="robot")
     cfg = sub(cfg, "runtime", models_dir=str(models))
-    model, refs = doctor_module._check_model(cfg)
+    model, _x_th, refs = doctor_module._check_model(cfg)
     assert model.level is Level.OK and "every file verified" in model.found
     assert refs.level is Level.OK and "pressed by a real robot (arm-3)" in refs.found
-    _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
+    _, _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
     assert refs.level is Level.WARN and "XR1944" in refs.found and "uSPa46" in refs.fix
     (models / "database.npz").write_bytes(b"damaged")
     (broken,) = doctor_module._check_model(cfg)
@@ -434,3 +435,32 @@ def test_the_host_timing_advice_follows_what_the_host_allows(monkeypatch):
 def _timing_check(timing, monkeypatch):
     monkeypatch.setattr(doctor_module, "measure", lambda cfg, duration_s: timing)
     return asyncio.run(doctor_module._check_timing(Config(), 0.0))
+
+
+def test_x_th_far_from_the_models_is_a_warning(tmp_path):
+    models = tmp_path / "models"
+    shutil.copytree(ROOT / "models", models, ignore=shutil.ignore_patterns("eval"))
+    manifest = json.loads((models / "manifest.json").read_text())
+    # Most classes at a calibrated value, a fragile one lower.
+    labels = sorted(manifest["class_x_th"])
+    manifest["class_x_th"] = {**{label: 0.00445 for label in labels[:-1]}, labels[-1]: 0.003}
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    cfg = sub(Config(), "runtime", models_dir=str(models))
+
+    def x_th_line(x_th: float):
+        (check,) = [c for c in doctor_module._check_model(sub(cfg, "press", x_th=x_th))
+                    if c.part == "x_th"]
+        print(check.level, check.found, check.fix)
+        return check
+
+    # The calibrated value rounded passes; a typo and another robot's value do not.
+    assert x_th_line(0.004).level is Level.OK
+    typo = x_th_line(0.02)
+    assert typo.level is Level.WARN and "x_th = 0.02 is 4.49 times" in typo.found
+    assert "0.00445" in typo.found and "set press.x_th = 0.00445" in typo.fix
+    assert typo.data == {"x_th": 0.02, "model_x_th": 0.00445}
+    assert x_th_line(0.0025).level is Level.WARN
+    # A model that records no thresholds has nothing to compare with.
+    del manifest["class_x_th"]
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    assert x_th_line(0.2).level is Level.OK
