@@ -268,11 +268,19 @@ class RuntimeConfig:
     realtime: bool = False
     realtime_priority: int = 20
     realtime_cpu: int = -1
+    # Retention (edge/daemon/store.py): the oldest finished episodes and live recording
+    # segments are removed once the store (episodes and record_mcap_dir) is over
+    # store_max_mb (0: no bound by size), or its filesystem has less than keep_free_mb free.
+    store_max_mb: float = 0.0
+    keep_free_mb: float = 200.0
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
                      "vlm_retry_max_s"):
             _require(getattr(self, name) > 0, path, name, getattr(self, name), "must be > 0")
+        for name in ("store_max_mb", "keep_free_mb"):
+            _require(getattr(self, name) >= 0, path, name, getattr(self, name),
+                     "must be >= 0 (0: off)")
         _require(self.record_mcap_segment_s >= 1, path, "record_mcap_segment_s",
                  self.record_mcap_segment_s, "must be >= 1 s")
         _require(self.record_format in ("mcap", "rosbag2"), path, "record_format",

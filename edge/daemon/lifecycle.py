@@ -2,7 +2,7 @@
 
 Tasks: ``sensor`` (frames -> ring buffer + the threshold on every frame), ``sampler``
 (125 Hz), ``watchdog`` (sd_notify only while frames keep arriving, or while torque is off),
-``button``, ``vlm-retry`` (pending episodes), ``store-retry`` (a store that could not
+``button``, ``vlm-retry`` (pending episodes), ``store`` (retention; a store that could not
 write, tried again), one ``recognize`` task per request, and, after
 a start without the sensor stream, ``power-on`` (torque on when the stream arrives). The bus
 has its own owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT
@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import signal
 import time
 from collections.abc import Awaitable, Callable
@@ -70,6 +71,9 @@ STREAM_POLL_S = 0.02
 # While the episode store cannot write: how often it is tried again (a small write and
 # fsync), the episodes held in memory written once it can.
 STORE_RETRY_S = 1.0
+# How often the store's retention runs besides after each new episode: the live recording
+# adds segments without any press.
+RETAIN_PERIOD_S = 60.0
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
@@ -223,7 +227,7 @@ class Runtime:
                 tg.create_task(self._button(), name="button")
                 tg.create_task(self._check_stream_rate(), name="rate-check")
                 tg.create_task(self.recognizer.retry_pending(), name="vlm-retry")
-                tg.create_task(self._store_retry(), name="store-retry")
+                tg.create_task(self._store_upkeep(), name="store")
                 # What the configuration turns on besides: live MCAP recording, MQTT.
                 for name, service in optional_services(self):
                     tg.create_task(service, name=name)
@@ -356,10 +360,15 @@ class Runtime:
                     or self._power_on is not None):
                 self.notifier.watchdog()
 
-    async def _store_retry(self) -> None:
-        """While the store cannot write (or holds episodes in memory): try it again every
-        ``STORE_RETRY_S``, and write what it holds once it can."""
+    async def _store_upkeep(self) -> None:
+        """The store's retention now and every ``RETAIN_PERIOD_S``; and while it cannot
+        write (or holds episodes in memory), a try every ``STORE_RETRY_S``, what it holds
+        written once it can."""
+        retained = -math.inf
         while True:
+            if time.monotonic() - retained >= RETAIN_PERIOD_S:
+                retained = time.monotonic()
+                await asyncio.to_thread(self.store.retain)
             await asyncio.sleep(STORE_RETRY_S)
             if self.store.write_error is None and not self.store.held:
                 continue

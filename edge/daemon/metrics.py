@@ -125,6 +125,14 @@ class Metrics:
                 "memory's bound reached).",
                 "# TYPE vtzero_store_lost_total counter",
                 f"vtzero_store_lost_total {store.lost}",
+                "# HELP vtzero_store_removed_total Finished episodes and recording segments "
+                "removed by retention (store_max_mb, keep_free_mb).",
+                "# TYPE vtzero_store_removed_total counter",
+                f'vtzero_store_removed_total{{kind="episode"}} {store.removed_episodes}',
+                f'vtzero_store_removed_total{{kind="segment"}} {store.removed_segments}',
+                "# HELP vtzero_store_removed_bytes_total Bytes retention removed.",
+                "# TYPE vtzero_store_removed_bytes_total counter",
+                f"vtzero_store_removed_bytes_total {store.removed_bytes}",
             ]
         if bus is not None:
             lines += [

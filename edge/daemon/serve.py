@@ -141,7 +141,10 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
         runtime: Runtime | None = None
         # The client in use at the end (a reload replaces it, and closes the old one).
         stack.push_async_callback(_close_vlm, lambda: runtime.vlm if runtime else vlm)
-        store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
+        store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes",
+                             max_bytes=round(cfg.runtime.store_max_mb * 1e6),
+                             keep_free_bytes=round(cfg.runtime.keep_free_mb * 1e6),
+                             segments=cfg.runtime.record_mcap_dir or None)
         # Written and fsynced before torque goes on. A store that cannot write leaves the
         # daemon serving with presses refused (/healthz store_error) until it can (the store
         # has logged why).

@@ -8,6 +8,17 @@ a reader, or a daemon restarted after ``kill -9``, sees the whole episode or non
 Updates of ``episode.json`` are atomic file replacements. Episodes whose VLM call could not
 complete stay ``pending`` and are retried, also after a restart.
 
+A store that cannot write (its filesystem went read-only, as an SD card does after an
+error; or full) says so in :attr:`EpisodeStore.write_error` until a write works again. The
+daemon presses only once the press's acceptance note is written (:meth:`accept`), so no
+press starts without a place to keep it; an episode whose press ended meanwhile is held in
+memory (up to ``HELD_MAX``), readable, and written by :meth:`flush` once the store can.
+
+Retention (:meth:`retain`, after every new episode and now and then): past ``max_bytes``
+(the episodes and the live recording's segments together) or under ``keep_free_bytes`` free
+on the filesystem, the oldest finished episodes and segments go first; a pending episode
+(its VLM question still due) is never removed.
+
 All methods block (file I/O): the daemon calls them through ``asyncio.to_thread``.
 """
 
@@ -50,6 +61,8 @@ MIN_FREE_BYTES = 20 * 1024 * 1024
 HELD_MAX = 20
 # Written and fsynced (among the acceptance notes) to tell whether the store can write.
 _PROBE = "probe"
+# The live recording's completed segments (edge/daemon/mcap_live.py; an open one is hidden).
+_SEGMENT_PREFIX = "vtzero-"
 
 
 def new_id(now: float | None = None) -> str:
@@ -62,8 +75,21 @@ def valid_id(episode_id: str) -> bool:
 
 
 class EpisodeStore:
-    def __init__(self, root: str | Path) -> None:
+    def __init__(self, root: str | Path, *, max_bytes: int = 0, keep_free_bytes: int = 0,
+                 segments: str | Path | None = None) -> None:
         self.root = Path(root)
+        # Retention (see the module's docstring); 0: off. ``segments``: the live recording's
+        # directory, whose completed segments count and go too.
+        self.max_bytes = max_bytes
+        self.keep_free_bytes = keep_free_bytes
+        self.segments = Path(segments) if segments else None
+        self.removed_episodes = 0
+        self.removed_segments = 0
+        self.removed_bytes = 0
+        self._retaining = threading.Lock()
+        # Bytes of each episode and segment, measured once (a write into an episode drops
+        # its entry): a pass over a store of thousands of episodes lists it, nothing more.
+        self._sizes: dict[Path, int] = {}
         try:
             self.root.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -206,6 +232,8 @@ class EpisodeStore:
             self._write(episode, files)
         except StoreError as exc:
             self._hold(episode, files, exc)
+        else:
+            self.retain()
         return episode.id
 
     def _hold(self, episode: Episode, files: dict[str, bytes], exc: StoreError) -> None:
@@ -222,6 +250,7 @@ class EpisodeStore:
 
     def _write(self, episode: Episode, files: dict[str, bytes]) -> None:
         episode_id = episode.id
+        self._sizes.pop(self.root / episode_id, None)
         tmp = self.root / f"{_TMP_PREFIX}{episode_id}"
         try:
             tmp.mkdir()
@@ -261,6 +290,7 @@ class EpisodeStore:
         return episode
 
     def _rewrite(self, episode: Episode) -> None:
+        self._sizes.pop(self.root / episode.id, None)
         try:
             atomic_write_text(self._dir(episode.id) / EPISODE_FILE,
                               _dumps(episode.to_json()).decode())
@@ -272,6 +302,7 @@ class EpisodeStore:
     def add_file(self, episode_id: str, name: str, data: bytes) -> None:
         if "/" in name or name.startswith(".") or name == EPISODE_FILE:
             raise ValueError(f"bad episode file name {name!r}")
+        self._sizes.pop(self.root / episode_id, None)
         try:
             atomic_write_bytes(self._dir(episode_id) / name, data)
         except OSError as exc:
@@ -318,6 +349,92 @@ class EpisodeStore:
     def pending(self) -> list[Episode]:
         return list(reversed(self.list(status=Status.PENDING)))
 
+    # --- retention ------------------------------------------------------------------------
+    def size(self) -> int:
+        """Bytes the store takes: its episodes (and notes) and the recording's segments."""
+        return sum(n for _, _, n in self._entries()) + _tree_bytes(self.root / _ACCEPTED)
+
+    def retain(self) -> None:
+        """Remove the oldest finished episodes and segments while the store is past
+        ``max_bytes`` or its filesystem has less than ``keep_free_bytes`` free (logged and
+        counted). One pass at a time; one already running is enough."""
+        if not (self.max_bytes or self.keep_free_bytes) or not self._retaining.acquire(
+                blocking=False):
+            return
+        try:
+            self._retain()
+        finally:
+            self._retaining.release()
+
+    def _retain(self) -> None:
+        entries = sorted(self._entries())
+        size = sum(n for _, _, n in entries) + _tree_bytes(self.root / _ACCEPTED)
+        over = size - self.max_bytes if self.max_bytes else 0
+        short = self.keep_free_bytes - self._free_bytes() if self.keep_free_bytes else 0
+        if over <= 0 and short <= 0:
+            return
+        episodes = segments = freed = 0
+        for _, path, nbytes in entries:
+            if freed >= max(over, short):
+                break
+            if path.parent == self.root and not self._finished(path.name):
+                continue  # pending (or unreadable): never removed
+            try:
+                if path.is_dir():
+                    shutil.rmtree(path)
+                else:
+                    path.unlink()
+            except OSError as exc:
+                log.warning("retention: %s could not be removed: %s", path, exc)
+                continue
+            freed += nbytes
+            self._sizes.pop(path, None)
+            if path.parent == self.root:
+                episodes += 1
+            else:
+                segments += 1
+        self.removed_episodes += episodes
+        self.removed_segments += segments
+        self.removed_bytes += freed
+        why = (f"{size / 1e6:.1f} MB, over store_max_mb = {self.max_bytes / 1e6:g}"
+               if over > 0 else f"under keep_free_mb = {self.keep_free_bytes / 1e6:g} free")
+        log.info("retention: removed the %d oldest finished episode(s) and %d recording "
+                 "segment(s), %.1f MB (the store was %s)", episodes, segments,
+                 freed / 1e6, why)
+        if freed < max(over, short):
+            log.warning("retention: the store is still %s: what is left is pending or "
+                        "the newest", why)
+
+    def _entries(self) -> list[tuple[str, Path, int]]:
+        """(time key, path, bytes) of each episode and completed segment; the key sorts
+        oldest first across both (their names start with their UTC time)."""
+        out = [(p.name[:15], p, self._bytes(p)) for p in self.root.iterdir()
+               if valid_id(p.name)]
+        if self.segments is not None and self.segments.is_dir():
+            start = len(_SEGMENT_PREFIX)
+            out += [(p.name[start:start + 15], p, self._bytes(p))
+                    for p in self.segments.iterdir() if p.name.startswith(_SEGMENT_PREFIX)]
+        return out
+
+    def _bytes(self, path: Path) -> int:
+        nbytes = self._sizes.get(path)
+        if nbytes is None:
+            nbytes = self._sizes[path] = _tree_bytes(path)
+        return nbytes
+
+    def _finished(self, episode_id: str) -> bool:
+        try:
+            return self.get(episode_id).status.final
+        except StoreError:
+            return False
+
+    def _free_bytes(self) -> int:
+        try:
+            st = os.statvfs(self.root)
+        except OSError:
+            return self.keep_free_bytes  # (space_error says why)
+        return st.f_bavail * st.f_frsize
+
     def export(self, episode_id: str, dest: str | Path) -> Path:
         """A .tar.gz of the whole episode directory."""
         src = self._dir(episode_id)
@@ -336,6 +453,17 @@ class EpisodeStore:
                 tmp.unlink()
             raise _store_error(f"episode {episode_id} could not be exported", exc) from None
         return dest
+
+
+def _tree_bytes(path: Path) -> int:
+    """Bytes of the file, or of the files under the directory, at ``path``."""
+    try:
+        if not path.is_dir():
+            return path.stat().st_size
+        return sum((Path(d) / f).stat().st_size for d, _, files in os.walk(path)
+                   for f in files)
+    except OSError:
+        return 0  # removed meanwhile
 
 
 def _dumps(obj: Any) -> bytes:

@@ -36,6 +36,8 @@ def test_defaults_are_the_paper_press():
         ({"sensor": "ws://x"}, "sensor must be a table"),
         ({"sensor": {"url": "http://x"}}, "sensor.url = 'http://x'"),
         ({"press": {"x_th": float("nan")}}, "must be finite"),
+        ({"runtime": {"store_max_mb": -1}}, "runtime.store_max_mb = -1.0: must be >= 0"),
+        ({"runtime": {"keep_free_mb": "lots"}}, "runtime.keep_free_mb = 'lots': must be a"),
     ],
 )
 def test_bad_values_name_the_field(raw, needle):

@@ -1,5 +1,6 @@
 import errno
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -162,3 +163,40 @@ def test_a_malformed_episode_file_is_refused_by_name(tmp_path):
     with pytest.raises(StoreError, match=f"episode {eid}: unknown status 'weird'"):
         store.get(eid)
     assert store.list() == []  # skipped with a warning, not a crash
+
+
+def test_retention_removes_the_oldest_finished_episodes_and_segments_first(
+        tmp_path, monkeypatch, caplog):
+    from types import SimpleNamespace
+
+    caplog.set_level(logging.INFO)
+    segments = tmp_path / "mcap"
+    segments.mkdir()
+    store = EpisodeStore(tmp_path / "episodes", segments=segments)
+    t0 = 1_790_000_000.0
+    made = []
+    for i, status in enumerate(["pending", "done", "done", "failed", "pending", "done"]):
+        made.append(store.create(ep(status, new_id(t0 + 100 * i)), {"data": b"x" * 10_000}))
+        # A segment completed between each two episodes (and the open one, hidden).
+        (segments / f"vtzero-{new_id(t0 + 100 * i + 50)[:15]}Z.mcap").write_bytes(b"m" * 10_000)
+    (segments / ".vtzero-open.mcap.tmp").write_bytes(b"m" * 10_000)
+    size = store.size()
+    # 12 entries of about 10 kB: a bound 35 kB under the size removes the 4 oldest
+    # finished ones (the pending first episode stays).
+    store.max_bytes = size - 35_000
+    store.retain()
+    left = store.ids()
+    assert left == [made[0], made[3], made[4], made[5]], caplog.text
+    assert sorted(p.name for p in segments.iterdir())[0] == ".vtzero-open.mcap.tmp"
+    assert store.removed_episodes == 2 and store.removed_segments == 2
+    assert store.size() <= store.max_bytes and store.removed_bytes >= 35_000
+    assert "retention: removed the 2 oldest finished episode(s) and 2" in caplog.text
+    # Too little free space on the filesystem: everything finished goes, pending stays.
+    store.max_bytes = 0
+    store.keep_free_bytes = 10**15
+    monkeypatch.setattr("edge.daemon.store.os.statvfs", lambda path: SimpleNamespace(
+        f_bavail=1000, f_frsize=4096, f_files=1000, f_favail=1000))
+    store.retain()
+    assert store.ids() == [made[0], made[4]]
+    assert [p.name for p in segments.iterdir()] == [".vtzero-open.mcap.tmp"]
+    assert "still under keep_free_mb" in caplog.text

@@ -9,6 +9,7 @@ import builtins
 import errno
 import json
 import os
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -18,6 +19,7 @@ from edge.daemon import store
 from tests.support.daemon import (
     FOOD,
     at_pose,
+    fast_config,
     gripper_open,
     joints,
     sim_daemon,
@@ -34,7 +36,10 @@ def enospc(*args, **kwargs):
 
 async def test_disk_full_while_writing_is_a_clear_error_and_the_daemon_serves_on(
         tmp_path, monkeypatch):
-    async with sim_daemon(tmp_path) as (robot, d):
+    # Retention off: with keep_free_mb it would remove the older episode to make room.
+    cfg = fast_config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, keep_free_mb=0.0))
+    async with sim_daemon(tmp_path, cfg=cfg) as (robot, d):
         status, old = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
         assert status == 200 and old["status"] == "not_configured"
         old_json = (d.store.root / old["id"] / "episode.json").read_bytes()

@@ -44,7 +44,9 @@ def toggled_fs(path: Path, monkeypatch: pytest.MonkeyPatch
                ) -> Iterator[Callable[[bool], None]]:
     """``path`` on a filesystem that ``set_read_only(True/False)`` turns read-only and back."""
     path.mkdir()
-    if _mount("-t", "tmpfs", "-o", "size=64m", "tmpfs", str(path)):
+    # (Larger than the default keep_free_mb, or retention would empty it; a tmpfs takes
+    # memory only for what is written.)
+    if _mount("-t", "tmpfs", "-o", "size=512m", "tmpfs", str(path)):
         def set_read_only(ro: bool) -> None:
             assert _mount("-o", f"remount,{'ro' if ro else 'rw'}", str(path))
         try:
