@@ -35,6 +35,7 @@ import shutil
 import tarfile
 import threading
 import time
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -63,6 +64,24 @@ HELD_MAX = 20
 _PROBE = "probe"
 # The live recording's completed segments (edge/daemon/mcap_live.py; an open one is hidden).
 _SEGMENT_PREFIX = "vtzero-"
+# The store's growth rate is taken over this many recent days.
+RATE_DAYS = 7.0
+_DAY_S = 86400.0
+
+
+@dataclass(frozen=True)
+class StoreUsage:
+    """What the store takes and how fast it grows (``vt-edge doctor`` shows it)."""
+
+    bytes: int  # episodes, acceptance notes and recording segments
+    episodes: int
+    free_bytes: int  # on its filesystem
+    # Over the episodes and segments of the last RATE_DAYS days (at least one day's worth);
+    # None when there were none.
+    bytes_per_day: float | None
+    # Until retention starts removing (store_max_mb reached, keep_free_mb left), or the
+    # filesystem is full where retention is off, at that rate; None without a rate.
+    days_left: float | None
 
 
 def new_id(now: float | None = None) -> str:
@@ -354,6 +373,24 @@ class EpisodeStore:
         """Bytes the store takes: its episodes (and notes) and the recording's segments."""
         return sum(n for _, _, n in self._entries()) + _tree_bytes(self.root / _ACCEPTED)
 
+    def usage(self, now: float | None = None) -> StoreUsage:
+        """The store's size, its recent growth and the days that leaves (see
+        :class:`StoreUsage`). Lists the store: run it off the event loop."""
+        now = time.time() if now is None else now
+        entries = self._entries()
+        size = sum(n for _, _, n in entries) + _tree_bytes(self.root / _ACCEPTED)
+        recent = [(t, n) for t, n in ((_key_time(k), n) for k, _, n in entries)
+                  if t is not None and now - t <= RATE_DAYS * _DAY_S]
+        free = self._free_bytes()
+        if not recent:
+            return StoreUsage(size, len(self.ids()), free, None, None)
+        days = max(1.0, (now - min(t for t, _ in recent)) / _DAY_S)
+        rate = sum(n for _, n in recent) / days
+        room = free - self.keep_free_bytes
+        if self.max_bytes:
+            room = min(room, self.max_bytes - size)
+        return StoreUsage(size, len(self.ids()), free, rate, max(room, 0) / rate)
+
     def retain(self) -> None:
         """Remove the oldest finished episodes and segments while the store is past
         ``max_bytes`` or its filesystem has less than ``keep_free_bytes`` free (logged and
@@ -453,6 +490,14 @@ class EpisodeStore:
                 tmp.unlink()
             raise _store_error(f"episode {episode_id} could not be exported", exc) from None
         return dest
+
+
+def _key_time(key: str) -> float | None:
+    """The UTC time an episode's or segment's name starts with (``_entries``' key)."""
+    try:
+        return datetime.strptime(key, "%Y%m%dT%H%M%S").replace(tzinfo=UTC).timestamp()
+    except ValueError:
+        return None
 
 
 def _tree_bytes(path: Path) -> int:

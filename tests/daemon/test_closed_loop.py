@@ -211,3 +211,23 @@ async def test_a_threshold_the_pads_never_reach_ends_the_squeeze_at_the_stall(na
     assert "vt-edge calibrate threshold" in outcome.message
     assert 0 < outcome.peak_level < 0.2
     assert width > 0.005  # opened
+
+
+def test_x_th_is_compared_with_the_models_within_a_documented_tolerance():
+    from edge.core.model import X_TH_TOLERANCE, class_x_th, model_x_th, x_th_mismatch
+
+    thresholds = class_x_th({"class_x_th": {"wood_cube": 0.004, "sponge_cube": 0.004,
+                                            "gelatin_soft": 0.003}})
+    assert model_x_th(thresholds) == 0.004 and model_x_th({}) is None
+    assert model_x_th({"a": 0.003, "b": 0.004}) == 0.004  # a tie: the larger
+    # A calibrated value rounded passes; the typos and the fragile value do not.
+    assert x_th_mismatch(0.00445, 0.004) is None
+    assert x_th_mismatch(0.004 * X_TH_TOLERANCE, 0.004) is None
+    for wrong in (0.2, 0.02, 0.003, 0.0004):
+        problem = x_th_mismatch(wrong, 0.004)
+        print(problem)
+        assert problem is not None and f"x_th = {wrong:g}" in problem
+        assert "pressed at" in problem and "calibrate threshold" in problem
+    assert x_th_mismatch(0.2, None) is None  # nothing to compare with
+    assert x_th_mismatch(0.003, thresholds["gelatin_soft"], "gelatin_soft's x_th") is None
+

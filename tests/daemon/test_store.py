@@ -200,3 +200,24 @@ def test_retention_removes_the_oldest_finished_episodes_and_segments_first(
     assert store.ids() == [made[0], made[4]]
     assert [p.name for p in segments.iterdir()] == [".vtzero-open.mcap.tmp"]
     assert "still under keep_free_mb" in caplog.text
+
+
+def test_usage_gives_the_size_the_recent_rate_and_the_days_left(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    now = 1_790_000_000.0
+    store = EpisodeStore(tmp_path, keep_free_bytes=1_000_000)
+    assert store.usage(now).bytes_per_day is None and store.usage(now).days_left is None
+    # 10 episodes of about 100 kB over the last 2 days, and one from a month ago.
+    store.create(ep("done", new_id(now - 30 * 86400)), {"data": b"x" * 100_000})
+    for i in range(10):
+        store.create(ep("done", new_id(now - 2 * 86400 + i * 3600)), {"data": b"x" * 100_000})
+    monkeypatch.setattr("edge.daemon.store.os.statvfs", lambda path: SimpleNamespace(
+        f_bavail=11_000_000 // 4096, f_frsize=4096, f_files=1000, f_favail=1000))
+    usage = store.usage(now)
+    print(usage)
+    assert usage.episodes == 11 and 1_100_000 <= usage.bytes < 1_200_000
+    assert 500_000 <= usage.bytes_per_day <= 520_000  # 10 x 100 kB in 2 days
+    assert 19 <= usage.days_left <= 20  # (11 MB free - 1 MB kept free) / 0.5 MB a day
+    store.max_bytes = usage.bytes + 1_000_000  # the bound comes first
+    assert 1.9 <= store.usage(now).days_left <= 2.0
