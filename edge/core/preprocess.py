@@ -86,33 +86,44 @@ RATE_SETTING = ("the pads' rate is set in xela_server's configuration ([sim] sen
 
 @dataclass(frozen=True)
 class StreamRate:
-    """The stream's measured rate around one press, fresh frames per second (None: fewer
-    than two fresh frames)."""
+    """The stream's measured rate around one press (:func:`fresh_rate`), frames per second
+    (None: fewer than two fresh frames)."""
 
     window_hz: float | None  # over the model's crop window
     press_hz: float | None  # over the whole press recording
 
 
-def fresh_rate(times: np.ndarray, seq: np.ndarray, t0: float = -np.inf,
+def fresh_rate(times: np.ndarray, sent: np.ndarray, seq: np.ndarray, t0: float = -np.inf,
                t1: float = np.inf) -> float | None:
-    """Fresh frames per second received in ``[t0, t1)``: frames whose sequence number differs
-    from the previous frame's (a repeated frame brings nothing new), counted from the first
-    to the last; None with fewer than two."""
-    times = np.asarray(times, dtype=np.float64)
-    seq = np.asarray(seq)
+    """The rate the server sends at, frames/s, from the frames received (``times``) in
+    ``[t0, t1)``: one over the median interval between consecutive fresh frames (a repeated
+    sequence number brings nothing new), each divided by the sequence numbers it spans (a
+    frame lost on the way), on the server's clock ``sent``. A busy receiving host bunches the
+    arrivals and a busy sender skips a tick now and then: neither moves the median, so the
+    figure is the rate xela_server is set to. On the receive clock where the server's gives
+    no interval; None with fewer than two fresh frames."""
+    times, sent, seq = (np.asarray(a, dtype=np.float64) for a in (times, sent, seq))
     fresh = np.ones(len(seq), dtype=bool)
     fresh[1:] = seq[1:] != seq[:-1]
-    t = times[fresh & (times >= t0) & (times < t1)]
-    if len(t) < 2 or t[-1] <= t[0]:
+    keep = fresh & (times >= t0) & (times < t1)
+    if keep.sum() < 2:
         return None
-    return float((len(t) - 1) / (t[-1] - t[0]))
+    steps = np.diff(seq[keep])
+    steps = np.where(steps > 0, steps, 1.0)  # (a server restarted: its numbers start again)
+    for clock in (sent[keep], times[keep]):
+        period = float(np.median(np.diff(clock) / steps))
+        if period > 0:
+            return 1.0 / period
+    return None
 
 
-def stream_rate(times: np.ndarray, seq: np.ndarray, t_stop: float,
+def stream_rate(times: np.ndarray, sent: np.ndarray, seq: np.ndarray, t_stop: float,
                 spec: WindowSpec = DEFAULT_WINDOW) -> StreamRate:
-    """The rate over the crop window around ``t_stop`` and over all the frames given."""
-    return StreamRate(fresh_rate(times, seq, t_stop - spec.before_s, t_stop + spec.after_s),
-                      fresh_rate(times, seq))
+    """The rate (:func:`fresh_rate`) over the crop window around ``t_stop`` and over all the
+    frames given."""
+    return StreamRate(fresh_rate(times, sent, seq, t_stop - spec.before_s,
+                                 t_stop + spec.after_s),
+                      fresh_rate(times, sent, seq))
 
 
 def rate_problem(rate_hz: float | None, expected_hz: float) -> str | None:
@@ -273,7 +284,7 @@ def recording_peak(rec) -> float:
 
 def recording_rate(rec, spec: WindowSpec = DEFAULT_WINDOW) -> StreamRate:
     """The stream's rate in a :class:`edge.core.recording.Recording`."""
-    return stream_rate(rec.recv_time, rec.seq, rec.t_stop, spec)
+    return stream_rate(rec.recv_time, rec.sensor_time, rec.seq, rec.t_stop, spec)
 
 
 def recording_pairs(rec, spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:

@@ -309,8 +309,9 @@ class Runtime:
         t0 = time.monotonic()
         await asyncio.sleep(RATE_CHECK_S)
         frames = self.ring.window(t0, time.monotonic())
-        off = preprocess.rate_problem(preprocess.fresh_rate(frames.recv_time, frames.seq),
-                                      self.model.window.rate_hz)
+        off = preprocess.rate_problem(
+            preprocess.fresh_rate(frames.recv_time, frames.sensor_time, frames.seq),
+            self.model.window.rate_hz)
         if off is not None:
             log.warning("the tactile stream at %s, the model's grid, the rate its references "
                         "were pressed at: %s; or build a model from presses at this rate", off,
@@ -330,6 +331,14 @@ class Runtime:
         for task in list(self.recognizer.work):
             with contextlib.suppress(TimeoutError, Exception):
                 await asyncio.wait_for(asyncio.shield(task), DRAIN_TIMEOUT_S)
+        if self.store.held:
+            # Held in memory while the store could not write: one last try.
+            with contextlib.suppress(StoreError):
+                await asyncio.to_thread(self.store.flush)
+            if self.store.held:
+                log.error("%d episode(s) held in memory could not be written before the "
+                          "stop: the next start keeps them as interrupted (their acceptance "
+                          "notes); the store: %s", self.store.held, self.store.write_error)
 
     async def _make_safe(self) -> None:
         """On every path out: no press left running, the gripper open. (The caller then

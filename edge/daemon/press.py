@@ -99,7 +99,7 @@ class PressOutcome:
 
     def summary(self) -> PressSummary:
         win, t_stop = self.window, self.t_stop
-        rate = (preprocess.stream_rate(win.recv_time, win.seq, t_stop)
+        rate = (preprocess.stream_rate(win.recv_time, win.sensor_time, win.seq, t_stop)
                 if win is not None and t_stop is not None else preprocess.StreamRate(None, None))
         return PressSummary(
             result=self.result,

@@ -113,13 +113,14 @@ def test_tared_norms_tare_the_first_frames_as_the_press_does():
 
 
 def _stream(rate_hz: float, seconds: float = 3.0, seed: int = 0):
-    """A stream at ``rate_hz`` (2 ms of receive jitter) of a known signal: a 1.3 Hz sine in
-    every channel, scaled per channel."""
+    """A stream sent at ``rate_hz`` and received with up to 2 ms of delay: receive times,
+    values of a known signal at them (a 1.3 Hz sine in every channel, scaled per channel),
+    send times, sequence numbers."""
     rng = np.random.default_rng(seed)
-    t = np.arange(0, seconds, 1 / rate_hz) + rng.uniform(0, 0.002, int(seconds * rate_hz))
-    t.sort()
+    sent = np.arange(0, seconds, 1 / rate_hz)
+    t = np.sort(sent + rng.uniform(0, 0.002, len(sent)))
     values = np.sin(2 * np.pi * 1.3 * t)[:, None] * np.linspace(0.5, 1.0, 6)[None, :]
-    return t, values.astype(np.float32), np.arange(len(t))
+    return t, values.astype(np.float32), sent, np.arange(len(t))
 
 
 def test_a_100_hz_stream_crops_onto_the_same_grid_as_a_125_hz_one():
@@ -128,24 +129,41 @@ def test_a_100_hz_stream_crops_onto_the_same_grid_as_a_125_hz_one():
     # interpolated from fewer frames.
     t_stop = 1.5
     x125 = preprocess.model_input(*_stream(125.0)[:2], t_stop)
-    t100, v100, seq100 = _stream(100.0, seed=1)
+    t100, v100, sent100, seq100 = _stream(100.0, seed=1)
     x100 = preprocess.model_input(t100, v100, t_stop)
     assert x100.shape == x125.shape == (25, 6)
     gap = float(np.abs(x100 - x125).max())
     print(f"largest difference of the 100 and 125 Hz crops: {gap:.5f} (signal amplitude 1)")
     assert gap < 0.01
-    rate = preprocess.stream_rate(t100, seq100, t_stop)
+    rate = preprocess.stream_rate(t100, sent100, seq100, t_stop)
     print(f"100 Hz stream measured at {rate}")
     assert rate.window_hz == pytest.approx(100, abs=1) and rate.press_hz == pytest.approx(
         100, abs=1)
 
 
-def test_the_rate_counts_fresh_frames_only():
-    t, _, seq = _stream(100.0)
-    # Every frame sent twice (a server repeating its last frame): still 100 new frames/s.
-    assert preprocess.fresh_rate(np.repeat(t, 2), np.repeat(seq, 2)) == pytest.approx(100, abs=1)
-    assert preprocess.fresh_rate(t[:1], seq[:1]) is None
-    assert preprocess.fresh_rate(t, seq, 10.0, 11.0) is None  # no frame there
+def test_the_rate_is_the_servers_whatever_the_load_on_either_side():
+    t, _, sent, seq = _stream(125.0)
+    assert preprocess.fresh_rate(t, sent, seq) == pytest.approx(125, abs=0.5)
+    # Every frame sent twice (a server repeating its last frame): still 125 new frames/s.
+    assert preprocess.fresh_rate(*(np.repeat(a, 2) for a in (t, sent, seq))) == \
+        pytest.approx(125, abs=0.5)
+    # A busy sender skips one tick in ten, one frame in twenty is lost on the way, and a busy
+    # receiver takes them in bursts (50 ms late every 200 ms): the server is still set to 125.
+    kept = (np.arange(len(sent)) % 10 != 9)
+    sent = sent[kept]
+    seq = np.arange(len(sent))
+    arrived = np.maximum(sent, np.ceil(sent / 0.2) * 0.2 - 0.15) + 0.0005
+    lost = np.arange(len(sent)) % 20 == 7
+    received = preprocess.fresh_rate(arrived[~lost], sent[~lost], seq[~lost])
+    counted = (np.sum(~lost) - 1) / (arrived[~lost][-1] - arrived[~lost][0])
+    print(f"server at 125 Hz, busy on both sides: {received:.1f} frames/s measured, "
+          f"{counted:.1f} counted")
+    assert received == pytest.approx(125, abs=0.5) and counted < 110
+    # Without a server clock (all sent times equal), the receive times give the rate.
+    assert preprocess.fresh_rate(t, np.zeros_like(t), np.arange(len(t))) == pytest.approx(
+        125, rel=0.05)
+    assert preprocess.fresh_rate(t[:1], sent[:1], seq[:1]) is None
+    assert preprocess.fresh_rate(t, t, np.arange(len(t)), 10.0, 11.0) is None  # no frame
 
 
 def test_a_rate_more_than_10_percent_off_is_a_problem_naming_both():

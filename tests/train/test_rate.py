@@ -5,6 +5,7 @@ dataset whose classes were pressed at rates more than 10 % apart, naming them.""
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -78,11 +79,13 @@ def test_build_refuses_classes_pressed_at_rates_apart_naming_them(tmp_path, capl
     line = str(refused.value)
     print(line)
     assert "\n" not in line
-    assert "100.0 Hz: sponge_cube; 125.0 Hz: otedama, wood_cube" in line
+    assert re.search(r"apart: (99|100)\.\d Hz: sponge_cube; 12\d\.\d(-12\d\.\d)? Hz: "
+                     r"(otedama, wood_cube|wood_cube, otedama):", line)
     assert "xela_server's configuration" in line and "--mixed-rates" in line
     # Told: the build goes on, and says so.
-    assert read_dataset(data, progress=False, mixed_rates=True).rate_hz == {
-        "otedama": 125.0, "wood_cube": 125.0, "sponge_cube": 100.0}
+    rates = read_dataset(data, progress=False, mixed_rates=True).rate_hz
+    assert rates == pytest.approx({"otedama": 125, "wood_cube": 125, "sponge_cube": 100},
+                                  abs=0.5)
     assert "--mixed-rates: classes pressed at stream rates more than 10 % apart" in caplog.text
     assert main(["build", "--data", str(data), "--out", str(tmp_path / "m"), "-q"]) == 2
     assert not (tmp_path / "m").exists()
