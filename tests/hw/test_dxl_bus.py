@@ -322,6 +322,21 @@ async def test_close_runs_the_safe_pose_then_torque_off(emu):
         await bus.read_state()
 
 
+@pytest.mark.asyncio
+async def test_torque_changes_are_logged_by_the_bus_and_the_emulator(emu, bus, caplog):
+    caplog.set_level(logging.INFO)
+    await bus.set_torque(True)
+    await bus.set_torque(False)
+    said = [(r.name, r.getMessage()) for r in caplog.records if "torque" in r.getMessage()]
+    print("\n  " + "\n  ".join(f"{name}: {text}" for name, text in said))
+    assert ("edge.hw.dynamixel.bus", "torque on: motors 11, 12, 13, 14, 15, Bus Watchdog "
+            "100 ms") in said
+    assert ("edge.hw.dynamixel.bus", "torque off: motors 11, 12, 13, 14, 15") in said
+    emulated = [text for name, text in said if name == "edge.sim.dxl_emulator.model"]
+    assert emulated.count("emulated motor 15: torque on") == 1
+    assert len(emulated) == 2 * len(IDS)
+
+
 # ------------------------------------------------------------------ the port's faults
 
 
