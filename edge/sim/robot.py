@@ -27,26 +27,17 @@ from edge.sim.xela_server import Fault, XelaServerEmulator
 
 log = logging.getLogger(__name__)
 
-# POST /fault's switches: the fault's name -> its fields (name -> type and default, None:
-# required) and what it does.
+# POST /fault's switches: the fault's name -> its fields (name -> type and default; None:
+# required). What each does: docs/reliability.md, "The emulated robot's control API".
 _MOTOR = (int, None)
-FAULTS: dict[str, tuple[dict[str, tuple[type, Any]], str]] = {
-    "motor_silent": ({"motor": _MOTOR, "on": (bool, True)},
-                     "the motor hears and answers nothing (false: answers again)"),
-    "crc_errors": ({"motor": _MOTOR, "count": (int, 1)},
-                   "the motor's next `count` status packets carry a wrong CRC (-1: every "
-                   "one, 0: none)"),
-    "hardware_error": ({"motor": _MOTOR, "bits": (int, None)},
-                       "Hardware Error Status bits (0x20 overload...): the motor shuts down, "
-                       "torque off; 0 clears the bits (torque stays off, as after a reboot)"),
-    "serial_error": ({}, "the line fails inside the next transaction (an I/O error), then "
-                         "works again under the same port path"),
-    "unplug": ({}, "the bus adapter is pulled out: the port's path is gone"),
-    "plug": ({}, "the bus adapter is plugged back in, under the same path"),
-    "sensor": ({"mode": (str, None)},
-               "the XELA server's stream: " + ", ".join(f.value for f in Fault)
-               + " (silent: nothing sent; freeze: the last frame resent; garbage: "
-                 "undecodable frames)"),
+FAULTS: dict[str, dict[str, tuple[type, Any]]] = {
+    "motor_silent": {"motor": _MOTOR, "on": (bool, True)},
+    "crc_errors": {"motor": _MOTOR, "count": (int, 1)},
+    "hardware_error": {"motor": _MOTOR, "bits": (int, None)},
+    "serial_error": {},
+    "unplug": {},
+    "plug": {},
+    "sensor": {"mode": (str, None)},
 }
 
 
@@ -141,7 +132,7 @@ class SimRobot:
         name = request.get("fault")
         if name not in FAULTS:
             raise ValueError(f"unknown fault {name!r}; one of: {', '.join(FAULTS)}")
-        fields, _ = FAULTS[name]
+        fields = FAULTS[name]
         unknown = sorted(set(request) - {"fault", *fields})
         if unknown:
             raise ValueError(f"{name} takes no {', '.join(unknown)}; its fields: "
