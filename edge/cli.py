@@ -183,7 +183,10 @@ def _cmd_sim_place(args: argparse.Namespace) -> int:
         with urllib.request.urlopen(request, timeout=SIM_CONTROL_TIMEOUT_S) as reply:
             placed = json.load(reply)["object"]
     except urllib.error.HTTPError as exc:
-        why = json.loads(exc.read() or b"{}").get("error", exc.reason)
+        try:
+            why = json.loads(exc.read())["error"]
+        except (ValueError, KeyError, TypeError):  # not the emulator's JSON error
+            why = f"HTTP {exc.code} {exc.reason}"
         raise EdgeError(f"the emulated robot at {url} refused {args.name!r}: {why}") from None
     except (urllib.error.URLError, OSError) as exc:
         raise EdgeError(f"no emulated robot answers at {url} ({exc}): start `vt-edge sim "
