@@ -339,14 +339,6 @@ class Runtime:
                 log.error("%d episode(s) held in memory could not be written before the "
                           "stop: the next start keeps them as interrupted (their acceptance "
                           "notes); the store: %s", self.store.held, self.store.write_error)
-        if self.store.held:
-            # Held in memory while the store could not write: one last try.
-            with contextlib.suppress(StoreError):
-                await asyncio.to_thread(self.store.flush)
-            if self.store.held:
-                log.error("%d episode(s) held in memory could not be written before the "
-                          "stop: the next start keeps them as interrupted (their acceptance "
-                          "notes); the store: %s", self.store.held, self.store.write_error)
 
     async def _make_safe(self) -> None:
         """On every path out: no press left running, the gripper open. (The caller then
