@@ -56,13 +56,13 @@ def test_both_sides_write_every_figure_into_one_results_file(tmp_path):
     # overshoot is a few newtons at most, the daemon starts and stays a plausible size.
     assert 0 < results["stop_latency_ms"]["p50"] < 1000
     assert 0 < results["stop_latency_ms_loop100"]["p50"] < 1000
-    # The hot path's thread CPU: every frame of the production presses, each stop in two
+    # The hot path's thread CPU: every armed frame of the production presses, each stop in two
     # threads; a fraction of a core's millisecond, and no more with the load beside it than
     # the wall clock gives.
     frame, stop = results["frame_check_cpu_us"], results["stop_cpu_us"]
     print(f"frame {frame['p50']:.0f} us ({frame['no_load']['p50']:.0f} no load), stop "
           f"{stop['p50']:.0f} us ({stop['no_load']['p50']:.0f} no load)")
-    assert frame["n"] > 100 and frame["no_load"]["n"] > 50 and 0 < frame["p50"] < 5000
+    assert frame["n"] > 20 and frame["no_load"]["n"] > 10 and 0 < frame["p50"] < 5000
     assert stop["n"] + stop["in_flight_stops"] >= 1
     assert stop["loop_us"]["p50"] > 0 and stop["bus_us"]["p50"] > 0
     assert stop["p50"] < 1e3 * results["stop_latency_ms"]["max"]

@@ -50,11 +50,12 @@ class BenchController(PressController):
         self.use(self.name)
 
     async def _timed_check(self, raw: np.ndarray, recv_time: float) -> None:
+        armed = self.armed
         try:
             await PressController.check(self, raw, recv_time)
         finally:
             if self.cpu is not None:
-                self.cpu.checked()
+                self.cpu.checked(armed)
 
     def use(self, name: str) -> None:
         """From the next press on, the threshold checked as controller ``name`` does

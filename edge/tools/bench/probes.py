@@ -149,9 +149,10 @@ class HotPathCPU:
     waited for a core, so another process's load does not inflate it) the production hot
     path costs, through the runtime's hooks:
 
-    - per frame, on the loop thread, from the XELA client's ``on_received`` (the message
-      handed over by the WebSocket) to the end of the controller's threshold check, for
-      the frames whose check sent no stop;
+    - per frame checked while the threshold is armed (closing, holding), on the loop
+      thread, from the XELA client's ``on_received`` (the message handed over by the
+      WebSocket) to the end of the controller's threshold check, for the frames whose check
+      sent no stop;
     - per stop: the loop thread from that frame's arrival to the stop's hand-over (the
       controller's ``gripper.stop_now``), plus the bus thread from there to its stop packet's
       write call returning (the bus's ``on_write``, read on the bus thread; the bus thread's
@@ -196,12 +197,13 @@ class HotPathCPU:
                 and len(head) > _INSTRUCTION and head[_INSTRUCTION] == _WRITE):
             self._stop_written = time.thread_time_ns()
 
-    def checked(self) -> None:
-        """The controller's check of the frame ended (on the loop thread)."""
+    def checked(self, armed: bool) -> None:
+        """The controller's check of the frame ended (on the loop thread); ``armed``: the
+        threshold was watched when it began."""
         if self._arrived is None:
             return
         now = time.monotonic()
-        if self._handover is None:
+        if self._handover is None and armed:
             self.frames.append((now, (time.thread_time_ns() - self._arrived) / 1e3))
         elif self._stop_written is not None:
             loop_ns, bus_at_handover = self._handover

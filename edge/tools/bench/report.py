@@ -53,8 +53,9 @@ READING = "\n".join([
     "counts them) and write_ms (the goal and its packet, to the write call); they add up "
     "to the latency. fallback_stops: stops that had to read Present Position first.",
     "- frame_check_cpu_us and stop_cpu_us are what the hot path costs in thread CPU time "
-    "(time.thread_time_ns), which another process's load does not inflate: per frame, "
-    "the loop thread from the XELA message's arrival to the end of its threshold check; "
+    "(time.thread_time_ns), which another process's load does not inflate: per frame "
+    "while the threshold is armed, the loop thread from the XELA message's arrival to the "
+    "end of its threshold check; "
     "per stop, the loop thread from the frame's arrival to the hand-over to the bus "
     "thread, plus the bus thread from there to its stop packet's write call (loop_us, "
     "bus_us). Each gives the same with no load beside it (no_load): a change to the "

@@ -432,7 +432,8 @@ class RuntimeBench:
             "frame_check_cpu_us": figure(
                 frames["load"], "us", None, no_load=stats(frames["quiet"]),
                 what="thread CPU time per frame on the loop thread, XELA message received -> "
-                     "threshold checked (the production controller), under load"),
+                     "threshold checked, while the production controller watched it (closing, "
+                     "holding), under load"),
             "stop_cpu_us": figure(
                 [s["loop_us"] + s["bus_us"] for s in stops["load"]], "us", None,
                 loop_us=stats([s["loop_us"] for s in stops["load"]]),
