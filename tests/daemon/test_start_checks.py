@@ -316,12 +316,25 @@ async def test_a_camera_failing_at_recognition_ends_camera_error_with_its_messag
 
 
 @pytest.mark.asyncio
-async def test_the_start_warns_when_x_th_is_far_from_the_models(tmp_path, caplog):
+async def test_x_th_far_from_the_models_is_warned_at_start_and_each_press_ends_at_the_stall(
+        tmp_path, caplog):
+    """x_th = 0.2 (a typo for 0.002) on the emulated robot (its stainless cube): a warning at
+    start, and each press ends within 3 s of closing, naming x_th and the peak reached."""
     cfg = fast_config()
-    cfg = replace(cfg, press=replace(cfg.press, x_th=0.02))
-    async with SimRobot(QUICK_OBJECT, seed=3, cfg=base_config()) as robot, \
+    cfg = replace(cfg, press=replace(cfg.press, x_th=0.2),
+                  runtime=replace(cfg.runtime, close_timeout_s=8.0))
+    async with SimRobot("stainless_cube", seed=3, cfg=base_config()) as robot, \
             Daemon(robot, cfg, tmp_path) as d:
         assert d.runtime.model.x_th == 0.004  # the shipped model's class_x_th
+        for _ in range(2):
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "wait": True})
+            press = ep["press"]
+            states = dict(press["states"])
+            print(f"{states['opening'] - states['closing']:.2f} s: {ep['error']}")
+            assert status == 200 and ep["status"] == "failed"
+            assert press["result"] == "below_threshold"
+            assert states["opening"] - states["closing"] < 3.0
+            assert "x_th = 0.2" in ep["error"] and f"{press['peak_level']:.4f}" in ep["error"]
     warned = [r for r in caplog.records if r.levelno == logging.WARNING
-              and "[press] x_th = 0.02 is 5 times the x_th = 0.004" in r.getMessage()]
+              and "[press] x_th = 0.2 is 50 times the x_th = 0.004" in r.getMessage()]
     assert len(warned) == 1, [r.getMessage() for r in caplog.records]
