@@ -59,6 +59,7 @@ from edge.daemon.mqtt import _password, _tls, check_config
 from edge.daemon.serve import vlm_config
 from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.daemon.store import MIN_FREE_BYTES as STORE_MIN_FREE_BYTES
+from edge.daemon.store import EpisodeStore
 from edge.hw.contracts import StreamStats
 from edge.hw.control_table import (
     MIN_FIRMWARE,
@@ -102,6 +103,8 @@ PROGRESS_EVERY_S = 5.0
 # The sampler's period error (p99) past which the host is too busy for the 125 Hz path:
 # a tick that late samples a frame 1/8 of a period off, and a stop waits as long.
 LATE_P99_WARN_S = 1e-3
+# With retention off, fewer days than this before the store fills its disk is a WARN.
+STORE_DAYS_WARN = 7.0
 # Mode bits that let the group or others read a secret.
 READABLE_BY_OTHERS = 0o044
 
@@ -198,6 +201,7 @@ async def run_doctor(cfg: Config, config_path: str = "<config>", *,
             "model": asyncio.to_thread(_check_model, cfg),
             "mqtt": _check_mqtt(cfg),
             "button": _check_button(cfg),
+            "store": asyncio.to_thread(_check_store, cfg),
         }, started, progress, progress_every_s)
     finally:
         if vlm is not None:
@@ -787,6 +791,32 @@ def _check_state_dir(state: Path) -> Check:
         return warn("state dir", found, "free space: each recognition keeps its press and "
                     "photo, MCAP recording far more", free_bytes=free)
     return ok("state dir", found, free_bytes=free)
+
+
+def _check_store(cfg: Config) -> list[Check]:
+    """The episode store's size and growth, and the days that leaves (the daemon's own
+    store, as `vt-edge run` opens it, its retention included)."""
+    rc = cfg.runtime
+    root = Path(rc.state_dir) / "episodes"
+    if not root.is_dir():
+        return [ok("store", f"no episodes yet ({root} is made at the first start)")]
+    store = EpisodeStore(root, max_bytes=round(rc.store_max_mb * 1e6),
+                         keep_free_bytes=round(rc.keep_free_mb * 1e6),
+                         segments=rc.record_mcap_dir or None)
+    u = store.usage()
+    data = {"bytes": u.bytes, "episodes": u.episodes, "bytes_per_day": u.bytes_per_day,
+            "days_left": u.days_left}
+    found = f"{u.episodes} episodes, {_size(u.bytes)}"
+    retention = bool(store.max_bytes or store.keep_free_bytes)
+    if u.bytes_per_day is None or u.days_left is None:
+        return [ok("store", found + ", none in the last days", **data)]
+    found += (f", {_size(round(u.bytes_per_day))} a day lately: {u.days_left:.0f} days before "
+              + ("retention removes the oldest finished episodes" if retention else
+                 "its disk is full (retention off)"))
+    if not retention and u.days_left < STORE_DAYS_WARN:
+        return [warn("store", found, "set [runtime] store_max_mb or keep_free_mb (the oldest "
+                     "finished episodes and MCAP segments go first), or free space", **data)]
+    return [ok("store", found, **data)]
 
 
 def _size(n: int) -> str:

@@ -218,7 +218,7 @@ def test_a_good_setup_is_all_ok_and_nothing_moves(lab, tmp_path, capsys):
         out["checks"]
     assert {"bus port", "bus latency", "motor 11", "motor 15", "xela server", "xela layout",
             "xela rate", "idle noise", "camera", "vlm server", "vlm key", "vlm probe", "model",
-            "references", "state dir", "api", "mqtt", "button", HOST_TIMING} <= set(parts)
+            "references", "state dir", "api", "mqtt", "button", "store", HOST_TIMING} <= set(parts)
     checks = {c["part"]: c for c in out["checks"]}
     noise = checks["idle noise"]["data"]
     # 2 s at 125 frames/s; fewer where the loaded host delays the emulator's ticks.
@@ -466,3 +466,26 @@ def test_x_th_far_from_the_models_is_a_warning(tmp_path):
     del manifest["class_x_th"]
     (models / "manifest.json").write_text(json.dumps(manifest))
     assert x_th_line(0.2).level is Level.OK
+
+
+def test_the_store_line_gives_its_size_growth_and_days_left(tmp_path):
+    from edge.daemon.episode import Episode, Status
+    from edge.daemon.store import EpisodeStore, new_id
+
+    cfg = sub(Config(), "runtime", state_dir=str(tmp_path / "state"))
+    (empty,) = doctor_module._check_store(cfg)
+    assert empty.level is Level.OK and "no episodes yet" in empty.found
+    assert not (tmp_path / "state").exists()  # doctor creates nothing
+    store = EpisodeStore(tmp_path / "state" / "episodes")
+    for _ in range(3):
+        store.create(Episode(new_id(), Status.DONE, label="macaron"),
+                     {"image.jpg": b"\xff" * 50_000})
+    (line,) = doctor_module._check_store(cfg)
+    print(line.found)
+    assert line.level is Level.OK and line.found.startswith("3 episodes, 0.1 MiB")
+    assert "before retention removes the oldest finished episodes" in line.found
+    assert line.data["bytes"] > 150_000 and line.data["days_left"] > 0
+    # With retention off the days are the disk's.
+    off = sub(cfg, "runtime", keep_free_mb=0.0)
+    (line,) = doctor_module._check_store(off)
+    assert "its disk is full (retention off)" in line.found
