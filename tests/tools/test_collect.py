@@ -139,7 +139,8 @@ async def test_plan_collects_every_class_with_photos_and_resumes_up_to_n(tmp_pat
         again = await collect_plan(cfg, load_plan(plan_path), out, None)
         assert again.kept == [] and again.complete
         more = write_plan(tmp_path, PLAN.replace("presses = 2", "presses = 3"), "more.toml")
-        third = await collect_plan(cfg, load_plan(more), out, None)
+        # (placing each object: the table still holds the last class's)
+        third = await collect_plan(cfg, load_plan(more), out, person(robot, placed))
         assert [p.name for p in third.kept] == ["otedama_002.press.npz",
                                                 "wood_cube_002.press.npz"]
         after = digests(out)
