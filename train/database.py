@@ -170,7 +170,7 @@ class PressMeta:
     x_th: float  # rounded to X_TH_DIGITS: one setting written twice is one value
     origin: str  # recording source and sensor model
     layout: PadLayout = XR1944  # the pads behind its channels
-    rate_hz: float | None = None  # the stream's fresh frames/s over the crop window
+    rate_hz: float | None = None  # the stream's rate over the crop window (frames/s)
     sha256: str = ""  # its frames' (recording.frames_sha256)
 
     @property

@@ -76,8 +76,8 @@ class WindowSpec:
 
 DEFAULT_WINDOW = WindowSpec()
 
-# Rates further apart than this (relative) are two rates: presses at one embed elsewhere than
-# presses at the other (the model's crop is interpolated from a different stream).
+# Rates further apart than this (relative) are two rates: the crop of a press at one is
+# interpolated from a different number of frames than at the other.
 RATE_TOLERANCE = 0.10
 # Where a stream's rate is set, for whoever is told it is off.
 RATE_SETTING = ("the pads' rate is set in xela_server's configuration ([sim] sensor_rate_hz "

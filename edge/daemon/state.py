@@ -59,7 +59,7 @@ class PressSummary:
          "peak_squeeze_ma": float | null, # the highest gripper current traced
          "states": [[state, t], ...],     # every state entered, in order (s)
          "lowering_level": float | null,  # the norm lowering the arm moved the pads by
-         "window_rate_hz": float | null,  # the stream's fresh frames/s over the crop window
+         "window_rate_hz": float | null,  # the rate xela_server sent at over the crop window
          "press_rate_hz": float | null}   # ... and over the press's recording
 
     Times are on the daemon's monotonic clock. Keys this version does not know (written by

@@ -5,7 +5,8 @@
 ``split``, ``description``, ``x_th``, ``rate_hz``) plus ``recorder`` (a sentence), ``origin``
 (as in a model's manifest), ``plan_sha256`` and, per class, ``presses`` (planned), ``photo``
 and ``failed`` (the presses collect did not keep, with their reasons). ``rate_hz`` is the
-median over the class's kept presses of the stream's fresh frames/s over the crop window.
+median over the class's kept presses of the rate xela_server sent at over the crop window
+(:func:`edge.core.preprocess.fresh_rate`).
 
 :func:`summarize` (``vt-edge dataset summary DIR``) reads it all back per class and flags
 what looks wrong. A press's "peak" is its peak norm (:func:`edge.core.preprocess.peak_norm`),
@@ -116,7 +117,7 @@ class PressCheck:
     peak: float  # the press's peak norm (tactile units)
     stop_latency_ms: float | None
     flags: tuple[str, ...]
-    rate_hz: float | None = None  # the stream's fresh frames/s over the crop window
+    rate_hz: float | None = None  # the stream's rate over the crop window (frames/s)
 
 
 @dataclass(frozen=True)
@@ -217,7 +218,8 @@ def summarize(out: str | Path, plan: Plan | None = None) -> Summary:
 
 def _check_rates(classes: list[ClassSummary]) -> list[ClassSummary]:
     """A class whose stream rate is off the dataset's (the median of the classes') has a
-    problem: its presses embed elsewhere, and ``vt-train build`` refuses the mix."""
+    problem: its crops are interpolated from a different number of frames, and ``vt-train
+    build`` refuses the mix."""
     usual = median_rate(c.rate_hz for c in classes)
     if usual is None:
         return classes
@@ -271,7 +273,7 @@ def format_summary(summary: Summary) -> str:
         lines += ["", "look at:"] + [f"  {f}" for f in flagged]
     problems = summary.problems
     lines += ["", "peak: a press's peak norm over its tare, closing to opening (the hold "
-              "included)", "rate: the stream's fresh frames/s over a press's crop window"]
+              "included)", "rate: the frames/s xela_server sent at over a press's crop window"]
     lines += ["", "problems:" if problems else "no problems: every class complete, one "
               "threshold per class, one stream rate"] + [f"  {p}" for p in problems]
     return "\n".join(lines)
