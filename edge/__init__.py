@@ -1,13 +1,6 @@
 """vtzero on-robot runtime: press, tactile encoding, VLM recognition. Never imports torch."""
 
 import os
-import sys
-
-from edge.daemon import signals as _signals
-
-# `vt-edge run` holds SIGHUP and SIGTERM from here, its first instruction, until its runtime
-# takes them over: one sent while it starts is never fatal (edge/daemon/signals.py).
-_signals.hold_if_daemon(sys.argv)
 
 __version__ = "0.1.0"
 # The systemd service the daemon runs as (its unit is SERVICE_NAME.service): what a message

@@ -30,7 +30,7 @@ ALLOWED = {
                    "edge.tools"},
     "edge.cli": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon", "edge.sim",
                  "edge.tools"},
-    "edge.__main__": {"edge", "edge.cli"},
+    "edge.__main__": {"edge", "edge.cli", "edge.daemon"},
     "edge": {"edge"},
     "train": {"edge", "edge.core", "edge.vlm", "edge.sim", "edge.tools", "train"},
 }

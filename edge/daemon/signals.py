@@ -3,18 +3,17 @@ fatal.
 
 Their default action ends the process: a reload sent right after a start (a deployment
 script) or a stop while the model loads would end the daemon with nothing made safe, or
-leave torque on. ``vt-edge run`` holds them from its first Python instruction on (the
-package's import, :func:`hold_if_daemon`): each is recorded, and the runtime takes them over
+leave torque on. ``vt-edge run`` holds them from its entry point's first instruction on
+(``edge/__main__.py``, :func:`hold_if_daemon`): each is recorded, and the runtime takes them over
 when it runs (:meth:`edge.daemon.lifecycle.Runtime.run`): a stop then stops it, a reload
 follows once it serves. On its way out the runtime gives them back to this hold, so a signal
 during the shutdown that makes the arm safe is not fatal either.
 
-Stdlib only: imported by ``edge/__init__.py`` before anything else.
+Stdlib only: imported by the entry point before anything else.
 """
 
 from __future__ import annotations
 
-import os
 import signal
 from collections.abc import Sequence
 from types import FrameType
@@ -24,11 +23,9 @@ _pending: set[int] = set()
 
 
 def is_daemon(argv: Sequence[str]) -> bool:
-    """Whether ``argv`` is ``vt-edge run`` (or ``python -m edge run``; ``--config FILE``
-    before the command)."""
-    if not argv or not (argv[0] == "-m" or os.path.basename(argv[0]) == "vt-edge"):
-        return False
-    args = list(argv[1:])
+    """Whether the arguments of ``vt-edge`` (``sys.argv[1:]``) ask for ``run`` (``--config
+    FILE`` may come before it)."""
+    args = list(argv)
     while args and args[0].startswith("-"):
         option = args.pop(0)
         if option == "--config" and args:
