@@ -187,7 +187,9 @@ description = "wood cube"
         row = re.search(r"^wood_cube\s.*\s(\d+\.\d)$", text, re.M)
         assert "rate Hz" in text and row and float(row.group(1)) == entry["rate_hz"]
         # One rate in the dataset: no problem, but a line to look at against the 125 Hz grid.
-        assert re.search(r"^  wood_cube: stream at \d+\.\d frames/s is 2\d % off 125 Hz",
+        # 100 Hz is 20 % off the grid; the emulator on a loaded host sends a little faster or
+        # slower (101.5 frames/s, 19 %, seen in a make test).
+        assert re.search(r"^  wood_cube: stream at \d+\.\d frames/s is (1[5-9]|2\d) % off 125 Hz",
                          text, re.M) and "no problems" in text
         # Files for people follow the umask (the test's own, typically 022: 0644).
         umask = os.umask(0)

@@ -61,6 +61,8 @@ PORT_REOPEN_CAP_S = 2.0
 # How long an operation waits for a port being reopened before it fails: a glitch of a few
 # milliseconds costs a press no more than this.
 PORT_BACK_WAIT_S = 1.0
+# How often the shutdown's reopening of a failed port tries again (within PORT_BACK_WAIT_S).
+SHUTDOWN_REOPEN_RETRY_S = 0.05
 # What a failing line raises inside the SDK: pyserial's SerialException (an OSError), and
 # termios.error (not one) from the input flush before each packet on a line that is gone.
 _PORT_ERRORS = (OSError, termios.error)
@@ -238,12 +240,11 @@ class DynamixelBus:
 
     async def _torque_off_at_shutdown(self) -> None:
         """Torque off; where the port failed (before it or during it), on a port reopened
-        now, once (the reopening loop's backoff is not waited for)."""
+        now (the reopening loop's backoff is not waited for)."""
         for last in (False, True):
             if self._port_fault is not None:
                 await self._stop_reopen()
-                await self._executor.submit("reopen port", self._reopen_sync)
-                self._port_up.set()
+                await self._reopen_within(PORT_BACK_WAIT_S)
             try:
                 await self.set_torque(False)
                 return
@@ -427,6 +428,23 @@ class DynamixelBus:
                 return
         finally:
             self._reopen_task = None
+
+    async def _reopen_within(self, wait_s: float) -> None:
+        """Reopen the port, trying again every ``SHUTDOWN_REOPEN_RETRY_S`` for up to
+        ``wait_s``: a line that glitched comes back under its path a moment later (a USB
+        adapter re-enumerating; on a loaded host, even the emulator's), and a single try at
+        that moment would leave torque on."""
+        deadline = self._clock() + wait_s
+        while True:
+            try:
+                await self._executor.submit("reopen port", self._reopen_sync)
+            except DeviceError:
+                if self._clock() >= deadline:
+                    raise
+                await asyncio.sleep(SHUTDOWN_REOPEN_RETRY_S)
+                continue
+            self._port_up.set()
+            return
 
     async def _feed_watchdog(self) -> None:
         # Feeding from the loop, not the bus thread: a stalled event loop stops the feed, so
