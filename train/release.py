@@ -270,6 +270,10 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "database": database.summary(db),
         database.CLASS_X_TH: {c["label"]: c["x_th"] for c in ref_index["classes"]},
         database.CLASS_RATE_HZ: {c["label"]: c.get("rate_hz") for c in ref_index["classes"]},
+        # So that `vt-train db add` knows the shipped references' presses by content too.
+        database.PRESS_SHA256: database.press_digests(
+            m for m in database.press_index(ref_dir)
+            if m.label in {c.label for c in db.classes}),
         "prompts": prompt_hashes(out),
         "metrics": metrics,
         "timings": timings,
