@@ -31,5 +31,5 @@ def rules_text(gpio: bool | None = None) -> str:
 def install(dest_dir: Path = RULES_DIR) -> Path:
     path = dest_dir / RULES_NAME
     atomic_write_text(path, rules_text())
-    path.chmod(0o644)  # atomic writes are private (mkstemp); udev rules are world-readable
+    path.chmod(0o644)  # udev rules are world-readable whatever the installing shell's umask
     return path
