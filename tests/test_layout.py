@@ -138,3 +138,54 @@ def test_no_import_cycle():
         if m not in done:
             visit(m, [m])
     assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in sorted(cycles))
+
+
+def _private_uses(path: Path, modules: set[str]) -> list[tuple[int, str]]:
+    """Another project module's private names that ``path`` takes: ``from m import _x``, or
+    ``m._x`` on a name bound to a project module (``import m``, ``import a.m as m``, ``from a
+    import m``). Dunders are not private; a module's own names are its business."""
+    tree = ast.parse(path.read_text(), str(path))
+    bound: dict[str, str] = {}  # local name -> the project module it stands for
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.asname:
+                    bound[a.asname] = a.name
+                else:
+                    bound[a.name.split(".")[0]] = a.name.split(".")[0]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            for a in node.names:
+                if f"{node.module}.{a.name}" in modules:
+                    bound[a.asname or a.name] = f"{node.module}.{a.name}"
+                elif node.module in modules and _private(a.name):
+                    found.append((node.lineno, f"{node.module}.{a.name}"))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and _private(node.attr):
+            owner = _dotted(node.value, bound)
+            if owner in modules:
+                found.append((node.lineno, f"{owner}.{node.attr}"))
+    return found
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.endswith("__")
+
+
+def _dotted(node: ast.expr, bound: dict[str, str]) -> str | None:
+    """``a.b.c`` with ``a`` resolved through the imports, or None for any other expression."""
+    if isinstance(node, ast.Name):
+        return bound.get(node.id)
+    if isinstance(node, ast.Attribute):
+        base = _dotted(node.value, bound)
+        return f"{base}.{node.attr}" if base else None
+    return None
+
+
+def test_no_module_takes_another_modules_private_names():
+    paths = {_module(p): p for p in [*ROOT.glob("edge/**/*.py"), *ROOT.glob("train/**/*.py")]}
+    taken = [f"{path.relative_to(ROOT)}:{line} takes {name}"
+             for module, path in sorted(paths.items())
+             for line, name in _private_uses(path, set(paths))]
+    assert not taken, ("private names used across modules (make them public where they are "
+                       "defined):\n" + "\n".join(taken))

@@ -57,7 +57,7 @@ def atomic_open(path: str | Path, mode: int = FILE_MODE) -> Iterator[BinaryIO]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes, mode: int = FILE_MODE) -> None:
@@ -117,7 +117,7 @@ def _replace_dir(staged: Path, dest: Path, old: Path | None) -> None:
         if old is not None:
             os.rename(old, dest)
         raise
-    _fsync_dir(dest.parent)
+    fsync_dir(dest.parent)
 
 
 def _fsync_tree(root: Path) -> None:
@@ -128,7 +128,7 @@ def _fsync_tree(root: Path) -> None:
                 os.fsync(fd)
             finally:
                 os.close(fd)
-        _fsync_dir(Path(directory))
+        fsync_dir(Path(directory))
 
 
 def _keep_owner_and_mode(path: Path, tmp: str) -> None:
@@ -143,8 +143,9 @@ def _keep_owner_and_mode(path: Path, tmp: str) -> None:
     os.chmod(tmp, stat.S_IMODE(st.st_mode))
 
 
-def _fsync_dir(directory: Path) -> None:
-    # Makes the rename itself durable; not every filesystem allows opening a directory.
+def fsync_dir(directory: Path) -> None:
+    """Make a rename into ``directory`` durable; a no-op where the filesystem does not let a
+    directory be opened or synced."""
     try:
         dfd = os.open(directory, os.O_RDONLY)
     except OSError:

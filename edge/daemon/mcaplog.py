@@ -42,7 +42,7 @@ from mcap.writer import CompressionType, Writer
 
 from edge import __version__
 from edge.core import preprocess, recording
-from edge.core.atomic import _fsync_dir
+from edge.core.atomic import fsync_dir
 from edge.core.errors import NotFoundError, StoreError
 from edge.core.layout import PadLayout
 from edge.daemon.state import PressState, PressSummary
@@ -204,7 +204,7 @@ class McapLog:
             os.fsync(self._fh.fileno())
             self._fh.close()
             os.replace(self.tmp, self.path)
-            _fsync_dir(self.path.parent)
+            fsync_dir(self.path.parent)
         except BaseException:
             self.abandon()
             raise

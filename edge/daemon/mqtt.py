@@ -86,7 +86,7 @@ def topic_safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", name) or "robot"
 
 
-def _password(cfg: MqttConfig) -> str | None:
+def read_password(cfg: MqttConfig) -> str | None:
     if not cfg.password_file:
         return None
     try:
@@ -96,7 +96,7 @@ def _password(cfg: MqttConfig) -> str | None:
                           f"{exc.strerror or exc}") from None
 
 
-def _tls(cfg: MqttConfig) -> ssl.SSLContext | None:
+def tls_context(cfg: MqttConfig) -> ssl.SSLContext | None:
     if not cfg.tls:
         return None
     try:
@@ -115,8 +115,8 @@ def check_config(cfg: MqttConfig) -> None:
     except ImportError:
         raise ConfigError("mqtt.enabled = true needs the MQTT client: pip install "
                           "'vtzero[mqtt]'") from None
-    _password(cfg)
-    _tls(cfg)
+    read_password(cfg)
+    tls_context(cfg)
 
 
 class MqttBridge:
@@ -141,8 +141,8 @@ class MqttBridge:
 
     # --- the connection ------------------------------------------------------------------
     async def run(self) -> None:
-        password = await asyncio.to_thread(_password, self.cfg)
-        tls = _tls(self.cfg)
+        password = await asyncio.to_thread(read_password, self.cfg)
+        tls = tls_context(self.cfg)
         pump = asyncio.create_task(self._pump(), name="mqtt-events")
         backoff = Backoff(self.cfg.reconnect_base_s, self.cfg.reconnect_max_backoff_s,
                           RECONNECT_SPREAD)

@@ -55,7 +55,7 @@ from edge.core.model import (
 )
 from edge.daemon.api import MIN_TOKEN_CHARS, load_token
 from edge.daemon.devices import make_button, make_camera
-from edge.daemon.mqtt import _password, _tls, check_config
+from edge.daemon.mqtt import check_config, read_password, tls_context
 from edge.daemon.serve import vlm_config
 from edge.daemon.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.daemon.store import MIN_FREE_BYTES as STORE_MIN_FREE_BYTES
@@ -78,7 +78,7 @@ from edge.hw.dynamixel import (
 from edge.hw.xela import MAX_FRAME_CHARS, parse_frame, parse_layout_free
 from edge.tools.calibrate import NOISE_FLOOR_FACTOR
 from edge.tools.hosttiming import MEASURE_S, HostTiming, measure
-from edge.vlm.client import OpenAIVLM, _is_loopback, load_api_key
+from edge.vlm.client import OpenAIVLM, is_loopback, load_api_key
 from edge.vlm.images import check_image
 
 log = logging.getLogger(__name__)
@@ -652,7 +652,7 @@ async def _check_vlm(vlm: OpenAIVLM | None, checks: list[Check]) -> list[Check]:
     host = urlsplit(vc.base_url).hostname or ""
     keyed = load_api_key(vc) is not None
     key = (ok("vlm key", "present" if keyed else f"none needed: {host} is this machine")
-           if keyed or _is_loopback(host) else
+           if keyed or is_loopback(host) else
            warn("vlm key", f"no API key for {host}, which is not this machine",
                 f"a lab server without keys needs none; otherwise set ${vc.api_key_env} or "
                 "vlm.api_key_file"))
@@ -910,8 +910,8 @@ async def _check_mqtt(cfg: Config) -> list[Check]:
         check_config(mc)
         # A client ID of its own: the broker would drop a running daemon's session for it.
         client = aiomqtt.Client(mc.host, mc.port, identifier=f"vtzero-doctor-{os.getpid()}",
-                                username=mc.username or None, password=_password(mc),
-                                timeout=mc.connect_timeout_s, tls_context=_tls(mc))
+                                username=mc.username or None, password=read_password(mc),
+                                timeout=mc.connect_timeout_s, tls_context=tls_context(mc))
         async with client:
             pass
     except ConfigError as exc:

@@ -329,7 +329,7 @@ class OpenAIVLM:
         self._unanswered = 0
         self._unanswered_why = ""
         host = urlsplit(self.url).hostname or ""
-        if self._api_key and self.url.startswith("http://") and not _is_loopback(host):
+        if self._api_key and self.url.startswith("http://") and not is_loopback(host):
             log.warning("the VLM API key will cross the network in clear text to %s: "
                         "use https://", host)
 
@@ -718,7 +718,8 @@ def _probe_image() -> bytes:
     return out.getvalue()
 
 
-def _is_loopback(host: str) -> bool:
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` names this machine (a key sent there over plain HTTP stays here)."""
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
