@@ -40,7 +40,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from edge.core.atomic import _fsync_dir, atomic_write_bytes, atomic_write_text
+from edge.core.atomic import atomic_write_text, fsync_dir
 from edge.core.errors import NotFoundError, StoreError
 from edge.daemon.episode import Episode, Status
 
@@ -280,9 +280,9 @@ class EpisodeStore:
                     fh.write(data)
                     fh.flush()
                     os.fsync(fh.fileno())
-            _fsync_dir(tmp)
+            fsync_dir(tmp)
             os.rename(tmp, self.root / episode_id)
-            _fsync_dir(self.root)
+            fsync_dir(self.root)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise self._failed(_store_error(f"episode {episode_id} could not be written",
@@ -317,16 +317,6 @@ class EpisodeStore:
             raise self._failed(_store_error(f"episode {episode.id} could not be updated",
                                             exc)) from None
         self._worked()
-
-    def add_file(self, episode_id: str, name: str, data: bytes) -> None:
-        if "/" in name or name.startswith(".") or name == EPISODE_FILE:
-            raise ValueError(f"bad episode file name {name!r}")
-        self._sizes.pop(self.root / episode_id, None)
-        try:
-            atomic_write_bytes(self._dir(episode_id) / name, data)
-        except OSError as exc:
-            raise _store_error(f"episode {episode_id}: {name} could not be written",
-                               exc) from None
 
     def get(self, episode_id: str) -> Episode:
         held = self._held.get(episode_id)
