@@ -60,7 +60,3 @@ class EventBus:
             yield sub
         finally:
             self._subscribers.discard(sub)
-
-    @property
-    def subscribers(self) -> int:
-        return len(self._subscribers)

@@ -30,9 +30,6 @@ from collections.abc import Callable, Sequence
 
 log = logging.getLogger(__name__)
 
-# SCHED_FIFO priorities a process may ask for (sched_get_priority_max is 99 on Linux).
-PRIORITY_MIN, PRIORITY_MAX = 1, 99
-
 # While the real-time threads hold their CPU: every CPU the daemon may use, for threads
 # started meanwhile (unpin_thread).
 _all_cpus: frozenset[int] | None = None

@@ -51,10 +51,6 @@ class TactileFeed:
         self._closed = False
         self.frames_sent = 0
 
-    @property
-    def viewers(self) -> int:
-        return len(self._viewers)
-
     def tare(self, seconds: float = TARE_S) -> bool:
         """Tare on the newest ``seconds`` of frames; False if there are none."""
         rows = newest(self.runtime.ring, max(1, round(seconds * SENSOR_RATE_HZ)))

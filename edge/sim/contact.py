@@ -169,10 +169,6 @@ class Contact:
         self.force = max(force, 0.0)
         return self.force
 
-    @property
-    def in_contact(self) -> bool:
-        return self.force > 0.0
-
     def contact_radius(self) -> float:
         """Radius of the contact patch on a pad for a round object (Hertz a = sqrt(R d))."""
         return math.sqrt(self.inst.cls.size_m * max(self.approach, 0.0))

@@ -301,13 +301,6 @@ class DynamixelBus:
         await self._call("stop", lambda: self._tx.write(motor_id, GOAL_POSITION, goal_position),
                          urgent=True)
 
-    async def stop_past_present(self, motor_id: int, offset_raw: int) -> int:
-        """Ahead of everything queued: read Present Position, write Goal Position =
-        present + ``offset_raw``; returns the goal written (the fallback of
-        :meth:`stop_ahead`)."""
-        record = await self._submit_stop(motor_id, offset_raw, None)
-        return record.goal
-
     async def stop_ahead(self, motor_id: int, offset_raw: int,
                          max_age_s: float = STOP_STATE_MAX_AGE_S) -> StopRecord:
         """Ahead of everything queued, one WRITE of Goal Position = the motor's position
@@ -317,7 +310,7 @@ class DynamixelBus:
         The position is the last one read (:meth:`seen`) moved on by its velocity. A state
         older than ``max_age_s``, read before the motor's last goal write or within
         ``STOP_STATE_SETTLE_S`` of it, or missing, is not trusted: then Present Position is
-        read first (:meth:`stop_past_present`), as many times as :attr:`stop_fallbacks`
+        read first, as many times as :attr:`stop_fallbacks`
         says. Either way the goal lies past where the motor is, so a stop never backs off
         the squeeze.
         """
