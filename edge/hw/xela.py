@@ -27,6 +27,7 @@ import numpy as np
 from edge.core.backoff import Backoff
 from edge.core.config import SensorConfig
 from edge.core.errors import SensorError, SensorLayoutError, StaleSensorError
+from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.hw.contracts import StreamStats, TactileFrame
 
@@ -372,8 +373,9 @@ class XelaClient:
         self._session: aiohttp.ClientSession | None = None
         self._fatal: SensorError | None = None
         self._last_fresh: float | None = None  # monotonic time of the last fresh frame
-        self._connected = False
-        self._connections = 0
+        cap_s = config.reconnect_max_backoff_s
+        self._link = Reconnect(f"XELA server {config.url}",
+                               Backoff(min(_RECONNECT_MIN_BACKOFF_S, cap_s), cap_s), log)
         self._closed = False
         self._stale_reported = False
         # The last stale warning (monotonic), the spells since it that were not warned about,
@@ -383,7 +385,6 @@ class XelaClient:
         self._stale_said = False
         # Set by the first fresh frame, or by a layout refused: what wait_first_frame awaits.
         self._arrived = asyncio.Event()
-        self._last_failure: str | None = None  # why the last connection attempt failed
         # Called with (seq, receive time, time parsed) for each fresh frame: a benchmark's
         # probe (the parse's share of the stop latency); None in production.
         self.on_parsed: Callable[[int, float, float], None] | None = None
@@ -403,7 +404,7 @@ class XelaClient:
 
     @property
     def connected(self) -> bool:
-        return self._connected
+        return self._link.connected
 
     async def start(self) -> None:
         if self._closed:
@@ -423,7 +424,6 @@ class XelaClient:
             await cancel_and_wait(self._task)
         if self._session is not None:
             await self._session.close()
-        self._connected = False
         self._put(_CLOSED)
 
     async def __aenter__(self) -> Self:
@@ -489,15 +489,16 @@ class XelaClient:
         if self._fatal is not None:
             raise self._fatal
         if self._last_fresh is None:
-            if self._connections:
+            if self._link.connections:
                 why = f"connected, but no data frame within {timeout_s:.1f} s"
             else:
-                why = f"unreachable ({self._last_failure or f'no connection in {timeout_s:.1f} s'})"
+                failure = self._link.last_failure or f"no connection in {timeout_s:.1f} s"
+                why = f"unreachable ({failure})"
             raise StaleSensorError(f"sensor server {self._cfg.url} {why}")
 
     def _stale_error(self) -> StaleSensorError:
         age = None if self._last_fresh is None else time.monotonic() - self._last_fresh
-        state = "connected" if self._connected else "not connected"
+        state = "connected" if self.connected else "not connected"
         since = "no frame yet" if age is None else f"last fresh frame {age:.3f} s ago"
         msg = (
             f"XELA stream at {self._cfg.url} is stale: {since} (stale_timeout_s="
@@ -534,46 +535,30 @@ class XelaClient:
         self._queue.put_nowait(item)
 
     async def _run(self) -> None:
-        cap_s = self._cfg.reconnect_max_backoff_s
-        backoff = Backoff(min(_RECONNECT_MIN_BACKOFF_S, cap_s), cap_s)
-        attempt = 0
-        while True:
-            attempt += 1
-            try:
-                if await self._connect_and_read(attempt):
-                    attempt = 0
-                    backoff.reset()
-            except SensorLayoutError as exc:
-                # Not transient: reconnecting gives the same layout. Stop and tell the consumer
-                # (which reports it: logged here too, it would be said twice).
-                self._fatal = exc
-                self._arrived.set()
-                self._put(exc)
-                return
-            except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-                why = str(exc) or type(exc).__name__
-                # Said once per outage and reason: a server that stays away must not flood
-                # the log; the attempt that connects says its number.
-                level = logging.DEBUG if why == self._last_failure else logging.WARNING
-                self._last_failure = why
-                log.log(
-                    level,
-                    "XELA server %s: attempt %d failed (%s); next try in %.2f s",
-                    self._cfg.url,
-                    attempt,
-                    why,
-                    backoff.delay_s,
-                )
-            except Exception:
-                # A bug here must not silently end the sensor path: log loudly, keep trying.
-                log.exception("XELA client: unexpected error; next try in %.2f s",
-                              backoff.delay_s)
-            finally:
-                self._connected = False
-            await asyncio.sleep(backoff.next_s())
+        try:
+            await self._link.run(self._attempt, (aiohttp.ClientError, OSError, TimeoutError),
+                                 fatal=(SensorLayoutError,))
+        except SensorLayoutError as exc:
+            # Not transient: reconnecting gives the same layout. Stop and tell the consumer
+            # (which reports it: logged here too, it would be said twice).
+            self._fatal = exc
+            self._arrived.set()
+            self._put(exc)
 
-    async def _connect_and_read(self, attempt: int) -> bool:
-        """One connection; returns whether it delivered a fresh frame."""
+    async def _attempt(self) -> bool:
+        """One connection; returns whether it delivered a fresh frame (the backoff then
+        starts again from its base: a server that accepts and sends nothing is not dialled
+        at the base rate)."""
+        try:
+            return await self._connect_and_read()
+        except (SensorLayoutError, aiohttp.ClientError, OSError, TimeoutError):
+            raise
+        except Exception:
+            # A bug here must not silently end the sensor path: log loudly, keep trying.
+            log.exception("XELA client: unexpected error; trying again")
+            return False
+
+    async def _connect_and_read(self) -> bool:
         assert self._session is not None
         async with asyncio.timeout(self._cfg.connect_timeout_s):
             ws = await self._session.ws_connect(
@@ -581,18 +566,12 @@ class XelaClient:
                 timeout=aiohttp.ClientWSTimeout(ws_receive=None, ws_close=_CLOSE_TIMEOUT_S),
                 max_msg_size=MAX_FRAME_CHARS,
             )
-        self._connected = True
-        self._last_failure = None
-        if self._connections:
+        if self._link.connections:
             self.stats.reconnects += 1
+        self._link.up()
         self.stats.new_connection()
-        self._connections += 1
-        log.info(
-            "%s XELA server %s (attempt %d)",
-            "reconnected to" if self.stats.reconnects else "connected to",
-            self._cfg.url,
-            attempt,
-        )
+        log.info("%s XELA server %s", "reconnected to" if self.stats.reconnects else "connected to",
+                 self._cfg.url)
         delivered = False
         loop = asyncio.get_running_loop()
         # A server that hangs (or a host that vanished without closing TCP) sends nothing
