@@ -18,7 +18,8 @@ The press never waits for the broker: the runtime's event stream feeds a bounded
 (``mqtt.queue_size``; press states are dropped before results when it is full) that one
 task drains while connected. A message leaves the outbox only once the broker acknowledged
 it (QoS 1), so results produced while the broker is away are published after the
-reconnection (at least once). Reconnection: capped exponential backoff with jitter.
+reconnection (at least once). Reconnection: :mod:`edge.core.reconnect`, its capped exponential
+backoff with jitter.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import functools
 import json
 import logging
 import re
@@ -39,6 +41,7 @@ from typing import Any
 from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
 from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.daemon.api import BadRequest, validate_candidates
 from edge.daemon.state import Health, PressSummary
@@ -55,6 +58,8 @@ HEALTH_REFRESH_S = 60.0
 REMEMBERED = 1000
 # Each reconnect waits 0.8 to 1.2 times the backoff: robots sharing a broker come back apart.
 RECONNECT_SPREAD = (0.8, 1.2)
+# Reading why a connection ended, after it has (the answer is already there).
+_LOSS_READ_S = 0.5
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
 # Statuses that are not an episode's outcome yet.
 _NOT_FINAL = {"pending", "running", "accepted"}
@@ -133,7 +138,10 @@ class MqttBridge:
         self._requests: collections.OrderedDict[str, str | None] = collections.OrderedDict()
         self._published: collections.OrderedDict[str, None] = collections.OrderedDict()
         self.connected = asyncio.Event()
-        self.connections = 0
+        self._link = Reconnect(f"MQTT broker {cfg.host}:{cfg.port}",
+                               Backoff(cfg.reconnect_base_s, cfg.reconnect_max_backoff_s,
+                                       RECONNECT_SPREAD),
+                               log, on_up=self.connected.set, on_loss=self.connected.clear)
         self.dropped = 0
 
     def topic(self, name: str) -> str:
@@ -141,29 +149,19 @@ class MqttBridge:
 
     # --- the connection ------------------------------------------------------------------
     async def run(self) -> None:
+        import aiomqtt
+
         password = await asyncio.to_thread(read_password, self.cfg)
         tls = tls_context(self.cfg)
         pump = asyncio.create_task(self._pump(), name="mqtt-events")
-        backoff = Backoff(self.cfg.reconnect_base_s, self.cfg.reconnect_max_backoff_s,
-                          RECONNECT_SPREAD)
         try:
-            while True:
-                import aiomqtt
-
-                try:
-                    await self._session(password, tls)
-                except aiomqtt.MqttError as exc:
-                    level = logging.WARNING if self.connections else logging.INFO
-                    log.log(level, "MQTT broker %s:%d: %s; retrying in %.1f s", self.cfg.host,
-                            self.cfg.port, exc, backoff.delay_s)
-                if self.connected.is_set():
-                    self.connected.clear()
-                    backoff.reset()  # it was up: start again from the base
-                await asyncio.sleep(backoff.next_s())
+            await self._link.run(functools.partial(self._session, password, tls),
+                                 (aiomqtt.MqttError,))
         finally:
             await cancel_and_wait(pump)
 
-    async def _session(self, password: str | None, tls: ssl.SSLContext | None) -> None:
+    async def _session(self, password: str | None, tls: ssl.SSLContext | None) -> bool:
+        """One connection, from dialling to its loss; raises when it never came up."""
         import aiomqtt
 
         health = self.topic("health")
@@ -175,39 +173,49 @@ class MqttBridge:
             tls_context=tls)
         try:
             await self._connected_session(client)
-        finally:
-            _consume_disconnect(client)
+        except aiomqtt.MqttError as exc:
+            if not self._link.connected:
+                raise  # a failed try: the reconnect loop says it
+            # (The message iterator's error carries the broker's reason as its cause.)
+            log.warning("MQTT broker %s:%d: connection lost (%s)", self.cfg.host,
+                        self.cfg.port, exc.__cause__ or exc)
+        return True
 
     async def _connected_session(self, client: Any) -> None:
         import aiomqtt
 
         health = self.topic("health")
-        async with client:
-            self.connections += 1
-            self.connected.set()
-            log.info("MQTT: connected to %s:%d as %s; topics %s/#", self.cfg.host,
-                     self.cfg.port, self.client_id, self.prefix)
-            try:
-                await client.subscribe([(self.topic("cmd/recognize"), 1),
-                                        (self.topic("cmd/abort"), 1)],
-                                       timeout=self.cfg.publish_timeout_s)
-                tasks = [asyncio.create_task(self._receive(client), name="mqtt-receive"),
-                         asyncio.create_task(self._send(client), name="mqtt-send"),
-                         asyncio.create_task(self._health(client), name="mqtt-health")]
+        try:
+            async with client:
+                self._link.up()
+                log.info("MQTT: connected to %s:%d as %s; topics %s/#", self.cfg.host,
+                         self.cfg.port, self.client_id, self.prefix)
                 try:
-                    done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-                finally:
-                    for task in tasks:
-                        task.cancel()
-                    await asyncio.gather(*tasks, return_exceptions=True)
-                for task in done:
-                    if task.exception() is not None:
-                        raise task.exception()  # type: ignore[misc]
-            except asyncio.CancelledError:
-                # The daemon stops: say so (the will is for a death, not a shutdown).
-                with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-                    await client.publish(health, b"offline", qos=1, retain=True, timeout=1.0)
-                raise
+                    await client.subscribe([(self.topic("cmd/recognize"), 1),
+                                            (self.topic("cmd/abort"), 1)],
+                                           timeout=self.cfg.publish_timeout_s)
+                    tasks = [asyncio.create_task(self._receive(client), name="mqtt-receive"),
+                             asyncio.create_task(self._send(client), name="mqtt-send"),
+                             asyncio.create_task(self._health(client), name="mqtt-health")]
+                    try:
+                        done, _ = await asyncio.wait(tasks,
+                                                     return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        for task in tasks:
+                            task.cancel()
+                        await asyncio.gather(*tasks, return_exceptions=True)
+                    for task in done:
+                        if task.exception() is not None:
+                            raise task.exception()  # type: ignore[misc]
+                except asyncio.CancelledError:
+                    # The daemon stops: say so (the will is for a death, not a shutdown).
+                    with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+                        await client.publish(health, b"offline", qos=1, retain=True,
+                                             timeout=1.0)
+                    raise
+        finally:
+            if self._link.connected:
+                await _read_loss(client)
 
     async def _send(self, client: Any) -> None:
         while True:
@@ -341,13 +349,17 @@ class MqttBridge:
                               "episode": episode.id, "status": str(episode.status)})
 
 
-def _consume_disconnect(client: Any) -> None:
-    """aiomqtt keeps why a connection was lost in a future that only its message iterator
-    reads; when a publish noticed first, read it here (else asyncio logs "Future exception
-    was never retrieved" for it)."""
-    lost = getattr(client, "_disconnected", None)
-    if isinstance(lost, asyncio.Future) and lost.done() and not lost.cancelled():
-        lost.exception()
+async def _read_loss(client: Any) -> None:
+    """Read why a connection that was up ended, once the client has left it: aiomqtt says it
+    to its message iterator only, and when a publish noticed the loss first nobody asked
+    (asyncio would log "Future exception was never retrieved"). Messages still queued go
+    with the connection."""
+    import aiomqtt
+
+    with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+        async with asyncio.timeout(_LOSS_READ_S):
+            async for _ in client.messages:
+                pass
 
 
 def _parse(payload: bytes) -> dict[str, Any]:
