@@ -39,6 +39,7 @@ import numpy as np
 
 from edge.core import recording
 from edge.core.atomic import atomic_write_text
+from edge.core.backoff import Backoff
 from edge.core.errors import EdgeError
 from edge.core.model import ModelRef, model_ref, read_manifest
 from edge.core.preprocess import DEFAULT_WINDOW, WindowSpec
@@ -64,6 +65,8 @@ RECOGNIZE_TIMEOUT_S = 60.0
 # every try is left out (and counted) rather than losing the whole measurement.
 DAEMON_TRIES = 5
 DAEMON_RETRY_PAUSE_S = 2.0
+# The longest pause: the fourth, before the fifth and last try (2, 4, 8, 16 s).
+DAEMON_RETRY_MAX_PAUSE_S = 16.0
 PRESS_FILE = "press.press.npz"
 # Targets (issue 19), held in every run: the daemon's presses sit about as close to the
 # dataset's as those do to each other, none far off, and are re-identified about as often.
@@ -273,9 +276,10 @@ def daemon_recordings(objects: Sequence[str], presses: int, runs: int, config: s
 def _daemon_press(stack, name: str, objects: Sequence[str]) -> tuple[dict | None, int]:
     """One recognition of ``name`` (a new draw of it, as a person puts it back) and the
     tries it took; a press that fails is tried again, up to ``DAEMON_TRIES``."""
+    backoff = Backoff(DAEMON_RETRY_PAUSE_S, DAEMON_RETRY_MAX_PAUSE_S)
     for tries in range(1, DAEMON_TRIES + 1):
         if tries > 1:
-            time.sleep(DAEMON_RETRY_PAUSE_S * 2 ** (tries - 2))
+            time.sleep(backoff.next_s())
         stack.place(name)
         ep = http_json("POST", f"{stack.api}/v1/recognize",
                        {"candidates": list(objects), "wait": True,
