@@ -1,5 +1,6 @@
 """Capped exponential backoff: the one wait policy of every reconnect and retry loop (the
-XELA client, the MQTT bridge, the VLM client, the episodes' VLM retries).
+XELA client and the MQTT bridge through :mod:`edge.core.reconnect`, the bus's port reopening,
+the VLM client, the episodes' VLM retries, the consistency measurement's failed presses).
 
 The wait after the n-th failure in a row (n = 0, 1, ...) is ``base_s * 2**n``, at most
 ``cap_s``. A loop whose peer many clients share (a broker, a VLM server) spreads its waits
