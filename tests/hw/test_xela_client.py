@@ -54,20 +54,29 @@ async def next_frame(client: XelaClient, timeout_s: float, after: float = 0.0) -
 
 
 async def stale_latency(client: XelaClient, switch: Any) -> tuple[float, float]:
-    """Stream, call ``switch()`` after 25 frames, return (s from switch, s from last frame)."""
+    """Stream, call ``switch()`` after 25 frames, return (s from switch, s from last frame).
+
+    A busy host can stall the stream past stale_timeout_s before the switch: that stale spell
+    is not the one measured, so streaming resumes (as a consumer does) and the stalls are
+    counted."""
     last: TactileFrame | None = None
     t_switch = 0.0
-    with pytest.raises(StaleSensorError) as err:
-        async for frame in client.frames(first_timeout_s=STARTUP_TIMEOUT_S):
-            assert client.is_fresh()
-            last = frame
-            if frame.seq == 25:
-                await switch()
-                t_switch = time.monotonic()
+    stalls = 0
+    while True:
+        with pytest.raises(StaleSensorError) as err:
+            async for frame in client.frames(first_timeout_s=STARTUP_TIMEOUT_S):
+                assert client.is_fresh()
+                last = frame
+                if not t_switch and frame.seq >= 25:
+                    await switch()
+                    t_switch = time.monotonic()
+        if t_switch:
+            break
+        stalls += 1
     t_raise = time.monotonic()
-    assert last is not None and t_switch
+    assert last is not None
     assert not client.is_fresh()
-    print(f"\n  {err.value}")
+    print(f"\n  {err.value} ({stalls} stale spells of the busy host before the switch)")
     return t_raise - t_switch, t_raise - last.recv_time
 
 
