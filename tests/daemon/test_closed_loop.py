@@ -33,8 +33,10 @@ async def press_once(robot: SimRobot, cfg: Config, on_state=None, **controller):
     devices = await open_devices(rcfg)
     await enable_torque(devices)
     ring = FrameRing(96, 4000)
+    # Wired as the daemon wires it: a tripped Bus Watchdog (a loaded host's stall) is cleared
+    # between tries to open the gripper.
     controller = PressController(rcfg, devices.gripper, devices.arm, ring, on_state=on_state,
-                                 **controller)
+                                 **{"recover": devices.recover, **controller})
     task = asyncio.create_task(SensorTask(devices.tactile, ring, controller).run())
     try:
         await asyncio.sleep(0.3)
@@ -148,7 +150,7 @@ async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
     # opens on; 0 (the default), or a clearance the opening never reaches, waits for the
     # full opening. Every press ends fully open, arm above.
     cfg = base_config()
-    lifts = {}
+    lifts, full_opening = {}, {}
     for clearance in (0.0, 0.002, 0.02):
         press_cfg = replace(cfg, press=replace(cfg.press, lift_clearance_m=clearance))
         async with SimRobot(OBJECT, seed=1, cfg=press_cfg) as robot:
@@ -156,14 +158,20 @@ async def test_the_arm_lifts_once_the_fingers_are_clear_with_a_lift_clearance():
         assert outcome.result == "ok", outcome.message
         states = dict(outcome.states)
         lifts[clearance] = states["returning"] - states["opening"]
+        # The least time the fingers take from where they stopped to fully open.
+        stopped = [s.width_m for s in outcome.gripper_trace if s.t <= states["opening"]][-1]
+        full_opening[clearance] = (rcfg.press.open_width_m - stopped) / GRIPPER_OPEN_SPEED_MPS
         assert [s for s, _ in outcome.states][-3:] == ["opening", "returning", "idle"]
         assert width == pytest.approx(rcfg.press.open_width_m, abs=0.001)
     print("opening -> lift: " + ", ".join(f"{k * 1e3:g} mm {v:.3f} s" for k, v in lifts.items()))
     assert lifts[0.002] < lifts[0.0] - 0.05
     # Not before the fingers can have opened the clearance (at the gripper's opening speed).
     assert lifts[0.002] >= 0.002 / GRIPPER_OPEN_SPEED_MPS
-    # (One-sided: a loaded host may only make the full opening look slower.)
-    assert lifts[0.02] >= lifts[0.0] - 0.1
+    # A clearance the opening never reaches waits for the full opening, as 0 does: no lift
+    # before the fingers can have opened fully (a bound by the gripper's speed, not by the
+    # other runs' times, which a loaded host stretches one run at a time).
+    for clearance in (0.0, 0.02):
+        assert lifts[clearance] >= full_opening[clearance] - 0.02, (clearance, full_opening)
 
 
 @pytest.mark.asyncio
