@@ -1,12 +1,13 @@
 # Two commands: `make run` (the main job) and `make test`. Each creates .venv if missing and
 # installs what it needs; the install is skipped while pyproject.toml is unchanged.
 # `make test-slow` runs the slow tier (soak and measurement tests); CI runs both.
+# `make test-unit` runs the one-minute part of `make test`, for an answer while editing.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow bench lint clean
+.PHONY: run test test-unit test-slow bench lint clean
 
 # --no-compile: byte-compiling every installed module (torch's thousands) was half the
 # install's time (63 s against 35 s on 2 cores). What the daemon, training and the tests
@@ -31,6 +32,14 @@ TEST_WORKERS ?= 4
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+
+# The tests that need no daemon, process, emulator or trained model (tests/conftest.py marks
+# the others integration, from what each uses): a part of `make test`, not a tier beside it.
+# Two workers: their waits overlap, and each more worker collects every module again.
+UNIT_WORKERS ?= 2
+
+test-unit: $(STAMP)
+	$(PY) -m pytest -q -n $(UNIT_WORKERS) --dist loadgroup -m "not integration"
 
 # The slow tier, one test at a time: its measurements must not share the cores with others.
 test-slow: $(STAMP)

@@ -4,13 +4,20 @@ missing, and fail instead under CI (``CI=true``), which installs them: a skip th
 hide a test that never ran. Under pytest-xdist (``-n N --dist loadgroup``, as ``make test``
 runs), the tests that share one of our module- or session-wide fixtures are put in one
 ``xdist_group``, so that fixture (a daemon, a recorded dataset, a trained model) is built
-once, on one worker; every other test goes to whichever worker is free."""
+once, on one worker; every other test goes to whichever worker is free.
+
+Tests that start a daemon, a process, an emulator or train a model are marked
+``integration`` here, from what the test and its fixtures use (:data:`INTEGRATION`); the rest
+are the one-minute tier, ``make test-unit`` (``-m "not integration"``). A test whose cost the
+rule cannot see carries ``@pytest.mark.integration`` itself."""
 
 from __future__ import annotations
 
+import inspect
 import os
 import signal
 import sys
+import types
 
 import pytest
 
@@ -47,6 +54,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             config.hook.pytest_deselected(items=slow)
             items[:] = [item for item in items if "slow" not in item.keywords]
     _group_shared_fixtures(items)
+    for item in items:
+        if _uses_integration(item):
+            item.add_marker(pytest.mark.integration)
     if hasattr(config, "workerinput"):  # an xdist worker: hand the long tests out first
         items.sort(key=_long_first)
 
@@ -88,6 +98,99 @@ def _group_shared_fixtures(items: list[pytest.Item]) -> None:
             owners_of[item] = owners
     for item, owners in owners_of.items():
         item.add_marker(pytest.mark.xdist_group(find(owners[0]).split("::")[0]))
+
+
+# What makes a test an integration test: the modules that start a daemon (serve's assemble,
+# the Daemon harness), a process (subprocess, the commands, the compute worker's pool), an
+# emulator (the robot, the Dynamixel and XELA emulators, the virtual robot and the recorder
+# that presses on it, the MQTT broker) or train a model (torch: its import alone takes
+# seconds). A test is one when it, its fixtures or the test-module helpers they call name
+# or import anything from these.
+INTEGRATION = frozenset({
+    "subprocess", "multiprocessing", "edge.daemon.serve", "edge.sim.robot",
+    "edge.sim.dxl_emulator", "edge.sim.xela_server", "edge.sim.virtual", "edge.tools.record",
+    "tests.support.daemon", "tests.support.processes", "tests.support.mosquitto",
+    "tests.support.presses", "tests.support.lab_data", "train.trainer", "train.release",
+    "train.build", "torch", "edge.daemon.compute.ComputeWorker",
+})
+# A test of the unit tier slower than this is named at the end of the run: mark it (or what
+# it uses) integration, or make it cheaper. Generous: the tier's tests take milliseconds.
+UNIT_TEST_BUDGET_S = 5.0
+
+
+def _uses_integration(item: pytest.Item) -> bool:
+    if item.get_closest_marker("integration"):
+        return True
+    functions = [getattr(item, "function", None)]
+    info = getattr(item, "_fixtureinfo", None)
+    if info is not None:
+        functions += [d.func for name in item.fixturenames
+                      for d in info.name2fixturedefs.get(name, ())]
+    return any(_names_integration(f, set()) for f in functions if f is not None)
+
+
+def _names_integration(obj: object, seen: set[int]) -> bool:
+    """Whether a function (or a class's methods) defined under tests/ names anything from
+    :data:`INTEGRATION`, directly or through the tests' own helpers it names."""
+    obj = inspect.unwrap(getattr(obj, "__func__", obj))
+    if id(obj) in seen:
+        return False
+    seen.add(id(obj))
+    if isinstance(obj, type):
+        return any(_names_integration(v, seen) for v in vars(obj).values()
+                   if inspect.isfunction(v))
+    code = getattr(obj, "__code__", None)
+    if code is None:
+        return False
+    found = _global_names(code)
+    if any(_in_integration(name) for name in found):  # an import inside the function
+        return True
+    for name in found:
+        value = obj.__globals__.get(name)
+        module = value.__name__ if isinstance(value, types.ModuleType) else getattr(
+            value, "__module__", None)
+        if module is None:
+            continue
+        if _in_integration(f"{module}.{getattr(value, '__qualname__', '')}"):
+            return True
+        if module.startswith("tests.") and (inspect.isfunction(value) or isinstance(value, type)) \
+                and _names_integration(value, seen):
+            return True
+    return False
+
+
+def _in_integration(name: str) -> bool:
+    """``name`` (a module, or a module's class or function) or a package above it is in
+    :data:`INTEGRATION`."""
+    parts = name.split(".")
+    return any(".".join(parts[:n]) in INTEGRATION for n in range(1, len(parts) + 1))
+
+
+def _global_names(code: types.CodeType) -> set[str]:
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _global_names(const)
+    return names
+
+
+_slow_units: list[tuple[str, float]] = []
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    # On xdist's controller too: the reports carry each test's keywords and duration.
+    if (report.when == "call" and report.duration > UNIT_TEST_BUDGET_S
+            and "integration" not in report.keywords):
+        _slow_units.append((report.nodeid, report.duration))
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    if _slow_units:
+        terminalreporter.section("unit tests over their budget")
+        for nodeid, took in _slow_units:
+            terminalreporter.write_line(
+                f"{nodeid}: {took:.1f} s > {UNIT_TEST_BUDGET_S} s: mark it integration "
+                "(tests/conftest.py) or make it cheaper")
 
 
 def pytest_configure(config: pytest.Config) -> None:

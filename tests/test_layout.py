@@ -189,3 +189,32 @@ def test_no_module_takes_another_modules_private_names():
              for line, name in _private_uses(path, set(paths))]
     assert not taken, ("private names used across modules (make them public where they are "
                        "defined):\n" + "\n".join(taken))
+
+
+def _starts_a_process() -> None:
+    subprocess.run(["true"], check=True)
+
+
+def _calls_a_helper_that_does() -> None:
+    _starts_a_process()
+
+
+def _records_a_press() -> None:
+    from edge.tools.record import record_press
+
+    record_press("cube", 0)
+
+
+def _reads_the_layout() -> list[tuple[int, str]]:
+    return _imports(ROOT / "edge" / "__main__.py")
+
+
+def test_the_unit_tier_leaves_out_what_starts_a_process_or_an_emulator():
+    """tests/conftest.py marks a test integration from what it names, through the tests'
+    own helpers and imports inside it too; `make test-unit` runs the rest."""
+    from tests.conftest import _names_integration
+
+    assert _names_integration(_starts_a_process, set())
+    assert _names_integration(_calls_a_helper_that_does, set())
+    assert _names_integration(_records_a_press, set())
+    assert not _names_integration(_reads_the_layout, set())
