@@ -125,7 +125,7 @@ def _uses_integration(item: pytest.Item) -> bool:
     info = getattr(item, "_fixtureinfo", None)
     if info is not None:
         functions += [d.func for name in item.fixturenames
-                      for d in info.name2fixturedefs.get(name, ())]
+                      for d in info.name2fixturedefs.get(name, ()) if d.baseid.startswith("tests")]
     return any(_names_integration(f, set()) for f in functions if f is not None)
 
 
