@@ -230,9 +230,24 @@ async def recording_events(d: Daemon) -> AsyncIterator[list[dict[str, Any]]]:
             await task
 
 
+# Press failures that name a loaded host, not the code a VLM test is about: the stream stale
+# for a moment, or a stall past the Bus Watchdog (both seen beside a two-core CPU hog). The
+# press did what it must (failed, gripper opened); recognize() presses again.
+LOADED_HOST_ERRORS = ("went stale", "Bus Watchdog has tripped")
+LOADED_HOST_TRIES = 3
+
+
 async def recognize(d: Daemon) -> dict[str, Any]:
-    """One recognition of the FOOD candidates, waited for; its press must have touched."""
-    status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
-    assert status == 200, ep
-    assert ep["press"]["contact"], ep
-    return ep
+    """One recognition of the FOOD candidates, waited for; its press must have touched (one
+    that failed for a loaded host's reason is pressed again, up to LOADED_HOST_TRIES)."""
+    for attempt in range(1, LOADED_HOST_TRIES + 1):
+        status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
+        assert status == 200, ep
+        error = ep.get("error") or ""
+        if (ep["status"] == "failed" and attempt < LOADED_HOST_TRIES
+                and any(e in error for e in LOADED_HOST_ERRORS)):
+            print(f"  press {attempt} failed on a loaded host, pressed again: {error}")
+            continue
+        assert ep["press"]["contact"], ep
+        return ep
+    raise AssertionError("unreachable")
