@@ -127,14 +127,17 @@ def record_press(name: str, rng: np.random.Generator | int = 0, *, cfg: Config |
     cfg = class_config(cfg or sim_config(), cls, x_th)
     rng = np.random.default_rng(rng)
     skin = skin or robot_pads(0, PadLayout.of(cfg.sensor))
-    # The drivers' start-up lines, once per press, would bury the recorder's own output.
-    drivers = logging.getLogger("edge.hw")
-    level = drivers.level
-    drivers.setLevel(max(level, logging.WARNING))
+    # The drivers' and the emulated motors' start-up lines (torque on, torque off), once per
+    # press, would bury the recorder's own output.
+    quiet = [logging.getLogger(n) for n in ("edge.hw", "edge.sim.dxl_emulator")]
+    levels = [q.level for q in quiet]
+    for q, level in zip(quiet, levels, strict=True):
+        q.setLevel(max(level, logging.WARNING))
     try:
         return _press_tries(cfg, cls.name, rng, skin, transport, window, t0)
     finally:
-        drivers.setLevel(level)
+        for q, level in zip(quiet, levels, strict=True):
+            q.setLevel(level)
 
 
 def _press_tries(cfg: Config, name: str, rng: np.random.Generator, skin: SkinDraw,
