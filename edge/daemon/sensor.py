@@ -143,10 +143,12 @@ class SensorTask:
                         await controller.check(frame.raw, frame.recv_time)
                     if controller.sensor_is_stale:
                         controller.sensor_fresh()
-                        log.info("tactile stream fresh again")
+                        log.debug("tactile stream fresh again")
             except StaleSensorError as exc:
+                # The source has said so (the XELA client, at most once a minute with a count
+                # of the spells between): a warning here too would repeat every spell.
                 if not self.controller.sensor_is_stale:
-                    log.warning("%s", exc)
+                    log.debug("%s", exc)
                 self.stale_events += 1
                 self.controller.sensor_stale(exc)
             except SensorLayoutError as exc:
