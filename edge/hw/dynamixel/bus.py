@@ -244,7 +244,11 @@ class DynamixelBus:
         for last in (False, True):
             if self._port_fault is not None:
                 await self._stop_reopen()
-                await self._reopen_within(PORT_BACK_WAIT_S)
+                # Tried often, for a moment: a line that glitched is back under its path a
+                # moment later (a USB adapter re-enumerating; on a loaded host, even the
+                # emulator's), and a single try at that moment would leave torque on.
+                await self._reopen_port(Backoff(SHUTDOWN_REOPEN_RETRY_S, SHUTDOWN_REOPEN_RETRY_S),
+                                        PORT_BACK_WAIT_S)
             try:
                 await self.set_torque(False)
                 return
@@ -402,41 +406,30 @@ class DynamixelBus:
                 self._reopen_task = asyncio.create_task(self._reopen(), name="dxl-port-reopen")
 
     async def _reopen(self) -> None:
-        """Reopen the port until the motors answer on it again, with a capped backoff."""
-        backoff = Backoff(PORT_REOPEN_BASE_S, PORT_REOPEN_CAP_S)
-        t_failed = self._clock()
+        """The background reopening after a port error (see ``_call``)."""
         try:
-            while True:
-                await asyncio.sleep(backoff.next_s())
-                try:
-                    await self._executor.submit("reopen port", self._reopen_sync)
-                except DeviceError as exc:
-                    _log.log(logging.WARNING if backoff.failures == 1 else logging.DEBUG,
-                             "reopening the Dynamixel port failed (again in %.2f s): %s",
-                             backoff.delay_s, exc)
-                    continue
-                self._port_up.set()
-                _log.info("Dynamixel port %s is back %.2f s after its error", self._config.port,
-                          self._clock() - t_failed)
-                return
+            await self._reopen_port(Backoff(PORT_REOPEN_BASE_S, PORT_REOPEN_CAP_S))
         finally:
             self._reopen_task = None
 
-    async def _reopen_within(self, wait_s: float) -> None:
-        """Reopen the port, trying again every ``SHUTDOWN_REOPEN_RETRY_S`` for up to
-        ``wait_s``: a line that glitched comes back under its path a moment later (a USB
-        adapter re-enumerating; on a loaded host, even the emulator's), and a single try at
-        that moment would leave torque on."""
-        deadline = self._clock() + wait_s
+    async def _reopen_port(self, backoff: Backoff, give_up_s: float = math.inf) -> None:
+        """Reopen the port until the motors answer on it again, waiting ``backoff`` before
+        each try; the last try's :class:`DeviceError` once ``give_up_s`` have passed."""
+        t_failed = self._clock()
         while True:
+            await asyncio.sleep(backoff.next_s())
             try:
                 await self._executor.submit("reopen port", self._reopen_sync)
-            except DeviceError:
-                if self._clock() >= deadline:
+            except DeviceError as exc:
+                if self._clock() - t_failed >= give_up_s:
                     raise
-                await asyncio.sleep(SHUTDOWN_REOPEN_RETRY_S)
+                _log.log(logging.WARNING if backoff.failures == 1 else logging.DEBUG,
+                         "reopening the Dynamixel port failed (again in %.2f s): %s",
+                         backoff.delay_s, exc)
                 continue
             self._port_up.set()
+            _log.info("Dynamixel port %s is back %.2f s after its error", self._config.port,
+                      self._clock() - t_failed)
             return
 
     async def _feed_watchdog(self) -> None:
