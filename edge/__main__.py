@@ -1,10 +1,10 @@
 """The ``vt-edge`` command (``python -m edge``). Its first instruction holds SIGHUP and SIGTERM
 for ``vt-edge run``, before the command line's modules are imported (about a second on a busy
-host): one sent while the daemon starts is never fatal (edge/daemon/signals.py)."""
+host): one sent while the daemon starts is never fatal (edge/runtime/signals.py)."""
 
 import sys
 
-from edge.daemon import signals
+from edge.runtime import signals
 
 
 def main() -> int:

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from edge import SERVICE_NAME, __version__
 from edge.core.errors import EdgeError
 from edge.core.logs import setup_logging
-from edge.daemon.episode import Status
+from edge.runtime.episode import Status
 
 log = logging.getLogger(__name__)
 
@@ -32,8 +32,8 @@ MODELS_DIR = "/opt/vtzero/models"
 def _cmd_sim_record(args: argparse.Namespace) -> int:
     from edge.core.config import load_config
     from edge.core.progress import Progress
+    from edge.lab.record import record_dataset
     from edge.sim.catalogue import DATASETS
-    from edge.tools.record import record_dataset
 
     cfg = load_config(args.config)
     total = len(DATASETS[args.dataset]) * args.presses
@@ -50,7 +50,7 @@ def _cmd_sim_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim_press(args: argparse.Namespace) -> int:
-    from edge.tools.press_table import print_press_table
+    from edge.lab.press_table import print_press_table
 
     print_press_table(args.objects, seed=args.seed, x_th=args.x_th)
     return 0
@@ -66,7 +66,7 @@ def _cmd_sim_vlm(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim_consistency(args: argparse.Namespace) -> int:
-    from edge.tools.consistency import run_consistency
+    from edge.lab.consistency import run_consistency
 
     command = "vt-edge sim consistency " + " ".join(sys.argv[3:]) if len(sys.argv) > 3 else (
         "vt-edge sim consistency")
@@ -78,22 +78,22 @@ def _cmd_sim_consistency(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from edge.tools.demo import run_demo
+    from edge.lab.demo import run_demo
 
     return run_demo(args.config)
 
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
-    from edge.tools.doctor import main
+    from edge.ops.doctor import main
 
     return main(args.config, args.json)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from edge.daemon import forkserver
+    from edge.runtime import forkserver
 
-    forkserver.start()  # its imports beside the daemon's below (edge/daemon/forkserver.py)
-    from edge.daemon.serve import run
+    forkserver.start()  # its imports beside the daemon's below (edge/runtime/forkserver.py)
+    from edge.app import run
 
     return run(args.config)
 
@@ -219,9 +219,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from edge.core.config import load_config
-    from edge.tools.collect import CollectReport, collect_plan
-    from edge.tools.plan import load_plan, plan_of_one
-    from edge.tools.prompt import read_line
+    from edge.core.prompt import read_line
+    from edge.lab.collect import CollectReport, collect_plan
+    from edge.lab.plan import load_plan, plan_of_one
 
     cfg = load_config(args.config)
     if (args.plan is None) == (args.label is None):
@@ -246,8 +246,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
 
 
 def _cmd_dataset_summary(args: argparse.Namespace) -> int:
-    from edge.tools.dataset import format_summary, summarize
-    from edge.tools.plan import load_plan
+    from edge.lab.dataset import format_summary, summarize
+    from edge.lab.plan import load_plan
 
     summary = summarize(args.dir, load_plan(args.plan) if args.plan else None)
     print(format_summary(summary))
@@ -258,7 +258,7 @@ def _cmd_pose_teach(args: argparse.Namespace) -> int:
     import asyncio
 
     from edge.core.config import load_config
-    from edge.tools.pose import teach_pose
+    from edge.ops.pose import teach_pose
 
     asyncio.run(teach_pose(load_config(args.config), args.config, args.name))
     return 0
@@ -268,8 +268,8 @@ def _cmd_calibrate_threshold(args: argparse.Namespace) -> int:
     import asyncio
 
     from edge.core.config import load_config
-    from edge.tools.calibrate import calibrate_threshold
-    from edge.tools.prompt import read_line
+    from edge.core.prompt import read_line
+    from edge.ops.calibrate import calibrate_threshold
 
     # Options left out take the procedure's own defaults.
     given = {k: v for k, v in (("force_ma", args.force_ma), ("max_ma", args.max_ma),
@@ -288,14 +288,14 @@ def _cmd_pose_goto(args: argparse.Namespace) -> int:
     import asyncio
 
     from edge.core.config import load_config
-    from edge.tools.pose import goto_pose
+    from edge.ops.pose import goto_pose
 
     asyncio.run(goto_pose(load_config(args.config), args.name))
     return 0
 
 
 def _cmd_models_install(args: argparse.Namespace) -> int:
-    from edge.tools.models import describe, install_models
+    from edge.ops.models import describe, install_models
 
     if args.config is not None:
         from edge.core.config import load_config
@@ -313,7 +313,7 @@ def _cmd_models_install(args: argparse.Namespace) -> int:
 
 
 def _cmd_install_udev(args: argparse.Namespace) -> int:
-    from edge.daemon import udev
+    from edge.deploy import udev
 
     if not args.install:
         print(udev.rules_text(), end="")
@@ -324,7 +324,7 @@ def _cmd_install_udev(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from edge.tools.bench import run_bench
+    from edge.bench import run_bench
 
     return run_bench(args)
 
@@ -334,13 +334,13 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from edge.core.config import load_config
-    from edge.daemon.episode import Status
-    from edge.daemon.store import EpisodeStore
+    from edge.runtime.episode import Status
+    from edge.runtime.store import EpisodeStore
 
     cfg = load_config(args.config)
     store = EpisodeStore(Path(cfg.runtime.state_dir) / "episodes")
     if args.episodes_command == "retry":
-        from edge.tools.episode_retry import run_retry
+        from edge.ops.episode_retry import run_retry
 
         return run_retry(cfg, store, args.id, args.all_failed, args.url)
     if args.episodes_command == "list":
@@ -352,11 +352,11 @@ def _cmd_episodes(args: argparse.Namespace) -> int:
     elif args.episodes_command == "show":
         print(json.dumps(store.get(args.id).to_json(), indent=2))
     elif args.format in ("rosbag2", "lerobot"):
-        from edge.tools.export import export_episodes
+        from edge.ops.export import export_episodes
 
         print(export_episodes(store, args.id, args.format, args.out))
     else:
-        from edge.daemon.mcaplog import export_episode
+        from edge.recordings.mcaplog import export_episode
 
         for eid in args.id:
             print(export_episode(store, eid, args.out) if args.format == "mcap"
@@ -374,14 +374,14 @@ def _first_words(text: str, width: int = LIST_TEXT_CHARS) -> str:
 
 
 def _cmd_dataset_export(args: argparse.Namespace) -> int:
-    from edge.tools.export import export_collection
+    from edge.ops.export import export_collection
 
     print(export_collection(args.dir, args.out))
     return 0
 
 
 def _cmd_install_service(args: argparse.Namespace) -> int:
-    from edge.daemon.install import install_service
+    from edge.deploy.install import install_service
 
     return install_service(args.config, args.user, create_user=args.create_user,
                            write=args.install)

@@ -65,7 +65,8 @@ SHARED_SCOPES = ("class", "module", "package", "session")
 # The directories of the long end-to-end tests (collect, train, the lab's path, processes
 # killed and restarted). xdist hands out the groups, largest first, then single tests in
 # this order: a long test handed out last would run on alone while the other workers idle.
-LONG_FIRST = ("tests/tools/", "tests/faults/", "tests/daemon/")
+LONG_FIRST = ("tests/lab/", "tests/ops/", "tests/faults/", "tests/app/", "tests/runtime/",
+              "tests/interfaces/", "tests/recordings/")
 
 
 def _long_first(item: pytest.Item) -> int:
@@ -107,11 +108,11 @@ def _group_shared_fixtures(items: list[pytest.Item]) -> None:
 # seconds). A test is one when it, its fixtures or the test-module helpers they call name
 # or import anything from these.
 INTEGRATION = frozenset({
-    "subprocess", "multiprocessing", "edge.daemon.serve", "edge.sim.robot",
-    "edge.sim.dxl_emulator", "edge.sim.xela_server", "edge.sim.virtual", "edge.tools.record",
+    "subprocess", "multiprocessing", "edge.app", "edge.sim.robot",
+    "edge.sim.dxl_emulator", "edge.sim.xela_server", "edge.sim.virtual", "edge.lab.record",
     "tests.support.daemon", "tests.support.processes", "tests.support.mosquitto",
-    "tests.support.presses", "tests.support.lab_data", "train.trainer", "train.release",
-    "train.build", "torch", "edge.daemon.compute.ComputeWorker",
+    "tests.support.presses", "tests.support.lab_data", "train.learn.trainer", "train.ship.release",
+    "train.ship.build", "torch", "edge.runtime.compute.ComputeWorker",
 })
 # A test of the unit tier slower than this is named at the end of the run: mark it (or what
 # it uses) integration, or make it cheaper. Generous: the tier's tests take milliseconds.

@@ -3,8 +3,8 @@ import sys
 
 from edge.core import recording
 from edge.core.recording import DATASET_INDEX
-from edge.daemon.episode import Episode, Status
-from edge.daemon.store import new_id
+from edge.runtime.episode import Episode, Status
+from edge.runtime.store import new_id
 
 
 def run(*args, **kw):
@@ -39,7 +39,7 @@ def test_bad_arguments_exit_nonzero():
 
 
 def test_episodes_list_show_export(tmp_path):
-    from edge.daemon.store import EpisodeStore
+    from edge.runtime.store import EpisodeStore
 
     store = EpisodeStore(tmp_path / "episodes")
     eid = store.create(Episode(new_id(), Status.DONE, label="macaron", description="soft"), {})
@@ -58,7 +58,7 @@ def test_episodes_list_show_export(tmp_path):
 def test_a_file_the_command_cannot_write_is_one_line_not_a_traceback(tmp_path, monkeypatch,
                                                                       caplog):
     from edge.cli import main
-    from edge.daemon import udev
+    from edge.deploy import udev
 
     def refused(*_args, **_kw):
         raise PermissionError(13, "Permission denied", "/etc/udev/rules.d/60-vtzero.rules")
@@ -94,7 +94,7 @@ def test_config_before_or_after_the_subcommand_and_the_retry_line(tmp_path):
 
 
 def test_episodes_list_shows_why_an_episode_failed(tmp_path):
-    from edge.daemon.store import EpisodeStore
+    from edge.runtime.store import EpisodeStore
 
     store = EpisodeStore(tmp_path / "episodes")
     why = ("HTTP 400 from http://vlm.lab:8000/v1: model 'qwen' does not support images; "

@@ -48,7 +48,7 @@ def test_the_daemons_own_process_imports_no_scipy_nor_onnxruntime():
     # Both belong to other processes (training smooths, the compute process encodes); in the
     # daemon's they cost its start a second (READY 2.0 s against 0.95 s on a two-core host)
     # and its memory.
-    code = ("import sys, edge.daemon.serve\n"
+    code = ("import sys, edge.app\n"
             "print(sorted(m for m in ('scipy', 'onnxruntime', 'torch') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert out.returncode == 0, out.stderr

@@ -1,11 +1,11 @@
 """The layout is the architecture: imports run one way.
 
-edge.core <- edge.hw <- edge.daemon <- edge.tools (and the CLI); the VLM package uses the core
-only and serves the daemon, the tools and training; edge.sim and train may use the core (the
-simulator also the hardware contracts and tables, train the simulator and the tools: the
-dataset recorder, which presses with the daemon's own press controller, and the bench's
-results file); nothing in edge imports train, the daemon never loads the simulator, and
-importing train loads no press machinery until a dataset is recorded.
+edge.core <- edge.hw, edge.vlm <- edge.runtime <- edge.interfaces, edge.recordings <- edge.app
+<- edge.ops, edge.lab, edge.bench <- edge.cli (see ALLOWED); edge.sim and train may use the
+core (the simulator also the hardware contracts and tables, train the simulator, the dataset
+recorder, which presses with the runtime's own press controller, and the bench's results
+file); nothing in edge imports train, the daemon never loads the simulator, and importing
+train loads no press machinery until a dataset is recorded. No exception per file.
 """
 
 from __future__ import annotations
@@ -19,21 +19,36 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Which packages each layer may import (besides itself and the stdlib/third parties).
-ALLOWED = {
-    "edge.core": {"edge", "edge.core"},
-    "edge.vlm": {"edge", "edge.core", "edge.vlm"},
-    "edge.hw": {"edge", "edge.core", "edge.hw"},
-    "edge.daemon": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon"},
-    "edge.sim": {"edge", "edge.core", "edge.hw", "edge.sim"},
-    "edge.tools": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon", "edge.sim",
-                   "edge.tools"},
-    "edge.cli": {"edge", "edge.core", "edge.vlm", "edge.hw", "edge.daemon", "edge.sim",
-                 "edge.tools"},
-    "edge.__main__": {"edge", "edge.cli", "edge.daemon"},
-    "edge": {"edge"},
-    "train": {"edge", "edge.core", "edge.vlm", "edge.sim", "edge.tools", "train"},
-}
+def _below(*layers: str) -> set[str]:
+    """``layers`` and everything they may import."""
+    return {"edge", *layers}.union(*(ALLOWED[layer] for layer in layers if layer in ALLOWED))
+
+
+# Which rooms each room may import (besides the stdlib and third parties), built bottom up:
+# core < hw, vlm < runtime < interfaces, recordings < app < ops, lab, bench < cli. The
+# simulator sits beside: it may use the core and the hardware contracts and tables, and the
+# tools that drive or measure the emulated robot may use it.
+ALLOWED: dict[str, set[str]] = {}
+ALLOWED["edge.core"] = _below("edge.core")
+ALLOWED["edge.vlm"] = _below("edge.vlm", "edge.core")
+ALLOWED["edge.hw"] = _below("edge.hw", "edge.core")
+ALLOWED["edge.sim"] = _below("edge.sim", "edge.hw")
+ALLOWED["edge.runtime"] = _below("edge.runtime", "edge.hw", "edge.vlm")
+ALLOWED["edge.interfaces"] = _below("edge.interfaces", "edge.runtime")
+ALLOWED["edge.recordings"] = _below("edge.recordings", "edge.runtime")
+ALLOWED["edge.deploy"] = _below("edge.deploy", "edge.core")
+ALLOWED["edge.app"] = _below("edge.app", "edge.interfaces", "edge.recordings")
+ALLOWED["edge.ops"] = _below("edge.ops", "edge.app", "edge.sim")
+ALLOWED["edge.lab"] = _below("edge.lab", "edge.app", "edge.sim")
+ALLOWED["edge.bench"] = _below("edge.bench", "edge.lab")
+ALLOWED["edge.cli"] = _below("edge.cli", "edge.ops", "edge.bench", "edge.deploy")
+# The entry point holds the daemon's signals (edge.runtime.signals) before it loads the CLI.
+ALLOWED["edge.__main__"] = {"edge", "edge.runtime", "edge.cli"}
+ALLOWED["edge"] = {"edge"}
+# Training uses the core, the VLM client, the simulator, the dataset recorder (which presses
+# with the runtime's own press controller) and the bench's results file.
+ALLOWED["train"] = {"train", "edge", "edge.core", "edge.vlm", "edge.sim", "edge.lab",
+                    "edge.bench"}
 
 
 def _module(path: Path) -> str:
@@ -73,24 +88,24 @@ def test_imports_run_one_way():
     assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
 
 
-@pytest.mark.parametrize("module", ["edge.daemon.serve", "edge.daemon.lifecycle", "edge.cli"])
+@pytest.mark.parametrize("module", ["edge.app", "edge.runtime.lifecycle", "edge.cli"])
 def test_the_daemon_loads_neither_training_nor_the_simulator(module):
     code = (f"import sys, {module}; "
             "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith('train') "
-            "or m.startswith('edge.sim') or m.startswith('edge.tools')))")
+            "or m.startswith('edge.sim') or m.startswith(('edge.ops', 'edge.lab', 'edge.bench'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout.strip()
     assert out == "[]", f"importing {module} loaded {out}"
 
 
 def test_importing_train_loads_no_press_machinery():
-    """Only recording a dataset (edge.tools.record, imported where it records) loads the
+    """Only recording a dataset (edge.lab.record, imported where it records) loads the
     daemon's press controller, the drivers and the virtual robot."""
     code = ("import importlib, pkgutil, sys, train; "
             "[importlib.import_module(m.name) for m in pkgutil.walk_packages(train.__path__, "
             "'train.') if not m.name.endswith('__main__')]; "
-            "print(sorted(m for m in sys.modules if m.startswith(('edge.daemon', 'edge.hw', "
-            "'edge.tools.record', 'edge.sim.virtual'))))")
+            "print(sorted(m for m in sys.modules if m.startswith(('edge.runtime', 'edge.hw', "
+            "'edge.lab.record', 'edge.sim.virtual'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=ROOT, check=True).stdout.strip()
     assert out == "[]", f"importing train loaded {out}"
@@ -200,7 +215,7 @@ def _calls_a_helper_that_does() -> None:
 
 
 def _records_a_press() -> None:
-    from edge.tools.record import record_press
+    from edge.lab.record import record_press
 
     record_press("cube", 0)
 

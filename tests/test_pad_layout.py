@@ -17,13 +17,17 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from edge.app import assemble
 from edge.core import recording
 from edge.core.config import Config, load_config
 from edge.core.errors import ConfigError, StartError
 from edge.core.layout import XR1944, PadLayout
 from edge.core.model import load_model, model_ref
-from edge.daemon import lerobot, mcaplog
-from edge.daemon.serve import assemble
+from edge.lab.collect import collect_plan
+from edge.lab.plan import load_plan
+from edge.lab.record import record_press, sim_config
+from edge.ops.doctor import Level, _check_model
+from edge.recordings import lerobot, mcaplog
 from edge.sim.catalogue import get
 from edge.sim.contact import ObjectInstance
 from edge.sim.fake_vlm import FakeVLM, Reply
@@ -31,12 +35,8 @@ from edge.sim.robot import SimRobot
 from edge.sim.skin import TAXEL_PITCH_M, Skin
 from edge.sim.world import robot_pads
 from edge.sim.xela_replay import load_replay
-from edge.tools.collect import collect_plan
-from edge.tools.doctor import Level, _check_model
-from edge.tools.plan import load_plan
-from edge.tools.record import record_press, sim_config
-from tests.daemon.test_operator_api import sse_frames
-from tests.daemon.test_start_checks import torque_registers, vt_edge_run
+from tests.app.test_start_checks import torque_registers, vt_edge_run
+from tests.interfaces.test_operator_api import sse_frames
 from tests.support.daemon import ROOT, Daemon, base_config
 from train.cli import main as train_main
 
@@ -191,7 +191,7 @@ async def test_a_4x6_robot_collects_builds_and_recognises_and_each_model_fits_it
             # 4 x 6 one goes on answering.
             shutil.rmtree(live)
             shutil.copytree(ROOT / "models", live)
-            caplog.set_level(logging.ERROR, "edge.daemon.lifecycle")
+            caplog.set_level(logging.ERROR, "edge.runtime.lifecycle")
             assert await d.runtime.reload() is False
             assert "reload refused" in caplog.text and "expects 96 channels" in caplog.text
             assert d.runtime.model.digest == model_ref(models).digest
@@ -255,7 +255,7 @@ def test_a_4x6_press_recording_names_its_pads_and_replays_as_them(tmp_path):
 
 def test_a_model_for_other_pads_with_the_same_channel_count_is_refused():
     from edge.core.model import ModelLayout
-    from edge.daemon.startcheck import model_mismatch
+    from edge.runtime.startcheck import model_mismatch
 
     two_pads = base_config().sensor  # 2 pads x 16 taxels = 96 channels
     assert model_mismatch(two_pads, ModelLayout(96, 2, 16)) is None

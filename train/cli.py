@@ -26,8 +26,8 @@ TRAIN_EXTRA_MODULES = ("torch", "onnx", "matplotlib")
 
 def _cmd_record(args: argparse.Namespace) -> int:
     from edge.core.progress import Progress
+    from edge.lab.record import record_dataset
     from edge.sim.catalogue import DATASETS
-    from edge.tools.record import record_dataset
 
     total = len(DATASETS[args.dataset]) * args.presses
     with Progress(f"record {args.dataset}", total, "presses") as bar:
@@ -39,15 +39,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _splits(args: argparse.Namespace):
-    from train.data import Splits
+    from train.learn.data import Splits
 
     return Splits.from_file(args.splits) if args.splits else None
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from train.data import training_data
-    from train.model import ModelConfig
-    from train.trainer import CHECKPOINT, TRAIN_LOG, Progress, TrainConfig, train
+    from train.learn.data import training_data
+    from train.learn.model import ModelConfig
+    from train.learn.trainer import CHECKPOINT, TRAIN_LOG, Progress, TrainConfig, train
 
     data = training_data(args.recordings, _splits(args))
     config = TrainConfig(
@@ -65,9 +65,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     import numpy as np
 
     from edge.core.model import ENCODER_FILE
-    from train.data import load_presses
-    from train.export import check_parity, export_onnx, parity
-    from train.trainer import load_checkpoint
+    from train.learn.data import load_presses
+    from train.learn.trainer import load_checkpoint
+    from train.ship.export import check_parity, export_onnx, parity
 
     model, norm, _ = load_checkpoint(args.checkpoint)
     out = Path(args.out)
@@ -83,7 +83,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_db_build(args: argparse.Namespace) -> int:
-    from train.database import build_into
+    from train.ship.database import build_into
 
     db = build_into(args.model, args.recordings, _splits(args), args.space, args.k)
     print(f"database: {len(db)} references of {len(db.classes)} classes in {args.model}")
@@ -91,7 +91,7 @@ def _cmd_db_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_db_add(args: argparse.Namespace) -> int:
-    from train.database import add_class
+    from train.ship.database import add_class
 
     db = add_class(args.model, args.recordings, args.label, args.description,
                    relabel=args.relabel, force=args.force, allow_test=args.allow_test)
@@ -101,9 +101,9 @@ def _cmd_db_add(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from edge.core.model import load_model
-    from train import evaluate
-    from train.data import PressSet, Splits, load_presses
-    from train.trainer import embed, load_checkpoint
+    from train.eval import evaluate
+    from train.learn.data import PressSet, Splits, load_presses
+    from train.learn.trainer import embed, load_checkpoint
 
     model = load_model(args.model)
     splits = _splits(args) or Splits.of_dataset(args.reference)
@@ -135,8 +135,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import eval_vlm
-    from train.manifest import read_raw
+    from train.eval import eval_vlm
+    from train.ship.manifest import read_raw
 
     vlm = _vlm_settings(args)
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
@@ -197,9 +197,9 @@ def _comparisons(args: argparse.Namespace) -> dict[str, Path | None]:
     """--reference, --beta, --zeros as given, else what a model directory `vt-train build`
     made holds (its dataset, its comparison checkpoints; None where it has none), else (the
     simulated release) the release's."""
-    from train.build import checkpoints
-    from train.eval_vlm import model_facts
-    from train.manifest import read_raw
+    from train.eval.eval_vlm import model_facts
+    from train.ship.build import checkpoints
+    from train.ship.manifest import read_raw
 
     model_dir = Path(args.model_dir)
     manifest = read_raw(model_dir) if model_dir.is_dir() else {}
@@ -225,7 +225,7 @@ def _reference(args: argparse.Namespace) -> Path:
 def _cmd_table1(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import eval_vlm, table1
+    from train.eval import eval_vlm, table1
 
     first = _vlm_settings(args)
     second = None
@@ -252,7 +252,7 @@ def _cmd_table1(args: argparse.Namespace) -> int:
 def _cmd_fig6(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train import eval_vlm, fig6
+    from train.eval import eval_vlm, fig6
 
     cfg = fig6.Fig6Config(
         vlm=_vlm_settings(args), out=Path(args.out), work=Path(args.work),
@@ -271,8 +271,8 @@ def _cmd_fig6(args: argparse.Namespace) -> int:
 
 
 def _cmd_release(args: argparse.Namespace) -> int:
-    from train.release import ReleaseConfig, release
-    from train.trainer import Progress
+    from train.learn.trainer import Progress
+    from train.ship.release import ReleaseConfig, release
 
     cfg = ReleaseConfig(out=Path(args.out), work=Path(args.work),
                         recordings=Path(args.recordings) if args.recordings else None,
@@ -290,8 +290,8 @@ def _cmd_release(args: argparse.Namespace) -> int:
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
-    from train.build import SHIPPED_PROMPTS, BuildConfig, build
-    from train.trainer import Progress
+    from train.learn.trainer import Progress
+    from train.ship.build import SHIPPED_PROMPTS, BuildConfig, build
 
     cfg = BuildConfig(data=Path(args.data), out=Path(args.out),
                       variants=tuple(dict.fromkeys(args.variant or ())),
@@ -312,7 +312,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
 
 
 def _cmd_rehash(args: argparse.Namespace) -> int:
-    from train.manifest import read_raw, write_manifest
+    from train.ship.manifest import read_raw, write_manifest
 
     reports = [name for name in read_raw(Path(args.model)).get("reports", {})
                if (Path(args.model) / name).exists()]
@@ -322,7 +322,7 @@ def _cmd_rehash(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from train.bench import FULL, QUICK, bench
+    from train.eval.bench import FULL, QUICK, bench
 
     return bench(QUICK if args.quick else FULL, models=Path(args.model),
                  merge_into=Path(args.merge_into) if args.merge_into else None,

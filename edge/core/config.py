@@ -262,13 +262,13 @@ class RuntimeConfig:
     # The segments' encoding: "mcap" (JSON messages, Foxglove) or "rosbag2" (a bag directory
     # of CDR messages, ros2 bag; needs the export extra).
     record_format: str = "mcap"
-    # Real-time scheduling of the event loop and the bus thread (edge/daemon/realtime.py):
+    # Real-time scheduling of the event loop and the bus thread (edge/runtime/realtime.py):
     # SCHED_FIFO at realtime_priority on CPU realtime_cpu (-1: the last one the daemon may
     # use). Needs root, CAP_SYS_NICE or LimitRTPRIO=; a restart applies it.
     realtime: bool = False
     realtime_priority: int = 20
     realtime_cpu: int = -1
-    # Retention (edge/daemon/store.py): the oldest finished episodes and live recording
+    # Retention (edge/runtime/store.py): the oldest finished episodes and live recording
     # segments are removed once the store (episodes and record_mcap_dir) is over
     # store_max_mb (0: no bound by size), or its filesystem has less than keep_free_mb free.
     store_max_mb: float = 0.0

@@ -56,7 +56,7 @@ REQUIRED_FILES = (ENCODER_FILE, DATABASE_ARRAYS, DATABASE_INDEX)
 MANIFEST_SCHEMA = 1
 DATABASE_SCHEMA = 1
 DEFAULT_K = 3
-# ONNX input/output names: the contract between train/export.py and this module.
+# ONNX input/output names: the contract between train/ship/export.py and this module.
 INPUT_NAME = "x"
 OUTPUT_NAMES = ("z", "code")
 
@@ -543,7 +543,7 @@ class Model:
 @dataclass(frozen=True)
 class ModelRef:
     """Which model: its directory and digest. What the daemon's event-loop process holds;
-    the model itself is loaded where it runs (:mod:`edge.daemon.compute`)."""
+    the model itself is loaded where it runs (:mod:`edge.runtime.compute`)."""
 
     directory: Path
     digest: str

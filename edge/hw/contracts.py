@@ -308,7 +308,7 @@ class Button(Protocol):
 
 @dataclass
 class Devices:
-    """Everything the daemon talks to; built by :mod:`edge.daemon.devices`."""
+    """Everything the daemon talks to; built by :mod:`edge.runtime.devices`."""
 
     tactile: TactileSource
     gripper: Gripper

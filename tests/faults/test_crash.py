@@ -45,7 +45,7 @@ from pathlib import Path
 
 import edge.core.atomic
 from edge.sim.robot import SimRobot
-from edge.daemon.store import EpisodeStore
+from edge.runtime.store import EpisodeStore
 from tests.support.daemon import FOOD, QUICK_OBJECT, Daemon, base_config, fast_config
 
 state, where = Path(sys.argv[1]), sys.argv[2]

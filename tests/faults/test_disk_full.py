@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import pytest
 
 from edge.core import recording
-from edge.daemon import store
+from edge.runtime import store
 from tests.support.daemon import (
     FOOD,
     at_pose,

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.daemon import store
+from edge.runtime import store
 from edge.sim.fake_vlm import FakeVLM
 from tests.support.daemon import (
     FOOD,

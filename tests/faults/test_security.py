@@ -15,7 +15,7 @@ import pytest
 from edge.core import tomledit
 from edge.core.config import ApiConfig
 from edge.core.errors import ConfigError
-from edge.daemon.api import Api
+from edge.interfaces.http.api import Api
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot

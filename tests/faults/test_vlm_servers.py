@@ -15,10 +15,10 @@ from dataclasses import replace
 import pytest
 
 from edge.core.errors import EdgeError, NotFoundError
+from edge.ops.doctor import Level, _check_vlm, _vlm_client
+from edge.ops.episode_retry import run_retry
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.tools.doctor import Level, _check_vlm, _vlm_client
-from edge.tools.episode_retry import run_retry
 from edge.vlm.client import UNREACHABLE_AFTER_ATTEMPTS
 from tests.support.daemon import (
     FOOD,

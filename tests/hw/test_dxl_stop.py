@@ -22,9 +22,9 @@ import pytest
 
 from edge.core.config import BusConfig, Config
 from edge.core.preprocess import UNITS_SCALE
-from edge.daemon.press import GRIPPER_TRACE_FRAMES
 from edge.hw.arm import DynamixelGripper, gripper_raw
 from edge.hw.dynamixel import DynamixelBus
+from edge.runtime.press import GRIPPER_TRACE_FRAMES
 from edge.sim.dxl_emulator import DxlEmulator
 from edge.sim.world import CLOSED_WIDTH_M, SimWorld
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from edge.core.model import load_model, model_ref
-from edge.daemon.compute import analyse_press
+from edge.lab.record import record_press
+from edge.runtime.compute import analyse_press
 from edge.sim.catalogue import DATASETS, get
-from edge.tools.record import record_press
 from tests.support.daemon import ROOT
-from train.evaluate import pair_auc
+from train.eval.evaluate import pair_auc
 
 PRESSES = 8
 SEED = 7

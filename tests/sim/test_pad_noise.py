@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from edge.lab.record import record_press
 from edge.sim import catalogue, skin
 from edge.sim.contact import ObjectInstance
 from edge.sim.xela_replay import load_replay
-from edge.tools.record import record_press
 
 FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "xela" / "real-xr1944"
 EPISODES = sorted(FIXTURE.glob("data_sample_*"))

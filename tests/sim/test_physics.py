@@ -8,10 +8,10 @@ from edge.core import preprocess, recording
 from edge.core.config import Config, load_config
 from edge.core.errors import EdgeError
 from edge.hw.arm import gripper_raw
+from edge.lab.record import record_press
 from edge.sim import catalogue, skin
 from edge.sim.virtual import Transport
 from edge.sim.world import gap_from_raw
-from edge.tools.record import record_press
 from tests.support.daemon import ROOT
 
 FRAME_S = 1 / 125
@@ -176,7 +176,7 @@ def test_a_threshold_no_press_reaches_ends_in_a_clear_error():
 
 
 def test_a_dataset_is_byte_identical_for_a_seed_whatever_the_workers(tmp_path):
-    from edge.tools.record import record_dataset
+    from edge.lab.record import record_dataset
 
     record_dataset("cube", 2, tmp_path / "one", seed=3, workers=1)
     record_dataset("cube", 2, tmp_path / "two", seed=3, workers=2)
@@ -196,7 +196,7 @@ CUBE_SEED0_SHA256 = "a72c1ae0c24607f676218e1bf8b3442901bb5827274d101e0cbab675c9e
 def test_the_recorded_presses_of_a_seed_are_the_ones_the_release_was_trained_on(tmp_path):
     import hashlib
 
-    from edge.tools.record import record_dataset
+    from edge.lab.record import record_dataset
 
     record_dataset("cube", 1, tmp_path, seed=0, workers=1)
     digest = hashlib.sha256()

@@ -8,8 +8,8 @@ import functools
 import numpy as np
 
 from edge.core.errors import DeviceError
+from edge.lab.record import CLOCK_START_S, sim_config
 from edge.sim.virtual import VirtualClockLoop, VirtualRobot
-from edge.tools.record import CLOCK_START_S, sim_config
 
 
 def on_virtual_clock(coro):

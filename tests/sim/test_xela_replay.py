@@ -22,14 +22,14 @@ import pytest
 from edge.core import recording
 from edge.core.config import SensorConfig
 from edge.core.errors import RecordingError, StaleSensorError
-from edge.daemon.ring import FrameRing
-from edge.daemon.sensor import Sampler, SensorTask
 from edge.hw.contracts import TactileFrame
 from edge.hw.xela import XelaClient
+from edge.lab.collect import collect
+from edge.runtime.ring import FrameRing
+from edge.runtime.sensor import Sampler, SensorTask
 from edge.sim.robot import SimRobot
 from edge.sim.xela_replay import load_replay
 from edge.sim.xela_server import XelaServerEmulator
-from edge.tools.collect import collect
 from tests.support.daemon import ROOT, base_config
 
 FIXTURE = ROOT / "tests" / "fixtures" / "xela" / "real-xr1944"

@@ -17,10 +17,10 @@ from typing import Any
 
 import aiohttp
 
+from edge.app import assemble, running
 from edge.core.config import Config, load_config
-from edge.daemon.serve import assemble, running
-from edge.daemon.store import EPISODE_FILE
 from edge.hw.arm import gripper_raw
+from edge.runtime.store import EPISODE_FILE
 from edge.sim.catalogue import names
 from edge.sim.robot import SimRobot
 from tests.support.waits import wait_until
@@ -61,9 +61,9 @@ def fast_config(vlm_url: str = "") -> Config:
 
 
 class Daemon:
-    """The daemon as ``vt-edge run`` assembles it (:func:`edge.daemon.serve.assemble`), its
+    """The daemon as ``vt-edge run`` assembles it (:func:`edge.app.assemble`), its
     API on a free loopback port, its runtime running in a task of the test's loop
-    (:func:`edge.daemon.serve.running`)."""
+    (:func:`edge.app.running`)."""
 
     def __init__(self, robot: SimRobot, cfg: Config, state: Path,
                  headers: dict[str, str] | None = None) -> None:

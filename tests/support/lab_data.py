@@ -12,9 +12,9 @@ import numpy as np
 
 from edge.core import recording
 from edge.core.recording import press_path
+from edge.lab.record import record_press
 from edge.sim import catalogue
 from edge.sim.camera import render
-from edge.tools.record import record_press
 
 ORIGIN = {"kind": "robot", "recorder": "a lab member", "robot": "lab-arm-1",
           "sensor": {"model": "XR1944", "serials": ["XR1944-0001"]}}

@@ -7,7 +7,7 @@ import functools
 from concurrent.futures import ThreadPoolExecutor
 
 from edge.core.recording import Recording
-from edge.tools.record import record_press
+from edge.lab.record import record_press
 
 
 @functools.cache

@@ -19,7 +19,7 @@ from typing import Any
 
 from edge.core import tomledit
 from edge.core.config import load_config
-from edge.tools.stack import http_json, stop, wait_for
+from edge.lab.stack import http_json, stop, wait_for
 from tests.support.daemon import ROOT
 
 # The command lines as a user runs them.

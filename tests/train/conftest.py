@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from edge.tools.record import record_dataset
+from edge.lab.record import record_dataset
 
 PRESSES = 2
 SEED = 0
@@ -36,14 +36,14 @@ def cube_dir(work) -> Path:
 
 @pytest.fixture(scope="session")
 def data(reference_dir):
-    from train.data import training_data
+    from train.learn.data import training_data
 
     return training_data(reference_dir)
 
 
 @pytest.fixture(scope="session")
 def trained(data):
-    from train.trainer import Progress, TrainConfig, train
+    from train.learn.trainer import Progress, TrainConfig, train
 
     return train(data, TrainConfig(max_epochs=8, patience=100), None, Progress(enabled=False))
 
@@ -51,8 +51,8 @@ def trained(data):
 @pytest.fixture(scope="session")
 def released(work, tmp_path_factory) -> Path:
     """A tiny release (3 epochs): a complete, loadable model directory."""
-    from train.release import ReleaseConfig, release
-    from train.trainer import Progress
+    from train.learn.trainer import Progress
+    from train.ship.release import ReleaseConfig, release
 
     out = tmp_path_factory.mktemp("models")
     release(ReleaseConfig(out=out, work=work / "run_a", recordings=work / "recordings",

@@ -22,10 +22,10 @@ from edge.sim.robot import SimRobot
 from tests.support.daemon import QUICK_OBJECT, ROOT, Daemon, base_config
 from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
 from tests.support.waits import wait_until
-from train import evaluate
-from train.build import BuildConfig, Steps, build, partial_dir, read_dataset
 from train.cli import main
-from train.trainer import Progress
+from train.eval import evaluate
+from train.learn.trainer import Progress
+from train.ship.build import BuildConfig, Steps, build, partial_dir, read_dataset
 
 REFERENCE = {"wood_cube": ("train", 3, False), "sponge_cube": ("train", 3, False),
              "otedama": ("train", 3, False), "marshmallow": ("val", 3, False)}

@@ -40,6 +40,6 @@ def test_a_training_command_names_the_extra_in_one_line(blocked, argv, module):
 
 
 def test_any_other_missing_module_keeps_its_traceback():
-    out = _vt_train(("train.data",), ["train", "--recordings", "r", "--out", "o"])
+    out = _vt_train(("train.learn.data",), ["train", "--recordings", "r", "--out", "o"])
     assert out.returncode == 1 and "Traceback" in out.stderr
-    assert "ModuleNotFoundError: No module named 'train.data'" in out.stderr
+    assert "ModuleNotFoundError: No module named 'train.learn.data'" in out.stderr

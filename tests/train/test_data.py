@@ -5,7 +5,7 @@ import pytest
 
 from edge.core import preprocess, recording
 from edge.core.errors import RecordingError
-from train.data import (
+from train.learn.data import (
     STD_FLOOR_FRACTION,
     Normaliser,
     Splits,

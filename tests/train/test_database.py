@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from edge.core.errors import DescriptionError, EdgeError, ModelError, RecordingError
 from edge.core.model import ClassInfo, ReferenceDatabase, load_model, synthetic_database
-from train.database import add_class, build_into, topk_timing
+from train.ship.database import add_class, build_into, topk_timing
 
 
 def brute_force(db: ReferenceDatabase, q: np.ndarray, k: int) -> list[tuple[str, float]]:
@@ -89,7 +89,7 @@ def test_db_add_extends_the_database_and_manifest(model_copy, cube_dir):
     assert json.loads((model_dir / "manifest.json").read_text())["database"]["added"] == [
         "boiled_kiri_mochi"]
     # The added presses are retrievable: each one's nearest class is itself.
-    from train.data import load_presses
+    from train.learn.data import load_presses
 
     x = load_presses(cube_dir / "boiled_kiri_mochi").inputs(0)
     zs, _ = after.encode(x)
@@ -132,7 +132,7 @@ def test_db_build_into_a_model_directory(released, reference_dir, tmp_path):
 def test_database_holds_every_offset_of_every_press(released, reference_dir):
     """The paper's TactileReference: 5 subsampled sequences per press, all in the database,
     each encoded exactly as the robot encodes its offset-0 input."""
-    from train.data import Splits, load_presses
+    from train.learn.data import Splits, load_presses
 
     db = load_model(released).database
     splits = Splits.of_dataset(reference_dir)

@@ -7,7 +7,7 @@ import pytest
 
 from edge.core.errors import ModelError
 from edge.core.model import load_model
-from train.data import load_presses
+from train.learn.data import load_presses
 
 
 def test_load_encode_topk_describe(released, cube_dir):
@@ -55,7 +55,7 @@ def test_missing_file_and_missing_manifest_are_refused(model_copy):
 
 
 def test_prompts_are_hashed_and_checked(model_copy):
-    from train.manifest import write_manifest
+    from train.ship.manifest import write_manifest
 
     model_dir = model_copy
     (model_dir / "prompts").mkdir()

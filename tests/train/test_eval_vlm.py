@@ -18,8 +18,8 @@ from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.standin_vlm import StandIn
 from edge.vlm.prompt import load_template
 from tests.support.vlm_thread import fake_in_thread
-from train import eval_vlm
-from train.eval_vlm import AnswerCache, EvalVLMConfig
+from train.eval import eval_vlm
+from train.eval.eval_vlm import AnswerCache, EvalVLMConfig
 
 from .conftest import PRESSES
 

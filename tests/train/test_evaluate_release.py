@@ -4,10 +4,10 @@ import sys
 
 import numpy as np
 
-from train import evaluate
-from train.model import PAPER
-from train.release import ReleaseConfig, release
-from train.trainer import Progress
+from train.eval import evaluate
+from train.learn.model import PAPER
+from train.learn.trainer import Progress
+from train.ship.release import ReleaseConfig, release
 
 from .conftest import PRESSES, SEED
 

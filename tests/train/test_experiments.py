@@ -13,8 +13,8 @@ import pytest
 from edge.core.config import VLMConfig
 from edge.sim.standin_vlm import StandIn
 from tests.support.vlm_thread import fake_in_thread
-from train import fig6, table1
-from train.data import Splits
+from train.eval import fig6, table1
+from train.learn.data import Splits
 
 from .conftest import PRESSES
 

@@ -3,12 +3,12 @@ import onnx
 import torch
 
 from edge.core.model import OnnxEncoder
-from train.export import PARITY_BOUND, codebook_of, export_onnx, parity
-from train.model import ExportEncoder
+from train.learn.model import ExportEncoder
+from train.ship.export import PARITY_BOUND, codebook_of, export_onnx, parity
 
 
 def test_onnx_matches_torch_batch_1_and_7_random_and_real(trained, data, cube_dir, tmp_path):
-    from train.data import load_presses
+    from train.learn.data import load_presses
 
     path = tmp_path / "encoder.onnx"
     blob = export_onnx(trained.model, data.norm, path)

@@ -1,8 +1,8 @@
 import numpy as np
 import torch
 
-from train.model import METRIC_MARGIN, PAPER, ModelConfig, TactileAutoencoder, metric_loss
-from train.trainer import Progress, TrainConfig, load_checkpoint, save_checkpoint, train
+from train.learn.model import METRIC_MARGIN, PAPER, ModelConfig, TactileAutoencoder, metric_loss
+from train.learn.trainer import Progress, TrainConfig, load_checkpoint, save_checkpoint, train
 
 
 def test_vq_loss_decreases_on_a_tiny_set(trained):

@@ -14,11 +14,11 @@ import pytest
 from edge.core import preprocess, recording
 from edge.core.errors import RecordingError
 from edge.core.model import load_model
-from edge.tools.record import record_press, sim_config
+from edge.lab.record import record_press, sim_config
 from tests.support.daemon import ROOT
 from tests.support.lab_data import write_lab_dataset
-from train.build import read_dataset
 from train.cli import main
+from train.ship.build import read_dataset
 
 CLASSES = ("otedama", "wood_cube", "sponge_cube", "kiwi_piece", "rubber_ball")
 REFS, QUERIES = (0, 1, 2), (3, 4)

@@ -33,7 +33,7 @@ STANDIN_MODULES = ("edge/sim/standin_vlm.py", "edge/sim/common_sense.py")
 FORBIDDEN_MODULES = ("edge.sim.catalogue", "edge.sim.contact", "edge.sim.world",
                      "edge.sim.press", "edge.sim.skin", "edge.sim.record", "edge.sim.robot",
                      "edge.sim.xela_server", "edge.sim.dxl_emulator", "edge.sim.virtual",
-                     "edge.sim.xela_replay", "edge.tools")
+                     "edge.sim.xela_replay", "edge.ops", "edge.lab", "edge.bench")
 PHYSICS_NAMES = {"youngs_pa", "prony", "damping_ns_per_m", "yield_n", "mu", "bulge",
                  "width_sd_m", "youngs_cv", "exponent", "elastic_exponent", "x_th", "REFERENCE",
                  "FOODREPLICA", "CUBE", "DATASETS", "ObjectClass", "catalogue"}

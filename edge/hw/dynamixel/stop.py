@@ -17,7 +17,7 @@ from edge.hw.dynamixel.transactions import GOAL_POSITION, PRESENT_POSITION, Tran
 
 # The stop's goal is extrapolated from a state read no older than this. The press reads the
 # gripper after every second tactile frame while closing (16 ms at 125 Hz, 20 ms at
-# 100 Hz: edge.daemon.press.GRIPPER_TRACE_FRAMES); 50 ms rides out one late or lost read.
+# 100 Hz: edge.runtime.press.GRIPPER_TRACE_FRAMES); 50 ms rides out one late or lost read.
 # At a constant velocity the estimate is then off by less than one count: 0.5 for Present
 # Position's resolution, 0.4 for Present Velocity's (0.5 of its 15.6 raw/s unit over 50 ms),
 # inside the default 2-count squeeze. What a state cannot show is a change of velocity

@@ -1,0 +1,1 @@
+"""Installing the daemon: the systemd unit, udev rules and the install checks."""

@@ -1,0 +1,2 @@
+"""Lab work: collect mode, plans, datasets, the press recorder, consistency, the demo, the
+emulated robot and daemon as processes."""

@@ -1,0 +1,1 @@
+"""Recordings and exports of presses: MCAP (live and export), rosbag2, LeRobot."""

@@ -1,0 +1,251 @@
+"""The daemon's CPU work in one separate process: image decoding and re-encoding for the VLM,
+and the press analysis (crop, encoder, top-k, the episode's arrays).
+
+Why a process and not a thread: the event loop runs the 125 Hz sampler and sends the stop,
+and a worker thread competes with it for the GIL. Pillow's decoders and encoders hold the
+GIL for milliseconds at a time, and a Python loop around onnxruntime takes it back within
+the 5 ms switch interval; measured with the bench's load, both showed up as 3-5 ms stalls
+of the sampler (p99). In a process of its own they cost the loop only the pickling of
+arguments and results. It also keeps a decoder crash on a hostile upload out of the
+daemon: the worker dies, the request gets an error, the next call starts a new worker.
+
+One worker (a robot computer has few cores, and one press is analysed at a time), forked
+from a ``forkserver`` (never ``fork`` from the threaded daemon) that has imported this
+module, so starting one costs a fork, not the imports. The worker ignores SIGINT and
+SIGTERM: the daemon decides when it ends (a Ctrl-C in a terminal, or systemd signalling the
+whole control group, must not kill an analysis the daemon is about to store).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import logging
+import os
+import select
+import signal
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+
+from edge.core import preprocess, recording
+from edge.core.errors import ComputeError, ModelError
+from edge.core.model import Model, ModelRef, load_model
+from edge.runtime import forkserver
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+TOPK = 3
+# The worker's niceness relative to the daemon (raising it needs no privilege).
+WORKER_NICE = 10
+# How often a worker without pidfd support checks that the daemon still runs.
+WATCH_PERIOD_S = 1.0
+# Starting the worker (a fork of the preloaded server) and its first call.
+START_TIMEOUT_S = 30.0
+# Ending it: its current call finishes, then the pool is joined; past this it is killed.
+STOP_TIMEOUT_S = 5.0
+
+
+class ComputeWorker:
+    """One worker process; :meth:`run` awaits a module-level function run there."""
+
+    def __init__(self) -> None:
+        self._pool: ProcessPoolExecutor | None = None
+        self.restarts = 0
+
+    async def __aenter__(self) -> ComputeWorker:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        """Start the worker and wait until it answers (so the first press pays nothing)."""
+        self._pool = self._new_pool()
+        await asyncio.wait_for(self.run(_ready), START_TIMEOUT_S)
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=1, mp_context=forkserver.context(),
+                                   initializer=_init_worker,
+                                   initargs=(os.getpid(),))
+
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in the worker; its :class:`EdgeError` arrives as raised there."""
+        if self._pool is None:
+            raise ComputeError("the compute worker is not running")
+        pool = self._pool
+        try:
+            return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
+        except BrokenProcessPool as exc:
+            if self._pool is pool:  # the first caller to notice replaces it
+                self.restarts += 1
+                log.error("compute worker died during %s (%s); starting a new one",
+                          getattr(fn, "__name__", fn), exc)
+                pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = self._new_pool()
+            raise ComputeError(
+                f"the compute worker died during {getattr(fn, '__name__', fn)} "
+                "(a crash or out of memory); a new one is started for the next call") from None
+
+    async def stop(self) -> None:
+        """End the worker: calls not begun are cancelled, the current one finishes, and the
+        pool is joined (off the loop), or its process killed after ``STOP_TIMEOUT_S``.
+
+        Joined, not left to end on its own: the pool's manager thread, still closing its
+        wake-up pipe as the interpreter's exit hook wrote to that pipe, printed an
+        "OSError: [Errno 9] Bad file descriptor" traceback after a clean exit (a race in
+        Python 3.11's concurrent.futures, seen on a loaded host).
+        """
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        pid = _pid_of(pool)
+        joining = asyncio.ensure_future(
+            asyncio.to_thread(pool.shutdown, wait=True, cancel_futures=True))
+        try:
+            await asyncio.wait_for(asyncio.shield(joining), STOP_TIMEOUT_S)
+        except TimeoutError:
+            log.warning("compute worker still busy %.1f s after it was asked to end: killed",
+                        STOP_TIMEOUT_S)
+            if pid is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            await joining
+
+    def pid(self) -> int | None:
+        """The worker's process ID once started (for CPU and memory accounting)."""
+        return _pid_of(self._pool)
+
+
+def _pid_of(pool: ProcessPoolExecutor | None) -> int | None:
+    procs = getattr(pool, "_processes", None) or {}
+    return next(iter(procs), None)
+
+
+# --------------------------------------------------------------------------------------
+# In the worker process
+
+
+def _init_worker(daemon_pid: int) -> None:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    # Behind the daemon for a CPU: its loop reads the sensor and sends the stop.
+    try:
+        os.nice(WORKER_NICE)
+    except OSError as exc:
+        log.warning("compute worker: cannot lower its priority (nice %+d): %s",
+                    WORKER_NICE, exc)
+    # The worker holds both ends of its task queue and keeps the forkserver alive, so
+    # neither notices the daemon die: after a ``kill -9`` they would run forever.
+    threading.Thread(target=_exit_with, args=(daemon_pid,), name="exit-with-daemon",
+                     daemon=True).start()
+
+
+def _exit_with(pid: int) -> None:
+    """Exit the moment process ``pid`` does (a pidfd turns readable), else poll for it."""
+    try:
+        fd = os.pidfd_open(pid)
+    except OSError:  # gone already, or a kernel before 5.3
+        while _alive(pid):
+            time.sleep(WATCH_PERIOD_S)
+    else:
+        select.select([fd], [], [])
+    os._exit(0)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _ready() -> bool:
+    return True
+
+
+_model: Model | None = None
+
+
+def model_for(ref: ModelRef) -> Model:
+    """The daemon's model, loaded here once per model (a reload gives a new digest)."""
+    global _model
+    if _model is None or _model.directory != ref.directory or _model.digest != ref.digest:
+        _model = _loaded(ref)
+    return _model
+
+
+def _loaded(ref: ModelRef) -> Model:
+    model = load_model(ref.directory)
+    if model.digest != ref.digest:
+        raise ModelError(
+            f"{ref.directory}: the model files changed since the daemon loaded them; send "
+            "SIGHUP (systemctl reload vtzero-edge) to load the new ones")
+    return model
+
+
+def warm_up(ref: ModelRef) -> None:
+    """Load the model here and run it once (onnxruntime allocates on its first run)."""
+    model = model_for(ref)
+    model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
+
+
+def reload_model(ref: ModelRef) -> None:
+    """Load the model again from its files, every one re-hashed against the manifest even
+    where the manifest is unchanged (one byte flipped in the encoder leaves its digest as it
+    was), run it once, and make it the one that answers. :class:`ModelError` naming the
+    file if one does not match: the running model stays."""
+    global _model
+    model = _loaded(ref)
+    model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
+    _model = model
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """What the compute process makes of one press's model window: what the VLM question
+    needs, and the model's input and output for the episode."""
+
+    z: list[float]
+    code: int
+    topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
+    description: str
+    model_io_npz: bytes  # the crop, the model input and the embedding
+
+
+def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
+    """The crop (the model's own window), the encoder, the nearest references and the
+    model's input and output serialised: the work between the window and the VLM question,
+    kept to that (the photo is prepared while the press runs, the press serialised, with
+    ``recording.to_bytes``, after the question has left)."""
+    model = model_for(ref)
+    spec = model.window
+    units = preprocess.recording_units(rec)
+    window = preprocess.crop(rec.recv_time, units, rec.t_stop, spec)
+    x = preprocess.subsample(window, 0, spec)
+    z, code = model.encode(x)
+    z = np.asarray(z).reshape(-1)
+    code = int(np.asarray(code).reshape(-1)[0])
+    topk = model.topk(z, TOPK)
+    description = model.describe([label for label, _ in topk])
+    buf = io.BytesIO()
+    np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+    return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
+                    description, buf.getvalue())
+
+
+__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for",
+           "reload_model", "warm_up"]

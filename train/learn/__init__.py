@@ -1,0 +1,1 @@
+"""Learning: press data, the GRU VQ-VAE, its trainer."""

@@ -1,0 +1,1 @@
+"""What ships: ONNX export, the reference database, the manifest, release and build."""

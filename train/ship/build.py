@@ -1,0 +1,387 @@
+"""``vt-train build``: one command from a collected dataset to a deployable model directory.
+
+``vt-train release`` regenerates the shipped model from the *simulated* reference set; this
+builds one from a lab's own presses (a ``vt-edge collect`` dataset directory: ``dataset.json``
+with the classes, their split, description, ``x_th`` and the data's ``origin``, and
+``<label>/<label>_NNN.press.npz``). Steps, each kept in ``OUT.partial`` with the hash of its
+inputs, so a rerun after an interruption skips what is done and says so:
+
+1. check the presses: one threshold and one origin (recording source and sensor model) per
+   class, every reference class present (refused, naming the class and the presses); every
+   class at one stream rate (within ``preprocess.RATE_TOLERANCE``: a class pressed at
+   100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``;
+2. train the VQ-VAE with the paper's decoder (and, with ``--variant``, the beta-VAE and the
+   zero-input decoder for the comparison rows of the evaluation and of Table I);
+3. export the encoder to ONNX with its parity check;
+4. the database of every offset of every press of the train and val classes;
+5. the prompt templates copied (the manifest hashes them);
+6. the retrieval evaluation (``eval/eval.md``, ``eval/eval.json``), the trivial baseline beside
+   the encoder, on the test classes of the dataset and any ``--unseen`` sets;
+7. the manifest, written last, with the data's ``origin``, ``plan_sha256`` and each class's
+   ``x_th`` and stream rate (``class_x_th``, ``class_rate_hz``);
+
+then ``OUT.partial`` is renamed to ``OUT`` (an ``OUT`` already there is kept as
+``OUT.previous``). The daemon loads the result as it is; SIGHUP swaps it in.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edge.core import preprocess
+from edge.core.atomic import atomic_write_text, swap_in
+from edge.core.errors import ModelError, RecordingError
+from edge.core.layout import XR1944, PadLayout
+from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
+from edge.core.recording import DATASET_INDEX
+from train.eval import evaluate
+from train.learn.data import PressSet, Splits, load_presses, training_data_of
+from train.learn.model import PAPER, ModelConfig
+from train.learn.trainer import CHECKPOINT, Progress, TrainConfig, embed, load_checkpoint
+from train.learn.trainer import train as train_model
+from train.ship import database
+from train.ship.export import check_parity, codebook_of, export_onnx, parity
+from train.ship.manifest import PROMPTS_DIR, dumps, versions, write_manifest
+from train.ship.release import EVAL_DIR, encode_timing, encoder_section, prompt_hashes
+
+log = logging.getLogger(__name__)
+
+PARTIAL_SUFFIX = ".partial"
+STATE_FILE = "build-state.json"
+TRAINING_DIR = "training"
+SHIPPED_PROMPTS = Path(__file__).resolve().parents[2] / "models" / PROMPTS_DIR
+# The comparison variants `--variant` adds: name -> what changes from the shipped VQ-VAE.
+VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}, "paper": PAPER}
+# Checkpoint directories under training/, as release names them (vt-train table1 --beta/--zeros).
+VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros", "paper": "vq_paper"}
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    data: Path
+    out: Path
+    variants: tuple[str, ...] = ()  # comparison variants: beta, zeros, paper
+    unseen: tuple[Path, ...] = ()  # further test sets for the evaluation
+    prompts: Path = SHIPPED_PROMPTS
+    seed: int = 0
+    max_epochs: int = 300
+    patience: int = 25
+    threads: int = 1
+    mixed_rates: bool = False  # build from classes pressed at different stream rates
+
+    def command(self) -> str:
+        parts = [f"vt-train build --data {self.data} --out {self.out}",
+                 *(f"--variant {v}" for v in self.variants),
+                 *(["--mixed-rates"] if self.mixed_rates else []),
+                 *(f"--unseen {u}" for u in self.unseen),
+                 f"--seed {self.seed}", f"--max-epochs {self.max_epochs}",
+                 f"--patience {self.patience}"]
+        return " ".join(parts)
+
+
+# --------------------------------------------------------------------------------------
+# The dataset
+
+
+@dataclass(frozen=True)
+class Dataset:
+    directory: Path
+    index: dict[str, Any]
+    origin: dict[str, Any]
+    splits: Splits
+    test: tuple[str, ...]  # test classes of the dataset (the evaluation's unseen presses)
+    x_th: dict[str, float]  # per class, as pressed
+    presses: dict[str, int]  # per class
+    sha256: str  # of dataset.json and every press file
+    layout: PadLayout = XR1944  # the pads every press was made with
+    rate_hz: dict[str, float | None] = field(default_factory=dict)  # per class, as pressed
+    # The reference presses by content (database.press_digests).
+    press_sha256: dict[str, str] = field(default_factory=dict)
+
+
+def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool = False
+                 ) -> Dataset:
+    """Read and check a collected dataset directory; refuse mixed thresholds or origins within
+    a class, naming the class and its presses, and classes at different stream rates unless
+    ``mixed_rates``."""
+    directory = Path(directory)
+    path = directory / DATASET_INDEX
+    try:
+        index = json.loads(path.read_text())
+    except OSError as exc:
+        raise RecordingError(f"{path}: {exc.strerror or exc} (a dataset directory written by "
+                             "`vt-edge collect --plan`)") from None
+    except json.JSONDecodeError as exc:
+        raise RecordingError(f"{path}: not valid JSON: {exc}") from None
+    if index.get("origin") is None:
+        log.warning("%s has no 'origin': taken as pressed by the emulated robot", path)
+    try:  # the manifest's own reader: one definition of a well-formed origin
+        origin = Origin.of_dataset(index, str(path)).to_json()
+    except ModelError as exc:
+        raise RecordingError(str(exc)) from None
+    unlabelled = [i for i, c in enumerate(index.get("classes", []))
+                  if not isinstance(c, dict) or not isinstance(c.get("label"), str)
+                  or not c["label"]]
+    if unlabelled:
+        raise RecordingError(f"{path}: classes[{unlabelled[0]}] has no 'label' (each class "
+                             "needs one: the name of its presses' directory)")
+    splits = Splits.from_file(path)
+    declared = {c["label"]: c.get("x_th") for c in index.get("classes", [])}
+    test = tuple(c["label"] for c in index.get("classes", []) if c.get("split") == "test")
+    metas = database.press_index(directory, progress)
+    digest = hashlib.sha256(path.read_bytes())
+    for meta in metas:
+        digest.update(meta.path.relative_to(directory).as_posix().encode())
+        digest.update(hashlib.sha256(meta.path.read_bytes()).digest())
+    thresholds = database.grouped(metas, "x_th")
+    origins = database.grouped(metas, "origin")
+    problems = []
+    for label in splits.classes + test:
+        if label not in thresholds:
+            problems.append(f"class {label!r} has no presses in {directory}")
+            continue
+        mix = [database.mixed(label, "thresholds x_th", thresholds[label]),
+               database.mixed(label, "origins", origins[label])]
+        problems += [m for m in mix if m]
+        x_th = next(iter(thresholds[label]))
+        if not mix[0] and declared.get(label) is not None and x_th != round(
+                declared[label], database.X_TH_DIGITS):
+            problems.append(f"class {label!r}: presses at x_th {x_th:g} but dataset.json "
+                            f"says {declared[label]:g}")
+    layouts = database.grouped(metas, "layout")
+    mixed_pads = {lay for per_label in layouts.values() for lay in per_label}
+    if len(mixed_pads) > 1:
+        problems.append("presses of different pads: " + "; ".join(
+            f"{lay.channels} channels, {lay.text()} (class "
+            f"{', '.join(label for label, per in layouts.items() if lay in per)})"
+            for lay in sorted(mixed_pads, key=lambda lay: lay.channels)))
+    if problems:
+        raise RecordingError(f"{directory}: " + "; ".join(problems)
+                             + " (re-collect the class, or move the odd presses out)")
+    rates = database.class_rates(metas)
+    rate_mix = database.rate_mix({c: rates.get(c) for c in splits.classes + test})
+    if rate_mix and not mixed_rates:
+        raise RecordingError(f"{directory}: {rate_mix}: the crop interpolates each from a "
+                             "different number of frames (docs/method.md); re-collect the odd "
+                             f"classes at the others' rate ({preprocess.RATE_SETTING}), or say "
+                             "--mixed-rates to build from them anyway")
+    if rate_mix:
+        log.warning("--mixed-rates: %s", rate_mix)
+    return Dataset(directory, index, origin, splits, test,
+                   {c: next(iter(t)) for c, t in thresholds.items()},
+                   {c: sum(map(len, t.values())) for c, t in thresholds.items()},
+                   digest.hexdigest(), next(iter(mixed_pads), XR1944), rates,
+                   database.press_digests(m for m in metas if m.label in splits.classes))
+
+
+# --------------------------------------------------------------------------------------
+# Steps kept between runs
+
+
+def _key(*parts: Any) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+class Steps:
+    """``OUT.partial/build-state.json``: each finished step's input hash and result."""
+
+    def __init__(self, work: Path) -> None:
+        self.path = work / STATE_FILE
+        self.state: dict[str, Any] = {}
+        if self.path.exists():
+            try:
+                self.state = json.loads(self.path.read_text())
+            except (OSError, ValueError) as exc:
+                log.warning("%s: unreadable (%s): every step runs again", self.path, exc)
+            if not isinstance(self.state, dict):
+                log.warning("%s: not an object: every step runs again", self.path)
+                self.state = {}
+        self.skipped: list[str] = []
+        self.ran: list[str] = []
+
+    def run(self, name: str, key: str, outputs: list[Path],
+            fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+        done = self.state.get(name)
+        if done and done.get("key") == key and all(p.exists() for p in outputs):
+            log.info("step %s: done already (same inputs), skipped", name)
+            self.skipped.append(name)
+            return done["result"]
+        log.info("step %s ...", name)
+        started = time.perf_counter()
+        result = fn()
+        result["seconds"] = round(time.perf_counter() - started, 2)
+        self.state[name] = {"key": key, "result": result}
+        atomic_write_text(self.path, dumps(self.state))
+        self.ran.append(name)
+        return result
+
+
+# --------------------------------------------------------------------------------------
+# The build
+
+
+def partial_dir(out: Path) -> Path:
+    return out.with_name(out.name + PARTIAL_SUFFIX)
+
+
+def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
+    """Build ``cfg.out`` from ``cfg.data``; returns the manifest written."""
+    started = time.perf_counter()
+    unknown = [v for v in cfg.variants if v not in VARIANTS]
+    if unknown:
+        raise ValueError(f"unknown variant {', '.join(unknown)}; choose from "
+                         f"{', '.join(VARIANTS)}")
+    prompts = sorted(Path(cfg.prompts).glob("*.txt"))
+    if not prompts:
+        raise ModelError(f"{cfg.prompts}: no prompt templates (*.txt); the daemon needs them "
+                         "(--prompts DIR)")
+    ds = read_dataset(cfg.data, progress=progress is None or progress.enabled,
+                      mixed_rates=cfg.mixed_rates)
+    out = Path(cfg.out)
+    work = partial_dir(out)
+    if not work.exists() and (out / STATE_FILE).exists():
+        # A finished build's steps are the cache of the next one.
+        shutil.copytree(out, work, symlinks=True)
+    work.mkdir(parents=True, exist_ok=True)
+    steps = Steps(work)
+
+    presses: PressSet | None = None
+
+    def reference() -> PressSet:
+        nonlocal presses
+        if presses is None:
+            presses = load_presses(ds.directory, ds.splits.classes)
+        return presses
+
+    unseen_sets = [load_presses(ds.directory, ds.test)] if ds.test else []
+    unseen_sets += [load_presses(u) for u in cfg.unseen]
+    unseen = PressSet.concat(*unseen_sets) if unseen_sets else None
+    unseen_key = _key(ds.test, [(str(p), _sha(Path(p))) for p in unseen.paths]
+                      if unseen else [])
+
+    base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
+                       threads=cfg.threads)
+    # The model takes the channels of the pads the presses were made with.
+    model_config = replace(ModelConfig(), channels=ds.layout.channels)
+    trained: dict[str, dict[str, Any]] = {}
+    for name in ("vq", *cfg.variants):
+        config = replace(base, model=replace(model_config, **VARIANTS.get(name, {})))
+        where = work / TRAINING_DIR / VARIANT_DIRS[name]
+
+        def fit(config: TrainConfig = config, where: Path = where) -> dict[str, Any]:
+            result = train_model(training_data_of(reference(), ds.splits), config, where,
+                                 progress)
+            return {"config": config.to_dict(), "result": result.summary()}
+
+        trained[name] = steps.run(f"train {name}", _key(ds.sha256, config.to_dict()),
+                                  [where / CHECKPOINT], fit) | {
+            "checkpoint": f"{TRAINING_DIR}/{VARIANT_DIRS[name]}/{CHECKPOINT}"}
+    vq_ckpt = work / TRAINING_DIR / VARIANT_DIRS["vq"] / CHECKPOINT
+
+    def export() -> dict[str, Any]:
+        model, norm, _ = load_checkpoint(vq_ckpt)
+        onnx_bytes = export_onnx(model, norm, work / ENCODER_FILE)
+        real = reference().inputs(0)
+        if unseen is not None:
+            real = np.concatenate([real, unseen.inputs(0)])
+        par = parity(model, norm, onnx_bytes, real, seed=cfg.seed)
+        check_parity(par)
+        return {"parity": par.to_dict(), "timing": encode_timing(onnx_bytes, real)}
+
+    exported = steps.run("export", _key(_sha(vq_ckpt)), [work / ENCODER_FILE], export)
+    encoder_sha = _sha(work / ENCODER_FILE)
+
+    def build_db() -> dict[str, Any]:
+        db = database.build_database((work / ENCODER_FILE).read_bytes(), reference(),
+                                     ds.splits)
+        db.save(work)
+        return database.summary(db) | {"codes_used": len(np.unique(db.code))}
+
+    db_summary = steps.run("database", _key(encoder_sha, ds.sha256),
+                           [work / name for name in REQUIRED_FILES[1:]], build_db)
+
+    shutil.rmtree(work / PROMPTS_DIR, ignore_errors=True)  # none left from another --prompts
+    (work / PROMPTS_DIR).mkdir()
+    for template in prompts:
+        shutil.copyfile(template, work / PROMPTS_DIR / template.name)
+
+    variant_shas = {name: _sha(work / t["checkpoint"]) for name, t in trained.items()}
+
+    def run_eval() -> dict[str, Any]:
+        onnx_bytes = (work / ENCODER_FILE).read_bytes()
+        codebook = codebook_of(onnx_bytes)
+        embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
+            "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
+        for name in cfg.variants:
+            model, norm, _ = load_checkpoint(work / trained[name]["checkpoint"])
+            book = None if model.quantiser is None else \
+                model.quantiser.codebook.detach().numpy().copy()
+            embedders[VARIANT_DIRS[name]] = (
+                (lambda x, m=model, n=norm: embed(m, n, x)), book)
+        report = evaluate.evaluate(embedders, reference(), ds.splits, unseen,
+                                   work / EVAL_DIR, seed=cfg.seed)
+        return evaluate.summary_metrics(report)
+
+    metrics = steps.run("eval", _key(encoder_sha, ds.sha256, unseen_key, variant_shas),
+                        [work / EVAL_DIR / name for name in evaluate.FILES], run_eval)
+
+    sections: dict[str, Any] = {
+        "created_by": cfg.command(),
+        "origin": ds.origin,
+        database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
+        database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
+        database.PRESS_SHA256: ds.press_sha256,
+        "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], model_config,
+                                   exported["parity"]),
+        "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
+                          "taxel_rows": ds.layout.rows},
+        "training": {
+            "dataset": {"simulated": ds.origin["kind"] == "emulated",
+                        "directory": str(ds.directory), "sha256": ds.sha256,
+                        "name": ds.index.get("dataset"), "recorder": ds.index.get("recorder"),
+                        "train_classes": list(ds.splits.train),
+                        "val_classes": list(ds.splits.val), "test_classes": list(ds.test),
+                        "presses": ds.presses, "x_th": ds.x_th, "rate_hz": ds.rate_hz,
+                        "mixed_rates": cfg.mixed_rates},
+            **{VARIANT_DIRS[name]: t for name, t in trained.items()},
+        },
+        "evaluation": {"unseen": [str(ds.directory)] * bool(ds.test)
+                       + [str(u) for u in cfg.unseen], "report": f"{EVAL_DIR}/eval.md"},
+        "database": {k: v for k, v in db_summary.items() if k not in ("codes_used", "seconds")},
+        "prompts": prompt_hashes(work),
+        "metrics": metrics,
+        "timings": exported["timing"] | {"build_s": time.perf_counter() - started,
+                                         "steps_skipped": steps.skipped},
+        "versions": versions(),
+    }
+    if ds.index.get("plan_sha256"):
+        sections["plan_sha256"] = ds.index["plan_sha256"]
+    manifest = write_manifest(work, sections,
+                              reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
+    swap_in(work, out)
+    log.info("model written to %s in %.0f s (steps run: %s; skipped: %s)", out,
+             time.perf_counter() - started, ", ".join(steps.ran) or "none",
+             ", ".join(steps.skipped) or "none")
+    return manifest
+
+
+def checkpoints(model_dir: str | Path) -> dict[str, Path]:
+    """The comparison checkpoints a build kept (``beta``, ``vq_zeros``), for Table I."""
+    root = Path(model_dir) / TRAINING_DIR
+    return {name: root / name / CHECKPOINT for name in ("beta", "vq_zeros")
+            if (root / name / CHECKPOINT).exists()}
+
