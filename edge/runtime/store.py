@@ -84,9 +84,23 @@ class StoreUsage:
     days_left: float | None
 
 
+# The last millisecond an id was made for: ids sort in the order they were made, which is the
+# order the store lists episodes in, even for two made within one millisecond.
+_last_ms = 0
+_last_ms_lock = threading.Lock()
+
+
 def new_id(now: float | None = None) -> str:
-    ts = datetime.fromtimestamp(now if now is not None else time.time(), UTC)
-    return f"{ts:%Y%m%dT%H%M%S}{ts.microsecond // 1000:03d}Z-{secrets.token_hex(3)}"
+    """An episode's id: the UTC time it was made (``now``, a test's, as given) and 6 random
+    hex digits."""
+    global _last_ms
+    if now is not None:
+        ms = round(now * 1000)
+    else:
+        with _last_ms_lock:
+            ms = _last_ms = max(round(time.time() * 1000), _last_ms + 1)
+    ts = datetime.fromtimestamp(ms / 1000, UTC)
+    return f"{ts:%Y%m%dT%H%M%S}{ms % 1000:03d}Z-{secrets.token_hex(3)}"
 
 
 def valid_id(episode_id: str) -> bool:
