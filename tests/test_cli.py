@@ -3,7 +3,7 @@ import sys
 
 from edge.core import recording
 from edge.core.recording import DATASET_INDEX
-from edge.runtime.episode import Episode, Status
+from edge.runtime.domain import Episode, Status
 from edge.runtime.store import new_id
 
 

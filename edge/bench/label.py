@@ -28,7 +28,7 @@ from edge.bench.figures import figure, stats, target
 from edge.bench.load import Helper
 from edge.bench.results import PhaseResult, progress
 from edge.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
-from edge.runtime.state import PressState
+from edge.runtime.domain import PressState
 
 ROBOT_CONFIG = ROOT / "configs" / "robot.toml"
 LABEL_TIMEOUT_S = 60.0

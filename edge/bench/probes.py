@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from edge.core import preprocess
+from edge.runtime.domain import PressState
 from edge.runtime.press import PressOutcome
-from edge.runtime.state import PressState
 
 # Frames whose parse time is kept (about 2 minutes at 125 Hz).
 PARSE_TIMES = 1 << 14

@@ -60,7 +60,7 @@ from edge.bench.settings import (
     Settings,
 )
 from edge.core.progress import Progress
-from edge.runtime.state import PressState
+from edge.runtime.domain import PressState
 
 # The emulated robot stands in for hardware, which never waits for a CPU: it runs favoured
 # (nice -10, where allowed) so that a busy host starves the daemon, not the motors.

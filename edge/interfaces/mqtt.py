@@ -44,7 +44,7 @@ from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
 from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.interfaces.http.api import BadRequest, validate_candidates
-from edge.runtime.state import Health, PressSummary
+from edge.runtime.domain import Health, PressSummary
 
 log = logging.getLogger(__name__)
 

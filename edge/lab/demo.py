@@ -19,7 +19,7 @@ import tempfile
 from pathlib import Path
 
 from edge.lab.stack import Stack, http_json, sim_stack, stop, wait_for
-from edge.runtime.state import PressState, PressSummary
+from edge.runtime.domain import PressState, PressSummary
 from edge.sim.catalogue import names
 
 CUBE = ("raw_kiri_mochi", "boiled_kiri_mochi", "raw_kabocha_squash", "boiled_kabocha_squash")

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 from edge.core.config import Config
 from edge.core.errors import EdgeError, NotFoundError, StateError
-from edge.runtime.episode import Status
+from edge.runtime.domain import Status
 from edge.runtime.recognition import RE_ASKABLE
 from edge.runtime.store import EpisodeStore
 

@@ -45,7 +45,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import fsync_dir
 from edge.core.errors import NotFoundError, StoreError
 from edge.core.layout import PadLayout
-from edge.runtime.state import PressState, PressSummary
+from edge.runtime.domain import PressState, PressSummary
 
 log = logging.getLogger(__name__)
 

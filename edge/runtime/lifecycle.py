@@ -39,14 +39,12 @@ from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
 from edge.runtime import signals
 from edge.runtime.compute import ComputeWorker, reload_model, warm_up
-from edge.runtime.episode import Episode
-from edge.runtime.events import EventBus, Subscription
+from edge.runtime.domain import Episode, EventBus, Health, PressState, Subscription
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
 from edge.runtime.recognition import Recognition, Recognizer
 from edge.runtime.ring import FrameRing
 from edge.runtime.sensor import Sampler, SensorTask
-from edge.runtime.state import Health, PressState
 from edge.runtime.store import EpisodeStore
 from edge.runtime.systemd import Notifier, watchdog_period_s
 from edge.vlm.client import VLMClient

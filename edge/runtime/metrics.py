@@ -6,7 +6,7 @@ import bisect
 from typing import TYPE_CHECKING, Any
 
 from edge.hw.contracts import BusStatus
-from edge.runtime.state import PressResult
+from edge.runtime.domain import PressResult
 
 if TYPE_CHECKING:
     from edge.runtime.press import PressOutcome

@@ -33,8 +33,8 @@ from edge.core.tasks import cancel_and_wait
 from edge.hw.arm import GRIPPER_CLOSED_WIDTH_M
 from edge.hw.contracts import Arm, Gripper, GripperState
 from edge.hw.control_table import CURRENT_MA_PER_UNIT
+from edge.runtime.domain import PressResult, PressState, PressSummary
 from edge.runtime.ring import FrameRing, Window
-from edge.runtime.state import PressResult, PressState, PressSummary
 
 log = logging.getLogger(__name__)
 

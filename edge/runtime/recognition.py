@@ -37,8 +37,7 @@ from edge.core.errors import (
 from edge.core.model import ModelRef
 from edge.hw.contracts import Camera
 from edge.runtime.compute import Analysis, ComputeWorker, analyse_press
-from edge.runtime.episode import Episode, Neighbour, Status
-from edge.runtime.events import EventBus
+from edge.runtime.domain import Episode, EventBus, Neighbour, Status
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController, PressOutcome, outcome_recording
 from edge.runtime.startcheck import needs_photo

@@ -42,7 +42,7 @@ from typing import Any
 
 from edge.core.atomic import atomic_write_text, fsync_dir
 from edge.core.errors import NotFoundError, StoreError
-from edge.runtime.episode import Episode, Status
+from edge.runtime.domain import Episode, Status
 
 log = logging.getLogger(__name__)
 

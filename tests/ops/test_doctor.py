@@ -469,7 +469,7 @@ def test_x_th_far_from_the_models_is_a_warning(tmp_path):
 
 
 def test_the_store_line_gives_its_size_growth_and_days_left(tmp_path):
-    from edge.runtime.episode import Episode, Status
+    from edge.runtime.domain import Episode, Status
     from edge.runtime.store import EpisodeStore, new_id
 
     cfg = sub(Config(), "runtime", state_dir=str(tmp_path / "state"))

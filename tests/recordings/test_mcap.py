@@ -130,8 +130,7 @@ def check_live(live_dir, episode_dir, states):
 
 
 def test_a_failed_episode_exports_its_result_only(tmp_path):
-    from edge.runtime.episode import Episode, Status
-    from edge.runtime.state import PressResult, PressState, PressSummary
+    from edge.runtime.domain import Episode, PressResult, PressState, PressSummary, Status
     from edge.runtime.store import EpisodeStore, new_id
 
     store = EpisodeStore(tmp_path / "episodes")
@@ -178,7 +177,7 @@ class _Runtime:
     """What the live recorder reads of the daemon: its ring, its events and its config."""
 
     def __init__(self):
-        from edge.runtime.events import EventBus
+        from edge.runtime.domain import EventBus
         from edge.runtime.ring import FrameRing
 
         self.cfg = fast_config()

@@ -12,10 +12,10 @@ from edge.core import preprocess, recording
 from edge.core.config import Config
 from edge.hw.arm import GRIPPER_OPEN_SPEED_MPS
 from edge.runtime.devices import enable_torque, open_devices
+from edge.runtime.domain import PressResult, PressState
 from edge.runtime.press import PressController, outcome_recording
 from edge.runtime.ring import FrameRing
 from edge.runtime.sensor import SensorTask
-from edge.runtime.state import PressResult, PressState
 from edge.sim.robot import SimRobot
 from tests.support.daemon import base_config
 

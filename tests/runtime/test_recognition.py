@@ -18,13 +18,11 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.core.model import model_ref
-from edge.runtime.episode import Status
-from edge.runtime.events import EventBus
+from edge.runtime.domain import EventBus, PressResult, PressState, Status
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.recognition import Recognition, Recognizer
 from edge.runtime.ring import Window
-from edge.runtime.state import PressResult, PressState
 from edge.runtime.store import EpisodeStore
 from edge.vlm.client import VLMAnswer
 from tests.support.daemon import ROOT

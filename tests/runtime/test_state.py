@@ -14,11 +14,10 @@ import pytest
 from edge.core.errors import StoreError
 from edge.hw.contracts import GripperState
 from edge.interfaces.http import webui
-from edge.runtime.episode import Episode
+from edge.runtime.domain import Episode, Health, PressResult, PressState, PressSummary
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.sensor import SamplerStats
-from edge.runtime.state import Health, PressResult, PressState, PressSummary
 
 APP_JS = Path(webui.__file__).parent / "static" / "app.js"
 HEALTH_KEYS = {f.name for f in dataclasses.fields(Health)}

@@ -9,7 +9,7 @@ import tarfile
 import pytest
 
 from edge.core.errors import NotFoundError, StoreError
-from edge.runtime.episode import Episode, Status
+from edge.runtime.domain import Episode, Status
 from edge.runtime.store import HELD_MAX, EpisodeStore, new_id, valid_id
 
 
@@ -49,7 +49,7 @@ def test_export_is_a_complete_tarball(tmp_path):
 
 KILL_WHILE_WRITING = """
 import os, sys
-from edge.runtime.episode import Episode, Status
+from edge.runtime.domain import Episode, Status
 from edge.runtime.store import EpisodeStore, new_id
 store = EpisodeStore(sys.argv[1])
 orig = os.rename

@@ -40,9 +40,7 @@ from edge.core.errors import (
     StateError,
 )
 from edge.interfaces.http.webui import OperatorPage
-from edge.runtime.episode import Episode
-from edge.runtime.events import Subscription
-from edge.runtime.state import Health
+from edge.runtime.domain import Episode, Health, Subscription
 from edge.vlm.images import check_image
 
 if TYPE_CHECKING:

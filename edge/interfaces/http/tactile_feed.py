@@ -28,7 +28,7 @@ import numpy as np
 from edge.core import preprocess
 from edge.core.layout import PadLayout
 from edge.core.tasks import cancel_and_wait
-from edge.runtime.state import PressState
+from edge.runtime.domain import PressState
 from edge.runtime.taps import newest
 
 log = logging.getLogger(__name__)

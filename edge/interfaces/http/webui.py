@@ -33,7 +33,7 @@ from aiohttp import web
 from edge.core.errors import NotFoundError
 from edge.interfaces.http.tactile_feed import TactileFeed
 from edge.interfaces.http.trace import press_trace
-from edge.runtime.state import PressSummary
+from edge.runtime.domain import PressSummary
 
 log = logging.getLogger(__name__)
 
