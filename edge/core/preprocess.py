@@ -20,7 +20,7 @@ one another, not with presses at 125 Hz: :func:`stream_rate` measures a press's 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -67,6 +67,23 @@ class WindowSpec:
         crop is complete with the first frame at or past it."""
         return (self.n_window - 1) * self.period_s - self.before_s
 
+    @property
+    def step_hz(self) -> float:
+        """The model's steps per second (25 Hz by default)."""
+        return self.rate_hz / self.subsample
+
+    def at_rate(self, rate_hz: float) -> WindowSpec:
+        """The same window at another sample rate (a sequence recorded at ``rate_hz``, taken
+        at its own rate): the same seconds before and after the stop, steps as near this
+        window's step rate as a whole number of samples allows, and the same smoothing in
+        time. At this window's own rate it is this window."""
+        if not rate_hz >= self.step_hz:
+            raise PreprocessError(f"rate {rate_hz:g} Hz is below the model's step rate "
+                                  f"{self.step_hz:g} Hz: nothing to subsample")
+        return replace(self, rate_hz=float(rate_hz),
+                       subsample=max(1, round(rate_hz / self.step_hz)),
+                       sigma_samples=self.sigma_samples * rate_hz / self.rate_hz)
+
     def grid(self, t_stop: float, margin: int = 0) -> np.ndarray:
         """The ideal sample times of the window around ``t_stop``, with ``margin`` more
         samples of the same grid on each side."""
@@ -79,6 +96,11 @@ DEFAULT_WINDOW = WindowSpec()
 # Rates further apart than this (relative) are two rates: the crop of a press at one is
 # interpolated from a different number of frames than at the other.
 RATE_TOLERANCE = 0.10
+# What the smoothed target does where the stream ends within the filter's reach: "require"
+# refuses (a press recording keeps 0.2 s beyond the window, so a short one is a defect);
+# "hold" smooths against the stream's first and last samples held beyond its ends (a
+# sequence from another sensor may end where the grasp ends).
+Edge = Literal["require", "hold"]
 # Where a stream's rate is set, for whoever is told it is off.
 RATE_SETTING = ("the pads' rate is set in xela_server's configuration ([sim] sensor_rate_hz "
                 "on the emulated robot)")
@@ -234,23 +256,37 @@ def smooth(window: np.ndarray, spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
 
 
 def smoothed_crop(times: np.ndarray, units: np.ndarray, t_stop: float,
-                  spec: WindowSpec = DEFAULT_WINDOW) -> np.ndarray:
-    """The target's 125 Hz window: the stream on the window's grid extended by the filter's
-    reach (``spec.smooth_margin`` samples each side), smoothed, then cropped to the window.
+                  spec: WindowSpec = DEFAULT_WINDOW, edge: Edge = "require") -> np.ndarray:
+    """The target's window: the stream on the window's grid extended by the filter's reach
+    (``spec.smooth_margin`` samples each side), smoothed, then cropped to the window.
 
-    The result equals smoothing an unbounded 125 Hz stream: no sample of the window is
-    filtered against a padded edge. The recording must reach that far (recordings keep
-    0.2 s beyond the window; the filter needs 0.096 s).
+    The result equals smoothing an unbounded stream: no sample of the window is filtered
+    against a padded edge. With ``edge="require"`` the recording must reach that far
+    (recordings keep 0.2 s beyond the window; the filter needs 0.096 s at 125 Hz). With
+    ``edge="hold"`` a stream that ends within the reach (the window itself must lie in it)
+    is smoothed as far as it goes with its end sample held beyond it: the target's samples
+    within ``smooth_margin`` of that end are pulled toward the end's value, so a stream still
+    rising or falling there is flattened (on a ramp the last sample lies about 0.4 sigma of
+    the ramp short of the stream); samples further in are as with the whole stream.
     """
     margin = spec.smooth_margin
+    wide = spec.grid(t_stop, margin)
+    lost_before = lost_after = 0
+    if edge == "hold":
+        times = np.asarray(times, dtype=np.float64)
+        lost_before = min(margin, int(np.searchsorted(wide, times[0], side="left")))
+        lost_after = min(margin, len(wide) - int(np.searchsorted(wide, times[-1],
+                                                                 side="right")))
+        wide = wide[lost_before:len(wide) - lost_after]
     try:
-        wide = resample(times, units, spec.grid(t_stop, margin))
+        wide_units = resample(times, units, wide)
     except PreprocessError as exc:
         raise PreprocessError(
             f"{exc}; the smoothed target also needs {margin} samples "
             f"({margin * spec.period_s * 1e3:.0f} ms) of stream beyond each end of the "
             "window") from None
-    return smooth(wide, spec)[margin:margin + spec.n_window]
+    start = margin - lost_before
+    return smooth(wide_units, spec)[start:start + spec.n_window]
 
 
 def model_input(times: np.ndarray, units: np.ndarray, t_stop: float,
@@ -260,11 +296,12 @@ def model_input(times: np.ndarray, units: np.ndarray, t_stop: float,
 
 
 def training_pairs(times: np.ndarray, units: np.ndarray, t_stop: float,
-                   spec: WindowSpec = DEFAULT_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+                   spec: WindowSpec = DEFAULT_WINDOW, edge: Edge = "require"
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """All offsets of one press: inputs X (the raw crop) and targets X_bar (smoothed before
-    the crop), each (subsample, n_steps, C)."""
+    the crop, ``edge`` as :func:`smoothed_crop`), each (subsample, n_steps, C)."""
     window = crop(times, units, t_stop, spec)
-    target = smoothed_crop(times, units, t_stop, spec)
+    target = smoothed_crop(times, units, t_stop, spec, edge)
     xs = np.stack([subsample(window, o, spec) for o in range(spec.subsample)])
     ts = np.stack([subsample(target, o, spec) for o in range(spec.subsample)])
     return xs.astype(np.float32), ts.astype(np.float32)

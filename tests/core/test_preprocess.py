@@ -178,3 +178,41 @@ def test_the_peak_norm_runs_from_closing_to_opening():
     units = np.array([[0.001, 0], [0.003, 0.004], [0.002, 0], [0.0, 0.009]])
     assert preprocess.peak_norm(t, units, t_open=0.3) == pytest.approx(0.005)
     assert preprocess.peak_norm(t, units) == pytest.approx(0.009)
+
+
+def test_a_window_at_another_rate_keeps_its_seconds_and_steps():
+    assert W.at_rate(125.0) == W  # the robot's window is its own rate's
+    w100 = W.at_rate(100.0)
+    assert (w100.n_window, w100.subsample, w100.n_steps) == (100, 4, 25)
+    assert w100.sigma_samples * w100.period_s == pytest.approx(W.sigma_samples * W.period_s)
+    assert W.at_rate(1000.0).n_steps == 25
+    with pytest.raises(PreprocessError, match="below the model's step rate"):
+        W.at_rate(10.0)
+
+
+def test_held_edges_change_only_the_targets_samples_within_the_filters_reach():
+    """A sequence that ends with the window: "hold" smooths against its end sample held; the
+    target is the whole stream's away from the ends, and a ramp's last sample lies about
+    0.4 sigma short of the ramp (what the docstring says)."""
+    w = W.at_rate(100.0)
+    long_times = np.arange(-50, 150) * w.period_s
+    ramp = np.stack([long_times, np.sin(7 * long_times)], axis=1).astype(np.float32)
+    t_stop = w.before_s  # the window starts at time 0
+    whole = preprocess.smoothed_crop(long_times, ramp, t_stop, w)
+    inside = (long_times >= 0) & (long_times < w.n_window * w.period_s - 1e-9)
+    times, units = long_times[inside], ramp[inside]  # no stream beyond either end
+    with pytest.raises(PreprocessError, match="of stream beyond each end"):
+        preprocess.smoothed_crop(times, units, t_stop, w)
+    held = preprocess.smoothed_crop(times, units, t_stop, w, edge="hold")
+    m = w.smooth_margin
+    assert held.shape == whole.shape == (100, 2)
+    np.testing.assert_allclose(held[m:-m], whole[m:-m], atol=1e-6)
+    lag = (whole[-1, 0] - held[-1, 0]) / (w.sigma_samples * w.period_s)
+    print(f"ramp's last target sample short by {lag:.3f} sigma")
+    assert 0.3 < lag < 0.5
+    # A stream long enough: "hold" is "require", to the bit.
+    np.testing.assert_array_equal(
+        preprocess.smoothed_crop(long_times, ramp, t_stop, w, edge="hold"), whole)
+    # The window itself still has to lie in the stream.
+    with pytest.raises(PreprocessError, match="leaves the stream"):
+        preprocess.smoothed_crop(times[5:], units[5:], t_stop, w, edge="hold")
