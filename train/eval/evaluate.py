@@ -237,7 +237,7 @@ def evaluate(embedders: Mapping[str, tuple[Embedder, np.ndarray | None]],
         unseen = PressSet(reference.x[:0], reference.x_bar[:0], (), ())
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    offsets = database.DB_OFFSETS
+    offsets = database.offsets_of(reference)
     per_press = len(offsets)
     at_query = offsets.index(QUERY_OFFSET)
     x_all, x_uns = database.reference_inputs(reference, offsets), unseen.inputs(QUERY_OFFSET)

@@ -3,9 +3,11 @@ says.
 
 Every press is cropped and subsampled by :mod:`edge.core.preprocess` (never re-implemented here):
 ``recording_pairs`` gives the 5 subsampling offsets of the input ``X`` and of the smoothed
-target ``X_bar``. Training and validation use all 5 offsets per press (1350 + 250 samples on
-the paper's reference set); anything that mimics recognition time (the database, the
-evaluation) uses offset 0 only, the one input the robot computes.
+target ``X_bar``; another sensor's labelled sequence (:mod:`train.learn.sequences`) goes
+through the same ``training_pairs`` at its own rate (4 offsets at 100 Hz). Training and
+validation use all 5 offsets per press (1350 + 250 samples on the paper's reference set);
+anything that mimics recognition time (the database, the evaluation) uses offset 0 only,
+the one input the robot computes.
 
 Class splits come from a file: by default the ``split`` field of the recorder's
 ``dataset.json`` (27 train + 5 validation classes); a JSON file ``{"train": [...], "val":
@@ -16,7 +18,11 @@ Normalisation: per-channel mean and standard deviation of the training inputs (a
 all time steps). Channels a pad barely loads carry little more than sensor noise (~2 counts,
 3e-5 units); dividing them by their own tiny spread would blow that noise up to the size of
 real signals and make the reconstruction loss mostly about noise, so each channel's std is
-floored at ``STD_FLOOR_FRACTION`` of the RMS of all channels' stds. The statistics go into
+floored at a fraction of the RMS of all channels' stds: ``STD_FLOOR_FRACTION`` (1.0) by
+default, chosen for the XELA pads, where most of the 96 channels are such noise. It is a
+setting (``--std-floor``, recorded in the model's manifest): on a sensor whose channels all
+carry signal at different scales (a BioTac's electrodes) 1.0 replaces the spread of most
+channels with one common value, and 0 gives each channel its own. The statistics go into
 the checkpoint and into the ONNX graph.
 """
 
@@ -33,6 +39,7 @@ import numpy as np
 from edge.core import preprocess, recording
 from edge.core.errors import RecordingError
 from edge.core.recording import DATASET_INDEX
+from train.learn import sequences
 
 STD_FLOOR_FRACTION = 1.0
 
@@ -130,22 +137,45 @@ class PressSet:
 
 def load_presses(directory: str | Path, labels: Iterable[str] | None = None,
                  spec: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW) -> PressSet:
-    """Every recording under ``directory`` (optionally only ``labels``), sorted by path."""
+    """Every press under ``directory`` (optionally only ``labels``), sorted by path: the
+    robot's press recordings (``*.press.npz``) and other sensors' labelled sequences
+    (``*.seq.npz``, :mod:`train.learn.sequences`, each at its own rate)."""
     wanted = None if labels is None else set(labels)
-    xs, ts, labs, paths = [], [], [], []
-    for path in recording.find(directory):
-        rec = recording.load(path)
-        if wanted is not None and rec.label not in wanted:
-            continue
-        x, t = preprocess.recording_pairs(rec, spec)
+    paths = sorted(recording.find(directory) + sequences.find(directory))
+    presses = []
+    for path in paths:
+        press = sequences.load(path) if sequences.is_sequence(path) else recording.load(path)
+        if wanted is None or press.label in wanted:
+            presses.append((str(path), press))
+    if not presses:
+        raise RecordingError(f"{directory}: no press recordings or sequences"
+                             + ("" if wanted is None else f" of {', '.join(sorted(wanted))}"))
+    return press_set(presses, spec)
+
+
+def press_set(presses: Sequence[tuple[str, recording.Recording | sequences.Sequence]],
+              spec: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW) -> PressSet:
+    """(path, press) pairs cut by :mod:`edge.core.preprocess`: a recording through
+    ``recording_pairs``, a sequence at its own rate through the same ``training_pairs``;
+    refused where they differ in steps or channels (one set is one sensor at one step rate)."""
+    xs, ts, names = [], [], []
+    for name, press in presses:
+        if isinstance(press, sequences.Sequence):
+            x, t = press.pairs(spec)
+        else:
+            x, t = preprocess.recording_pairs(press, spec)
+        names.append(name)
+        if xs and x.shape[1:] != xs[0].shape[1:]:
+            raise RecordingError(
+                f"{names[-1]} gives {x.shape[1]} steps of {x.shape[2]} channels, {names[0]} "
+                f"{xs[0].shape[1]} of {xs[0].shape[2]}: one set holds one sensor's presses at "
+                "one step rate")
         xs.append(x)
         ts.append(t)
-        labs.append(rec.label)
-        paths.append(str(path))
-    if not xs:
-        raise RecordingError(f"{directory}: no press recordings"
-                             + ("" if wanted is None else f" of {', '.join(sorted(wanted))}"))
-    return PressSet(np.stack(xs), np.stack(ts), tuple(labs), tuple(paths))
+    # Offsets differ with the rate (5 at 125 Hz, 4 at 100 Hz): a set keeps those all share.
+    n_off = min(x.shape[0] for x in xs)
+    return PressSet(np.stack([x[:n_off] for x in xs]), np.stack([t[:n_off] for t in ts]),
+                    tuple(p.label for _, p in presses), tuple(names))
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,13 +187,18 @@ class Normaliser:
 
     @classmethod
     def fit(cls, x: np.ndarray, floor_fraction: float = STD_FLOOR_FRACTION) -> Normaliser:
+        if not floor_fraction >= 0:
+            raise ValueError(f"the std floor must be >= 0 (a fraction of the RMS of the "
+                             f"channels' stds), got {floor_fraction}")
         flat = np.asarray(x, dtype=np.float64).reshape(-1, x.shape[-1])
         mean = flat.mean(axis=0)
         std = flat.std(axis=0)
-        floor = floor_fraction * float(np.sqrt(np.mean(std**2)))
-        if not floor > 0:
+        rms = float(np.sqrt(np.mean(std**2)))
+        if not rms > 0:
             raise ValueError("training inputs have no spread: cannot normalise")
-        return cls(mean.astype(np.float32), np.maximum(std, floor).astype(np.float32))
+        std = np.maximum(std, floor_fraction * rms)
+        std[std <= 0] = rms  # a channel that never moves (floor 0): any scale leaves it 0
+        return cls(mean.astype(np.float32), std.astype(np.float32))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return ((np.asarray(x, dtype=np.float32) - self.mean) / self.std).astype(np.float32)

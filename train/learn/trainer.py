@@ -178,6 +178,12 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
         (out / TRAIN_LOG).write_text("")
     progress = progress or Progress()
     cfg = config.model
+    if cfg.metric and len(data.splits.val) == 1:
+        raise ModelError(
+            f"one validation class ({data.splits.val[0]}): the metric term compares presses of "
+            "different classes, so on one class it is 0 and early stopping would watch the "
+            "reconstruction alone; give two or more validation classes, or none (early "
+            "stopping then watches the training loss), or train without the metric term")
     expected = (cfg.steps, cfg.channels)
     if data.train.x.shape[1:] != expected:
         raise ValueError(f"samples are {data.train.x.shape[1:]}, the model takes {expected}")

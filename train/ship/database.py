@@ -4,10 +4,11 @@ Every reference press (training and validation classes) is encoded with the *exp
 encoder, exactly as the robot will encode a press: :func:`edge.core.preprocess.recording_pairs`
 in tactile units, through onnxruntime. As in the paper's TactileReference, every press gives
 one reference per subsampling offset (5: the same press seen on five 25 Hz grids 8 ms apart),
-so a class of 10 presses has 50 references; the robot computes offset 0 of its press and
-finds the nearest of them. Stored per reference: z, z_q (= codebook[code]), code, label,
-source file, offset; per label: its description (from the recorder's ``dataset.json`` or
-given), which must name the object, never say how it feels (:mod:`edge.core.descriptions`).
+so a class of 10 presses has 50 references (the offsets follow the window's subsampling:
+:func:`offsets_of`); the robot computes offset 0 of its press and finds the nearest of them.
+Stored per reference: z, z_q (= codebook[code]), code, label, source file, offset; per label:
+its description (from the recorder's ``dataset.json`` or given), which must name the object,
+never say how it feels (:mod:`edge.core.descriptions`).
 """
 
 from __future__ import annotations
@@ -42,8 +43,6 @@ from train.ship.manifest import read_raw, write_manifest
 
 log = logging.getLogger(__name__)
 
-# Every subsampling offset of every press (the paper's 5 per press).
-DB_OFFSETS = (0, 1, 2, 3, 4)
 # The manifest's record of the stream's rate each class's presses were made at (the median
 # of their crop windows' rates), beside its class_x_th.
 CLASS_RATE_HZ = "class_rate_hz"
@@ -62,14 +61,21 @@ def summary(db: ReferenceDatabase) -> dict:
             "added": [c.label for c in db.classes if c.split == "added"]}
 
 
-def reference_inputs(presses: PressSet, offsets: Sequence[int] = DB_OFFSETS) -> np.ndarray:
-    """The inputs of every (press, offset), press-major: (P * len(offsets), steps, channels)."""
-    x = presses.x[:, list(offsets)]
+def offsets_of(presses: PressSet) -> tuple[int, ...]:
+    """Every subsampling offset the presses were cut at: the database holds one reference per
+    press and offset (the paper's 5 at the robot's 125 Hz; 4 for a sequence at 100 Hz)."""
+    return tuple(range(presses.x.shape[1]))
+
+
+def reference_inputs(presses: PressSet, offsets: Sequence[int] | None = None) -> np.ndarray:
+    """The inputs of every (press, offset), press-major: (P * len(offsets), steps, channels);
+    ``offsets`` None: every offset of the presses."""
+    x = presses.x[:, list(offsets_of(presses) if offsets is None else offsets)]
     return np.ascontiguousarray(x.reshape(-1, *x.shape[2:]))
 
 
 def encode_presses(encoder: OnnxEncoder, presses: PressSet,
-                   offsets: Sequence[int] = DB_OFFSETS) -> tuple[np.ndarray, np.ndarray]:
+                   offsets: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """z (P * len(offsets), D) and codes, press-major."""
     return encoder(reference_inputs(presses, offsets))
 
@@ -87,10 +93,11 @@ def check_descriptions(descriptions: dict[str, str], labels: Sequence[str]) -> N
 def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
                     codebook: np.ndarray | None, code: np.ndarray | None = None,
                     space: Space = "z", k: int = DEFAULT_K,
-                    offsets: Sequence[int] = DB_OFFSETS, *, tactile_words_ok: bool = False
+                    offsets: Sequence[int] | None = None, *, tactile_words_ok: bool = False
                     ) -> ReferenceDatabase:
     """The database of ``presses`` (ordered as ``splits.classes``) with embeddings ``z`` of
-    every (press, offset), press-major (:func:`reference_inputs`).
+    every (press, offset), press-major (:func:`reference_inputs`; ``offsets`` None: every
+    offset of the presses).
 
     ``code`` (default: nearest in ``codebook``) gives z_q = codebook[code]; without a
     codebook (the beta-VAE) a one-vector stand-in keeps the format. ``tactile_words_ok``
@@ -102,6 +109,7 @@ def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
             raise ModelError(f"no description for {', '.join(missing)}")
     else:
         check_descriptions(splits.descriptions, splits.classes)
+    offsets = offsets_of(presses) if offsets is None else offsets
     per_press = len(offsets)
     if len(z) != len(presses) * per_press:
         raise ModelError(f"{len(z)} embeddings for {len(presses)} presses x {per_press} "
@@ -359,8 +367,8 @@ def add_class(model_dir: str | Path, recordings: str | Path, label: str,
     _check_new(metas, digests or {})
     presses = load_presses(recordings)
     old = model.database
-    sources = [Path(p).name for p in presses.paths for _ in DB_OFFSETS]
-    offsets = np.tile(np.asarray(DB_OFFSETS, dtype=np.int8), len(presses))
+    sources = [Path(p).name for p in presses.paths for _ in offsets_of(presses)]
+    offsets = np.tile(np.asarray(offsets_of(presses), dtype=np.int8), len(presses))
     z, code = encode_presses(model.encoder, presses)
     db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code, sources,
                         offsets)
