@@ -136,37 +136,43 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
     import asyncio
 
     from train.eval import eval_vlm
+    from train.eval.eval_vlm.cache import ANSWERS_FILE, AnswerCache
+    from train.eval.eval_vlm.config import DEFAULT_CONDITIONS, EvalVLMConfig
+    from train.eval.eval_vlm.paper import parse_paper_sets
+    from train.eval.eval_vlm.plan import describe_plan, prepare
+    from train.eval.eval_vlm.provenance import model_facts, variant_advice
+    from train.eval.eval_vlm.report import REPORT_JSON, REPORT_MD, slug
     from train.ship.manifest import read_raw
 
     vlm = _vlm_settings(args)
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip()) \
-        if args.conditions else eval_vlm.DEFAULT_CONDITIONS
+        if args.conditions else DEFAULT_CONDITIONS
     paths = _comparisons(args)
     beta, zeros, reference = paths["beta"], paths["zeros"], paths["reference"]
     if not args.conditions and "beta_top3" in conditions and not (
             beta and beta.exists() and reference and reference.exists()):
-        facts = eval_vlm.model_facts(read_raw(Path(args.model_dir)))
+        facts = model_facts(read_raw(Path(args.model_dir)))
         log.warning("no beta-VAE checkpoint (%s) or reference recordings (%s): skipping the "
                     "beta_top3 condition (train it with %s)", beta, reference,
-                    eval_vlm.variant_advice(facts, Path(args.model_dir), "beta"))
+                    variant_advice(facts, Path(args.model_dir), "beta"))
         conditions = tuple(c for c in conditions if c != "beta_top3")
-    out = Path(args.out) if args.out else Path("runs/eval-vlm") / eval_vlm.slug(vlm.model)
-    cfg = eval_vlm.EvalVLMConfig(
+    out = Path(args.out) if args.out else Path("runs/eval-vlm") / slug(vlm.model)
+    cfg = EvalVLMConfig(
         vlm=vlm, out=out, unseen=tuple(Path(d) for d in args.unseen),
         model_dir=Path(args.model_dir), conditions=conditions, reference=reference,
         beta=beta, zeros=zeros, images=Path(args.images) if args.images else None,
         limit=args.limit, concurrency=args.concurrency,
-        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
+        paper_sets=parse_paper_sets(args.paper_set))
     if not args.verbose:  # one INFO line per answer from the client is too much here
         logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
     if args.dry_run:
-        plan = eval_vlm.prepare(cfg, endpoint=False)
-        cache = eval_vlm.AnswerCache(out / eval_vlm.ANSWERS_FILE)
-        print(eval_vlm.describe_plan(plan, cache.load()))
+        plan = prepare(cfg, endpoint=False)
+        cache = AnswerCache(out / ANSWERS_FILE)
+        print(describe_plan(plan, cache.load()))
         return 0
     asyncio.run(eval_vlm.run(cfg, progress=not args.quiet))
-    print((out / eval_vlm.REPORT_MD).read_text())
-    print(f"answers: {out / eval_vlm.ANSWERS_FILE}; report: {out / eval_vlm.REPORT_JSON}")
+    print((out / REPORT_MD).read_text())
+    print(f"answers: {out / ANSWERS_FILE}; report: {out / REPORT_JSON}")
     return 0
 
 
@@ -197,7 +203,7 @@ def _comparisons(args: argparse.Namespace) -> dict[str, Path | None]:
     """--reference, --beta, --zeros as given, else what a model directory `vt-train build`
     made holds (its dataset, its comparison checkpoints; None where it has none), else (the
     simulated release) the release's."""
-    from train.eval.eval_vlm import model_facts
+    from train.eval.eval_vlm.provenance import model_facts
     from train.ship.build import checkpoints
     from train.ship.manifest import read_raw
 
@@ -225,7 +231,8 @@ def _reference(args: argparse.Namespace) -> Path:
 def _cmd_table1(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train.eval import eval_vlm, table1
+    from train.eval import table1
+    from train.eval.eval_vlm.paper import parse_paper_sets
 
     first = _vlm_settings(args)
     second = None
@@ -240,7 +247,7 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         reference=paths["reference"], beta=paths["beta"], zeros=paths["zeros"],
         images=Path(args.images) if args.images else None, limit=args.limit,
         concurrency=args.concurrency, extras=not args.no_extras,
-        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
+        paper_sets=parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
         logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
@@ -252,7 +259,8 @@ def _cmd_table1(args: argparse.Namespace) -> int:
 def _cmd_fig6(args: argparse.Namespace) -> int:
     import asyncio
 
-    from train.eval import eval_vlm, fig6
+    from train.eval import fig6
+    from train.eval.eval_vlm.paper import parse_paper_sets
 
     cfg = fig6.Fig6Config(
         vlm=_vlm_settings(args), out=Path(args.out), work=Path(args.work),
@@ -262,7 +270,7 @@ def _cmd_fig6(args: argparse.Namespace) -> int:
         seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
         decoder=args.decoder, images=Path(args.images) if args.images else None,
         limit=args.limit, concurrency=args.concurrency,
-        paper_sets=eval_vlm.parse_paper_sets(args.paper_set))
+        paper_sets=parse_paper_sets(args.paper_set))
     if not args.verbose:
         logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
     asyncio.run(fig6.run(cfg, progress=not args.quiet))

@@ -19,13 +19,17 @@ from edge.sim.standin_vlm import StandIn
 from edge.vlm.prompt import load_template
 from tests.support.vlm_thread import fake_in_thread
 from train.eval import eval_vlm
-from train.eval.eval_vlm import AnswerCache, EvalVLMConfig
+from train.eval.eval_vlm.cache import ANSWERS_FILE, AnswerCache
+from train.eval.eval_vlm.config import DEFAULT_CONDITIONS, EvalVLMConfig
+from train.eval.eval_vlm.provenance import describe_origin, model_facts, reference_origin
+from train.eval.eval_vlm.report import REPORT_JSON, REPORT_MD
+from train.eval.eval_vlm.sets import load_test_set, round_robin
 
 from .conftest import PRESSES
 
 MODEL = "fake-vlm"
 CUBE = ("raw_kabocha_squash", "boiled_kabocha_squash", "raw_kiri_mochi", "boiled_kiri_mochi")
-JOBS = len(CUBE) * PRESSES * len(eval_vlm.DEFAULT_CONDITIONS)
+JOBS = len(CUBE) * PRESSES * len(DEFAULT_CONDITIONS)
 
 
 @pytest.fixture(autouse=True)
@@ -43,15 +47,15 @@ def settings(released, work, out, url, **kw) -> EvalVLMConfig:
 
 
 def cache_lines(out) -> list[dict]:
-    path = out / eval_vlm.ANSWERS_FILE
+    path = out / ANSWERS_FILE
     if not path.exists():
         return []
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
 def test_round_robin_order_and_limit(work):
-    assert eval_vlm.round_robin(["a", "a", "b", "b", "c"], ["b", "a", "c"]) == [2, 0, 4, 3, 1]
-    ts = eval_vlm.load_test_set(work / "recordings" / "cube", limit=5)
+    assert round_robin(["a", "a", "b", "b", "c"], ["b", "a", "c"]) == [2, 0, 4, 3, 1]
+    ts = load_test_set(work / "recordings" / "cube", limit=5)
     assert ts.name == "cube" and ts.candidates == CUBE
     assert ts.presses.labels == (*CUBE, CUBE[0])  # every class before any class's second
     assert ts.press_ids[0] == "raw_kabocha_squash/raw_kabocha_squash_000.press.npz"
@@ -95,13 +99,13 @@ async def test_tactile_beats_vision_only_with_the_shipped_prompts(released, work
     assert all(r.candidates == list(CUBE) for r in requests)
 
     # Files: Table I in Markdown, confusion matrices as JSON and a picture.
-    md = (out / eval_vlm.REPORT_MD).read_text()
+    md = (out / REPORT_MD).read_text()
     assert "| Vision only | 50.0 % (4/8) |" in md
     assert "| Vision + tactile (VQ-VAE, top-3) |" in md and "GPT-4V" in md
     for block in md.split("\n\n"):
         rows = [line for line in block.splitlines() if line.startswith("|")]
         assert len({line.count("|") for line in rows}) <= 1, block
-    saved = json.loads((out / eval_vlm.REPORT_JSON).read_text())
+    saved = json.loads((out / REPORT_JSON).read_text())
     conf = saved["results"]["cube"]["vq_top3"]["confusion"]
     assert conf["columns"] == [*CUBE, "invalid_answer"]
     assert [sum(row) for row in conf["matrix"]] == [PRESSES] * len(CUBE)
@@ -171,7 +175,7 @@ async def test_invalid_answers_are_counted_not_mapped(released, work, tmp_path):
     assert first["answers"]["vision_only"] == {
         "label": None, "status": "invalid_answer", "correct": False, "topk": [],
         "attempts": 2}
-    assert "| Vision only | 0 |" not in (out / eval_vlm.REPORT_MD).read_text()
+    assert "| Vision only | 0 |" not in (out / REPORT_MD).read_text()
     assert len(fake.chat_requests) == len(CUBE) * PRESSES + 1
 
 
@@ -265,14 +269,13 @@ async def test_a_server_refusing_response_format_is_asked_with_the_robots_fallba
 
 def test_origin_null_or_absent_reads_as_the_emulated_robot(tmp_path):
     for raw in ({}, {"origin": None}):
-        facts = eval_vlm.model_facts(raw)
+        facts = model_facts(raw)
         assert facts["origin"]["kind"] == "emulated" and not facts["built"]
     robot = {"kind": "robot", "recorder": "lab", "robot": "arm-3", "sensor": None}
-    assert eval_vlm.model_facts({"origin": robot}) == {"decoder": None, "origin": robot,
-                                                       "built": True, "data": None,
-                                                       "unseen": []}
+    assert model_facts({"origin": robot}) == {"decoder": None, "origin": robot,
+                                              "built": True, "data": None, "unseen": []}
     (tmp_path / "dataset.json").write_text(json.dumps(
         {"classes": [], "recorder": "the simulated recorder", "origin": None}))
-    origin = eval_vlm.reference_origin(tmp_path)
+    origin = reference_origin(tmp_path)
     assert origin["kind"] == "emulated" and origin["recorder"] == "the simulated recorder"
-    assert "emulated robot" in eval_vlm.describe_origin(origin)
+    assert "emulated robot" in describe_origin(origin)

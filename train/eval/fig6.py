@@ -16,8 +16,9 @@ classes every draw holds the same classes and differs only in its training seed.
 Resumable and cached: each training is kept in ``WORK/n<size>_d<draw>/`` (checkpoint,
 ``train.jsonl``, ``result.json`` with the key it was made for: classes, seed, epochs,
 model configuration and a digest of the reference data); a rerun loads it instead of training again.
-Answers go to ``WORK/<model>/answers.jsonl`` (:class:`train.eval.eval_vlm.AnswerCache`): a question
-already answered (the same prompt and photo) is never asked again, whichever draw asks it.
+Answers go to ``WORK/<model>/answers.jsonl`` (:class:`train.eval.eval_vlm.cache.AnswerCache`):
+a question already answered (the same prompt and photo) is never asked again, whichever draw
+asks it.
 With no ``--url`` the simulated VLM answers (``simulated-vlm``).
 
 Training time sets the command's length: ``--max-epochs`` and ``--patience`` default to 100
@@ -47,8 +48,16 @@ from edge.core.model import read_manifest
 from edge.core.preprocess import DEFAULT_WINDOW, WindowSpec
 from edge.core.progress import Progress as Bar
 from edge.vlm.prompt import load_template
-from train.eval import eval_vlm
-from train.eval.eval_vlm import CONDITIONS, AnswerCache, EvalVLMConfig, Job
+from train.eval.eval_vlm.ask import EvalProgress, ask_all
+from train.eval.eval_vlm.cache import ANSWERS_FILE, AnswerCache
+from train.eval.eval_vlm.config import CONDITIONS, DEFAULT_CONCURRENCY, EvalVLMConfig
+from train.eval.eval_vlm.images import ImageSource
+from train.eval.eval_vlm.paper import paper_set, set_title
+from train.eval.eval_vlm.plan import Job, Plan, build_jobs
+from train.eval.eval_vlm.provenance import decoder_title, describe_origin, reference_origin
+from train.eval.eval_vlm.report import save_png, slug
+from train.eval.eval_vlm.sets import load_sets
+from train.eval.eval_vlm.tactile import load_reference, torch_tactile
 from train.learn.data import PressSet, Splits, training_data_of
 from train.learn.model import ModelConfig
 from train.learn.trainer import CHECKPOINT, Progress, TrainConfig, load_checkpoint, train
@@ -84,7 +93,7 @@ class Fig6Config:
     threads: int = 1
     images: Path | None = None
     limit: int | None = None
-    concurrency: int = eval_vlm.DEFAULT_CONCURRENCY
+    concurrency: int = DEFAULT_CONCURRENCY
     paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
 
     @property
@@ -167,12 +176,12 @@ def _trained(cfg: Fig6Config, presses: PressSet, splits: Splits, model_config: M
 
 
 def _cache_path(cfg: Fig6Config) -> Path:
-    name = eval_vlm.slug(cfg.vlm.model or "simulated-vlm")
+    name = slug(cfg.vlm.model or "simulated-vlm")
     if cfg.standin:
         from edge.sim.standin_vlm import knowledge_digest
 
         name += f"@{knowledge_digest()[:12]}"
-    return cfg.work / name / eval_vlm.ANSWERS_FILE
+    return cfg.work / name / ANSWERS_FILE
 
 
 def _window(model_dir: Path) -> tuple[WindowSpec, ModelConfig]:
@@ -190,13 +199,13 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
     started = time.perf_counter()
     window, shipped = await asyncio.to_thread(_window, cfg.model_dir)
     model_config = dataclasses.replace(shipped, decoder=cfg.decoder or shipped.decoder)
-    presses, splits = await asyncio.to_thread(eval_vlm.load_reference, cfg.reference, window)
+    presses, splits = await asyncio.to_thread(load_reference, cfg.reference, window)
     cfg.validate(len(splits.train))
-    sets = await asyncio.to_thread(eval_vlm.load_sets, cfg.unseen, cfg.limit, window)
+    sets = await asyncio.to_thread(load_sets, cfg.unseen, cfg.limit, window)
     digest = await asyncio.to_thread(data_digest, presses)
     vision, method = CONDITIONS["vision_only"], CONDITIONS["vq_top3"]
     templates = {c.mode: load_template(c.mode, cfg.vlm.prompt_dir) for c in (vision, method)}
-    images = eval_vlm.ImageSource(cfg.images, cfg.vlm)
+    images = ImageSource(cfg.images, cfg.vlm)
     model_name = cfg.vlm.model or "simulated-vlm"
 
     trainings = [(n, d) for n in cfg.sizes if n > 0 for d in range(cfg.draws)]
@@ -208,18 +217,18 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
         if n == 0:
             for d in range(cfg.draws):  # one set of questions: every draw shares its answers
                 draws.append(Draw(0, d, (), None))
-                jobs[(0, d)] = eval_vlm.build_jobs(sets, [(vision, None)], templates, images,
-                                                   model_name)
+                jobs[(0, d)] = build_jobs(sets, [(vision, None)], templates, images,
+                                          model_name)
             continue
         for d in range(cfg.draws):
             draw, model, norm = await asyncio.to_thread(
                 _trained, cfg, presses, splits, model_config, digest, n, d, train_bars)
             draws.append(draw)
             chosen = presses.select(draw.classes)
-            tactile = eval_vlm.torch_tactile(
+            tactile = torch_tactile(
                 "vq", model, norm, (chosen, Splits(draw.classes, (), splits.descriptions)))
             jobs[(n, d)] = await asyncio.to_thread(
-                eval_vlm.build_jobs, sets, [(method, tactile)], templates, images, model_name)
+                build_jobs, sets, [(method, tactile)], templates, images, model_name)
             bar.update(1, f"|Y_ref| {n} draw {d}"
                        + (f": {draw.seconds:.0f} s, {draw.epochs} epochs" if draw.trained_now
                           else ": cached"))
@@ -233,8 +242,8 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
     cache = AnswerCache(_cache_path(cfg))
     await asyncio.to_thread(cache.load)
     keys = {j.key for j in all_jobs}
-    eval_bar = eval_vlm.EvalProgress(len(keys), len(keys & set(cache.records)),
-                                     enabled=progress)
+    eval_bar = EvalProgress(len(keys), len(keys & set(cache.records)),
+                            enabled=progress)
     if cfg.standin:
         from edge.sim.standin_vlm import DEFAULT, server
 
@@ -248,8 +257,8 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
                        t_train, time.perf_counter() - started)
     report["data"] = {
         "reference": {"directory": str(cfg.reference), "train_classes": len(splits.train),
-                      "origin": eval_vlm.reference_origin(cfg.reference)},
-        "sets": [{"name": ts.name, "paper_set": eval_vlm.paper_set(ts.name, cfg.paper_sets),
+                      "origin": reference_origin(cfg.reference)},
+        "sets": [{"name": ts.name, "paper_set": paper_set(ts.name, cfg.paper_sets),
                   "origin": ts.origin} for ts in sets],
         "images": images.name}
     await asyncio.to_thread(write_report, cfg, report)
@@ -257,9 +266,9 @@ async def run(cfg: Fig6Config, *, progress: bool = True) -> dict[str, Any]:
 
 
 async def _ask(ecfg: EvalVLMConfig, sets, templates, jobs, cache, bar, images_name) -> None:
-    plan = eval_vlm.Plan(ecfg, tuple(sets), (CONDITIONS["vision_only"], CONDITIONS["vq_top3"]),
-                         templates, jobs, images_name)
-    await eval_vlm.ask_all(plan, cache, progress=bar)
+    plan = Plan(ecfg, tuple(sets), (CONDITIONS["vision_only"], CONDITIONS["vq_top3"]),
+                templates, jobs, images_name)
+    await ask_all(plan, cache, progress=bar)
 
 
 def _accuracy(jobs: Sequence[Job], records: Mapping[str, Mapping[str, Any]], dataset: str
@@ -296,7 +305,7 @@ def summarise(cfg: Fig6Config, draws: Sequence[Draw], jobs: Mapping[tuple[int, i
                 "values": accs, "mean": float(arr.mean()),
                 "std": float(arr.std(ddof=1)) if len(arr) > 1 else 0.0,
                 "paper": PAPER_ENDS.get(n, {}).get(
-                    eval_vlm.paper_set(ds, cfg.paper_sets) or "")}
+                    paper_set(ds, cfg.paper_sets) or "")}
         sizes.append(row)
     trained = [r["train_seconds"] for r in runs if r["train_seconds"] is not None]
     return {
@@ -329,7 +338,7 @@ def _sets(r: Mapping[str, Any]) -> tuple[list[str], list[str]]:
     names = list(r["sizes"][0]["sets"]) if r["sizes"] else []
     data = r.get("data", {})
     mapping = {d["name"]: d["paper_set"] for d in data.get("sets", []) if d.get("paper_set")}
-    return names, [eval_vlm.set_title(ds, mapping) for ds in names]
+    return names, [set_title(ds, mapping) for ds in names]
 
 
 def markdown(r: Mapping[str, Any]) -> str:
@@ -347,12 +356,12 @@ def markdown(r: Mapping[str, Any]) -> str:
              if "latent" in r else "")
     lines += [f"VLM `{r['model']}`; encoders retrained per draw ({shape}decoder "
               f"`{r['decoder']}`: "
-              f"{eval_vlm.decoder_title(r['decoder'])}; at most {r['max_epochs']} epochs, "
+              f"{decoder_title(r['decoder'])}; at most {r['max_epochs']} epochs, "
               f"patience {r['patience']}); {r['draws']} draws per size, seed {r['seed']}. "
               f"{r['protocol']}.", "",
               f"Reference classes: `{ref.get('directory')}` ({ref.get('train_classes')} "
-              f"training classes, {eval_vlm.describe_origin(ref.get('origin'))}); test sets: "
-              + "; ".join(f"{d['name']} ({eval_vlm.describe_origin(d.get('origin'))})"
+              f"training classes, {describe_origin(ref.get('origin'))}); test sets: "
+              + "; ".join(f"{d['name']} ({describe_origin(d.get('origin'))})"
                           for d in data.get("sets", []))
               + f"; images: {data.get('images')}.", "",
               "| classes in Y_ref | " + " | ".join(f"{t} mean ± std (%)" for t in titles)
@@ -406,7 +415,7 @@ def plot(r: Mapping[str, Any], path: Path) -> None:
     ax.set_title(r["title"], fontsize=8)
     ax.legend(fontsize=6, loc="lower right")
     fig.tight_layout()
-    eval_vlm.save_png(fig, path, DPI)
+    save_png(fig, path, DPI)
     plt.close(fig)
 
 

@@ -41,7 +41,15 @@ from edge.core.config import VLMConfig
 from edge.core.errors import EvalVLMError
 from edge.core.model import read_manifest
 from train.eval import eval_vlm
-from train.eval.eval_vlm import DATASET_TITLES, EvalVLMConfig
+from train.eval.eval_vlm.config import DEFAULT_CONCURRENCY, EvalVLMConfig
+from train.eval.eval_vlm.paper import DATASET_TITLES, PAPER_SETS, paper_set, set_title
+from train.eval.eval_vlm.provenance import (
+    decoder_title,
+    describe_origin,
+    model_facts,
+    variant_advice,
+)
+from train.eval.eval_vlm.report import slug
 from train.ship.database import TEST_PRESSES_ADDED
 
 log = logging.getLogger(__name__)
@@ -50,7 +58,7 @@ REPORT_MD = "table1.md"
 REPORT_JSON = "table1.json"
 TABLE_CONDITIONS = ("vision_only", "vq_top3", "vq_top1", "beta_top3")
 EXTRA_CONDITIONS = ("vq_zeros_top3", "vq_top3_adjectives")
-SETS = eval_vlm.PAPER_SETS
+SETS = PAPER_SETS
 # The comparison conditions and the `--variant` of vt-train build that trains their model.
 VARIANT_OF = {"beta_top3": "beta", "vq_zeros_top3": "zeros"}
 
@@ -76,7 +84,7 @@ class Table1Config:
     zeros: Path | None = None
     images: Path | None = None
     limit: int | None = None
-    concurrency: int = eval_vlm.DEFAULT_CONCURRENCY
+    concurrency: int = DEFAULT_CONCURRENCY
     extras: bool = True  # add the extra rows whose checkpoints exist
     paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
 
@@ -88,7 +96,7 @@ class Table1Config:
         """The comparison rows that cannot run here, each with how to make its model."""
         have = {"beta_top3": self.beta, "vq_zeros_top3": self.zeros}
         wanted = (*TABLE_CONDITIONS, *(EXTRA_CONDITIONS if self.extras else ()))
-        facts = eval_vlm.model_facts(read_manifest(self.model_dir))
+        facts = model_facts(read_manifest(self.model_dir))
         out = {}
         for name in wanted:
             if name not in have:
@@ -98,7 +106,7 @@ class Table1Config:
                     or not self.reference.exists():
                 out[name] = (f"no checkpoint ({path or 'none kept with the model'}) or "
                              f"reference recordings ({self.reference}); train it with "
-                             + eval_vlm.variant_advice(facts, self.model_dir, VARIANT_OF[name]))
+                             + variant_advice(facts, self.model_dir, VARIANT_OF[name]))
         return out
 
     def conditions(self) -> tuple[str, ...]:
@@ -114,8 +122,8 @@ def _cache_dir(work: Path, model: str, standin: bool) -> Path:
     if standin:
         from edge.sim.standin_vlm import knowledge_digest
 
-        return work / f"{eval_vlm.slug(model)}@{knowledge_digest()[:12]}"
-    return work / eval_vlm.slug(model)
+        return work / f"{slug(model)}@{knowledge_digest()[:12]}"
+    return work / slug(model)
 
 
 async def _run_models(cfg: Table1Config, models: Sequence[VLMConfig], progress: bool
@@ -159,7 +167,7 @@ def _cell(r: Mapping[str, Any] | None) -> str:
 def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, Any]]]
             ) -> dict[str, Any]:
     manifest = read_manifest(cfg.model_dir)
-    facts = eval_vlm.model_facts(manifest)
+    facts = model_facts(manifest)
     datasets = reports[0][1]["datasets"] if reports else []
     names = [d["name"] for d in datasets]
     models = []
@@ -171,7 +179,7 @@ def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, A
             for name in names:
                 r = report["results"].get(name, {}).get(cond["name"])
                 paper = PAPER.get(paper_model or "", {}).get(cond["name"])
-                beside = eval_vlm.paper_set(name, cfg.paper_sets)
+                beside = paper_set(name, cfg.paper_sets)
                 row["sets"][name] = {
                     "accuracy": r["accuracy"] if r else None,
                     "correct": r["correct"] if r else None, "n": r["n"] if r else None,
@@ -193,8 +201,7 @@ def summary(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[str, A
                           "decoder": facts["decoder"], "origin": facts["origin"],
                           "database": manifest.get("database"),
                           "test_presses_added": manifest.get(TEST_PRESSES_ADDED, [])},
-        "sets": [{"name": d["name"], "paper_set": eval_vlm.paper_set(d["name"],
-                                                                    cfg.paper_sets),
+        "sets": [{"name": d["name"], "paper_set": paper_set(d["name"], cfg.paper_sets),
                   "origin": d.get("origin"), "presses": d["presses"]} for d in datasets],
         "images": reports[0][1]["images"] if reports else None,
         "missing": cfg.missing(),
@@ -226,16 +233,16 @@ def markdown(s: Mapping[str, Any]) -> str:
     names = [d["name"] for d in sets]
     mapping = {d["name"]: d["paper_set"] for d in sets if d["paper_set"]}
     beside = [d for d in sets if d["paper_set"]]
-    titles = [eval_vlm.set_title(n, mapping) for n in names]
+    titles = [set_title(n, mapping) for n in names]
     lines += [f"Tactile model `{tm['dir']}`: decoder `{tm['decoder']}` "
-              f"({eval_vlm.decoder_title(tm['decoder'])}), trained on "
-              f"{eval_vlm.describe_origin(tm.get('origin'))}; database "
+              f"({decoder_title(tm['decoder'])}), trained on "
+              f"{describe_origin(tm.get('origin'))}; database "
               f"{db.get('references')} references of {db.get('classes')} classes; "
               f"{s['protocol']}" + (f"; first {s['limit']} presses per set"
                                     if s["limit"] else "") + ".", "",
               *_test_presses(tm.get("test_presses_added") or []),
               "| model | method | " + " | ".join(titles + [
-                  f"paper: {eval_vlm.DATASET_TITLES[d['paper_set']]}" for d in beside]) + " |",
+                  f"paper: {DATASET_TITLES[d['paper_set']]}" for d in beside]) + " |",
               "| --- | --- |" + " --- |" * (len(names) + len(beside))]
     for m in s["models"]:
         for row in m["rows"]:
@@ -263,7 +270,7 @@ def markdown(s: Mapping[str, Any]) -> str:
     lines += ["", "Answers are a strict JSON enum of the candidates; the paper's GPT-4V and "
               "LLaVA answered in free text. The paper's objects were real; here "
               + "; ".join(f"{d['name']} is {d['presses']} "
-                          f"{eval_vlm.describe_origin(d.get('origin'))}" for d in sets)
+                          f"{describe_origin(d.get('origin'))}" for d in sets)
               + f"; images: {s.get('images')}. Prompt templates: " + ", ".join(
                   f"`{mode}` sha256 {p['sha256'][:12]}" for mode, p in prompts.items())
               + ". Confusion matrices: `table1.json` and `confusion_<model>_<set>.png`.", ""]
@@ -308,8 +315,8 @@ def write_report(cfg: Table1Config, reports: Sequence[tuple[VLMConfig, Mapping[s
     for vlm, report in reports:
         src_dir = _cache_dir(cfg.work, vlm.model, cfg.standin)
         for ds in report["datasets"]:
-            src = src_dir / f"confusion_{eval_vlm.slug(ds['name'])}.png"
-            dest = cfg.out / f"confusion_{eval_vlm.slug(vlm.model)}_{eval_vlm.slug(ds['name'])}.png"
+            src = src_dir / f"confusion_{slug(ds['name'])}.png"
+            dest = cfg.out / f"confusion_{slug(vlm.model)}_{slug(ds['name'])}.png"
             if src.resolve() != dest.resolve():
                 with contextlib.suppress(FileNotFoundError):
                     shutil.copyfile(src, dest)
@@ -328,7 +335,7 @@ def validate(cfg: Table1Config) -> None:
         raise EvalVLMError(f"no recordings at {', '.join(missing)} (a dataset directory of "
                            "`vt-edge collect`; for the simulated sets `vt-train release`)")
     unmapped = [d.name for d in cfg.unseen
-                if eval_vlm.paper_set(d.name, cfg.paper_sets) is None]
+                if paper_set(d.name, cfg.paper_sets) is None]
     if unmapped:
         log.info("sets %s stand beside none of the paper's; --paper-set NAME=foodreplica (or "
                  "=cube) shows the paper's columns beside one", ", ".join(unmapped))
