@@ -28,7 +28,7 @@ from edge.bench.figures import figure, stats, target
 from edge.bench.load import Helper
 from edge.bench.results import PhaseResult, progress
 from edge.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
-from edge.runtime.domain import PressState
+from edge.runtime.domain import Label, PressState, VLMRefused
 
 ROBOT_CONFIG = ROOT / "configs" / "robot.toml"
 LABEL_TIMEOUT_S = 60.0
@@ -86,8 +86,8 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                     t_label = None
                     async with asyncio.timeout(LABEL_TIMEOUT_S):
                         async for event in events:
-                            if (event.get("episode") == ep["id"]
-                                    and event.get("type") == "result"):
+                            if (isinstance(event, Label | VLMRefused)
+                                    and event.episode.id == ep["id"]):
                                 t_label = time.monotonic()
                                 break
                 outcome = await asyncio.wait_for(ctl.outcomes.get(), LABEL_TIMEOUT_S)

@@ -40,11 +40,20 @@ from typing import Any
 
 from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
-from edge.core.errors import BusyError, ConfigError, EdgeError, NotFoundError
+from edge.core.errors import BusyError, ConfigError, EdgeError
 from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.interfaces.http.api import BadRequest, validate_candidates
-from edge.runtime.domain import Health, PressSummary
+from edge.runtime.domain import (
+    Episode,
+    EpisodeFinished,
+    Health,
+    Hello,
+    Label,
+    PressSummary,
+    StateChanged,
+    VLMRefused,
+)
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +70,6 @@ RECONNECT_SPREAD = (0.8, 1.2)
 # Reading why a connection ended, after it has (the answer is already there).
 _LOSS_READ_S = 0.5
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
-# Statuses that are not an episode's outcome yet.
-_NOT_FINAL = {"pending", "running", "accepted"}
 # What of the press a result carries.
 _RESULT_PRESS = PressSummary.keys("result", "message", "stop_latency_ms")
 
@@ -263,39 +270,26 @@ class MqttBridge:
         """The runtime's events into the outbox (never waits for the broker)."""
         with self.runtime.subscribe() as stream:
             async for event in stream:
-                kind = event.get("type")
-                if kind in ("state", "hello"):
-                    self._enqueue("state", {"state": event.get("state"),
-                                            "episode": event.get("episode"),
-                                            "t": event.get("t", time.time())}, retain=True)
-                elif (kind == "result" or (kind == "episode"
-                                           and event.get("status") == "finished")):
-                    if event.get("episode"):
-                        await self._result(str(event["episode"]))
+                if isinstance(event, Hello | StateChanged):
+                    self._enqueue("state", {
+                        "state": event.state, "episode": event.episode,
+                        "t": event.t if isinstance(event, StateChanged) else time.time(),
+                    }, retain=True)
+                elif isinstance(event, Label | VLMRefused | EpisodeFinished):
+                    self._result(event.episode)
 
-    async def _result(self, episode_id: str) -> None:
-        if episode_id in self._published:
-            return
-        try:
-            episode = (await self.runtime.episode(episode_id)).to_json()
-        except NotFoundError:
-            log.warning("MQTT: episode %s finished but is not in the store", episode_id)
-            return
-        except EdgeError as exc:  # not even its failure could be stored
-            episode = {"id": episode_id, "status": "failed", "error": str(exc)}
-        status = str(episode.get("status", ""))
-        if status in _NOT_FINAL:
+    def _result(self, episode: Episode) -> None:
+        """``episode``'s result, once it is final (as the event carries it: the store is
+        not read again)."""
+        if episode.id in self._published or not episode.status.final:
             return  # (a VLM retry will give its result event)
-        _remember(self._published, episode_id, None)
+        _remember(self._published, episode.id, None)
         self._enqueue("result", {
-            "episode": episode_id, "request_id": self._requests.pop(episode_id, None),
-            "status": status, "label": episode.get("label"),
-            "error": episode.get("error") or (episode.get("last_error")
-                                              if status != "done" else None),
-            "candidates": episode.get("candidates"), "topk": episode.get("topk"),
-            "description": episode.get("description"), "timings": episode.get("timings"),
-            "source": episode.get("source"),
-            "press": {k: (episode.get("press") or {}).get(k) for k in _RESULT_PRESS},
+            "episode": episode.id, "request_id": self._requests.pop(episode.id, None),
+            "status": episode.status.value, "label": episode.label, "error": episode.why,
+            "candidates": episode.candidates, "topk": episode.topk_json(),
+            "description": episode.description, "timings": episode.timings,
+            "source": episode.source, "press": episode.press_json(_RESULT_PRESS),
         }, result=True)
 
     # --- commands ---------------------------------------------------------------------

@@ -95,13 +95,14 @@ def from_episodes(store: Any, episode_ids: list[str]) -> list[Press]:
     presses = []
     for eid in episode_ids:
         item = episode_files(store, eid)
+        episode = item.episode
         if item.rec is None:
-            raise StoreError(f"episode {eid} has no press recording ({item.episode['status']}"
-                             f": {item.episode.get('error') or 'no press'}): leave it out")
-        label = item.episode.get("label")
+            raise StoreError(f"episode {eid} has no press recording ({episode.status}"
+                             f": {episode.error or 'no press'}): leave it out")
+        label = episode.label
         presses.append(Press(item.rec, label or UNLABELLED_TASK, item.image, {
             "vtzero/source": f"episode {eid}", "vtzero/label": label or "",
-            "vtzero/status": str(item.episode.get("status", "")),
+            "vtzero/status": episode.status.value,
             "vtzero/result": json.dumps(result_message(item.episode), sort_keys=True,
                                         default=str)}))
     return presses

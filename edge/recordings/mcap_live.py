@@ -56,6 +56,7 @@ class Batch:
     """What arrived since the last flush (pickled to the writer process)."""
 
     rows: Rows
+    # (monotonic time, the event's JSON form), as they arrived
     events: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
     pads: int = 2  # [sensor] pads: how the rows' channels split
     lost: int = 0  # frames before these that no segment holds (overwritten or abandoned)
@@ -181,7 +182,7 @@ class McapRecorder:
     async def _pump(self) -> None:
         with self.runtime.subscribe() as stream:
             async for event in stream:
-                self._events.append((time.monotonic(), event))
+                self._events.append((time.monotonic(), event.to_json()))
 
 
 # --------------------------------------------------------------------------------------

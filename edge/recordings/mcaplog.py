@@ -45,7 +45,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import fsync_dir
 from edge.core.errors import NotFoundError, StoreError
 from edge.core.layout import PadLayout
-from edge.runtime.domain import PressState, PressSummary
+from edge.runtime.domain import Episode, PressState, PressSummary
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +237,7 @@ def episode_mcap_path(episode_id: str, dest: str | Path) -> Path:
 class EpisodeFiles:
     """A stored episode as the exports read it."""
 
-    episode: dict[str, Any]
+    episode: Episode
     press: PressSummary | None
     rec: recording.Recording | None
     image: bytes | None
@@ -248,8 +248,7 @@ class EpisodeFiles:
 
 
 def episode_files(store: Any, episode_id: str) -> EpisodeFiles:
-    stored = store.get(episode_id)
-    episode = stored.to_json()
+    episode = store.get(episode_id)
     rec = None
     npz = _optional_file(store, episode_id, "press.press.npz")
     if npz is not None:
@@ -260,7 +259,7 @@ def episode_files(store: Any, episode_id: str) -> EpisodeFiles:
         if found is not None:
             image, image_format = found.read_bytes(), fmt
             break
-    press = stored.press
+    press = episode.press
     states = list(press.states) if press is not None else []
     t_first = states[0][1] if states else (float(rec.recv_time[0]) if rec else 0.0)
     t_last = states[-1][1] if states else (float(rec.recv_time[-1]) if rec else 0.0)
@@ -298,14 +297,15 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
         out.add("/result", t_last, result_message(episode))
         out.metadata("vtzero", {
             "episode": episode_id, "software_version": __version__,
-            "episode_software_version": episode.get("software_version"),
+            "episode_software_version": episode.software_version,
             "clock": "monotonic (seconds since the robot booted)",
-            "created_unix_s": episode.get("created"), "x_th": episode.get("x_th"),
+            "created_unix_s": episode.created, "x_th": episode.x_th,
             "t_stop": item.press.t_stop if item.press is not None else None,
             "t_cross": item.press.t_cross if item.press is not None else None,
             "sensor_model": rec.sensor_model if rec is not None else None})
         out.attach("episode.json", "application/json",
-                   json.dumps(episode, indent=2, sort_keys=True, default=str).encode(), t_last)
+                   json.dumps(episode.to_json(), indent=2, sort_keys=True,
+                              default=str).encode(), t_last)
         return out.finish()
     except OSError as exc:
         out.abandon()
@@ -315,17 +315,15 @@ def export_episode(store: Any, episode_id: str, dest: str | Path) -> Path:
         raise
 
 
-def result_message(episode: dict[str, Any]) -> dict[str, Any]:
-    press = episode.get("press") or {}
+def result_message(episode: Episode) -> dict[str, Any]:
     return {
-        "episode": episode.get("id", ""), "status": str(episode.get("status", "")),
-        "label": episode.get("label"), "candidates": list(episode.get("candidates") or []),
-        "topk": [{"label": t["label"], "distance": float(t["distance"])}
-                 for t in episode.get("topk") or []],
-        "description": episode.get("description"),
-        "error": episode.get("error") or episode.get("last_error"),
-        "timings": {k: float(v) for k, v in (episode.get("timings") or {}).items()
+        "episode": episode.id, "status": episode.status.value,
+        "label": episode.label, "candidates": list(episode.candidates or []),
+        "topk": [n.to_json() for n in episode.topk or []],
+        "description": episode.description,
+        "error": episode.error or episode.last_error,
+        "timings": {k: float(v) for k, v in episode.timings.items()
                     if isinstance(v, int | float)},
-        "press": {k: press.get(k) for k in _RESULT_PRESS},
-        "vlm_mode": episode.get("vlm_mode"), "created": episode.get("created"),
+        "press": episode.press_json(_RESULT_PRESS),
+        "vlm_mode": episode.vlm_mode, "created": episode.created,
     }

@@ -54,6 +54,7 @@ from edge.core.atomic import atomic_dir
 from edge.core.errors import EdgeError, StoreError
 from edge.core.layout import PadLayout
 from edge.recordings.mcaplog import ns, result_message
+from edge.runtime.domain import Episode
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +204,7 @@ class RosbagLog:
                         header=self.header(t, "camera"), format=fmt,
                         data=np.frombuffer(data, dtype=np.uint8)))
 
-    def result(self, t: float, episode: dict[str, Any]) -> None:
+    def result(self, t: float, episode: Episode) -> None:
         res = result_message(episode)
         topk = res["topk"]
         self._write("/result", t, self._types["vtzero_msgs/msg/Result"](
@@ -251,12 +252,13 @@ class RosbagLog:
 # Stored episodes
 
 
-def clock_offset(episode: dict[str, Any], t_last: float) -> tuple[float, str]:
+def clock_offset(episode: Episode, t_last: float) -> tuple[float, str]:
     """(wall - monotonic seconds, how it was found) for a stored episode."""
-    created = episode.get("created")
+    created = episode.created
     if created is None:
         return 0.0, "none (the episode has no creation time): stamps are monotonic"
-    mono = episode.get("created_monotonic")
+    # (Kept by the store beside the fields of this version's episodes.)
+    mono = episode.extra.get("created_monotonic")
     if mono is not None:
         return float(created) - float(mono), "created - created_monotonic"
     return float(created) - t_last, "created - the last press state (approximate)"
@@ -291,7 +293,7 @@ def export_episodes(store: Any, episode_ids: list[str], dest: str | Path) -> Pat
                             preprocess.recording_units(rec), pads)
                 out.gripper(rec.gripper_time, rec.gripper_width_m, rec.gripper_current_ma)
             for state, t in item.states:
-                out.add("/press/state", t, {"state": state, "episode": item.episode["id"]})
+                out.add("/press/state", t, {"state": state, "episode": item.episode.id})
             if item.image is not None:
                 out.image(item.t_first, item.image, item.image_format)
             out.result(item.t_last, item.episode)

@@ -25,7 +25,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, ClassVar
 
 from edge.core.errors import StoreError
 
@@ -210,6 +210,9 @@ class Neighbour:
     label: str
     distance: float
 
+    def to_json(self) -> dict[str, Any]:
+        return {"label": self.label, "distance": self.distance}
+
 
 @dataclass
 class Episode:
@@ -251,8 +254,8 @@ class Episode:
             value = getattr(self, f.name)
             if f.name == "status":
                 value = str(value)
-            elif f.name == "topk" and value is not None:
-                value = [{"label": n.label, "distance": n.distance} for n in value]
+            elif f.name == "topk":
+                value = self.topk_json()
             elif f.name == "press" and value is not None:
                 value = value.to_json()
             elif value is None and not (f.name in _ALWAYS
@@ -290,6 +293,23 @@ class Episode:
             kwargs["timings"] = {}
         return cls(**kwargs, extra={k: v for k, v in data.items() if k not in known})
 
+    @property
+    def why(self) -> str | None:
+        """What went wrong, for a reader of its outcome: ``error``, else, unless the
+        episode is done, the VLM's last error (why it is pending, or was refused)."""
+        return self.error or (self.last_error if self.status != Status.DONE else None)
+
+    def topk_json(self) -> list[dict[str, Any]] | None:
+        return None if self.topk is None else [n.to_json() for n in self.topk]
+
+    def press_json(self, keys: tuple[str, ...]) -> dict[str, Any]:
+        """``keys`` of the press summary's JSON form (named with :meth:`PressSummary.keys`),
+        each null where the episode has no press."""
+        if self.press is None:
+            return dict.fromkeys(keys)
+        press = self.press.to_json()
+        return {k: press[k] for k in keys}
+
     def with_(self, **changes: Any) -> Episode:
         """A copy with ``changes``; an unknown field is a programming error (TypeError)."""
         return dataclasses.replace(self, **changes)
@@ -301,10 +321,126 @@ _ALWAYS = frozenset({"id", "status", "candidates", "source"})
 
 
 # --- events ---------------------------------------------------------------------------
+# What the daemon publishes while it runs, for the API's server-sent events, MQTT, the live
+# recording and the operator page. Each event's ``to_json`` is its one wire form (``type``
+# names it, ``t`` is the wall-clock time it was published); the objects carry what their
+# readers need beyond it (the episode as stored).
 
 EVENT_QUEUE = 256
 
-Event = dict[str, Any]
+
+@dataclass(frozen=True)
+class Hello:
+    """A subscription's first event: the press's state when it began."""
+
+    kind: ClassVar[str] = "hello"
+    state: PressState
+    episode: str | None  # the episode whose press runs
+
+    def to_json(self) -> dict[str, Any]:
+        return {"type": self.kind, "state": str(self.state), "episode": self.episode}
+
+
+@dataclass(frozen=True)
+class StateChanged:
+    """The press entered ``state``."""
+
+    kind: ClassVar[str] = "state"
+    state: PressState
+    episode: str | None
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "state": str(self.state),
+                "episode": self.episode}
+
+
+@dataclass(frozen=True)
+class EpisodeStarted:
+    """A recognition began (its press is about to)."""
+
+    kind: ClassVar[str] = "episode"
+    episode_id: str
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode_id,
+                "status": Status.RUNNING.value}
+
+
+@dataclass(frozen=True)
+class TactileResult:
+    """The press's analysis, once the episode holding it is stored."""
+
+    kind: ClassVar[str] = "tactile"
+    episode: Episode
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
+                "description": self.episode.description,
+                "topk": [n.to_json() for n in self.episode.topk or ()]}
+
+
+@dataclass(frozen=True)
+class Label:
+    """The VLM answered (``done``, ``invalid_answer``, ``not_configured``; ``failed`` where
+    the arm did not return): ``episode`` as stored with its label."""
+
+    kind: ClassVar[str] = "result"
+    episode: Episode
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
+                "status": self.episode.status.value, "label": self.episode.label}
+
+
+@dataclass(frozen=True)
+class VLMRefused:
+    """The VLM refused the question (``vlm_error``; asking again will not help): ``episode``
+    as stored with why (its ``last_error``)."""
+
+    kind: ClassVar[str] = "result"
+    episode: Episode
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
+                "status": self.episode.status.value, "error": self.episode.last_error}
+
+
+@dataclass(frozen=True)
+class VLMUnreachable:
+    """The VLM could not be reached: ``episode`` waits ``pending`` for the retry task, as
+    stored with why (its ``last_error``)."""
+
+    kind: ClassVar[str] = "episode"
+    episode: Episode
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
+                "status": self.episode.status.value, "error": self.episode.last_error}
+
+
+@dataclass(frozen=True)
+class EpisodeFinished:
+    """A recognition ended: ``episode`` as it left it, as stored (or held in memory while
+    the store cannot write), or as the recognizer answers for it where not even its failure
+    could be kept. Its status may still be ``pending``: the retry task asks again."""
+
+    kind: ClassVar[str] = "episode"
+    episode: Episode
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
+                "status": "finished"}
+
+
+Event = (Hello | StateChanged | EpisodeStarted | TactileResult | Label | VLMRefused
+         | VLMUnreachable | EpisodeFinished)
 
 
 class Subscription:
@@ -336,14 +472,13 @@ class EventBus:
         self._subscribers: set[Subscription] = set()
 
     def publish(self, event: Event) -> None:
-        event = {"t": time.time(), **event}
         for sub in list(self._subscribers):
             sub.put(event)
 
     @contextlib.contextmanager
-    def subscribe(self, hello: Event) -> Iterator[Subscription]:
+    def subscribe(self, hello: Hello) -> Iterator[Subscription]:
         """A subscription whose first event is ``hello`` (the state when it began)."""
-        sub = Subscription({"type": "hello", **hello})
+        sub = Subscription(hello)
         self._subscribers.add(sub)
         try:
             yield sub

@@ -39,7 +39,15 @@ from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
 from edge.runtime import signals
 from edge.runtime.compute import ComputeWorker, reload_model, warm_up
-from edge.runtime.domain import Episode, EventBus, Health, PressState, Subscription
+from edge.runtime.domain import (
+    Episode,
+    EventBus,
+    Health,
+    Hello,
+    PressState,
+    StateChanged,
+    Subscription,
+)
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
 from edge.runtime.recognition import Recognition, Recognizer
@@ -149,8 +157,7 @@ class Runtime:
         return self.press.request_abort()
 
     def subscribe(self) -> contextlib.AbstractContextManager[Subscription]:
-        return self.events.subscribe({"state": self.press.state,
-                                      "episode": self.recognizer.current})
+        return self.events.subscribe(Hello(self.press.state, self.recognizer.current))
 
     def power_on_with_stream(self, why: str, power_on: Callable[[], Awaitable[None]]) -> None:
         """Start with torque off and presses refused (``why``: the sensor server is absent);
@@ -196,8 +203,7 @@ class Runtime:
         return await self.compute.run(fn, *args)
 
     def _on_press_state(self, state: PressState) -> None:
-        self.events.publish({"type": "state", "state": state,
-                             "episode": self.recognizer.current})
+        self.events.publish(StateChanged(state, self.recognizer.current))
 
     # --- lifecycle ----------------------------------------------------------------------
     async def run(self) -> None:

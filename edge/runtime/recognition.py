@@ -37,7 +37,18 @@ from edge.core.errors import (
 from edge.core.model import ModelRef
 from edge.hw.contracts import Camera
 from edge.runtime.compute import Analysis, ComputeWorker, analyse_press
-from edge.runtime.domain import Episode, EventBus, Neighbour, Status
+from edge.runtime.domain import (
+    Episode,
+    EpisodeFinished,
+    EpisodeStarted,
+    EventBus,
+    Label,
+    Neighbour,
+    Status,
+    TactileResult,
+    VLMRefused,
+    VLMUnreachable,
+)
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController, PressOutcome, outcome_recording
 from edge.runtime.startcheck import needs_photo
@@ -155,11 +166,12 @@ class Recognizer:
                          source: str, done: asyncio.Future) -> None:
         t0 = time.monotonic()
         setup = self.setup  # one configuration for the whole episode
-        asking: asyncio.Task | None = None
+        asking: asyncio.Task[Episode | None] | None = None
         photo: asyncio.Task | None = None
+        # The episode as this recognition leaves it (running: cancelled before it was kept).
+        final = Episode(episode_id, Status.RUNNING, candidates, source)
         try:
-            self.events.publish({"type": "episode", "episode": episode_id,
-                                 "status": "running"})
+            self.events.publish(EpisodeStarted(episode_id))
             loop = asyncio.get_running_loop()
             window: asyncio.Future[PressOutcome] = loop.create_future()
             checked: asyncio.Future[None] = loop.create_future()
@@ -205,6 +217,7 @@ class Recognizer:
                 episode = episode.with_(status=Status.FAILED, error=outcome.message)
             if asking is None:
                 await asyncio.to_thread(self.store.create, episode, files)
+                final = episode
                 return
             # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before
             # the write completes loses the press, as it would have a moment earlier.
@@ -212,13 +225,13 @@ class Recognizer:
             created.add_done_callback(self._tactile_event(episode))
             await created
             stored.set_result(episode)
-            await asking
+            final = await asking or episode
         except EdgeError as exc:
             log.error("episode %s failed: %s", episode_id, exc)
-            await self._keep_failure(episode_id, candidates, source, exc)
+            final = await self._keep_failure(episode_id, candidates, source, exc)
         except Exception as exc:
             log.exception("episode %s failed", episode_id)
-            await self._keep_failure(episode_id, candidates, source, exc)
+            final = await self._keep_failure(episode_id, candidates, source, exc)
         finally:
             if photo is not None and not photo.done():
                 photo.cancel()  # the episode failed before it needed the photo
@@ -228,8 +241,7 @@ class Recognizer:
                 self.current = None
             if not done.done():
                 done.set_result(None)
-            self.events.publish({"type": "episode", "episode": episode_id,
-                                 "status": "finished"})
+            self.events.publish(EpisodeFinished(final))
 
     def _start_press(self, window: asyncio.Future[PressOutcome],
                      checked: asyncio.Future[None]) -> asyncio.Task:
@@ -251,11 +263,12 @@ class Recognizer:
         return pressing
 
     async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
-                            exc: Exception) -> None:
+                            exc: Exception) -> Episode:
+        """The failed episode, stored if it can be (else answered for from memory)."""
         error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
+        failed = Episode(episode_id, Status.FAILED, candidates, source, error=error)
         try:
-            await asyncio.to_thread(self.store.create, Episode(
-                episode_id, Status.FAILED, candidates, source, error=error), {})
+            await asyncio.to_thread(self.store.create, failed, {})
         except StoreError as store_exc:
             # Not even the failure could be kept: answer for it from memory.
             self._unstored[episode_id] = (
@@ -263,8 +276,10 @@ class Recognizer:
                 else f"{error}; and it could not be stored: {store_exc}")
             while len(self._unstored) > UNSTORED_KEPT:
                 self._unstored.pop(next(iter(self._unstored)))
+            return failed.with_(error=self._unstored[episode_id])
         except Exception:
             log.exception("episode %s: the failure could not be stored", episode_id)
+        return failed
 
     async def _photo(self, setup: Recognition, episode_id: str, image: bytes | None,
                      checked: asyncio.Future[None]
@@ -339,28 +354,25 @@ class Recognizer:
         """Publishes the tactile result once the episode is stored (a done-callback)."""
         def done(stored: asyncio.Future) -> None:
             if not stored.cancelled() and stored.exception() is None:
-                self.events.publish({
-                    "type": "tactile", "episode": episode.id,
-                    "description": episode.description,
-                    "topk": [{"label": n.label, "distance": n.distance}
-                             for n in episode.topk or ()]})
+                self.events.publish(TactileResult(episode))
         return done
 
     # --- the VLM ------------------------------------------------------------------------
     async def _ask(self, episode: Episode, image: bytes | VLMImage | None, vlm: VLMClient,
-                   stored: asyncio.Future[Episode] | None = None) -> None:
+                   stored: asyncio.Future[Episode] | None = None) -> Episode | None:
         """Ask about ``episode``; ``stored`` (the episode as first written, once it is) is
-        awaited before any update. Never two questions about one episode at once."""
+        awaited before any update. Never two questions about one episode at once. The
+        episode as stored with the answer (None if it was being asked about already)."""
         if episode.id in self._asking:
-            return
+            return None
         self._asking.add(episode.id)
         try:
-            await self._ask_once(episode, image, vlm, stored)
+            return await self._ask_once(episode, image, vlm, stored)
         finally:
             self._asking.discard(episode.id)
 
     async def _ask_once(self, episode: Episode, image: bytes | VLMImage | None,
-                        vlm: VLMClient, stored: asyncio.Future | None) -> None:
+                        vlm: VLMClient, stored: asyncio.Future | None) -> Episode:
         t = time.monotonic()
         attempts = episode.attempts + 1
         try:
@@ -372,30 +384,28 @@ class Recognizer:
             if episode.status == Status.FAILED:
                 # The press failed after its window (the arm did not return): that stays
                 # the episode's status; asking again would not fix it.
-                await asyncio.to_thread(self.store.update, episode.id, attempts=attempts,
-                                        last_error=str(exc))
-                return
+                return await asyncio.to_thread(self.store.update, episode.id,
+                                               attempts=attempts, last_error=str(exc))
             if not isinstance(exc, VLMUnavailableError):
                 # Refused (4xx), a broken answer or a bad image: asking again will not help.
                 log.error("episode %s: VLM error: %s", episode.id, exc)
-                await asyncio.to_thread(self.store.update, episode.id,
-                                        status=Status.VLM_ERROR, attempts=attempts,
-                                        last_error=str(exc))
-                self.events.publish({"type": "result", "episode": episode.id,
-                                     "status": Status.VLM_ERROR.value, "error": str(exc)})
-                return
+                refused = await asyncio.to_thread(self.store.update, episode.id,
+                                                  status=Status.VLM_ERROR, attempts=attempts,
+                                                  last_error=str(exc))
+                self.events.publish(VLMRefused(refused))
+                return refused
             runtime = self.setup.cfg.runtime
             delay = backoff_s(attempts - 1, runtime.vlm_retry_base_s, runtime.vlm_retry_max_s)
             log.warning("episode %s: VLM unavailable (%s); retry in %.0f s", episode.id, exc,
                         delay)
             # (A re-asked vlm_error or invalid_answer episode waits with the pending ones.)
-            await asyncio.to_thread(self.store.update, episode.id, status=Status.PENDING,
-                                    attempts=attempts, last_error=str(exc),
-                                    next_retry_at=time.time() + delay)
+            pending = await asyncio.to_thread(self.store.update, episode.id,
+                                              status=Status.PENDING, attempts=attempts,
+                                              last_error=str(exc),
+                                              next_retry_at=time.time() + delay)
             self._retry_wakeup.set()  # the retry task plans from the new due time
-            self.events.publish({"type": "episode", "episode": episode.id,
-                                 "status": Status.PENDING.value, "error": str(exc)})
-            return
+            self.events.publish(VLMUnreachable(pending))
+            return pending
         latency = time.monotonic() - t
         if stored is not None:
             episode = await stored
@@ -403,14 +413,15 @@ class Recognizer:
         status = Status.DONE if answer.status == "ok" else Status(answer.status)
         if episode.status == Status.FAILED:
             status = Status.FAILED  # the label is kept; the failed return stays said
-        await asyncio.to_thread(self.store.update, episode.id, status=status,
-                                label=answer.label, vlm=answer.to_dict(), attempts=attempts,
-                                structured_output=answer.structured_output,
-                                timings={**episode.timings, "vlm_s": latency})
-        self.events.publish({"type": "result", "episode": episode.id, "status": status.value,
-                             "label": answer.label})
+        labelled = await asyncio.to_thread(
+            self.store.update, episode.id, status=status, label=answer.label,
+            vlm=answer.to_dict(), attempts=attempts,
+            structured_output=answer.structured_output,
+            timings={**episode.timings, "vlm_s": latency})
+        self.events.publish(Label(labelled))
         log.info("episode %s: %s%s", episode.id, status,
                  f" -> {answer.label}" if answer.label else "")
+        return labelled
 
     async def retry_pending(self) -> None:
         """The retry task: asks again about every pending episode when it is due."""

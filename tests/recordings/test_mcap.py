@@ -186,7 +186,9 @@ class _Runtime:
         self.seq = 0
 
     def subscribe(self):
-        return self.bus.subscribe({"state": "idle"})
+        from edge.runtime.domain import Hello, PressState
+
+        return self.bus.subscribe(Hello(PressState.IDLE, None))
 
     def push(self, n):
         for _ in range(n):

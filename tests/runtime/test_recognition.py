@@ -18,7 +18,7 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.core.model import model_ref
-from edge.runtime.domain import EventBus, PressResult, PressState, Status
+from edge.runtime.domain import EventBus, Hello, PressResult, PressState, Status
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.recognition import Recognition, Recognizer
@@ -118,7 +118,7 @@ async def drain(sub) -> list[dict]:
     seen = []
     while True:
         try:
-            seen.append(await asyncio.wait_for(sub.get(), 0.01))
+            seen.append((await asyncio.wait_for(sub.get(), 0.01)).to_json())
         except TimeoutError:
             return seen
 
@@ -137,7 +137,7 @@ async def test_a_press_is_analysed_once_asked_and_kept_done(tmp_path):
     compute = InProcessCompute()
     camera = FakeCamera(image_bytes(1200, 900))
     rec, events = recognizer(tmp_path, ScriptedPress(pressed()), vlm, compute, camera)
-    with events.subscribe({}) as sub:
+    with events.subscribe(Hello(PressState.IDLE, None)) as sub:
         episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
         seen = await drain(sub)
     assert episode.status == Status.DONE and episode.label == "macaron"
@@ -276,7 +276,7 @@ async def test_the_vlm_is_asked_at_the_window_while_the_arm_returns(tmp_path):
     press.gate, press.hand_over = asyncio.Event(), True
     vlm = ScriptedVLM(["macaron"])
     rec, events = recognizer(tmp_path, press, vlm)
-    with events.subscribe({}) as sub:
+    with events.subscribe(Hello(PressState.IDLE, None)) as sub:
         running = await rec.recognize(CANDIDATES, image_bytes(), False, None, "api")
         for _ in range(200):
             if vlm.asked:

@@ -218,7 +218,7 @@ async def recording_events(d: Daemon) -> AsyncIterator[list[dict[str, Any]]]:
     async def follow():
         with d.runtime.subscribe() as subscription:
             async for event in subscription:
-                events.append(event)
+                events.append(event.to_json())
 
     task = asyncio.create_task(follow())
     await asyncio.sleep(0)

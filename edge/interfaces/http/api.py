@@ -404,6 +404,6 @@ class Api:
                 except TimeoutError:
                     await resp.write(b": keepalive\n\n")
                     continue
-                kind = event.get("type", "message")
-                await resp.write(f"event: {kind}\ndata: {json.dumps(event)}\n\n".encode())
+                await resp.write(f"event: {event.kind}\n"
+                                 f"data: {json.dumps(event.to_json())}\n\n".encode())
         return resp

@@ -28,7 +28,7 @@ import numpy as np
 from edge.core import preprocess
 from edge.core.layout import PadLayout
 from edge.core.tasks import cancel_and_wait
-from edge.runtime.domain import PressState
+from edge.runtime.domain import Hello, PressState, StateChanged
 from edge.runtime.taps import newest
 
 log = logging.getLogger(__name__)
@@ -142,9 +142,9 @@ class TactileFeed:
     async def _follow_states(self) -> None:
         with self.runtime.subscribe() as stream:
             async for event in stream:
-                if event.get("type") in ("state", "hello"):
-                    self._state = PressState(event["state"])
+                if isinstance(event, Hello | StateChanged):
+                    self._state = event.state
                     if self._state == PressState.CLOSING:  # the press's own tare window
                         self.tare(self.runtime.cfg.press.tare_s)
-                    elif self._state == PressState.IDLE and event.get("type") == "state":
+                    elif self._state == PressState.IDLE and isinstance(event, StateChanged):
                         self.tare()  # back above the object, the gripper open: unloaded

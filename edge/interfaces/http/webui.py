@@ -190,22 +190,17 @@ class OperatorPage:
     def _list(self, limit: int) -> list[dict[str, Any]]:
         store = self.runtime.store
         out = []
-        for item in store.list(limit=limit):
-            ep = item.to_json()
-            eid = str(ep.get("id"))
+        for episode in store.list(limit=limit):
+            eid = episode.id
             files = {name for name in ("image.jpg", "image.png", "press.press.npz")
                      if _has(store, eid, name)}
-            press = ep.get("press") or {}
-            status = ep.get("status")
             out.append({
-                "id": eid, "status": status, "created": ep.get("created"),
-                "updated": ep.get("updated"), "source": ep.get("source"),
-                "candidates": ep.get("candidates"), "label": ep.get("label"),
-                "error": ep.get("error") or (ep.get("last_error") if status != "done"
-                                             else None),
-                "topk": ep.get("topk"), "description": ep.get("description"),
-                "timings": ep.get("timings"), "vlm_mode": ep.get("vlm_mode"),
-                "press": {k: press.get(k) for k in LISTED_PRESS},
+                "id": eid, "status": episode.status.value, "created": episode.created,
+                "updated": episode.updated, "source": episode.source,
+                "candidates": episode.candidates, "label": episode.label,
+                "error": episode.why, "topk": episode.topk_json(),
+                "description": episode.description, "timings": episode.timings,
+                "vlm_mode": episode.vlm_mode, "press": episode.press_json(LISTED_PRESS),
                 "image": f"/v1/episodes/{eid}/image" if files & {"image.jpg", "image.png"}
                 else None,
                 "trace": f"/v1/episodes/{eid}/trace" if "press.press.npz" in files else None,
