@@ -164,7 +164,7 @@ def _cmd_eval_vlm(args: argparse.Namespace) -> int:
         limit=args.limit, concurrency=args.concurrency,
         paper_sets=parse_paper_sets(args.paper_set))
     if not args.verbose:  # one INFO line per answer from the client is too much here
-        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm").setLevel(logging.WARNING)
     if args.dry_run:
         plan = prepare(cfg, endpoint=False)
         cache = AnswerCache(out / ANSWERS_FILE)
@@ -250,7 +250,7 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         paper_sets=parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
-        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm").setLevel(logging.WARNING)
     asyncio.run(table1.run(cfg, progress=not args.quiet))
     print((cfg.out / table1.REPORT_MD).read_text())
     return 0
@@ -272,7 +272,7 @@ def _cmd_fig6(args: argparse.Namespace) -> int:
         limit=args.limit, concurrency=args.concurrency,
         paper_sets=parse_paper_sets(args.paper_set))
     if not args.verbose:
-        logging.getLogger("edge.vlm.client").setLevel(logging.WARNING)
+        logging.getLogger("edge.vlm").setLevel(logging.WARNING)
     asyncio.run(fig6.run(cfg, progress=not args.quiet))
     print((cfg.out / fig6.REPORT_MD).read_text())
     return 0

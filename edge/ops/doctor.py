@@ -78,8 +78,9 @@ from edge.runtime.devices import make_button, make_camera
 from edge.runtime.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.runtime.store import MIN_FREE_BYTES as STORE_MIN_FREE_BYTES
 from edge.runtime.store import EpisodeStore
-from edge.vlm.client import OpenAIVLM, is_loopback, load_api_key
+from edge.vlm.client import OpenAIVLM
 from edge.vlm.images import check_image
+from edge.vlm.transport import is_loopback, load_api_key
 
 log = logging.getLogger(__name__)
 

@@ -2,29 +2,30 @@
 for one label.
 
 ``OpenAIVLM.ask(image, description, candidates)`` renders the prompt, prepares the image off
-the loop, POSTs ``{base_url}/chat/completions`` with the image as a base64 data URL,
-``temperature: 0``, ``seed`` and the configured structured output (``vlm.structured_output``:
-a strict ``json_schema`` whose enum is the candidates, ``json_object``, or ``none``), and
-reads the answer with :func:`edge.vlm.answer.read_answer`: a candidate (or a case/spacing
-variant of one) is ``ok``; anything else gets one corrective retry, then an explicit
-``invalid_answer``. A label is never invented.
+the loop, POSTs ``{base_url}/chat/completions`` (:mod:`edge.vlm.chat`) with the image as a
+base64 data URL, ``temperature: 0``, ``seed`` and the configured structured output
+(``vlm.structured_output``: a strict ``json_schema`` whose enum is the candidates,
+``json_object``, or ``none``), and reads the answer with :func:`edge.vlm.answer.read_answer`:
+a candidate (or a case/spacing variant of one) is ``ok``; anything else gets one corrective
+retry, then an explicit ``invalid_answer``. A label is never invented.
 
 Transport failures (408, 409, 429, 5xx, connection errors, timeouts) are retried with capped
-exponential backoff and jitter, honouring ``Retry-After``; other statuses are never retried.
-When retries run out the error is a :class:`VLMUnavailableError`: the episode should wait in
-the store and be asked again later; after :data:`UNREACHABLE_AFTER_ATTEMPTS` attempts in a row
-without any HTTP answer the client reports the server as unreachable (``unreachable``).
+exponential backoff and jitter, honouring ``Retry-After`` (:mod:`edge.vlm.transport`); other
+statuses are never retried. When retries run out the error is a :class:`VLMUnavailableError`:
+the episode should wait in the store and be asked again later; after
+:data:`~edge.vlm.transport.UNREACHABLE_AFTER_ATTEMPTS` attempts in a row without any HTTP
+answer the client reports the server as unreachable (``unreachable``).
 
 A server that refuses the structured-output mode (400, 422, or an old llama.cpp's 500, whose
 body names ``response_format`` or an equivalent) makes the client step down one mode at a
-time, json_schema -> json_object -> none, log it once and keep the lower mode for the rest
-of its life (a client made after SIGHUP starts again from the configured mode). So does a
-server that ignores the mode: a 200 whose answer is not the requested JSON (prose) is asked
-again one mode down, so free text is only ever read where the prompt asked for the label
-alone. Every answer records the mode that answered. ``list_models()`` and ``probe()`` check
-an endpoint before anything is pressed (``vt-edge doctor``). The API key is read from the
-environment or a file, sent as a Bearer token, and never logged, stored or put in an
-exception.
+time (:mod:`edge.vlm.structured`), json_schema -> json_object -> none, log it once and keep
+the lower mode for the rest of its life (a client made after SIGHUP starts again from the
+configured mode). So does a server that ignores the mode: a 200 whose answer is not the
+requested JSON (prose) is asked again one mode down, so free text is only ever read where
+the prompt asked for the label alone. Every answer records the mode that answered.
+``list_models()`` and ``probe()`` check an endpoint before anything is pressed (``vt-edge
+doctor``). The API key is read from the environment or a file, sent as a Bearer token, and
+never logged, stored or put in an exception.
 
 ``NoVLM`` stands in when no VLM is configured: it answers ``not_configured`` with the exact
 prompt that would have been sent.
@@ -34,75 +35,30 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import email.utils
-import io
 import json
 import logging
-import math
-import os
 import random
-import re
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
-from datetime import UTC
-from functools import cache
 from pathlib import Path
 from typing import Any, Literal, Protocol, runtime_checkable
-from urllib.parse import urlsplit
 
 import aiohttp
 
-from edge.core.backoff import Backoff
 from edge.core.config import VLMConfig
-from edge.core.errors import (
-    ConfigError,
-    ImageError,
-    VLMConnectionError,
-    VLMError,
-    VLMFormatRefusedError,
-    VLMHTTPError,
-    VLMRejectedError,
-    VLMResponseError,
-    VLMResponseTooLargeError,
-    VLMServerError,
-    VLMTimeoutError,
-    VLMUnavailableError,
-)
+from edge.core.errors import ConfigError, ImageError, VLMFormatRefusedError, VLMResponseError
 from edge.vlm.answer import ask_for, correction_message, read_answer
+from edge.vlm.chat import elided, encode_json, request_head, user_message
 from edge.vlm.images import PreparedImage, VLMImage, prepare_for_vlm
 from edge.vlm.prompt import PromptMode, PromptTemplate, check_candidates, load_template
+from edge.vlm.structured import PROBE_CANDIDATES, PROBE_DESCRIPTION, StructuredOutput, probe_image
+from edge.vlm.transport import EXCERPT_CHARS, Trace, Transport
 
 log = logging.getLogger(__name__)
 
-# Statuses worth another try: the server was busy, timed out, or conflicted.
-RETRYABLE_STATUSES = frozenset({408, 409, 429, *range(500, 600)})
-# The most of an error body quoted in an exception or a log line.
-EXCERPT_CHARS = 200
 # The most of a bad answer echoed back in the corrective retry.
 MAX_ECHO_CHARS = 2_000
-SCHEMA_NAME = "label"
-# Structured-output modes, strictest first: a server that refuses one is sent the next.
-STRUCTURED_MODES = ("json_schema", "json_object", "none")
-# A refusal of the mode: these statuses (old llama.cpp builds answer 500) with a body naming
-# response_format or what real servers say instead: vLLM ("loc": ("body", "response_format")),
-# TGI (422 "response_format: unknown variant `json_schema`"), llama.cpp ("response_format type
-# must be one of ..."), LM Studio ("'response_format.type' must be 'json_schema'"), Ollama
-# ("invalid JSON schema in format", a 500), hosted APIs ("json mode is not supported",
-# "structured outputs", "guided_json", "grammar").
-FORMAT_REFUSAL_STATUSES = frozenset({400, 422, 500})
-_FORMAT_REFUSAL = re.compile(
-    r"response[_ .-]?format|json[_ ]?schema|json[_ ]?object|structured[_ ]outputs?|"
-    r"guided[_ ](?:json|decoding)|grammar|json mode", re.I)
-# Attempts in a row that got no HTTP answer at all (refused, DNS, timeout) after which the
-# server counts as unreachable: one question's worth with the default vlm.max_retries = 3.
-UNREACHABLE_AFTER_ATTEMPTS = 4
-# The probe's question: two made-up candidates and, where the prompt needs one, a tiny photo.
-PROBE_CANDIDATES = ("red_cube", "blue_ball")
-PROBE_DESCRIPTION = "wood cube"
-PROBE_IMAGE_SIDE_PX = 64
-# Each transport retry waits half to all of the backoff (edge.core.backoff).
-BACKOFF_SPREAD = (0.5, 1.0)
 
 Status = Literal["ok", "invalid_answer", "not_configured"]
 
@@ -185,111 +141,6 @@ class VLMClient(Protocol):
     async def close(self) -> None: ...
 
 
-# --- request pieces ----------------------------------------------------------------------
-
-def request_head(model: str, seed: int, mode: str, candidates: Sequence[str]
-                 ) -> dict[str, Any]:
-    """The request's settings: deterministic sampling and the ``mode``'s response format
-    (none for ``"none"``)."""
-    head: dict[str, Any] = {"model": model, "temperature": 0, "seed": seed, "stream": False}
-    if mode == "json_schema":
-        head["response_format"] = response_format(candidates)
-    elif mode == "json_object":
-        head["response_format"] = {"type": "json_object"}
-    return head
-
-
-def response_format(candidates: Sequence[str]) -> dict[str, Any]:
-    """The strict ``json_schema`` response format: one ``label`` from the candidates."""
-    return {
-        "type": "json_schema",
-        "json_schema": {
-            "name": SCHEMA_NAME,
-            "strict": True,
-            "schema": {
-                "type": "object",
-                "properties": {"label": {"type": "string", "enum": list(candidates)}},
-                "required": ["label"],
-                "additionalProperties": False,
-            },
-        },
-    }
-
-
-def _user_message(prompt: str, image_url: str | None) -> dict[str, Any]:
-    if image_url is None:
-        return {"role": "user", "content": prompt}
-    return {"role": "user", "content": [
-        {"type": "text", "text": prompt},
-        {"type": "image_url", "image_url": {"url": image_url}},
-    ]}
-
-
-def _elided(image: PreparedImage) -> str:
-    return f"<elided {image.mime} image, {len(image.data)} bytes, sha256:{image.sha256}>"
-
-
-def parse_retry_after(value: str | None, now: float | None = None) -> float | None:
-    """Seconds to wait from a ``Retry-After`` value (delta seconds or an HTTP date)."""
-    if not value:
-        return None
-    value = value.strip()
-    try:
-        seconds = float(value)
-    except ValueError:
-        try:
-            when = email.utils.parsedate_to_datetime(value)
-        except (TypeError, ValueError, IndexError, OverflowError):
-            return None
-        if when.tzinfo is None:
-            when = when.replace(tzinfo=UTC)
-        seconds = when.timestamp() - (time.time() if now is None else now)
-    if not math.isfinite(seconds):
-        return None
-    return max(0.0, seconds)
-
-
-def load_api_key(config: VLMConfig) -> str | None:
-    """The API key from ``api_key_file`` if set, else ``api_key_env``; None if neither."""
-    if config.api_key_file is not None:
-        path = config.api_key_file
-        try:
-            mode = path.stat().st_mode
-            key = path.read_text(encoding="utf-8").strip()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"vlm.api_key_file = {str(path)!r}: cannot be read "
-                              f"({type(exc).__name__})") from None
-        if mode & 0o077:
-            log.warning("vlm.api_key_file %s is readable by group or others (mode %o): "
-                        "chmod 600 it", path, mode & 0o777)
-        source = f"vlm.api_key_file = {str(path)!r}"
-        if not key:
-            raise ConfigError(f"{source}: the file is empty")
-    elif config.api_key_env and os.environ.get(config.api_key_env, "").strip():
-        key = os.environ[config.api_key_env].strip()
-        source = f"environment variable {config.api_key_env}"
-    else:
-        return None
-    if not key.isascii() or not key.isprintable() or " " in key:
-        raise ConfigError(f"{source}: the API key holds characters not allowed in a header")
-    return key
-
-
-class _Trace:
-    """Per-attempt bookkeeping of one ask()."""
-
-    def __init__(self) -> None:
-        self.latency_s: list[float] = []
-        self.outcomes: list[str] = []
-        # Structured-output modes the server refused or ignored, and why for each.
-        self.stepped_down: list[str] = []
-        self.reasons: list[str] = []
-
-    def add(self, started: float, outcome: str) -> None:
-        self.latency_s.append(time.monotonic() - started)
-        self.outcomes.append(outcome)
-
-
 # --- the real client ---------------------------------------------------------------------
 
 class OpenAIVLM:
@@ -316,26 +167,16 @@ class OpenAIVLM:
         self.config = config
         self.template = template or load_template(config.mode, config.prompt_dir)
         self.url = config.base_url.rstrip("/") + "/chat/completions"
-        self._api_key = load_api_key(config)
-        self._session = session
-        self._own_session = session is None
-        self._sleep = sleep
-        self._rng = rng or random.Random()
+        self._http = Transport(config, session=session, sleep=sleep, rng=rng)
         # Where the image is prepared: a worker thread, or the daemon's compute process.
         self._offload = offload
         # The structured-output mode sent now: the configured one until a server refuses it.
-        self._structured: str = config.structured_output
-        # Attempts in a row that got no HTTP answer, and the last one's error.
-        self._unanswered = 0
-        self._unanswered_why = ""
-        host = urlsplit(self.url).hostname or ""
-        if self._api_key and self.url.startswith("http://") and not is_loopback(host):
-            log.warning("the VLM API key will cross the network in clear text to %s: "
-                        "use https://", host)
+        self._structured = StructuredOutput(config.structured_output, self.url)
 
     def __repr__(self) -> str:
+        key = "set" if self._http.has_api_key else "none"
         return (f"OpenAIVLM(url={self.url!r}, model={self.config.model!r}, "
-                f"mode={self.template.mode!r}, api_key={'set' if self._api_key else 'none'})")
+                f"mode={self.template.mode!r}, api_key={key})")
 
     async def __aenter__(self) -> OpenAIVLM:
         return self
@@ -344,9 +185,7 @@ class OpenAIVLM:
         await self.close()
 
     async def close(self) -> None:
-        if self._own_session and self._session is not None:
-            await self._session.close()
-            self._session = None
+        await self._http.close()
 
     @property
     def mode(self) -> str:
@@ -360,31 +199,26 @@ class OpenAIVLM:
     @property
     def structured_output(self) -> str:
         """The structured-output mode the next question is sent with."""
-        return self._structured
+        return self._structured.mode
 
     @property
     def unreachable(self) -> str | None:
-        """Why the server counts as unreachable (no HTTP answer to the last
-        :data:`UNREACHABLE_AFTER_ATTEMPTS` attempts), else None."""
-        if self._unanswered < UNREACHABLE_AFTER_ATTEMPTS:
-            return None
-        return (f"VLM at {self.config.base_url} unreachable: {self._unanswered} attempts in a "
-                f"row without an answer, the last: {self._unanswered_why}")
+        return self._http.unreachable
 
     async def list_models(self) -> list[str] | None:
         """The model ids ``GET {base_url}/models`` lists; None where the server does not
         serve that route (404, 405). Raises the :class:`VLMError` of :meth:`ask`."""
         url = self.config.base_url.rstrip("/") + "/models"
-        trace = _Trace()
-        status, body = await self._send("GET", url, None, trace, 0)
+        trace = Trace()
+        status, body = await self._http.send("GET", url, None, trace, 0)
         if status in (404, 405):
             return None
         if not 200 <= status < 300:
-            raise self._http_error(status, body, url=url)
-        data = self._decode(body, status).get("data")
+            raise self._http.http_error(status, body, url)
+        data = self._http.decode(body, status).get("data")
         if not isinstance(data, list):
             raise VLMResponseError(f"GET {url} answered without a 'data' list: "
-                                   f"{self._excerpt(body)!r}")
+                                   f"{self._http.excerpt(body)!r}")
         return [m["id"] for m in data if isinstance(m, dict) and isinstance(m.get("id"), str)]
 
     async def probe(self) -> VLMProbe:
@@ -392,9 +226,9 @@ class OpenAIVLM:
         mode sends one) with this client's structured-output mode and its fallback, no
         transport retry. Raises :class:`VLMError`: unreachable, a refused key (401/403), an
         unknown model (404), ..."""
-        image = _probe_image() if self.template.uses_image else None
+        image = probe_image() if self.template.uses_image else None
         answer, trace = await self._ask(image, PROBE_DESCRIPTION, PROBE_CANDIDATES, 0)
-        return VLMProbe(structured_output=answer.structured_output or self._structured,
+        return VLMProbe(structured_output=answer.structured_output or self._structured.mode,
                         latency_s=answer.elapsed_s, label=answer.label,
                         fallbacks=tuple(trace.stepped_down), reasons=tuple(trace.reasons),
                         raw=answer.raw)
@@ -405,7 +239,7 @@ class OpenAIVLM:
         return answer
 
     async def _ask(self, image: bytes | VLMImage | None, description: str,
-                   candidates: Sequence[str], max_retries: int) -> tuple[VLMAnswer, _Trace]:
+                   candidates: Sequence[str], max_retries: int) -> tuple[VLMAnswer, Trace]:
         started = time.monotonic()
         labels = check_candidates(candidates)
         rendered = self.template.render(description, labels)
@@ -422,39 +256,40 @@ class OpenAIVLM:
                 prepared, data_url = await self._offload(
                     prepare_for_vlm, image, cfg.max_image_side_px, cfg.max_image_bytes)
             # The stored request names the image; the one sent has its data URL there.
-            stored_url = _elided(prepared)
+            stored_url = elided(prepared)
             splice = (stored_url, data_url)
         elif image is not None:
             log.debug("VLM mode %s: image not sent", self.template.mode)
 
-        trace = _Trace()
+        trace = Trace()
         while True:
-            mode = self._structured
+            mode = self._structured.mode
             head = request_head(self.config.model, self.config.seed, mode, labels)
             prompt = ask_for(rendered, mode)
-            # Both name the image; _encode_json puts the data URL in what goes on the wire.
-            wire = [_user_message(prompt, stored_url)]
-            stored = [_user_message(prompt, stored_url)]
+            # Both name the image; encode_json puts the data URL in what goes on the wire.
+            wire = [user_message(prompt, stored_url)]
+            stored = [user_message(prompt, stored_url)]
             try:
                 response, raw = await self._complete({**head, "messages": wire}, trace,
                                                      splice, max_retries, mode != "none")
             except VLMFormatRefusedError as exc:
-                self._step_down(mode, trace, "refused", f"HTTP {exc.status}: {exc.excerpt}")
+                self._structured.step_down(mode, trace, "refused",
+                                           f"HTTP {exc.status}: {exc.excerpt}")
                 continue
             reading = read_answer(raw, labels, mode)
             if reading.honoured:
                 break
             # A 200 that is not the requested JSON: the server took the mode and ignored it.
-            self._step_down(mode, trace, "ignored",
-                            f"answered {self._excerpt(raw.encode())!r}, not JSON")
+            self._structured.step_down(mode, trace, "ignored",
+                                       f"answered {self._http.excerpt(raw.encode())!r}, not JSON")
         label = reading.label
         if label is None:
             log.warning("VLM answer %r is not a candidate; asking once more",
-                        self._redact(raw[:EXCERPT_CHARS]))
+                        self._http.redact(raw[:EXCERPT_CHARS]))
             correction = {"role": "user", "content": correction_message(labels, mode)}
             echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
             wire += [{"role": "assistant", "content": echo}, correction]
-            stored += [{"role": "assistant", "content": self._redact(echo)}, correction]
+            stored += [{"role": "assistant", "content": self._http.redact(echo)}, correction]
             response, raw = await self._complete({**head, "messages": wire}, trace, splice,
                                                  max_retries, False)
             label = read_answer(raw, labels, mode).label
@@ -462,160 +297,37 @@ class OpenAIVLM:
         elapsed = time.monotonic() - started
         if label is None:
             log.warning("VLM gave no valid label after a corrective retry: %r",
-                        self._redact(raw[:EXCERPT_CHARS]))
+                        self._http.redact(raw[:EXCERPT_CHARS]))
         else:
             log.info("VLM answered %r in %.2f s (%d attempt(s), %s)", label, elapsed,
                      len(trace.outcomes), mode)
         return VLMAnswer(
-            status=status, label=label, raw=self._redact(raw), prompt=rendered,
+            status=status, label=label, raw=self._http.redact(raw), prompt=rendered,
             candidates=tuple(labels), model=self.config.model,
-            request={**head, "messages": stored}, response=self._redact_json(response),
+            request={**head, "messages": stored}, response=self._http.redact_json(response),
             image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
             latency_s=tuple(trace.latency_s), outcomes=tuple(trace.outcomes),
             elapsed_s=elapsed, structured_output=mode,
         ), trace
 
-    def _step_down(self, mode: str, trace: _Trace, verb: str, why: str) -> None:
-        """The next mode after the server ``verb`` ("refused" or "ignored") ``mode``, for
-        this client's life; logged once (questions in flight together may each meet it)."""
-        trace.stepped_down.append(mode)
-        trace.reasons.append(f"{verb} ({why})")
-        lower = STRUCTURED_MODES[STRUCTURED_MODES.index(mode) + 1]
-        if self._structured == mode:
-            self._structured = lower
-            log.warning("VLM at %s %s structured output %s (%s); asking with %s from now on "
-                        "(set vlm.structured_output = %r to start there)", self.url, verb,
-                        mode, why, lower, lower)
-
     # -- one round: POST with transport retries, then the answer text --
 
-    async def _complete(self, body: dict[str, Any], trace: _Trace,
+    async def _complete(self, body: dict[str, Any], trace: Trace,
                         splice: tuple[str, bytes] | None, max_retries: int,
                         structured: bool) -> tuple[dict, str]:
-        payload = _encode_json(body, splice)
-        status, raw = await self._send("POST", self.url, payload, trace, max_retries,
-                                       structured)
+        payload = encode_json(body, splice)
+        status, raw = await self._http.send("POST", self.url, payload, trace, max_retries,
+                                            structured)
         if not 200 <= status < 300:
-            raise self._http_error(status, raw, structured)
-        data = self._decode(raw, status)
+            raise self._http.http_error(status, raw, self.url, structured)
+        data = self._http.decode(raw, status)
         return data, self._content(data)
-
-    async def _send(self, method: str, url: str, payload: bytes | None, trace: _Trace,
-                    max_retries: int, structured: bool = False) -> tuple[int, bytes]:
-        """The (status, body) of the last attempt, retrying what is worth it (not a
-        refusal of the structured-output mode); :class:`VLMError` when no answer came or
-        the server stayed busy."""
-        cfg = self.config
-        timeout = aiohttp.ClientTimeout(total=cfg.total_timeout_s,
-                                        connect=cfg.connect_timeout_s,
-                                        sock_connect=cfg.connect_timeout_s)
-        headers = {"Accept": "application/json"}
-        if payload is not None:
-            headers["Content-Type"] = "application/json"
-        if self._api_key:
-            headers["Authorization"] = f"Bearer {self._api_key}"
-        session = self._get_session()
-        backoff = Backoff(cfg.backoff_base_s, cfg.backoff_cap_s, BACKOFF_SPREAD, self._rng)
-        while True:
-            started = time.monotonic()
-            wait_s: float | None = None
-            try:
-                async with session.request(method, url, data=payload, headers=headers,
-                                           timeout=timeout, allow_redirects=False) as resp:
-                    self._answered()
-                    status = resp.status
-                    wait_s = parse_retry_after(resp.headers.get("Retry-After"))
-                    body = await self._read_body(resp)
-            except VLMResponseTooLargeError:
-                trace.add(started, "too_large")
-                raise
-            except TimeoutError:
-                trace.add(started, "timeout")
-                failure: VLMError = VLMTimeoutError(
-                    f"no complete answer from {url} within total_timeout_s="
-                    f"{cfg.total_timeout_s} (connect_timeout_s={cfg.connect_timeout_s})")
-                self._unanswered_attempt(failure)
-            except (aiohttp.ClientConnectionError, aiohttp.ClientPayloadError) as exc:
-                trace.add(started, "connection")
-                failure = VLMConnectionError(
-                    f"connection to {url} failed: {type(exc).__name__}: "
-                    f"{self._redact(str(exc))[:EXCERPT_CHARS]}")
-                self._unanswered_attempt(failure)
-            except aiohttp.ClientError as exc:
-                trace.add(started, "protocol")
-                raise VLMResponseError(
-                    f"unusable HTTP answer from {url}: {type(exc).__name__}: "
-                    f"{self._redact(str(exc))[:EXCERPT_CHARS]}") from None
-            else:
-                trace.add(started, str(status))
-                if (status not in RETRYABLE_STATUSES
-                        or (structured and _refuses_format(status, body))):
-                    return status, body
-                failure = self._http_error(status, body, url=url)
-            attempts = len(trace.outcomes)
-            if backoff.failures >= max_retries:
-                log.warning("VLM unavailable after %d attempt(s): %s", attempts, failure)
-                raise failure
-            delay = backoff.next_s()
-            if wait_s is not None:
-                delay = max(delay, min(wait_s, cfg.retry_after_cap_s))
-            log.warning("VLM attempt %d failed (%s); retrying in %.2f s", attempts,
-                        trace.outcomes[-1], delay)
-            await self._sleep(delay)
-
-    def _answered(self) -> None:
-        if self._unanswered >= UNREACHABLE_AFTER_ATTEMPTS:
-            log.info("VLM at %s answers again", self.config.base_url)
-        self._unanswered = 0
-
-    def _unanswered_attempt(self, failure: VLMError) -> None:
-        self._unanswered += 1
-        self._unanswered_why = str(failure)
-        if self._unanswered == UNREACHABLE_AFTER_ATTEMPTS:
-            log.error("%s", self.unreachable)
-
-    def _get_session(self) -> aiohttp.ClientSession:
-        if self._session is None or self._session.closed:
-            self._session = aiohttp.ClientSession(
-                connector=aiohttp.TCPConnector(limit=4), trust_env=False)
-            self._own_session = True
-        return self._session
-
-    async def _read_body(self, resp: aiohttp.ClientResponse) -> bytes:
-        limit = self.config.max_response_bytes
-        declared = resp.content_length
-        if declared is not None and declared > limit:
-            raise VLMResponseTooLargeError(
-                f"VLM response of {declared} bytes refused: more than max_response_bytes="
-                f"{limit}")
-        chunks: list[bytes] = []
-        size = 0
-        async for chunk in resp.content.iter_chunked(64 * 1024):
-            size += len(chunk)
-            if size > limit:
-                raise VLMResponseTooLargeError(
-                    f"VLM response refused after {size} bytes: more than "
-                    f"max_response_bytes={limit}")
-            chunks.append(chunk)
-        return b"".join(chunks)
-
-    def _decode(self, body: bytes, status: int) -> dict[str, Any]:
-        try:
-            data = json.loads(body)
-        except (ValueError, RecursionError):
-            raise VLMResponseError(
-                f"VLM answered HTTP {status} with a body that is not JSON: "
-                f"{self._excerpt(body)!r}") from None
-        if not isinstance(data, dict):
-            raise VLMResponseError(f"VLM answered HTTP {status} with JSON that is not an "
-                                   f"object: {self._excerpt(body)!r}")
-        return data
 
     def _content(self, data: dict[str, Any]) -> str:
         choices = data.get("choices")
         if not isinstance(choices, list) or not choices or not isinstance(choices[0], dict):
             raise VLMResponseError(
-                f"VLM answer has no choices: {self._excerpt(json.dumps(data).encode())!r}")
+                f"VLM answer has no choices: {self._http.excerpt(json.dumps(data).encode())!r}")
         message = choices[0].get("message")
         if not isinstance(message, dict):
             return ""
@@ -627,100 +339,6 @@ class OpenAIVLM:
             refusal = message.get("refusal")
             content = refusal if isinstance(refusal, str) else ""
         return content
-
-    def _http_error(self, status: int, body: bytes, structured: bool = False,
-                    url: str | None = None) -> VLMError:
-        url = url or self.url
-        excerpt = self._excerpt(body)
-        if structured and _refuses_format(status, body):
-            return VLMFormatRefusedError(
-                f"VLM at {url} refused the structured-output mode (HTTP {status}): {excerpt}",
-                status, excerpt)
-        if status in RETRYABLE_STATUSES:
-            return VLMServerError(f"VLM at {url} answered HTTP {status}: {excerpt}",
-                                  status, excerpt)
-        hint = {
-            400: "the request was refused as malformed",
-            401: "check the API key (vlm.api_key_env / vlm.api_key_file)",
-            403: "the API key is not allowed to use this model or endpoint",
-            404: f"check vlm.base_url and that vlm.model = {self.config.model!r} is served",
-            413: "the request is too large: lower vlm.max_image_bytes / max_image_side_px",
-        }.get(status, "not retried")
-        if 300 <= status < 400:
-            hint = "redirect not followed: set vlm.base_url to the final address"
-        return VLMRejectedError(
-            f"VLM at {url} answered HTTP {status} ({hint}): {excerpt}", status, excerpt)
-
-    def _excerpt(self, body: bytes) -> str:
-        """A short, secret-free, single-line excerpt of a response body."""
-        text = body[:4096].decode("utf-8", "replace")
-        try:
-            data = json.loads(body)
-            err = data.get("error")
-            if isinstance(err, dict) and isinstance(err.get("message"), str):
-                text = err["message"]
-            elif isinstance(err, str):
-                text = err
-            elif isinstance(data.get("message"), str):  # vLLM: {"object": "error", ...}
-                text = data["message"]
-        except (ValueError, RecursionError, AttributeError):
-            pass
-        text = " ".join(self._redact(text).split())
-        text = "".join(ch if ch.isprintable() else "?" for ch in text)
-        return text[:EXCERPT_CHARS] + ("..." if len(text) > EXCERPT_CHARS else "")
-
-    def _redact(self, text: str) -> str:
-        if self._api_key and self._api_key in text:
-            text = text.replace(self._api_key, "<redacted>")
-        return text
-
-    def _redact_json(self, data: dict[str, Any]) -> dict[str, Any]:
-        if not self._api_key:
-            return data
-        dumped = json.dumps(data, ensure_ascii=False)
-        if self._api_key not in dumped:
-            return data
-        return json.loads(self._redact(dumped))
-
-
-def _encode_json(body: dict[str, Any], splice: tuple[str, bytes] | None = None) -> bytes:
-    """The request body, with ``splice``'s data URL put where its placeholder stands.
-
-    Megabytes of base64 never pass through ``json.dumps``: base64 and the ``data:`` prefix
-    need no JSON escaping, and joining bytes is one copy, cheap enough for the event loop
-    (for a 1.33 MB data URL here: json.dumps 4.7 ms holding the GIL, the splice 0.05 ms,
-    up to 1.2 ms when its memory is freshly mapped).
-    """
-    payload = json.dumps(body, ensure_ascii=False).encode("utf-8")
-    if splice is None:
-        return payload
-    placeholder, data_url = splice
-    head, found, tail = payload.partition(placeholder.encode("utf-8"))
-    if not found:
-        raise AssertionError("the image placeholder is missing from the request body")
-    return b"".join((head, data_url, tail))
-
-
-def _refuses_format(status: int, body: bytes) -> bool:
-    """Whether an error answer refuses the structured-output mode (response_format)."""
-    return (status in FORMAT_REFUSAL_STATUSES
-            and _FORMAT_REFUSAL.search(body[:4096].decode("utf-8", "replace")) is not None)
-
-
-@cache
-def _probe_image() -> bytes:
-    """A small grey JPEG: enough for a server to accept an image, cheap to send."""
-    from PIL import Image
-
-    out = io.BytesIO()
-    Image.new("RGB", (PROBE_IMAGE_SIDE_PX, PROBE_IMAGE_SIDE_PX), (128, 128, 128)).save(
-        out, "JPEG", quality=80)
-    return out.getvalue()
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` names this machine (a key sent there over plain HTTP stays here)."""
-    return host in ("localhost", "::1") or host.startswith("127.")
 
 
 # --- no VLM ------------------------------------------------------------------------------
@@ -766,11 +384,3 @@ def make_vlm(config: VLMConfig, **kwargs: Any) -> VLMClient:
         return OpenAIVLM(config, **kwargs)
     return NoVLM(kwargs.get("template"), mode=config.mode, prompt_dir=config.prompt_dir)
 
-
-__all__ = [
-    "STRUCTURED_MODES", "NoVLM", "OpenAIVLM", "VLMAnswer", "VLMClient", "VLMConfig",
-    "VLMConnectionError", "VLMFormatRefusedError", "VLMHTTPError", "VLMProbe",
-    "VLMRejectedError", "VLMResponseError",
-    "VLMResponseTooLargeError", "VLMServerError", "VLMTimeoutError", "VLMUnavailableError",
-    "make_vlm", "parse_retry_after", "request_head", "response_format",
-]

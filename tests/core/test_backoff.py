@@ -3,7 +3,7 @@
 import random
 
 from edge.core.backoff import Backoff, backoff_s
-from edge.vlm.client import BACKOFF_SPREAD
+from edge.vlm.transport import BACKOFF_SPREAD
 
 
 def test_waits_double_up_to_the_cap_and_start_again_after_a_success():

@@ -14,12 +14,11 @@ import pytest
 
 from edge.core import tomledit
 from edge.core.config import ApiConfig
-from edge.core.errors import ConfigError
+from edge.core.errors import ConfigError, VLMError
 from edge.interfaces.http.api import Api
 from edge.sim.camera import render
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.vlm.client import VLMError
 from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,

@@ -19,7 +19,7 @@ from edge.ops.doctor import Level, _check_vlm, _vlm_client
 from edge.ops.episode_retry import run_retry
 from edge.sim.fake_vlm import FakeVLM, Reply
 from edge.sim.robot import SimRobot
-from edge.vlm.client import UNREACHABLE_AFTER_ATTEMPTS
+from edge.vlm.transport import UNREACHABLE_AFTER_ATTEMPTS
 from tests.support.daemon import (
     FOOD,
     QUICK_OBJECT,

@@ -20,8 +20,9 @@ from edge.vlm.answer import (
     normalise_label,
     read_answer,
 )
-from edge.vlm.client import parse_retry_after, response_format
+from edge.vlm.chat import response_format
 from edge.vlm.prompt import load_template
+from edge.vlm.transport import parse_retry_after
 from tests.vlm.helpers import CANDIDATES
 
 JSON_MODES = ("json_schema", "json_object")

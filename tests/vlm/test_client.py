@@ -12,7 +12,6 @@ import time
 import pytest
 from PIL import Image
 
-import edge.vlm.client as vlm_module
 from edge.core.errors import (
     ConfigError,
     EdgeError,
@@ -27,6 +26,7 @@ from edge.core.errors import (
     VLMUnavailableError,
 )
 from edge.sim.fake_vlm import FakeVLM, Reply, choose_by_description
+from edge.vlm.chat import encode_json, response_format
 from edge.vlm.client import (
     NoVLM,
     OpenAIVLM,
@@ -34,7 +34,6 @@ from edge.vlm.client import (
     VLMClient,
     VLMConfig,
     make_vlm,
-    response_format,
 )
 from edge.vlm.prompt import load_template
 from tests.support.waits import free_port
@@ -432,9 +431,9 @@ async def test_image_work_goes_to_the_offload_and_arrives_whole(fake):
 def test_json_body_splices_the_data_url_where_its_placeholder_stands():
     body = {"messages": [{"content": [{"text": "a \"quoted\" prompt"},
                                       {"image_url": {"url": "<elided sha256:ab>"}}]}]}
-    payload = vlm_module._encode_json(body, ("<elided sha256:ab>", b"data:image/png;base64,QUJD"))
+    payload = encode_json(body, ("<elided sha256:ab>", b"data:image/png;base64,QUJD"))
     assert json.loads(payload)["messages"][0]["content"][1]["image_url"]["url"] == (
         "data:image/png;base64,QUJD")
     assert json.loads(payload)["messages"][0]["content"][0]["text"] == 'a "quoted" prompt'
     with pytest.raises(AssertionError, match="placeholder"):
-        vlm_module._encode_json(body, ("<other>", b"data:"))
+        encode_json(body, ("<other>", b"data:"))

@@ -14,7 +14,7 @@ import aiohttp
 import pytest
 
 from edge.sim.fake_vlm import FakeVLM
-from edge.vlm.client import response_format
+from edge.vlm.chat import response_format
 from edge.vlm.prompt import format_candidates
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, MODEL, image_bytes

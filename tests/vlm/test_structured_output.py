@@ -15,13 +15,11 @@ from edge.core.errors import (
 )
 from edge.sim.fake_vlm import REFUSALS, FakeVLM, Reply
 from edge.vlm.answer import LABEL_ALONE
-from edge.vlm.client import (
-    PROBE_CANDIDATES,
-    UNREACHABLE_AFTER_ATTEMPTS,
-    OpenAIVLM,
-    response_format,
-)
+from edge.vlm.chat import response_format
+from edge.vlm.client import OpenAIVLM
 from edge.vlm.prompt import format_candidates
+from edge.vlm.structured import PROBE_CANDIDATES
+from edge.vlm.transport import UNREACHABLE_AFTER_ATTEMPTS
 from tests.support.waits import free_port
 from tests.vlm.helpers import CANDIDATES, DESCRIPTION, MODEL, vlm_config
 
