@@ -273,6 +273,10 @@ class RuntimeConfig:
     # store_max_mb (0: no bound by size), or its filesystem has less than keep_free_mb free.
     store_max_mb: float = 0.0
     keep_free_mb: float = 200.0
+    # A press whose nearest reference is as far as or farther than this percentile of the
+    # reference database's own leave-one-out nearest-neighbour distances is flagged
+    # unfamiliar (edge.core.model.Familiarity; 100: only one farther than every reference's).
+    unfamiliar_percentile: float = 95.0
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
@@ -289,6 +293,8 @@ class RuntimeConfig:
                  self.realtime_priority, "must be a SCHED_FIFO priority, 1..99")
         _require(self.realtime_cpu >= -1, path, "realtime_cpu", self.realtime_cpu,
                  "must be a CPU number, or -1 for the last one the daemon may use")
+        _require(0 < self.unfamiliar_percentile <= 100, path, "unfamiliar_percentile",
+                 self.unfamiliar_percentile, "must be a percentile in (0, 100]")
 
 
 def _default_poses() -> dict[str, tuple[int, ...]]:

@@ -56,6 +56,9 @@ REQUIRED_FILES = (ENCODER_FILE, DATABASE_ARRAYS, DATABASE_INDEX)
 MANIFEST_SCHEMA = 1
 DATABASE_SCHEMA = 1
 DEFAULT_K = 3
+# Rows of the leave-one-out distance matrix computed at once (N x LOO_BLOCK float32: 6.5 MB
+# for a database of 1600 references).
+LOO_BLOCK = 1024
 # ONNX input/output names: the contract between train/ship/export.py and this module.
 INPUT_NAME = "x"
 OUTPUT_NAMES = ("z", "code")
@@ -285,6 +288,29 @@ class ReferenceDatabase:
         ranked = sorted(zip(exact, cand.tolist(), strict=True))
         return [(self._labels[c], d) for d, c in ranked]
 
+    def nearest_other_press(self, block: int = LOO_BLOCK) -> np.ndarray:
+        """Each reference's distance to its nearest reference from another press (float64,
+        in the retrieval space; inf where every reference is of its own press): the
+        leave-one-out nearest-neighbour distances :class:`Familiarity` ranks a query among.
+
+        A press is a ``source`` within a class: its offsets are one touch seen on shifted
+        grids, so they are left out together. ``block`` rows of squared distances at a time
+        bound the memory (N x block float32); the winners are recomputed exactly."""
+        n = len(self)
+        press = np.unique(np.char.add(self.label_index.astype(str),
+                                      np.char.add("/", self.source)), return_inverse=True)[1]
+        nearest = np.zeros(n, dtype=np.intp)
+        found = np.zeros(n, dtype=bool)
+        for start in range(0, n, block):
+            stop = min(start + block, n)
+            d2 = self._norms[start:stop, None] + self._norms[None, :] \
+                - 2.0 * (self._refs[start:stop] @ self._refs.T)
+            d2[press[start:stop, None] == press[None, :]] = np.inf
+            nearest[start:stop] = np.argmin(d2, axis=1)
+            found[start:stop] = np.isfinite(d2.min(axis=1))
+        diff = self._refs.astype(np.float64) - self._refs[nearest].astype(np.float64)
+        return np.where(found, np.sqrt(np.einsum("ij,ij->i", diff, diff)), np.inf)
+
     # ----- building and storage
 
     def with_class(self, info: ClassInfo, z: np.ndarray, code: np.ndarray,
@@ -394,6 +420,30 @@ class ReferenceDatabase:
         directory = Path(directory)
         return cls.from_bytes(_read(directory / DATABASE_ARRAYS),
                               _read(directory / DATABASE_INDEX))
+
+
+class Familiarity:
+    """How familiar a query is: its nearest-reference distance ranked among the database's own
+    leave-one-out nearest-neighbour distances (:meth:`ReferenceDatabase.nearest_other_press`).
+
+    :meth:`percentile` is the share of references whose nearest reference from another press
+    is strictly closer than the query's nearest reference, in percent: 0 = the query is
+    closer to the database than every reference is to the rest of it; 100 = farther than all
+    (a touch like nothing the database holds). A press of a known object lands where that
+    object's references do among the others; a different object lands high.
+    """
+
+    def __init__(self, database: ReferenceDatabase) -> None:
+        loo = database.nearest_other_press()
+        self.loo = np.sort(loo[np.isfinite(loo)])
+
+    def percentile(self, distance: float) -> float | None:
+        """The percentile of ``distance`` (the query's nearest reference, as :meth:`topk`
+        gives it); None where the database has no two presses to compare."""
+        if self.loo.size == 0:
+            return None
+        below = int(np.searchsorted(self.loo, distance, side="left"))
+        return 100.0 * below / self.loo.size
 
 
 def synthetic_database(n_refs: int, n_classes: int, dim: int = 4,
@@ -556,6 +606,10 @@ class ModelRef:
     layout: ModelLayout = field(default_factory=lambda: LEGACY_LAYOUT)
     # The threshold the references were pressed at (model_x_th); None where not recorded.
     x_th: float | None = None
+    # The directory of references taught beside the model (edge/runtime/references.py):
+    # the compute process merges them into the database it looks presses up in, and loads
+    # them again whenever they change. None: the model's database alone.
+    references: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -606,14 +660,15 @@ def manifest_digest(manifest: Mapping[str, Any]) -> str:
     return sha256_bytes(json.dumps(manifest, sort_keys=True).encode("utf-8"))
 
 
-def model_ref(models_dir: str | Path) -> ModelRef:
+def model_ref(models_dir: str | Path, references: str | Path | None = None) -> ModelRef:
     """The model in ``models_dir`` by its manifest (checked; the files are verified when
-    the model is loaded)."""
+    the model is loaded), with the references taught beside it in ``references``."""
     directory = Path(models_dir).resolve()  # absolute: errors and logs say where
     manifest = read_manifest(directory)
     return ModelRef(directory, manifest_digest(manifest), _window(manifest),
                     manifest_origin(manifest), manifest_layout(manifest, str(directory / MANIFEST)),
-                    model_x_th(class_x_th(manifest)))
+                    model_x_th(class_x_th(manifest)),
+                    None if references is None else Path(references).resolve())
 
 
 # The manifest's record of the stop threshold each class's references were pressed at.
@@ -629,6 +684,19 @@ X_TH_TOLERANCE = 1.25
 def class_x_th(manifest: Mapping[str, Any]) -> dict[str, float]:
     """The manifest's ``class_x_th`` (label -> x_th); empty where the model records none."""
     raw = manifest.get(CLASS_X_TH)
+    if not isinstance(raw, dict):
+        return {}
+    return {str(k): float(v) for k, v in raw.items() if isinstance(v, int | float)}
+
+
+# The manifest's record of the stream's rate (frames/s) each class's presses were made at.
+CLASS_RATE_HZ = "class_rate_hz"
+
+
+def class_rate_hz(manifest: Mapping[str, Any]) -> dict[str, float]:
+    """The manifest's ``class_rate_hz`` (label -> frames/s); empty where the model records
+    none, and without the classes whose rate was not measured."""
+    raw = manifest.get(CLASS_RATE_HZ)
     if not isinstance(raw, dict):
         return {}
     return {str(k): float(v) for k, v in raw.items() if isinstance(v, int | float)}
