@@ -1,5 +1,6 @@
 """The daemon's CPU work in one separate process: image decoding and re-encoding for the VLM,
-and the press analysis (crop, encoder, top-k, the episode's arrays).
+the press analysis (crop, encoder, top-k, familiarity, the episode's arrays), and teaching a
+press (the encoder again).
 
 Why a process and not a thread: the event loop runs the 125 Hz sampler and sends the stop,
 and a worker thread competes with it for the GIL. Pillow's decoders and encoders hold the
@@ -36,9 +37,18 @@ from typing import Any, TypeVar
 import numpy as np
 
 from edge.core import preprocess, recording
+from edge.core.config import RuntimeConfig
 from edge.core.errors import ComputeError, ModelError
 from edge.core.model import Model, ModelRef, load_model
 from edge.runtime import forkserver
+from edge.runtime.references import (
+    Lookup,
+    Overlay,
+    ReferenceStore,
+    Source,
+    TaughtReference,
+    signature,
+)
 
 log = logging.getLogger(__name__)
 
@@ -178,6 +188,11 @@ def _ready() -> bool:
 
 
 _model: Model | None = None
+# The model's database merged with the taught references, and what it was made from: the
+# model, the references' directory and its index's signature (a change on disk, by this
+# process's teaching or anyone's, makes the next press merge again).
+_lookup: Lookup | None = None
+_lookup_of: tuple[Model, Any, Any] | None = None
 
 
 def model_for(ref: ModelRef) -> Model:
@@ -186,6 +201,28 @@ def model_for(ref: ModelRef) -> Model:
     if _model is None or _model.directory != ref.directory or _model.digest != ref.digest:
         _model = _loaded(ref)
     return _model
+
+
+def lookup_for(ref: ModelRef) -> Lookup:
+    """What a press is looked up in: the model's database and the references taught beside
+    it (``ref.references``), merged here again whenever the references' index changed."""
+    global _lookup, _lookup_of
+    model = model_for(ref)
+    key = (model, ref.references, signature(ref.references))
+    if _lookup is None or _lookup_of != key:
+        _lookup, _lookup_of = _merged(model, ref), key
+    return _lookup
+
+
+def _merged(model: Model, ref: ModelRef) -> Lookup:
+    t = time.perf_counter()
+    overlay = (Overlay(None, "") if ref.references is None
+               else ReferenceStore(ref.references).load(model.digest))
+    lookup = overlay.lookup(model)
+    log.info("reference database: %d references of %d classes (%d taught) merged and ranked "
+             "in %.0f ms", len(lookup.database), len(lookup.database.classes),
+             len(lookup.overlay.current), (time.perf_counter() - t) * 1e3)
+    return lookup
 
 
 def _loaded(ref: ModelRef) -> Model:
@@ -198,20 +235,25 @@ def _loaded(ref: ModelRef) -> Model:
 
 
 def warm_up(ref: ModelRef) -> None:
-    """Load the model here and run it once (onnxruntime allocates on its first run)."""
+    """Load the model and the taught references here (refusing malformed ones, naming the
+    file and field) and run the model once (onnxruntime allocates on its first run)."""
     model = model_for(ref)
+    lookup_for(ref)
     model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
 
 
 def reload_model(ref: ModelRef) -> None:
     """Load the model again from its files, every one re-hashed against the manifest even
     where the manifest is unchanged (one byte flipped in the encoder leaves its digest as it
-    was), run it once, and make it the one that answers. :class:`ModelError` naming the
-    file if one does not match: the running model stays."""
-    global _model
+    was), and the taught references with it, run it once, and make it the one that answers.
+    :class:`ModelError` naming the file (and field) if one does not match or is malformed:
+    the running model and references stay."""
+    global _model, _lookup, _lookup_of
     model = _loaded(ref)
+    lookup = _merged(model, ref)
     model.encode(np.zeros((model.window.n_steps, model.encoder.channels), np.float32))
-    _model = model
+    _model, _lookup = model, lookup
+    _lookup_of = (model, ref.references, signature(ref.references))
 
 
 @dataclass(frozen=True)
@@ -224,14 +266,26 @@ class Analysis:
     topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
     description: str
     model_io_npz: bytes  # the crop, the model input and the embedding
+    # The nearest reference's distance as a percentile of the database's own leave-one-out
+    # nearest-neighbour distances (edge.core.model.Familiarity: 0 = closer than every
+    # reference's nearest other press, 100 = farther than all); None: a database of one press.
+    familiarity: float | None = None
+    # At or past the configured percentile ([runtime] unfamiliar_percentile).
+    unfamiliar: bool = False
+    # The taught references' index the press was looked up with (its sha256; "": none).
+    references: str = ""
 
 
-def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
-    """The crop (the model's own window), the encoder, the nearest references and the
-    model's input and output serialised: the work between the window and the VLM question,
-    kept to that (the photo is prepared while the press runs, the press serialised, with
-    ``recording.to_bytes``, after the question has left)."""
+def analyse_press(ref: ModelRef, rec: recording.Recording,
+                  unfamiliar_percentile: float = RuntimeConfig.unfamiliar_percentile
+                  ) -> Analysis:
+    """The crop (the model's own window), the encoder, the nearest references (the model's
+    and those taught beside it), the familiarity and the model's input and output serialised:
+    the work between the window and the VLM question, kept to that (the photo is prepared
+    while the press runs, the press serialised, with ``recording.to_bytes``, after the
+    question has left)."""
     model = model_for(ref)
+    lookup = lookup_for(ref)
     spec = model.window
     units = preprocess.recording_units(rec)
     window = preprocess.crop(rec.recv_time, units, rec.t_stop, spec)
@@ -239,13 +293,28 @@ def analyse_press(ref: ModelRef, rec: recording.Recording) -> Analysis:
     z, code = model.encode(x)
     z = np.asarray(z).reshape(-1)
     code = int(np.asarray(code).reshape(-1)[0])
-    topk = model.topk(z, TOPK)
-    description = model.describe([label for label, _ in topk])
+    topk = lookup.database.topk(z, TOPK)
+    description = lookup.database.describe([label for label, _ in topk])
+    familiarity = lookup.familiarity.percentile(topk[0][1])
     buf = io.BytesIO()
     np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
     return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
-                    description, buf.getvalue())
+                    description, buf.getvalue(), familiarity,
+                    familiarity is not None and familiarity >= unfamiliar_percentile,
+                    lookup.overlay.digest)
 
 
-__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "model_for",
-           "reload_model", "warm_up"]
+def teach_press(ref: ModelRef, rec: recording.Recording, label: str,
+                description: str | None, source: Source, episode: str | None = None,
+                append: bool = False) -> TaughtReference:
+    """Teach the press ``rec`` as ``label`` into the references beside the model
+    (:meth:`ReferenceStore.add`, embedded by the model loaded here); the next press is
+    looked up with it. Positional, as :meth:`ComputeWorker.run` passes arguments."""
+    if ref.references is None:
+        raise ModelError(f"{ref.directory}: no directory for taught references is configured")
+    return ReferenceStore(ref.references).add(model_for(ref), rec, label, description,
+                                              source=source, episode=episode, append=append)
+
+
+__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "lookup_for",
+           "model_for", "reload_model", "teach_press", "warm_up"]
