@@ -319,6 +319,32 @@ def _cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_transfer(args: argparse.Namespace) -> int:
+    from train.eval.transfer import REPORT_JSON, REPORT_MD, TransferConfig, run
+
+    cfg = TransferConfig(data=Path(args.data), partners=Path(args.partners),
+                         out=Path(args.out), format=args.format,
+                         candidates=tuple(c.strip() for c in args.candidates.split(",")
+                                          if c.strip()),
+                         seeds=args.seeds, max_epochs=args.max_epochs, patience=args.patience,
+                         std_floor=args.std_floor, threads=args.threads)
+    if not args.verbose:  # a line per training is too much beside the progress line
+        logging.getLogger("train.learn.trainer").setLevel(logging.WARNING)
+    run(cfg, progress=not args.quiet)
+    print((cfg.out / REPORT_MD).read_text())
+    print(f"report: {cfg.out / REPORT_MD}, {cfg.out / REPORT_JSON}")
+    return 0
+
+
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from train.learn import phac2
+
+    written = phac2.convert(args.data, args.out)
+    print(f"wrote {len(written)} sequences of {len({p.parent.name for p in written})} objects "
+          f"to {args.out}")
+    return 0
+
+
 def _cmd_rehash(args: argparse.Namespace) -> int:
     from train.ship.manifest import read_raw, write_manifest
 
@@ -338,6 +364,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from train.learn.data import STD_FLOOR_FRACTION  # numpy only: no training stack
+
     parser = argparse.ArgumentParser(prog="vt-train", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"vtzero {__version__}")
@@ -568,6 +596,40 @@ def build_parser() -> argparse.ArgumentParser:
                    "(refused by default: they embed the same object in two places)")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_build)
+
+    p = sub.add_parser(
+        "transfer", help="does touch transfer? leave one object out over seeds, neighbours "
+        "scored against a partner file", description="For each object and seed, fit each "
+        "candidate embedding on the other objects, retrieve each of its presses' first "
+        "neighbour and top 3 among them and score them against the partner file (JSON: object "
+        "-> objects that feel like it); LOO 1-NN among the seen objects; beside chance, with "
+        "the seed spread. Writes transfer.md and transfer.json.")
+    p.add_argument("--data", required=True, help="press recordings and/or .seq.npz sequences "
+                   "(any depth), or PHAC-2 .mat files with --format phac2")
+    p.add_argument("--format", choices=["presses", "phac2"], default="presses")
+    p.add_argument("--partners", required=True,
+                   help='JSON: {"object": ["partner", ...], ...}')
+    p.add_argument("--out", default="runs/transfer")
+    p.add_argument("--candidates", default="shipped,paper,mean",
+                   help="comma-separated: shipped (z of 16, metric term), paper (z of 4, "
+                   "reconstruction only), mean (each channel's mean over the window)")
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--max-epochs", type=int, default=300)
+    p.add_argument("--patience", type=int, default=25)
+    p.add_argument("--std-floor", type=float, default=STD_FLOOR_FRACTION,
+                   help="the normaliser's floor on each channel's spread, a fraction of the "
+                   "RMS of all channels' (default %(default)s, for XELA pads' noise channels; "
+                   "0: each channel its own)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=_cmd_transfer)
+
+    p = sub.add_parser("convert", help="other sensors' data into labelled sequences "
+                       "(.seq.npz, one per press)")
+    p.add_argument("--format", choices=["phac2"], required=True)
+    p.add_argument("--data", required=True, help="the files to convert")
+    p.add_argument("--out", required=True, help="directory for OBJECT/NAME.seq.npz")
+    p.set_defaults(func=_cmd_convert)
 
     p = sub.add_parser("rehash", help="re-hash a model directory after a deliberate edit")
     p.add_argument("--model", required=True)
