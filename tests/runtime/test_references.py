@@ -291,3 +291,19 @@ def test_a_press_is_flagged_unfamiliar_at_the_configured_percentile():
     assert out.unfamiliar == (out.familiarity >= 95)
     assert analyse_press(ref, rec, out.familiarity).unfamiliar
     assert not analyse_press(ref, rec, out.familiarity + 0.01).unfamiliar
+
+
+def test_writers_at_once_lose_none_of_each_others_presses(model, store):
+    """The daemon teaching while a CLI run removes: each read-modify-write holds the lock."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    first = store.add(model, _unknown(recording_of(NEW, 30)), NEW, "kiri mochi",
+                      source="api")
+    presses = [_unknown(recording_of(NEW, seed)) for seed in range(31, 37)]
+    with ThreadPoolExecutor(4) as pool:
+        added = list(pool.map(lambda rec: store.add(model, rec, NEW, None, source="api",
+                                                    append=True), presses))
+        removed = pool.submit(store.remove, first.id).result()
+    assert removed == first
+    assert {r.id for r in store.load(model.digest).current} == {r.id for r in added}
+    assert len(list((store.root / PRESSES).iterdir())) == len(presses)
