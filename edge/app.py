@@ -303,13 +303,13 @@ def optional_services(runtime: Runtime) -> list[tuple[str, Coroutine[Any, Any, N
 
         recorder = McapRecorder(runtime, cfg.runtime.record_mcap_dir,
                                 cfg.runtime.record_mcap_segment_s,
-                                record_format=cfg.runtime.record_format,
-                                sensor_model=cfg.sensor.model)
+                                record_format=cfg.runtime.record_format)
         services.append(("mcap-record", recorder.run()))
     if cfg.mqtt.enabled:
         from edge.interfaces.mqtt import MqttBridge
 
-        services.append(("mqtt", MqttBridge(runtime, cfg.mqtt).run()))
+        services.append(("mqtt", MqttBridge(runtime, cfg.mqtt,
+                                            cfg.api.max_candidates).run()))
     return [(name, _guarded(name, coro)) for name, coro in services]
 
 

@@ -3,7 +3,7 @@ on every arriving frame, and two that check it only on a periodic tick (the samp
 a 100 Hz control loop as in the usual ROS 2 arrangement).
 
 They are one controller, the daemon's for its whole life (``assemble(...,
-controller_factory=BenchController)``), whose check is switched between presses
+controller_factory=BenchController)``), whose check is a strategy switched between presses
 (:meth:`BenchController.use`); it lives here, not in production code, and uses only the
 controller's public hooks: ``on_outcome``, ``check``, ``armed`` and ``gripper`` (whose
 ``stop_now`` the CPU probe sees handed over).
@@ -12,6 +12,7 @@ controller's public hooks: ``on_outcome``, ``check``, ``armed`` and ``gripper`` 
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,7 @@ import numpy as np
 from edge.bench.probes import HotPathCPU
 from edge.core.errors import BusyError
 from edge.core.tasks import cancel_and_wait
+from edge.runtime.domain import PressState
 from edge.runtime.press import PressController, PressOutcome
 
 # How each compared controller checks the threshold: on every frame (None), or on a tick of
@@ -27,6 +29,9 @@ TICK_PERIOD_S: dict[str, float | None] = {"per_frame": None, "tick125": 1 / 125.
                                           "loop100": 1 / 100.0}
 # The ticks' phase against the frame stream is drawn from this seed's generator.
 TICK_PHASE_SEED = 0
+
+# The threshold check the sensor task makes with every frame (raw, receive time).
+Check = Callable[[np.ndarray, float], Awaitable[None]]
 
 
 class BenchController(PressController):
@@ -43,6 +48,14 @@ class BenchController(PressController):
         # The thread CPU probe of the production check (:meth:`measure_cpu`).
         self.cpu: HotPathCPU | None = None
         self.gripper = _TimedGripper(self.gripper, self)
+        self._check: Check = super().check
+
+    @property  # type: ignore[override]
+    def check(self) -> Check:
+        """The check the sensor task calls with every frame: the strategy :meth:`use`
+        picked, per frame the production check itself (nothing added on the frame's
+        path but this lookup)."""
+        return self._check
 
     def measure_cpu(self, probe: HotPathCPU) -> None:
         """From now on the production check tells ``probe`` when it ends."""
@@ -63,18 +76,17 @@ class BenchController(PressController):
         sensor task calls (nothing added, but the CPU probe's call at its end once one
         measures), or only on a periodic tick with the latest frame (the sensor task's call
         keeps the frame)."""
-        if self.state != "idle":
+        if self.state != PressState.IDLE:
             raise BusyError(f"a press is running ({self.state}); switch between presses")
         period_s = TICK_PERIOD_S[name]
         self.name = name
         self.period_s = period_s
-        # (set on the instance: the sensor task looks ``check`` up on every frame)
-        if period_s is None and self.cpu is not None:
-            vars(self)["check"] = self._timed_check
-        elif period_s is None:
-            vars(self).pop("check", None)
+        if period_s is not None:
+            self._check = self._keep_latest
+        elif self.cpu is not None:
+            self._check = self._timed_check
         else:
-            vars(self)["check"] = self._keep_latest
+            self._check = super().check
 
     async def _keep_latest(self, raw: np.ndarray, recv_time: float) -> None:
         self.latest = (raw, recv_time)

@@ -40,10 +40,11 @@ from typing import Any
 
 from edge.core.backoff import Backoff
 from edge.core.config import MqttConfig
-from edge.core.errors import BusyError, ConfigError, EdgeError
+from edge.core.errors import BadRequest, BusyError, ConfigError, EdgeError
 from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
-from edge.interfaces.http.api import BadRequest, validate_candidates
+from edge.interfaces.contracts import Serving
+from edge.interfaces.requests import validate_candidates
 from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
@@ -132,11 +133,14 @@ def check_config(cfg: MqttConfig) -> None:
 
 
 class MqttBridge:
-    """The ``mqtt`` task: ``await MqttBridge(runtime, cfg.mqtt).run()``."""
+    """The ``mqtt`` task: ``await MqttBridge(runtime, cfg.mqtt,
+    cfg.api.max_candidates).run()``."""
 
-    def __init__(self, runtime: Any, cfg: MqttConfig, hostname: str | None = None) -> None:
+    def __init__(self, runtime: Serving, cfg: MqttConfig, max_candidates: int,
+                 hostname: str | None = None) -> None:
         self.runtime = runtime
         self.cfg = cfg
+        self.max_candidates = max_candidates
         host = topic_safe(hostname or socket.gethostname())
         self.prefix = cfg.prefix or f"vtzero/{host}"
         self.client_id = cfg.client_id or f"vtzero-{host}"
@@ -335,8 +339,7 @@ class MqttBridge:
         if unknown:
             raise CommandError(f"unknown field {unknown[0]!r}; known: "
                                + ", ".join(sorted(_RECOGNIZE_FIELDS)))
-        candidates = validate_candidates(body.get("candidates"),
-                                         self.runtime.cfg.api.max_candidates)
+        candidates = validate_candidates(body.get("candidates"), self.max_candidates)
         episode = await self.runtime.recognize(candidates, None, False, None, "mqtt")
         _remember(self._requests, episode.id, request_id)
         self._enqueue("ack", {"command": "recognize", "request_id": request_id,

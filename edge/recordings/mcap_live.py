@@ -35,7 +35,7 @@ import numpy as np
 from edge.core.errors import EdgeError
 from edge.core.tasks import cancel_and_wait
 from edge.recordings.mcaplog import LIVE_TOPICS, SUFFIX, McapLog
-from edge.runtime.taps import Rows, rows_since
+from edge.runtime.taps import LiveTaps, Rows
 
 log = logging.getLogger(__name__)
 
@@ -69,16 +69,14 @@ def segment_name(now: float | None = None, fmt: str = "mcap") -> str:
 
 
 class McapRecorder:
-    """The ``mcap-record`` task: ``await McapRecorder(runtime, directory).run()``."""
+    """The ``mcap-record`` task: ``await McapRecorder(taps, directory).run()``."""
 
-    def __init__(self, runtime: Any, directory: str | Path, segment_s: float = 600.0,
-                 worker: Any = None, *, record_format: str = "mcap",
-                 sensor_model: str = "") -> None:
-        self.runtime = runtime
+    def __init__(self, taps: LiveTaps, directory: str | Path, segment_s: float = 600.0,
+                 worker: Any = None, *, record_format: str = "mcap") -> None:
+        self.taps = taps
         self.directory = Path(directory)
         self.segment_s = segment_s
         self.record_format = record_format
-        self.sensor_model = sensor_model
         self._worker = worker
         self._events: collections.deque[tuple[float, dict[str, Any]]] = collections.deque(
             maxlen=EVENT_BACKLOG)
@@ -97,7 +95,7 @@ class McapRecorder:
 
         # From the first frame and event on: the writer starting below takes a moment, and a
         # press may begin meanwhile.
-        self._after = self.runtime.ring.count
+        self._after = self.taps.frame_count
         pump = asyncio.create_task(self._pump(), name="mcap-record-events")
         own = self._worker is None
         worker = self._worker or ComputeWorker()
@@ -115,7 +113,8 @@ class McapRecorder:
                         opened = True
                         await worker.run(segment_open, str(self.directory),
                                          segment_name(fmt=self.record_format),
-                                         self.record_format, self.sensor_model)
+                                         self.record_format,
+                                         self.taps.sensor_settings().model)
                         started = time.monotonic()
                         log.info("recording the live stream to %s", self.directory)
                     await asyncio.sleep(FLUSH_PERIOD_S)
@@ -153,13 +152,13 @@ class McapRecorder:
 
     def _batch(self) -> Batch:
         """The rows and events that arrived since the last batch."""
-        rows = rows_since(self.runtime.ring, self._after)
+        rows = self.taps.rows_since(self._after)
         self._after = rows.count
         lost, self._unwritten = rows.lost + self._unwritten, 0
         self.lost += lost
         events = list(self._events)
         self._events.clear()
-        return Batch(rows, events, self.runtime.cfg.sensor.pads, lost)
+        return Batch(rows, events, self.taps.sensor_settings().pads, lost)
 
     async def _close(self, worker: Any) -> None:
         """The batch still being appended, what arrived since, then the segment completed."""
@@ -180,7 +179,7 @@ class McapRecorder:
             log.info("live MCAP segment complete: %s", path)
 
     async def _pump(self) -> None:
-        with self.runtime.subscribe() as stream:
+        with self.taps.subscribe() as stream:
             async for event in stream:
                 self._events.append((time.monotonic(), event.to_json()))
 

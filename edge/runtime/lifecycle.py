@@ -27,17 +27,18 @@ import signal
 import time
 from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 
 from edge import __version__
 from edge.core import preprocess
-from edge.core.config import Config
+from edge.core.config import Config, PressConfig, SensorConfig
 from edge.core.errors import EdgeError, StoreError
 from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
-from edge.runtime import signals
+from edge.runtime import signals, taps
 from edge.runtime.compute import ComputeWorker, reload_model, warm_up
 from edge.runtime.domain import (
     Episode,
@@ -55,6 +56,7 @@ from edge.runtime.ring import FrameRing
 from edge.runtime.sensor import Sampler, SensorTask
 from edge.runtime.store import EpisodeStore
 from edge.runtime.systemd import Notifier, watchdog_period_s
+from edge.runtime.taps import Rows
 from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
@@ -142,7 +144,9 @@ class Runtime:
     def vlm(self) -> VLMClient:
         return self.recognizer.setup.vlm
 
-    # --- what the API uses --------------------------------------------------------------
+    # --- the interfaces' seams (edge.interfaces.contracts): recognitions ------------------
+    # One object behind both seams: an interface asks the runtime, which hands a
+    # recognition to its recognizer and answers for the press, the store and the health.
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
                         timeout_s: float | None, source: str) -> Episode:
         return await self.recognizer.recognize(candidates, image, wait, timeout_s, source)
@@ -156,8 +160,28 @@ class Runtime:
     async def abort(self) -> bool:
         return self.press.request_abort()
 
+    def episodes(self, limit: int) -> list[Episode]:
+        return self.store.list(limit=limit)
+
+    def episode_file(self, episode_id: str, name: str) -> Path:
+        return self.store.file(episode_id, name)
+
+    # --- ... and live taps (edge.runtime.taps.LiveTaps) -----------------------------------
     def subscribe(self) -> contextlib.AbstractContextManager[Subscription]:
         return self.events.subscribe(Hello(self.press.state, self.recognizer.current))
+
+    @property
+    def frame_count(self) -> int:
+        return self.ring.count
+
+    def rows_since(self, after: int, limit: int | None = None) -> Rows:
+        return taps.rows_since(self.ring, after, limit)
+
+    def sensor_settings(self) -> SensorConfig:
+        return self.cfg.sensor
+
+    def press_settings(self) -> PressConfig:
+        return self.cfg.press
 
     def power_on_with_stream(self, why: str, power_on: Callable[[], Awaitable[None]]) -> None:
         """Start with torque off and presses refused (``why``: the sensor server is absent);

@@ -9,10 +9,14 @@ the ring's length behind loses the oldest rows and says how many.
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
+from edge.core.config import PressConfig, SensorConfig
+from edge.runtime.domain import Subscription
 from edge.runtime.ring import FrameRing
 
 
@@ -46,3 +50,29 @@ def rows_since(ring: FrameRing, after: int, limit: int | None = None) -> Rows:
 def newest(ring: FrameRing, n: int) -> Rows:
     """The newest ``n`` rows (fewer if the ring holds fewer)."""
     return rows_since(ring, 0, n)
+
+
+class LiveTaps(Protocol):
+    """What the services beside the press read live (the API's events, the operator page's
+    live view, the live recording, MQTT): the daemon's events and the ring's taps."""
+
+    def subscribe(self) -> AbstractContextManager[Subscription]:
+        """The events from now on, the first a :class:`~edge.runtime.domain.Hello`."""
+        ...
+
+    @property
+    def frame_count(self) -> int:
+        """Frames the ring has taken so far (``after`` for :meth:`rows_since`)."""
+        ...
+
+    def rows_since(self, after: int, limit: int | None = None) -> Rows:
+        """:func:`rows_since` on the daemon's ring."""
+        ...
+
+    def sensor_settings(self) -> SensorConfig:
+        """The ``[sensor]`` the stream was opened with (how its rows split into pads)."""
+        ...
+
+    def press_settings(self) -> PressConfig:
+        """The ``[press]`` settings in force (a reload may replace them)."""
+        ...

@@ -205,5 +205,7 @@ def test_mqtt_is_off_by_default_and_a_missing_password_file_is_refused_at_start(
                                     "password_file": str(tmp_path / "nope")}}).mqtt
     with pytest.raises(ConfigError, match=r"mqtt\.password_file .*nope: cannot read"):
         check_config(on)
-    bridge = MqttBridge(None, config_from_dict({}).mqtt, hostname="arm 3/#")
+    cfg = config_from_dict({})
+    bridge = MqttBridge(None, cfg.mqtt, cfg.api.max_candidates,  # type: ignore[arg-type]
+                        hostname="arm 3/#")
     assert bridge.prefix == "vtzero/arm_3__" and bridge.client_id == "vtzero-arm_3__"

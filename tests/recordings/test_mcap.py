@@ -174,7 +174,8 @@ def check_segments(live_dir):
 
 
 class _Runtime:
-    """What the live recorder reads of the daemon: its ring, its events and its config."""
+    """What the live recorder reads of the daemon (its live taps): its ring, its events and
+    its settings."""
 
     def __init__(self):
         from edge.runtime.domain import EventBus
@@ -189,6 +190,21 @@ class _Runtime:
         from edge.runtime.domain import Hello, PressState
 
         return self.bus.subscribe(Hello(PressState.IDLE, None))
+
+    @property
+    def frame_count(self):
+        return self.ring.count
+
+    def rows_since(self, after, limit=None):
+        from edge.runtime.taps import rows_since
+
+        return rows_since(self.ring, after, limit)
+
+    def sensor_settings(self):
+        return self.cfg.sensor
+
+    def press_settings(self):
+        return self.cfg.press
 
     def push(self, n):
         for _ in range(n):

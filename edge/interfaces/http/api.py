@@ -19,11 +19,9 @@ import json
 import logging
 import socket
 import weakref
-from collections.abc import Callable
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, TypeVar
+from typing import Any
 
 from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
@@ -39,21 +37,14 @@ from edge.core.errors import (
     NotFoundError,
     StateError,
 )
+from edge.interfaces.contracts import Recognitions, Serving
 from edge.interfaces.http.webui import OperatorPage
-from edge.runtime.domain import Episode, Health, Subscription
+from edge.interfaces.requests import validate_candidates
 from edge.vlm.images import check_image
-
-if TYPE_CHECKING:
-    from edge.core.config import Config
-    from edge.runtime.ring import FrameRing
-    from edge.runtime.store import EpisodeStore
 
 log = logging.getLogger(__name__)
 # Bound beyond loopback, the API asks for a bearer token at least this long.
 MIN_TOKEN_CHARS = 16
-T = TypeVar("T")
-
-MAX_LABEL_CHARS = 80
 # Connections the listening socket queues until they are accepted (aiohttp's own default).
 LISTEN_BACKLOG = 128
 SSE_KEEPALIVE_S = 15.0
@@ -63,34 +54,6 @@ _ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, POST /v1/episodes/{id}/re
            "GET /v1/events, POST /v1/abort, "
            "GET /healthz, GET /metrics, GET / (operator page), GET /v1/episodes?limit=N, "
            "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile")
-
-
-class Runtime(Protocol):
-    """What the API needs from the daemon."""
-
-    async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str) -> Episode: ...
-
-    async def abort(self) -> bool: ...
-
-    async def episode(self, episode_id: str) -> Episode: ...
-
-    async def retry(self, episode_id: str) -> Episode: ...
-
-    def subscribe(self) -> AbstractContextManager[Subscription]: ...
-
-    def health(self) -> Health: ...
-
-    def metrics_text(self) -> str: ...
-
-    async def run_cpu(self, fn: Callable[..., T], *args: Any) -> T: ...
-
-    # Read by the services beside the press (the operator page, MQTT, MCAP).
-    cfg: Config
-    ring: FrameRing  # read only, through edge.runtime.taps
-    store: EpisodeStore  # read only, through its public methods
-
-
 
 
 def load_token(cfg: ApiConfig) -> str:
@@ -138,25 +101,6 @@ def _error(status: int, message: str, **extra: Any) -> web.Response:
     return web.json_response({"error": message, **extra}, status=status)
 
 
-def validate_candidates(value: Any, max_candidates: int) -> list[str]:
-    if not isinstance(value, list) or not value:
-        raise BadRequest("candidates must be a non-empty JSON list of labels")
-    if len(value) > max_candidates:
-        raise BadRequest(f"too many candidates: {len(value)} (at most {max_candidates})")
-    out = []
-    for item in value:
-        if not isinstance(item, str) or not item.strip():
-            raise BadRequest(f"every candidate must be a non-empty string, got {item!r}")
-        label = item.strip()
-        if len(label) > MAX_LABEL_CHARS or not label.isprintable():
-            raise BadRequest(f"candidate {label[:MAX_LABEL_CHARS]!r}... must be printable and "
-                             f"at most {MAX_LABEL_CHARS} characters")
-        if label in out:
-            raise BadRequest(f"duplicate candidate {label!r}")
-        out.append(label)
-    return out
-
-
 def validate_image(data: bytes, max_bytes: int) -> bytes:
     if not data:
         raise BadRequest("image is empty")
@@ -167,7 +111,7 @@ def validate_image(data: bytes, max_bytes: int) -> bytes:
     return data
 
 
-async def decodable_image(runtime: Runtime, data: bytes) -> bytes:
+async def decodable_image(runtime: Recognitions, data: bytes) -> bytes:
     """The image, if it decodes: a broken one must be refused before the arm moves, not
     found out by the VLM call after the press. Decoded in the compute process: an image
     that crashes the decoder costs that process, not the daemon."""
@@ -187,7 +131,7 @@ class _Parsed:
 
 
 class Api:
-    def __init__(self, runtime: Runtime, cfg: ApiConfig) -> None:
+    def __init__(self, runtime: Serving, cfg: ApiConfig) -> None:
         self.runtime = runtime
         self.cfg = cfg
         self.token = load_token(cfg)
@@ -203,7 +147,7 @@ class Api:
             web.get("/metrics", self.metrics),
         ])
         # The operator page at / and its data: edge/interfaces/http/webui.py.
-        self.ui = OperatorPage(runtime, self.token)
+        self.ui = OperatorPage(runtime, runtime, self.token)
         self.ui.install(self.app)
         # /v1/events streams never end by themselves: the server's shutdown ends them.
         self._event_streams: weakref.WeakSet[asyncio.Task] = weakref.WeakSet()

@@ -21,7 +21,6 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator
-from typing import Any
 
 import numpy as np
 
@@ -29,7 +28,7 @@ from edge.core import preprocess
 from edge.core.layout import PadLayout
 from edge.core.tasks import cancel_and_wait
 from edge.runtime.domain import Hello, PressState, StateChanged
-from edge.runtime.taps import newest
+from edge.runtime.taps import LiveTaps
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +40,8 @@ SENSOR_RATE_HZ = 125.0
 
 
 class TactileFeed:
-    def __init__(self, runtime: Any, rate_hz: float = RATE_HZ) -> None:
-        self.runtime = runtime
+    def __init__(self, taps: LiveTaps, rate_hz: float = RATE_HZ) -> None:
+        self.taps = taps
         self.period_s = 1.0 / rate_hz
         self._viewers: set[asyncio.Queue[bytes]] = set()
         self._task: asyncio.Task | None = None
@@ -53,7 +52,7 @@ class TactileFeed:
 
     def tare(self, seconds: float = TARE_S) -> bool:
         """Tare on the newest ``seconds`` of frames; False if there are none."""
-        rows = newest(self.runtime.ring, max(1, round(seconds * SENSOR_RATE_HZ)))
+        rows = self.taps.rows_since(0, max(1, round(seconds * SENSOR_RATE_HZ)))
         if not len(rows):
             return False
         self._tare = preprocess.tare(rows.raw)
@@ -97,7 +96,7 @@ class TactileFeed:
             last_seq, last_sent = None, 0.0
             while True:
                 now = loop.time()
-                seq = self.runtime.ring.count
+                seq = self.taps.frame_count
                 # A frame per new row (a stalled stream is not sent again and again, but a
                 # heartbeat still says how old its last frame is).
                 if seq != last_seq or now - last_sent >= HEARTBEAT_S:
@@ -118,8 +117,7 @@ class TactileFeed:
             await cancel_and_wait(events)
 
     def _encode(self) -> bytes | None:
-        ring = self.runtime.ring
-        rows = newest(ring, 1)
+        rows = self.taps.rows_since(0, 1)
         if not len(rows):
             return None
         if self._tare is None and not self.tare():
@@ -127,24 +125,25 @@ class TactileFeed:
         assert self._tare is not None
         units = (rows.raw[0].astype(np.float64) - self._tare) / preprocess.UNITS_SCALE
         norm = float(np.linalg.norm(units))
-        cfg = self.runtime.cfg
-        layout = PadLayout.of(cfg.sensor)
-        pads = (units * 1e6).round().astype(np.int64).reshape(cfg.sensor.pads, -1, 3)
+        sensor = self.taps.sensor_settings()
+        layout = PadLayout.of(sensor)
+        pads = (units * 1e6).round().astype(np.int64).reshape(sensor.pads, -1, 3)
         return json.dumps({
             "seq": int(rows.seq[0]),
             "age_s": round(time.monotonic() - float(rows.recv_time[0]), 4),
-            "state": self._state, "norm": round(norm, 7), "x_th": cfg.press.x_th,
+            "state": self._state, "norm": round(norm, 7),
+            "x_th": self.taps.press_settings().x_th,
             "rows": layout.rows, "cols": layout.cols,
             "pads": [{"x": p[:, 0].tolist(), "y": p[:, 1].tolist(), "z": p[:, 2].tolist()}
                      for p in pads],
         }, separators=(",", ":")).encode()
 
     async def _follow_states(self) -> None:
-        with self.runtime.subscribe() as stream:
+        with self.taps.subscribe() as stream:
             async for event in stream:
                 if isinstance(event, Hello | StateChanged):
                     self._state = event.state
                     if self._state == PressState.CLOSING:  # the press's own tare window
-                        self.tare(self.runtime.cfg.press.tare_s)
+                        self.tare(self.taps.press_settings().tare_s)
                     elif self._state == PressState.IDLE and isinstance(event, StateChanged):
                         self.tare()  # back above the object, the gripper open: unloaded

@@ -31,9 +31,11 @@ from typing import Any
 from aiohttp import web
 
 from edge.core.errors import NotFoundError
+from edge.interfaces.contracts import Recognitions
 from edge.interfaces.http.tactile_feed import TactileFeed
 from edge.interfaces.http.trace import press_trace
 from edge.runtime.domain import PressSummary
+from edge.runtime.taps import LiveTaps
 
 log = logging.getLogger(__name__)
 
@@ -73,10 +75,10 @@ _LOGIN_PAGE = """<!doctype html>
 
 
 class OperatorPage:
-    def __init__(self, runtime: Any, token: str) -> None:
-        self.runtime = runtime
+    def __init__(self, recognitions: Recognitions, taps: LiveTaps, token: str) -> None:
+        self.recognitions = recognitions
         self.token = token
-        self.feed = TactileFeed(runtime)
+        self.feed = TactileFeed(taps)
         self._static: dict[str, bytes] = {}
         self._traces: collections.OrderedDict[str, dict[str, Any]] = collections.OrderedDict()
 
@@ -188,12 +190,11 @@ class OperatorPage:
         return web.json_response({"episodes": listed})
 
     def _list(self, limit: int) -> list[dict[str, Any]]:
-        store = self.runtime.store
         out = []
-        for episode in store.list(limit=limit):
+        for episode in self.recognitions.episodes(limit):
             eid = episode.id
             files = {name for name in ("image.jpg", "image.png", "press.press.npz")
-                     if _has(store, eid, name)}
+                     if self._find(eid, name) is not None}
             out.append({
                 "id": eid, "status": episode.status.value, "created": episode.created,
                 "updated": episode.updated, "source": episode.source,
@@ -210,7 +211,7 @@ class OperatorPage:
     async def image(self, request: web.Request) -> web.StreamResponse:
         eid = request.match_info["id"]
         for name, mime in (("image.jpg", "image/jpeg"), ("image.png", "image/png")):
-            path = await asyncio.to_thread(_find, self.runtime.store, eid, name)
+            path = await asyncio.to_thread(self._find, eid, name)
             if path is not None:
                 return web.FileResponse(path, headers={
                     "Content-Type": mime, "Cache-Control": "private, max-age=86400",
@@ -221,8 +222,9 @@ class OperatorPage:
         eid = request.match_info["id"]
         trace = self._traces.get(eid)
         if trace is None:
-            path = await asyncio.to_thread(self.runtime.store.file, eid, "press.press.npz")
-            trace = await self.runtime.run_cpu(press_trace, str(path))
+            path = await asyncio.to_thread(self.recognitions.episode_file, eid,
+                                           "press.press.npz")
+            trace = await self.recognitions.run_cpu(press_trace, str(path))
             self._traces[eid] = trace
             while len(self._traces) > TRACE_CACHE:
                 self._traces.popitem(last=False)
@@ -248,16 +250,11 @@ class OperatorPage:
     async def tare(self, request: web.Request) -> web.Response:
         return web.json_response({"tared": self.feed.tare()})
 
-
-def _find(store: Any, episode_id: str, name: str) -> Path | None:
-    try:
-        return store.file(episode_id, name)
-    except NotFoundError:
-        return None
-
-
-def _has(store: Any, episode_id: str, name: str) -> bool:
-    return _find(store, episode_id, name) is not None
+    def _find(self, episode_id: str, name: str) -> Path | None:
+        try:
+            return self.recognitions.episode_file(episode_id, name)
+        except NotFoundError:
+            return None
 
 
 def _see_other(location: str) -> web.Response:
