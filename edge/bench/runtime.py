@@ -476,22 +476,40 @@ class RuntimeBench:
     # ----- figures
 
     def figures(self) -> dict[str, Any]:
-        figs: dict[str, Any] = {}
+        """Every figure of the phase, group by group, in the report's order."""
+        figs = self._sampler_figures()
+        figs |= self._stop_figures()
+        figs |= self._floor_figures(figs)
+        figs |= self._realtime_figures()
+        figs |= self._pages_figures()
+        figs |= self._controller_figures(figs)
+        figs |= self._overhead_figures()
+        return figs
+
+    def _sampler_figures(self) -> dict[str, Any]:
+        """The 125 Hz sampler's lateness under the load and with none."""
         load = self.load_stats
         late_ms = [1e3 * v for v in load.get("lateness_s", [])]
-        figs["sampler_period_error_ms"] = figure(
-            late_ms, "ms", target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)),
-            missed_ticks=load.get("missed_ticks"), ticks=load.get("ticks"),
-            gaps=load.get("gaps"), duration_s=load.get("duration_s"),
-            max_gap_ms=load.get("max_interval_ms"),
-            what="lateness of each 125 Hz sampler wake-up vs its ideal deadline, under load")
-        figs["sampler_period_error_ms_no_load"] = _sampler_figure(
-            self.quiet_stats, "as sampler_period_error_ms, during the presses with no extra load")
+        return {
+            "sampler_period_error_ms": figure(
+                late_ms, "ms", target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)),
+                missed_ticks=load.get("missed_ticks"), ticks=load.get("ticks"),
+                gaps=load.get("gaps"), duration_s=load.get("duration_s"),
+                max_gap_ms=load.get("max_interval_ms"),
+                what="lateness of each 125 Hz sampler wake-up vs its ideal deadline, under "
+                     "load"),
+            "sampler_period_error_ms_no_load": _sampler_figure(
+                self.quiet_stats,
+                "as sampler_period_error_ms, during the presses with no extra load"),
+        }
+
+    def _stop_figures(self) -> dict[str, Any]:
+        """Each controller's stop latency under the load (its failures in the notes), and
+        the production controller's with no load."""
+        figs: dict[str, Any] = {}
         loaded = [r for r in self.records if r.phase == "load"]
-        lat = {}
         for name in CONTROLLERS:
             recs = [r for r in loaded if r.controller == name]
-            key = "stop_latency_ms" if name == "per_frame" else f"stop_latency_ms_{name}"
             failed = [f"{r.result}: {r.message}" for r in recs if r.stop_latency_ms is None]
             aborted = [r for r in recs if r.stop_latency_ms is not None and r.result != "ok"]
             # The controller's own crossing frame was a later one: it never saw the first
@@ -499,7 +517,7 @@ class RuntimeBench:
             later = [r for r in recs if r.stop_latency_ms is not None
                      and r.controller_latency_ms is not None
                      and r.stop_latency_ms - r.controller_latency_ms > 0.5]
-            lat[name] = figs[key] = figure(
+            figs[_stop_key(name)] = figure(
                 [r.stop_latency_ms for r in recs], "ms",
                 target(("p99", "<=", STOP_P99_MS)) if name == "per_frame" else None,
                 controller=CONTROLLER_TEXT[name], failed_presses=len(failed),
@@ -527,23 +545,35 @@ class RuntimeBench:
             **_stop_detail(quiet),
             from_server_send_ms=stats([r.from_send_ms for r in quiet]),
             what="as stop_latency_ms, with no extra load (the overhead presses)")
-        floor = {name: self._floor_in(name) for name in ("quiet", "load", "load_rt")}
-        figs["stop_floor_ms"] = figure(
+        return figs
+
+    def _floor_figures(self, figs: dict[str, Any]) -> dict[str, Any]:
+        """The minimal loop's floor, the hot path's CPU time, and the production stop
+        (``figs``) against the floor."""
+        floor = {name: self._floor_in(name) for name in ("quiet", "load")}
+        out: dict[str, Any] = {}
+        out["stop_floor_ms"] = figure(
             [lat for lat, _ in floor["load"]], "ms", None,
             to_write_return_ms=stats([ret for _, ret in floor["load"]]),
             what=FLOOR_TEXT + ", under the same load, over the phase of stop_latency_ms")
-        figs["stop_floor_ms_no_load"] = figure(
+        out["stop_floor_ms_no_load"] = figure(
             [lat for lat, _ in floor["quiet"]], "ms", None,
             to_write_return_ms=stats([ret for _, ret in floor["quiet"]]),
             what=FLOOR_TEXT + ", over the presses with no extra load")
-        figs.update(self._cpu_figures())
-        figs["stop_latency_ratio_floor"] = ratio_figure(
-            lat["per_frame"], figs["stop_floor_ms"], target(("p50", "<=", FLOOR_RATIO_P50)),
+        out.update(self._cpu_figures())
+        out["stop_latency_ratio_floor"] = ratio_figure(
+            figs[_stop_key("per_frame")], out["stop_floor_ms"],
+            target(("p50", "<=", FLOOR_RATIO_P50)),
             what="stop_latency_ms / stop_floor_ms (statistic by statistic): vtzero's stop "
                  "against the minimal loop, same frames, host and load")
-        figs["stop_latency_ratio_floor_no_load"] = ratio_figure(
-            figs["stop_latency_ms_no_load"], figs["stop_floor_ms_no_load"],
+        out["stop_latency_ratio_floor_no_load"] = ratio_figure(
+            figs["stop_latency_ms_no_load"], out["stop_floor_ms_no_load"],
             what="stop_latency_ms_no_load / stop_floor_ms_no_load")
+        return out
+
+    def _realtime_figures(self) -> dict[str, Any]:
+        """The sampler and the production stop under the same load with the loop and bus
+        threads at real-time priority."""
         rt = [r for r in self.records if r.phase == "load_rt"]
         applied = "applied" if self.rt_applied else "REFUSED by the host (ran without it)"
         rt_sampler = _sampler_figure(
@@ -551,53 +581,80 @@ class RuntimeBench:
             f"threads at real-time priority on a CPU of their own ({applied}); loop_thread: "
             "its CPU, run-queue wait (cores) and preemptions per second over the window")
         rt_sampler["loop_thread"] = self.rt_stats.get("loop_thread")
-        figs["sampler_period_error_ms_realtime"] = finish(
-            rt_sampler, target(("p99", "<=", 1.0), ("missed_ticks", "==", 0)))
-        figs["stop_latency_ms_realtime"] = figure(
-            [r.stop_latency_ms for r in rt], "ms", target(("p99", "<=", STOP_P99_MS)),
-            controller=CONTROLLER_TEXT["per_frame"], **_stop_detail(rt),
-            floor_ms=stats([lat for lat, _ in floor["load_rt"]]),
-            what="as stop_latency_ms (the same load), with the loop and bus threads at "
-                 f"real-time priority on a CPU of their own ({applied})")
-        figs["sampler_period_error_ms_two_pages"] = _sampler_figure(
-            self.pages_stats, f"as sampler_period_error_ms_no_load, with {PAGES} operator "
-            "pages open")
+        return {
+            "sampler_period_error_ms_realtime": finish(
+                rt_sampler, target(("p99", "<=", 1.0), ("missed_ticks", "==", 0))),
+            "stop_latency_ms_realtime": figure(
+                [r.stop_latency_ms for r in rt], "ms", target(("p99", "<=", STOP_P99_MS)),
+                controller=CONTROLLER_TEXT["per_frame"], **_stop_detail(rt),
+                floor_ms=stats([lat for lat, _ in self._floor_in("load_rt")]),
+                what="as stop_latency_ms (the same load), with the loop and bus threads at "
+                     f"real-time priority on a CPU of their own ({applied})"),
+        }
+
+    def _pages_figures(self) -> dict[str, Any]:
+        """The sampler and the stop with operator pages open, and the pages' feed rate."""
         with_pages = [r for r in self.records if r.phase == "pages"]
-        figs["stop_latency_ms_two_pages"] = figure(
-            [r.stop_latency_ms for r in with_pages], "ms", None,
-            controller=CONTROLLER_TEXT["per_frame"],
-            what=f"as stop_latency_ms_no_load, with {PAGES} operator pages open")
-        figs["operator_page_feed_fps"] = figure(
-            [p["tactile_frames"] / p["seconds"] for p in self.page_stats if p.get("seconds")],
-            "frames/s", target(("p50", ">=", 25.0)),
-            requests=sum(p.get("requests", 0) for p in self.page_stats),
-            errors=sum(p.get("errors", 0) for p in self.page_stats),
-            what="live tactile frames each open page received per second (/v1/tactile)")
-        figs["stop_latency_ratio_loop100"] = ratio_figure(
-            lat["loop100"], lat["per_frame"], target(("p50", ">=", 5.0)),
-            what="100 Hz loop stop latency / per-frame stop latency (statistic by statistic)")
-        figs["stop_latency_ratio_tick125"] = ratio_figure(
-            lat["tick125"], lat["per_frame"],
-            what="125 Hz tick stop latency / per-frame stop latency (statistic by statistic)")
+        return {
+            "sampler_period_error_ms_two_pages": _sampler_figure(
+                self.pages_stats, f"as sampler_period_error_ms_no_load, with {PAGES} operator "
+                "pages open"),
+            "stop_latency_ms_two_pages": figure(
+                [r.stop_latency_ms for r in with_pages], "ms", None,
+                controller=CONTROLLER_TEXT["per_frame"],
+                what=f"as stop_latency_ms_no_load, with {PAGES} operator pages open"),
+            "operator_page_feed_fps": figure(
+                [p["tactile_frames"] / p["seconds"] for p in self.page_stats
+                 if p.get("seconds")],
+                "frames/s", target(("p50", ">=", 25.0)),
+                requests=sum(p.get("requests", 0) for p in self.page_stats),
+                errors=sum(p.get("errors", 0) for p in self.page_stats),
+                what="live tactile frames each open page received per second (/v1/tactile)"),
+        }
+
+    def _controller_figures(self, figs: dict[str, Any]) -> dict[str, Any]:
+        """The ticked controllers' stop latencies (``figs``) against the production one's,
+        and each controller's force overshoot per object."""
+        out: dict[str, Any] = {
+            "stop_latency_ratio_loop100": ratio_figure(
+                figs[_stop_key("loop100")], figs[_stop_key("per_frame")],
+                target(("p50", ">=", 5.0)),
+                what="100 Hz loop stop latency / per-frame stop latency (statistic by "
+                     "statistic)"),
+            "stop_latency_ratio_tick125": ratio_figure(
+                figs[_stop_key("tick125")], figs[_stop_key("per_frame")],
+                what="125 Hz tick stop latency / per-frame stop latency (statistic by "
+                     "statistic)"),
+        }
+        loaded = [r for r in self.records if r.phase == "load"]
         for obj in OBJECTS:
             for name in CONTROLLERS:
                 recs = [r for r in loaded if r.controller == name and r.object == obj]
-                figs[f"force_overshoot_n_{obj}_{name}"] = figure(
+                out[f"force_overshoot_n_{obj}_{name}"] = figure(
                     [r.overshoot_n for r in recs], "N", None, controller=CONTROLLER_TEXT[name],
                     what=f"peak normal force minus the force at the first frame over x_th "
                          f"(SimWorld), {obj}")
+        return out
+
+    def _overhead_figures(self) -> dict[str, Any]:
+        """What the daemon adds between the trigger and the VLM request, beyond the press."""
+        out: dict[str, Any] = {}
         for phase, key, goal in (("quiet", "overhead_ms", target(("p99", "<=", 20.0))),
                                  ("load", "overhead_ms_under_load", None)):
             recs = [r for r in self.records if r.phase == phase]
-            figs[key] = figure(
+            out[key] = figure(
                 [r.overhead_ms for r in recs], "ms", goal,
                 pre_press_ms_p50=stats([r.pre_press_ms for r in recs])["p50"],
                 what="POST /v1/recognize -> VLM request received, minus the press's own "
                      "part of that way ('above' entered -> the model's crop window complete: "
                      "the stop + its last sample's time)" +
                      (", no extra load" if phase == "quiet" else ", under the load"))
-        return figs
+        return out
 
+
+def _stop_key(controller: str) -> str:
+    """The figure of ``controller``'s stop latency under the load."""
+    return "stop_latency_ms" if controller == "per_frame" else f"stop_latency_ms_{controller}"
 
 def _stop_detail(recs: list[PressRecord]) -> dict[str, Any]:
     """The parts of the production stops among ``recs``, and how many read first."""
