@@ -31,7 +31,7 @@ from edge.core.errors import ModelError
 from edge.core.progress import PLAIN_EVERY_S
 from edge.core.progress import Progress as Bar
 from train.learn.data import Normaliser, Samples, TrainingData
-from train.learn.model import ModelConfig, TactileAutoencoder, set_determinism
+from train.learn.model import METRIC_MARGIN, ModelConfig, TactileAutoencoder, set_determinism
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +117,10 @@ def _batches(n: int, size: int, rng: np.random.Generator) -> list[np.ndarray]:
     return [perm[i:i + size] for i in range(0, n, size)]
 
 
-def _evaluate(model: TactileAutoencoder, data: Samples, batch: int = 2048) -> dict[str, float]:
+def _evaluate(model: TactileAutoencoder, data: Samples, negatives: Samples | None = None,
+              batch: int = 2048) -> dict[str, float]:
+    """Mean losses over ``data``; with ``negatives`` (``data`` one class) its metric term is
+    :func:`_one_class_metric`'s."""
     model.eval()
     totals: dict[str, float] = {}
     with torch.no_grad():
@@ -127,7 +130,29 @@ def _evaluate(model: TactileAutoencoder, data: Samples, batch: int = 2048) -> di
                         torch.from_numpy(data.label_index[i:i + batch]))
             for key, value in out.losses.items():
                 totals[key] = totals.get(key, 0.0) + float(value) * x.shape[0]
-    return {key: value / len(data) for key, value in totals.items()}
+        losses = {key: value / len(data) for key, value in totals.items()}
+        if negatives is not None:
+            metric = _one_class_metric(model, data, negatives, batch)
+            losses["loss"] += model.cfg.metric * (metric - losses.get("metric", 0.0))
+            losses["metric"] = metric
+    return losses
+
+
+def _one_class_metric(model: TactileAutoencoder, data: Samples, negatives: Samples,
+                      batch: int) -> float:
+    """:func:`~train.learn.model.metric_loss` of one class's samples with ``negatives`` (the
+    training samples) as the other class: each of its samples' farthest same-class sample
+    should lie ``METRIC_MARGIN`` nearer than its nearest training sample. The training
+    samples are negatives only, never anchors (their own term is the training loss's)."""
+    def embed_all(samples: Samples) -> torch.Tensor:
+        return torch.cat([model.embed(torch.from_numpy(samples.x[i:i + batch]))
+                          for i in range(0, len(samples), batch)])
+
+    z, z_neg = embed_all(data), embed_all(negatives)
+    pos = torch.cdist(z, z).amax(1)
+    neg = torch.cat([torch.cdist(z, z_neg[i:i + batch]).amin(1, keepdim=True)
+                     for i in range(0, len(z_neg), batch)], dim=1).amin(1)
+    return float(torch.nn.functional.relu(pos - neg + METRIC_MARGIN).mean())
 
 
 def save_checkpoint(path: str | Path, model: TactileAutoencoder, norm: Normaliser,
@@ -178,12 +203,10 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
         (out / TRAIN_LOG).write_text("")
     progress = progress or Progress()
     cfg = config.model
-    if cfg.metric and len(data.splits.val) == 1:
-        raise ModelError(
-            f"one validation class ({data.splits.val[0]}): the metric term compares presses of "
-            "different classes, so on one class it is 0 and early stopping would watch the "
-            "reconstruction alone; give two or more validation classes, or none (early "
-            "stopping then watches the training loss), or train without the metric term")
+    # One validation class has no other class in its own samples: its metric term would be
+    # 0 and early stopping would watch the reconstruction alone. Its presses are held against
+    # the training presses instead (:func:`_one_class_metric`).
+    negatives = data.train if cfg.metric and len(data.splits.val) == 1 else None
     expected = (cfg.steps, cfg.channels)
     if data.train.x.shape[1:] != expected:
         raise ValueError(f"samples are {data.train.x.shape[1:]}, the model takes {expected}")
@@ -227,7 +250,7 @@ def train(data: TrainingData, config: TrainConfig, out_dir: str | Path | None = 
         revived = 0
         if cfg.variant == "vq" and cfg.revive_dead and dead:
             revived = model.revive(usage, torch.cat(z_pool), revive_gen)
-        val_losses = _evaluate(model, data.val)
+        val_losses = _evaluate(model, data.val, negatives)
         val = val_losses["loss"]
         improved = val < best_val * (1.0 - config.min_delta) if best_val < float("inf") \
             else True
