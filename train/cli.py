@@ -306,7 +306,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
                       unseen=tuple(Path(u) for u in args.unseen or ()),
                       prompts=Path(args.prompts) if args.prompts else SHIPPED_PROMPTS,
                       seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
-                      threads=args.threads, mixed_rates=args.mixed_rates)
+                      threads=args.threads, mixed_rates=args.mixed_rates,
+                      std_floor=args.std_floor)
     manifest = build(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     base = m["comparison"].get("baseline/z", {})
@@ -594,6 +595,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mixed-rates", action="store_true",
                    help="build from classes pressed at stream rates more than 10%% apart "
                    "(refused by default: they embed the same object in two places)")
+    p.add_argument("--std-floor", type=float, default=STD_FLOOR_FRACTION,
+                   help="the normaliser's floor on each channel's spread, a fraction of the "
+                   "RMS of all channels' (default %(default)s, for XELA pads' noise channels; "
+                   "0: each channel its own); the manifest records it")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_build)
 

@@ -89,6 +89,7 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
     assert set(manifest["class_rate_hz"]) == set(REFERENCE)
     assert all(abs(r - 125) < 1 for r in manifest["class_rate_hz"].values())
     assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
+    assert manifest["training"]["std_floor_fraction"] == 1.0  # the normaliser's, recorded
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     report = json.loads((models / "eval" / "eval.json").read_text())
     rows = {(r["variant"], r["space"]) for r in report["rows"]}

@@ -17,8 +17,9 @@ inputs, so a rerun after an interruption skips what is done and says so:
 5. the prompt templates copied (the manifest hashes them);
 6. the retrieval evaluation (``eval/eval.md``, ``eval/eval.json``), the trivial baseline beside
    the encoder, on the test classes of the dataset and any ``--unseen`` sets;
-7. the manifest, written last, with the data's ``origin``, ``plan_sha256`` and each class's
-   ``x_th`` and stream rate (``class_x_th``, ``class_rate_hz``);
+7. the manifest, written last, with the data's ``origin``, ``plan_sha256``, each class's
+   ``x_th`` and stream rate (``class_x_th``, ``class_rate_hz``) and the normaliser's floor
+   (``training.std_floor_fraction``, ``--std-floor``);
 
 then ``OUT.partial`` is renamed to ``OUT`` (an ``OUT`` already there is kept as
 ``OUT.previous``). The daemon loads the result as it is; SIGHUP swaps it in.
@@ -45,7 +46,13 @@ from edge.core.layout import XR1944, PadLayout
 from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
 from edge.core.recording import DATASET_INDEX
 from train.eval import evaluate
-from train.learn.data import PressSet, Splits, load_presses, training_data_of
+from train.learn.data import (
+    STD_FLOOR_FRACTION,
+    PressSet,
+    Splits,
+    load_presses,
+    training_data_of,
+)
 from train.learn.model import PAPER, ModelConfig
 from train.learn.trainer import CHECKPOINT, Progress, TrainConfig, embed, load_checkpoint
 from train.learn.trainer import train as train_model
@@ -78,11 +85,14 @@ class BuildConfig:
     patience: int = 25
     threads: int = 1
     mixed_rates: bool = False  # build from classes pressed at different stream rates
+    std_floor: float = STD_FLOOR_FRACTION  # the normaliser's (train.learn.data)
 
     def command(self) -> str:
         parts = [f"vt-train build --data {self.data} --out {self.out}",
                  *(f"--variant {v}" for v in self.variants),
                  *(["--mixed-rates"] if self.mixed_rates else []),
+                 *([f"--std-floor {self.std_floor:g}"]
+                   if self.std_floor != STD_FLOOR_FRACTION else []),
                  *(f"--unseen {u}" for u in self.unseen),
                  f"--seed {self.seed}", f"--max-epochs {self.max_epochs}",
                  f"--patience {self.patience}"]
@@ -238,9 +248,58 @@ def partial_dir(out: Path) -> Path:
     return out.with_name(out.name + PARTIAL_SUFFIX)
 
 
+@dataclass
+class Job:
+    """One build under way: what it reads, where it writes, what each step gave."""
+
+    cfg: BuildConfig
+    ds: Dataset
+    work: Path
+    steps: Steps
+    unseen: PressSet | None  # the evaluation's test presses
+    unseen_key: str
+    model_config: ModelConfig
+    progress: Progress | None
+    _reference: PressSet | None = None
+
+    def reference(self) -> PressSet:
+        """The train and val classes' presses, loaded once, when a step first needs them."""
+        if self._reference is None:
+            self._reference = load_presses(self.ds.directory, self.ds.splits.classes)
+        return self._reference
+
+    @property
+    def encoder(self) -> Path:
+        return self.work / ENCODER_FILE
+
+    def checkpoint(self, name: str) -> Path:
+        return self.work / TRAINING_DIR / VARIANT_DIRS[name] / CHECKPOINT
+
+
 def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     """Build ``cfg.out`` from ``cfg.data``; returns the manifest written."""
     started = time.perf_counter()
+    prompts = _check_request(cfg)
+    ds = read_dataset(cfg.data, progress=progress is None or progress.enabled,
+                      mixed_rates=cfg.mixed_rates)
+    job = _start(cfg, ds, progress)
+    trained = _train(job)
+    exported = _export(job)
+    db_summary = _database(job)
+    _copy_prompts(job.work, prompts)
+    metrics = _evaluate(job, trained)
+    manifest = write_manifest(
+        job.work, _manifest_sections(job, trained, exported, db_summary, metrics, started),
+        reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
+    swap_in(job.work, Path(cfg.out))
+    log.info("model written to %s in %.0f s (steps run: %s; skipped: %s)", cfg.out,
+             time.perf_counter() - started, ", ".join(job.steps.ran) or "none",
+             ", ".join(job.steps.skipped) or "none")
+    return manifest
+
+
+def _check_request(cfg: BuildConfig) -> list[Path]:
+    """Refuse unknown variants and a prompt directory without templates; the templates."""
     unknown = [v for v in cfg.variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown variant {', '.join(unknown)}; choose from "
@@ -249,103 +308,123 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     if not prompts:
         raise ModelError(f"{cfg.prompts}: no prompt templates (*.txt); the daemon needs them "
                          "(--prompts DIR)")
-    ds = read_dataset(cfg.data, progress=progress is None or progress.enabled,
-                      mixed_rates=cfg.mixed_rates)
+    return prompts
+
+
+def _start(cfg: BuildConfig, ds: Dataset, progress: Progress | None) -> Job:
+    """``OUT.partial`` with the steps kept so far, and the evaluation's test presses."""
     out = Path(cfg.out)
     work = partial_dir(out)
     if not work.exists() and (out / STATE_FILE).exists():
         # A finished build's steps are the cache of the next one.
         shutil.copytree(out, work, symlinks=True)
     work.mkdir(parents=True, exist_ok=True)
-    steps = Steps(work)
-
-    presses: PressSet | None = None
-
-    def reference() -> PressSet:
-        nonlocal presses
-        if presses is None:
-            presses = load_presses(ds.directory, ds.splits.classes)
-        return presses
-
     unseen_sets = [load_presses(ds.directory, ds.test)] if ds.test else []
     unseen_sets += [load_presses(u) for u in cfg.unseen]
     unseen = PressSet.concat(*unseen_sets) if unseen_sets else None
     unseen_key = _key(ds.test, [(str(p), _sha(Path(p))) for p in unseen.paths]
                       if unseen else [])
-
-    base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
-                       threads=cfg.threads)
     # The model takes the channels of the pads the presses were made with.
     model_config = replace(ModelConfig(), channels=ds.layout.channels)
+    return Job(cfg, ds, work, Steps(work), unseen, unseen_key, model_config, progress)
+
+
+def _train(job: Job) -> dict[str, dict[str, Any]]:
+    """Step "train NAME": the shipped VQ-VAE, then each comparison variant asked for."""
+    cfg = job.cfg
+    base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
+                       threads=cfg.threads)
     trained: dict[str, dict[str, Any]] = {}
     for name in ("vq", *cfg.variants):
-        config = replace(base, model=replace(model_config, **VARIANTS.get(name, {})))
-        where = work / TRAINING_DIR / VARIANT_DIRS[name]
+        config = replace(base, model=replace(job.model_config, **VARIANTS.get(name, {})))
+        where = job.checkpoint(name).parent
 
         def fit(config: TrainConfig = config, where: Path = where) -> dict[str, Any]:
-            result = train_model(training_data_of(reference(), ds.splits), config, where,
-                                 progress)
+            data = training_data_of(job.reference(), job.ds.splits, cfg.std_floor)
+            result = train_model(data, config, where, job.progress)
             return {"config": config.to_dict(), "result": result.summary()}
 
-        trained[name] = steps.run(f"train {name}", _key(ds.sha256, config.to_dict()),
-                                  [where / CHECKPOINT], fit) | {
+        # The default floor keeps the key builds made before the floor was a setting.
+        floor = [] if cfg.std_floor == STD_FLOOR_FRACTION else [cfg.std_floor]
+        trained[name] = job.steps.run(
+            f"train {name}", _key(job.ds.sha256, config.to_dict(), *floor),
+            [job.checkpoint(name)], fit) | {
             "checkpoint": f"{TRAINING_DIR}/{VARIANT_DIRS[name]}/{CHECKPOINT}"}
-    vq_ckpt = work / TRAINING_DIR / VARIANT_DIRS["vq"] / CHECKPOINT
+    return trained
 
+
+def _export(job: Job) -> dict[str, Any]:
+    """Step "export": the VQ-VAE's encoder to ONNX, parity-checked on the real presses."""
     def export() -> dict[str, Any]:
-        model, norm, _ = load_checkpoint(vq_ckpt)
-        onnx_bytes = export_onnx(model, norm, work / ENCODER_FILE)
-        real = reference().inputs(0)
-        if unseen is not None:
-            real = np.concatenate([real, unseen.inputs(0)])
-        par = parity(model, norm, onnx_bytes, real, seed=cfg.seed)
+        model, norm, _ = load_checkpoint(job.checkpoint("vq"))
+        onnx_bytes = export_onnx(model, norm, job.encoder)
+        real = job.reference().inputs(0)
+        if job.unseen is not None:
+            real = np.concatenate([real, job.unseen.inputs(0)])
+        par = parity(model, norm, onnx_bytes, real, seed=job.cfg.seed)
         check_parity(par)
         return {"parity": par.to_dict(), "timing": encode_timing(onnx_bytes, real)}
 
-    exported = steps.run("export", _key(_sha(vq_ckpt)), [work / ENCODER_FILE], export)
-    encoder_sha = _sha(work / ENCODER_FILE)
+    return job.steps.run("export", _key(_sha(job.checkpoint("vq"))), [job.encoder], export)
 
+
+def _database(job: Job) -> dict[str, Any]:
+    """Step "database": every offset of every train and val press, encoded by the graph."""
     def build_db() -> dict[str, Any]:
-        db = database.build_database((work / ENCODER_FILE).read_bytes(), reference(),
-                                     ds.splits)
-        db.save(work)
+        db = database.build_database(job.encoder.read_bytes(), job.reference(),
+                                     job.ds.splits)
+        db.save(job.work)
         return database.summary(db) | {"codes_used": len(np.unique(db.code))}
 
-    db_summary = steps.run("database", _key(encoder_sha, ds.sha256),
-                           [work / name for name in REQUIRED_FILES[1:]], build_db)
+    return job.steps.run("database", _key(_sha(job.encoder), job.ds.sha256),
+                         [job.work / name for name in REQUIRED_FILES[1:]], build_db)
 
+
+def _copy_prompts(work: Path, prompts: list[Path]) -> None:
     shutil.rmtree(work / PROMPTS_DIR, ignore_errors=True)  # none left from another --prompts
     (work / PROMPTS_DIR).mkdir()
     for template in prompts:
         shutil.copyfile(template, work / PROMPTS_DIR / template.name)
 
-    variant_shas = {name: _sha(work / t["checkpoint"]) for name, t in trained.items()}
+
+def _evaluate(job: Job, trained: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Step "eval": retrieval through the exported graph and each variant's checkpoint,
+    the trivial baseline beside them."""
+    work = job.work
 
     def run_eval() -> dict[str, Any]:
-        onnx_bytes = (work / ENCODER_FILE).read_bytes()
+        onnx_bytes = job.encoder.read_bytes()
         codebook = codebook_of(onnx_bytes)
         embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
             "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
-        for name in cfg.variants:
+        for name in job.cfg.variants:
             model, norm, _ = load_checkpoint(work / trained[name]["checkpoint"])
             book = None if model.quantiser is None else \
                 model.quantiser.codebook.detach().numpy().copy()
             embedders[VARIANT_DIRS[name]] = (
                 (lambda x, m=model, n=norm: embed(m, n, x)), book)
-        report = evaluate.evaluate(embedders, reference(), ds.splits, unseen,
-                                   work / EVAL_DIR, seed=cfg.seed)
+        report = evaluate.evaluate(embedders, job.reference(), job.ds.splits, job.unseen,
+                                   work / EVAL_DIR, seed=job.cfg.seed)
         return evaluate.summary_metrics(report)
 
-    metrics = steps.run("eval", _key(encoder_sha, ds.sha256, unseen_key, variant_shas),
-                        [work / EVAL_DIR / name for name in evaluate.FILES], run_eval)
+    variant_shas = {name: _sha(work / t["checkpoint"]) for name, t in trained.items()}
+    return job.steps.run(
+        "eval", _key(_sha(job.encoder), job.ds.sha256, job.unseen_key, variant_shas),
+        [work / EVAL_DIR / name for name in evaluate.FILES], run_eval)
 
+
+def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: dict[str, Any],
+                       db_summary: dict[str, Any], metrics: dict[str, Any], started: float
+                       ) -> dict[str, Any]:
+    """What the manifest says of the build: the data, the training, the evaluation."""
+    cfg, ds = job.cfg, job.ds
     sections: dict[str, Any] = {
         "created_by": cfg.command(),
         "origin": ds.origin,
         database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
         database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
         database.PRESS_SHA256: ds.press_sha256,
-        "encoder": encoder_section(load_checkpoint(vq_ckpt)[1], model_config,
+        "encoder": encoder_section(load_checkpoint(job.checkpoint("vq"))[1], job.model_config,
                                    exported["parity"]),
         "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
                           "taxel_rows": ds.layout.rows},
@@ -357,26 +436,21 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
                         "val_classes": list(ds.splits.val), "test_classes": list(ds.test),
                         "presses": ds.presses, "x_th": ds.x_th, "rate_hz": ds.rate_hz,
                         "mixed_rates": cfg.mixed_rates},
+            "std_floor_fraction": cfg.std_floor,
             **{VARIANT_DIRS[name]: t for name, t in trained.items()},
         },
         "evaluation": {"unseen": [str(ds.directory)] * bool(ds.test)
                        + [str(u) for u in cfg.unseen], "report": f"{EVAL_DIR}/eval.md"},
         "database": {k: v for k, v in db_summary.items() if k not in ("codes_used", "seconds")},
-        "prompts": prompt_hashes(work),
+        "prompts": prompt_hashes(job.work),
         "metrics": metrics,
         "timings": exported["timing"] | {"build_s": time.perf_counter() - started,
-                                         "steps_skipped": steps.skipped},
+                                         "steps_skipped": job.steps.skipped},
         "versions": versions(),
     }
     if ds.index.get("plan_sha256"):
         sections["plan_sha256"] = ds.index["plan_sha256"]
-    manifest = write_manifest(work, sections,
-                              reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
-    swap_in(work, out)
-    log.info("model written to %s in %.0f s (steps run: %s; skipped: %s)", out,
-             time.perf_counter() - started, ", ".join(steps.ran) or "none",
-             ", ".join(steps.skipped) or "none")
-    return manifest
+    return sections
 
 
 def checkpoints(model_dir: str | Path) -> dict[str, Path]:
