@@ -105,3 +105,13 @@ def test_the_command_refuses_clearly(made, tmp_path, caplog):
                  "--out", str(tmp_path / "o"), "--candidates", "mean,best"]) == 2
     assert "unknown candidate best" in caplog.text
     assert not (tmp_path / "o").exists()
+
+
+def test_one_seed_says_it_has_no_spread():
+    """With one seed a network has no spread: no difference is called beyond it."""
+    seed = {k: {"mean": 0.6, "min": 0.6, "max": 0.6} for k in ("first", "top3", "loo_1nn")}
+    base = {k: {"mean": 0.5, "min": 0.5, "max": 0.5} for k in ("first", "top3", "loo_1nn")}
+    lines = transfer.differences({"shipped": seed, "mean": base}, seeds=1)
+    assert [line for line in lines if line.startswith("sensible first")] == [
+        "sensible first neighbour: shipped 0.60 against mean 0.50: one seed, so no spread to "
+        "judge the difference of 0.10 by (--seeds)."]

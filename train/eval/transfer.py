@@ -251,7 +251,7 @@ def run(cfg: TransferConfig, progress: bool = True) -> dict[str, Any]:
         "chance": chance(objects, partners),
         "candidates": results,
         "neighbours": _neighbours(results, objects),
-        "differences": differences(results),
+        "differences": differences(results, len(seeds)),
         "seconds": round(time.perf_counter() - started, 1),
     }
     out = Path(cfg.out)
@@ -284,8 +284,9 @@ def _neighbours(results: dict[str, dict[str, Any]], objects: list[str]
     return out
 
 
-def differences(results: dict[str, dict[str, Any]]) -> list[str]:
-    """A plain sentence per pair of candidates and figure: beyond the seed spread or not."""
+def differences(results: dict[str, dict[str, Any]], seeds: int) -> list[str]:
+    """A plain sentence per pair of candidates and figure: beyond the seed spread or not (a
+    network's spread needs two seeds at least; the trivial baseline has none)."""
     lines = []
     names = list(results)
     for key, title in METRICS:
@@ -298,6 +299,10 @@ def differences(results: dict[str, dict[str, Any]]) -> list[str]:
                 if round(gap, 2) == 0 and h["min"] == lw["min"] and h["max"] == lw["max"]:
                     lines.append(f"{title}: {a} and {b} are level at {h['mean']:.2f}, seed for "
                                  "seed.")
+                elif seeds < 2 and any(CANDIDATES[n] is not None for n in (a, b)):
+                    lines.append(f"{title}: {hi} {h['mean']:.2f} against {lo} "
+                                 f"{lw['mean']:.2f}: one seed, so no spread to judge the "
+                                 f"difference of {gap:.2f} by (--seeds).")
                 elif h["min"] > lw["max"]:
                     lines.append(f"{title}: {hi} {h['mean']:.2f} is above {lo} "
                                  f"{lw['mean']:.2f} by {gap:.2f}, beyond the seed spread (every "
