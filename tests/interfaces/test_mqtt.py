@@ -209,3 +209,63 @@ def test_mqtt_is_off_by_default_and_a_missing_password_file_is_refused_at_start(
     bridge = MqttBridge(None, cfg.mqtt, cfg.api.max_candidates,  # type: ignore[arg-type]
                         hostname="arm 3/#")
     assert bridge.prefix == "vtzero/arm_3__" and bridge.client_id == "vtzero-arm_3__"
+
+
+class _Recognitions:
+    """The daemon's two seams as the bridge sees them; its store is never read."""
+
+    def __init__(self):
+        from edge.runtime.domain import EventBus
+
+        self.bus = EventBus()
+
+    def subscribe(self):
+        from edge.runtime.domain import Hello, PressState
+
+        return self.bus.subscribe(Hello(PressState.IDLE, None))
+
+    async def episode(self, episode_id):
+        raise AssertionError(f"episode {episode_id} read back: the event carries it")
+
+
+@pytest.mark.asyncio
+async def test_a_result_is_published_once_from_the_episode_its_event_carries():
+    from edge.interfaces.mqtt import MqttBridge
+    from edge.runtime.domain import (
+        Episode,
+        EpisodeFinished,
+        Label,
+        Neighbour,
+        PressState,
+        StateChanged,
+        Status,
+        VLMUnreachable,
+    )
+
+    cfg = config_from_dict({})
+    runtime = _Recognitions()
+    bridge = MqttBridge(runtime, cfg.mqtt, cfg.api.max_candidates,  # type: ignore[arg-type]
+                        hostname="arm")
+    pump = asyncio.create_task(bridge._pump())
+    await asyncio.sleep(0)
+    done = Episode("e1", Status.DONE, ["a", "b"], "mqtt", label="a", description="soft",
+                   topk=[Neighbour("a", 0.25)], timings={"vlm_s": 0.5}, last_error="slow")
+    failed = Episode("e2", Status.FAILED, ["a"], "api", error="no contact")
+    for event in (StateChanged(PressState.CLOSING, "e1"), Label(done), EpisodeFinished(done),
+                  VLMUnreachable(done.with_(id="e3", status=Status.PENDING)),
+                  EpisodeFinished(done.with_(id="e3", status=Status.PENDING)),
+                  EpisodeFinished(failed)):
+        runtime.bus.publish(event)
+    await wait_until(lambda: len(bridge._outbox) == 4, 2.0, "4 messages queued")
+    pump.cancel()
+    sent = [(item.topic.rsplit("/", 1)[-1], json.loads(item.payload)) for item in bridge._outbox]
+    print(sent)
+    assert [topic for topic, _ in sent] == ["state", "state", "result", "result"]
+    assert sent[1][1]["state"] == "closing" and sent[1][1]["episode"] == "e1"
+    assert sent[2][1] == {
+        "episode": "e1", "request_id": None, "status": "done", "label": "a", "error": None,
+        "candidates": ["a", "b"], "topk": [{"label": "a", "distance": 0.25}],
+        "description": "soft", "timings": {"vlm_s": 0.5}, "source": "mqtt",
+        "press": {"result": None, "message": None, "stop_latency_ms": None}}
+    assert sent[3][1]["episode"] == "e2" and sent[3][1]["status"] == "failed"
+    assert sent[3][1]["error"] == "no contact" and sent[3][1]["topk"] is None

@@ -3,9 +3,12 @@ the documented keys only, and on the wire as they have always been."""
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
 import json
 import re
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,7 +17,24 @@ import pytest
 from edge.core.errors import StoreError
 from edge.hw.contracts import GripperState
 from edge.interfaces.http import webui
-from edge.runtime.domain import Episode, Health, PressResult, PressState, PressSummary
+from edge.runtime.domain import (
+    Episode,
+    EpisodeFinished,
+    EpisodeStarted,
+    EventBus,
+    Health,
+    Hello,
+    Label,
+    Neighbour,
+    PressResult,
+    PressState,
+    PressSummary,
+    StateChanged,
+    Status,
+    TactileResult,
+    VLMRefused,
+    VLMUnreachable,
+)
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.sensor import SamplerStats
@@ -143,6 +163,52 @@ def test_health_on_the_wire_says_the_state_as_a_string():
     wire = json.loads(json.dumps(health.to_json()))
     assert wire["state"] == "closing" and set(wire) == HEALTH_KEYS
     assert type(health.to_json()["state"]) is str
+
+
+def test_the_events_on_the_wire_are_the_json_they_always_were():
+    done = Episode("e1", Status.DONE, ["a", "b"], "api", label="a", description="soft",
+                   topk=[Neighbour("a", 0.25), Neighbour("b", 0.5)])
+    refused = done.with_(status=Status.VLM_ERROR, label=None, last_error="HTTP 400")
+    pending = done.with_(status=Status.PENDING, label=None, last_error="unreachable")
+    t = 1700000000.5
+    wires = [json.loads(json.dumps(event.to_json())) for event in (
+        Hello(PressState.IDLE, None), StateChanged(PressState.CLOSING, "e1", t),
+        EpisodeStarted("e1", t), TactileResult(done, t), Label(done, t), VLMRefused(refused, t),
+        VLMUnreachable(pending, t), EpisodeFinished(done, t))]
+    print(wires)
+    assert wires == [
+        {"type": "hello", "state": "idle", "episode": None},
+        {"t": t, "type": "state", "state": "closing", "episode": "e1"},
+        {"t": t, "type": "episode", "episode": "e1", "status": "running"},
+        {"t": t, "type": "tactile", "episode": "e1", "description": "soft",
+         "topk": [{"label": "a", "distance": 0.25}, {"label": "b", "distance": 0.5}]},
+        {"t": t, "type": "result", "episode": "e1", "status": "done", "label": "a"},
+        {"t": t, "type": "result", "episode": "e1", "status": "vlm_error",
+         "error": "HTTP 400"},
+        {"t": t, "type": "episode", "episode": "e1", "status": "pending",
+         "error": "unreachable"},
+        {"t": t, "type": "episode", "episode": "e1", "status": "finished"}]
+    # Stamped when made, on the wall clock (what the page and MQTT's P/state show).
+    assert abs(StateChanged(PressState.IDLE, None).t - time.time()) < 60
+
+
+@pytest.mark.asyncio
+async def test_a_slow_subscriber_loses_its_oldest_events_never_the_publisher_its_pace():
+    bus = EventBus()
+    with bus.subscribe(Hello(PressState.IDLE, None)) as sub:
+        assert await sub.get() == Hello(PressState.IDLE, None)
+        for i in range(300):
+            bus.publish(EpisodeStarted(f"e{i}"))
+        queued = []
+        with contextlib.suppress(TimeoutError):
+            while True:
+                queued.append(await asyncio.wait_for(sub.get(), 0.01))
+    print(f"{len(queued)} of 300 events kept")
+    assert [e.episode_id for e in queued] == [f"e{i}" for i in range(300 - 256, 300)]
+
+
+def test_only_running_and_pending_are_not_final():
+    assert {s for s in Status if not s.final} == {Status.RUNNING, Status.PENDING}
 
 
 def test_metrics_count_presses_by_result_value():
