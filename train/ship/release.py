@@ -25,19 +25,34 @@ from typing import Any
 import numpy as np
 
 from edge.core.atomic import atomic_write_bytes
-from edge.core.model import ENCODER_FILE, MANIFEST, REQUIRED_FILES, OnnxEncoder, Origin
+from edge.core.model import (
+    ENCODER_FILE,
+    MANIFEST,
+    REQUIRED_FILES,
+    OnnxEncoder,
+    Origin,
+    ReferenceDatabase,
+)
 from edge.core.preprocess import DEFAULT_WINDOW
 from edge.core.recording import DATASET_INDEX
 from edge.sim.catalogue import DATASETS
 from edge.vlm.prompt import MODES, PromptTemplate
 from train.eval import evaluate
-from train.learn.data import STD_FLOOR_FRACTION, Normaliser, PressSet, load_presses, training_data
+from train.learn.data import (
+    STD_FLOOR_FRACTION,
+    Normaliser,
+    PressSet,
+    TrainingData,
+    load_presses,
+    training_data,
+)
 from train.learn.model import PAPER, ModelConfig
-from train.learn.trainer import Progress, TrainConfig, embed, train
+from train.learn.trainer import Progress, TrainConfig, TrainResult, embed, train
 from train.ship import database
 from train.ship.export import (
     OPSET,
     PARITY_BOUND,
+    Parity,
     check_parity,
     codebook_of,
     export_onnx,
@@ -167,8 +182,65 @@ def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
     }
 
 
+@dataclass(frozen=True)
+class Recordings:
+    """The release's three recorded sets, and whether all were found already recorded."""
+
+    reference: Path
+    foodreplica: Path
+    cube: Path
+    reused: bool
+
+
+@dataclass(frozen=True)
+class Trainings:
+    """The shipped VQ-VAE and the comparison models asked for (None: not trained)."""
+
+    vq: TrainResult
+    paper: TrainResult | None
+    zeros: TrainResult | None
+    beta: TrainResult | None
+
+
 def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, Any]:
+    """Record, train, export (parity checked), build the database, evaluate, copy into
+    ``cfg.out``, write the manifest last; returns the manifest."""
     started = time.perf_counter()
+    rec = record(cfg)
+    t_rec = time.perf_counter() - started
+    data = training_data(rec.reference)
+    runs = train_all(cfg, data, progress)
+
+    stage = Path(cfg.work) / "stage"
+    if stage.exists():
+        shutil.rmtree(stage)
+    stage.mkdir(parents=True)
+    unseen = PressSet.concat(load_presses(rec.foodreplica), load_presses(rec.cube))
+    real = np.concatenate([data.presses.inputs(0), unseen.inputs(0)])
+    onnx_bytes, par = export_checked(runs.vq, data, real, stage, cfg.seed)
+    db = database.build_database(onnx_bytes, data.presses, data.splits)
+    db.save(stage)
+    report = evaluate.evaluate(embedders(onnx_bytes, runs), data.presses, data.splits, unseen,
+                               stage / EVAL_DIR, seed=cfg.seed)
+    timings = encode_timing(onnx_bytes, real)
+
+    out = Path(cfg.out)
+    copy_out(stage, out)
+    ref_index = json.loads((rec.reference / DATASET_INDEX).read_text())
+    metrics = evaluate.summary_metrics(report) | training_metrics(runs) | {
+        "codes_used_by_references": len(np.unique(db.code))}
+    timings |= {"record_s": t_rec, "recordings_reused": rec.reused} | training_timings(runs) | {
+        "release_s": time.perf_counter() - started}
+    sections = manifest_sections(cfg, data, runs, par, db, ref_index, rec.reference, out) | {
+        "metrics": metrics, "timings": timings, "versions": versions()}
+    manifest = write_manifest(out, sections,
+                              reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
+    log.info("release written to %s (%s) in %.0f s", out, MANIFEST, timings["release_s"])
+    return manifest
+
+
+def record(cfg: ReleaseConfig) -> Recordings:
+    """The reference, FoodReplica and Cube sets, recorded unless already there."""
     work = Path(cfg.work)
     rec_dir = Path(cfg.recordings) if cfg.recordings is not None else work / "recordings"
     ref_dir, fr_dir, cube_dir = (rec_dir / "reference", rec_dir / "foodreplica",
@@ -177,9 +249,13 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         _recorded(ref_dir, "reference", cfg.presses, cfg.seed, cfg.workers),
         _recorded(fr_dir, "foodreplica", cfg.unseen_presses, cfg.seed, cfg.workers),
         _recorded(cube_dir, "cube", cfg.unseen_presses, cfg.seed, cfg.workers)])
-    t_rec = time.perf_counter() - started
+    return Recordings(ref_dir, fr_dir, cube_dir, reused)
 
-    data = training_data(ref_dir)
+
+def train_all(cfg: ReleaseConfig, data: TrainingData, progress: Progress | None) -> Trainings:
+    """The shipped VQ-VAE, then the comparisons: the paper's configuration, the zero-input
+    decoder and the beta-VAE, each where asked."""
+    work = Path(cfg.work)
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
                        threads=cfg.threads)
     vq = train(data, base, work / "vq", progress)
@@ -189,46 +265,54 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
                   progress) if cfg.zeros else None
     beta = train(data, replace(base, model=ModelConfig(variant="beta")), work / "beta",
                  progress) if cfg.beta else None
+    return Trainings(vq, paper, zeros, beta)
 
-    stage = work / "stage"
-    if stage.exists():
-        shutil.rmtree(stage)
-    stage.mkdir(parents=True)
+
+def export_checked(vq: TrainResult, data: TrainingData, real: np.ndarray, stage: Path,
+                   seed: int) -> tuple[bytes, Parity]:
+    """The VQ encoder exported to ONNX in ``stage``, its parity with torch checked on the
+    ``real`` inputs (the reference and unseen presses)."""
     onnx_bytes = export_onnx(vq.model, data.norm, stage / ENCODER_FILE)
-    unseen = PressSet.concat(load_presses(fr_dir), load_presses(cube_dir))
-    real = np.concatenate([data.presses.inputs(0), unseen.inputs(0)])
-    par = parity(vq.model, data.norm, onnx_bytes, real, seed=cfg.seed)
+    par = parity(vq.model, data.norm, onnx_bytes, real, seed=seed)
     check_parity(par)
     log.info("ONNX parity: max |dz| %.3g over %d inputs, %d code mismatches",
              par.max_abs_z, par.cases, par.code_mismatches)
+    return onnx_bytes, par
 
-    db = database.build_database(onnx_bytes, data.presses, data.splits)
-    db.save(stage)
 
+def embedders(onnx_bytes: bytes, runs: Trainings
+              ) -> dict[str, tuple[evaluate.Embedder, np.ndarray | None]]:
+    """What the evaluation compares: the shipped ONNX encoder and each comparison model
+    (torch), with its codebook (None: the beta-VAE has none)."""
+    paper, zeros, beta = runs.paper, runs.zeros, runs.beta
     codebook = codebook_of(onnx_bytes)
-    embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
+    out: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
         "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
     if paper is not None:
         assert paper.model.quantiser is not None
-        embedders["vq_paper"] = ((lambda x: embed(paper.model, paper.norm, x)),
-                                 paper.model.quantiser.codebook.detach().numpy().copy())
+        out["vq_paper"] = ((lambda x: embed(paper.model, paper.norm, x)),
+                           paper.model.quantiser.codebook.detach().numpy().copy())
     if zeros is not None:
         assert zeros.model.quantiser is not None
-        embedders["vq_zeros"] = ((lambda x: embed(zeros.model, zeros.norm, x)),
-                                 zeros.model.quantiser.codebook.detach().numpy().copy())
+        out["vq_zeros"] = ((lambda x: embed(zeros.model, zeros.norm, x)),
+                           zeros.model.quantiser.codebook.detach().numpy().copy())
     if beta is not None:
-        embedders["beta"] = ((lambda x: embed(beta.model, beta.norm, x)), None)
-    report = evaluate.evaluate(embedders, data.presses, data.splits, unseen, stage / EVAL_DIR,
-                               seed=cfg.seed)
-    timings = encode_timing(onnx_bytes, real)
+        out["beta"] = ((lambda x: embed(beta.model, beta.norm, x)), None)
+    return out
 
-    out = Path(cfg.out)
+
+def copy_out(stage: Path, out: Path) -> None:
+    """The model files and the evaluation's reports from ``stage`` into ``out``, each written
+    atomically (the manifest comes last, from :func:`release`)."""
     out.mkdir(parents=True, exist_ok=True)
     names = [*REQUIRED_FILES, *(f"{EVAL_DIR}/{name}" for name in evaluate.FILES)]
     for name in names:
         atomic_write_bytes(out / name, (stage / name).read_bytes())
-    ref_index = json.loads((ref_dir / DATASET_INDEX).read_text())
-    metrics = evaluate.summary_metrics(report) | {
+
+
+def training_metrics(runs: Trainings) -> dict[str, Any]:
+    vq, paper, zeros, beta = runs.vq, runs.paper, runs.zeros, runs.beta
+    return {
         "vq_epochs": vq.epochs, "vq_best_epoch": vq.best_epoch,
         "vq_best_val_loss": vq.best_val,
         "vq_paper_best_epoch": paper.best_epoch if paper else None,
@@ -238,14 +322,23 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
         "beta_best_epoch": beta.best_epoch if beta else None,
         "beta_best_val_loss": beta.best_val if beta else None,
         "dead_codes_at_best": vq.summary()["dead_codes_at_best"],
-        "codes_used_by_references": len(np.unique(db.code)),
     }
-    timings |= {"record_s": t_rec, "recordings_reused": reused, "train_vq_s": vq.seconds,
-                "train_vq_paper_s": paper.seconds if paper else None,
-                "train_vq_zeros_s": zeros.seconds if zeros else None,
-                "train_beta_s": beta.seconds if beta else None,
-                "release_s": time.perf_counter() - started}
-    sections = {
+
+
+def training_timings(runs: Trainings) -> dict[str, float | None]:
+    return {"train_vq_s": runs.vq.seconds,
+            "train_vq_paper_s": runs.paper.seconds if runs.paper else None,
+            "train_vq_zeros_s": runs.zeros.seconds if runs.zeros else None,
+            "train_beta_s": runs.beta.seconds if runs.beta else None}
+
+
+def manifest_sections(cfg: ReleaseConfig, data: TrainingData, runs: Trainings, par: Parity,
+                      db: ReferenceDatabase, ref_index: dict[str, Any], ref_dir: Path, out: Path
+                      ) -> dict[str, Any]:
+    """The manifest's sections that describe the model: how it was made, its encoder, its
+    training, evaluation and database, the prompts beside it and its origin."""
+    vq, paper, zeros, beta = runs.vq, runs.paper, runs.zeros, runs.beta
+    return {
         "created_by": cfg.command(),
         "encoder": encoder_section(data.norm, vq.config.model, par.to_dict()),
         "training": {
@@ -276,14 +369,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
             m for m in database.press_index(ref_dir)
             if m.label in {c.label for c in db.classes}),
         "prompts": prompt_hashes(out),
-        "metrics": metrics,
-        "timings": timings,
         # The release always presses its references on the emulated robot; a lab's own
         # database comes from its robot (`vt-edge collect`, `vt-train build`).
         "origin": Origin("emulated", ref_index["recorder"]).to_json(),
-        "versions": versions(),
     }
-    manifest = write_manifest(out, sections,
-                              reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
-    log.info("release written to %s (%s) in %.0f s", out, MANIFEST, timings["release_s"])
-    return manifest
