@@ -16,6 +16,10 @@ samples and its 25 steps, but each step is made of fewer real frames, and the st
 starts it comes later after the crossing. Presses at 100 Hz are therefore comparable with
 one another, not with presses at 125 Hz: :func:`stream_rate` measures a press's rate and
 :func:`rate_problem` says when it is more than ``RATE_TOLERANCE`` off a grid or a reference.
+
+Another sensor's evenly sampled sequence (train.learn.sequences) is cut by the same functions
+at its own rate instead (:meth:`WindowSpec.at_rate`), and may end with its window: its
+smoothed target then holds the end samples (``edge="hold"``, :func:`smoothed_crop`).
 """
 
 from __future__ import annotations
