@@ -45,7 +45,6 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -152,10 +151,8 @@ def read_partners(path: str | Path, objects: list[str]) -> dict[str, tuple[str, 
     return partners
 
 
-Embedder = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
-
-
-def fit(name: str, seen: PressSet, seed: int, cfg: TransferConfig) -> tuple[Embedder, dict]:
+def fit(name: str, seen: PressSet, seed: int, cfg: TransferConfig
+        ) -> tuple[evaluate.Embedder, dict]:
     """Candidate ``name`` fitted on the ``seen`` presses: its embedder and what training did."""
     change = CANDIDATES[name]
     if change is None:
@@ -170,7 +167,7 @@ def fit(name: str, seen: PressSet, seed: int, cfg: TransferConfig) -> tuple[Embe
             {"epochs": result.epochs, "best_epoch": result.best_epoch})
 
 
-def fold(embedder: Embedder, seen: PressSet, held: PressSet, partners: tuple[str, ...],
+def fold(embedder: evaluate.Embedder, seen: PressSet, held: PressSet, partners: tuple[str, ...],
          seed: int) -> dict[str, Any]:
     """One held-out object against the seen ones: each press's first neighbour and top 3
     (the robot's retrieval over every offset of the seen presses), and LOO 1-NN among them."""
@@ -230,11 +227,12 @@ def run(cfg: TransferConfig, progress: bool = True) -> dict[str, Any]:
             for seed in runs:
                 folds = {}
                 for held_out in objects:
-                    bar.update(note=f"{name} seed {seed}, {held_out} held out")
+                    bar.update(0, note=f"{name} seed {seed}, {held_out} held out")
                     seen = presses.select([o for o in objects if o != held_out])
                     embedder, trained = fit(name, seen, seed, cfg)
                     folds[held_out] = fold(embedder, seen, presses.select([held_out]),
                                            partners.get(held_out, ()), seed) | trained
+                    bar.update()
                 per_seed.append({"seed": seed, "folds": folds, **_averages(folds)})
             if len(runs) < len(seeds):
                 per_seed = [per_seed[0] | {"seed": s} for s in seeds]
