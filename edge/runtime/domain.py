@@ -196,6 +196,8 @@ class Status(StrEnum):
     VLM_ERROR = "vlm_error"  # the VLM refused the question (asking again will not help)
     CAMERA_ERROR = "camera_error"  # the press worked, the photo the VLM needs did not; ``error``
     FAILED = "failed"  # the press or its analysis failed; ``error`` says why
+    # Pressed and analysed with no question to the VLM (a press taught as a reference).
+    PRESSED = "pressed"
 
     @property
     def final(self) -> bool:

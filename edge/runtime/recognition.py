@@ -105,7 +105,10 @@ class Recognizer:
 
     # --- triggering -------------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str) -> Episode:
+                        timeout_s: float | None, source: str, ask: bool = True) -> Episode:
+        """Start a recognition: a press, its analysis and, unless ``ask`` is false (a press
+        to teach from: no photo, no question), the VLM's question; the episode as it runs,
+        or with ``wait`` as stored once it ends (``pressed`` where nothing was asked)."""
         if not self.accepting:
             raise BusyError("the daemon is shutting down; not starting a press")
         if self.refusal is not None:
@@ -127,7 +130,7 @@ class Recognizer:
             self.lock.release()
             raise StoreError(f"not pressing: {exc}") from None
         done = asyncio.get_running_loop().create_future()
-        task = self._spawn(self._recognize(episode_id, candidates, image, source, done),
+        task = self._spawn(self._recognize(episode_id, candidates, image, source, ask, done),
                            name=f"recognize {episode_id}")
         self.work.add(task)
         task.add_done_callback(self.work.discard)
@@ -163,7 +166,7 @@ class Recognizer:
 
     # --- one recognition ----------------------------------------------------------------
     async def _recognize(self, episode_id: str, candidates: list[str], image: bytes | None,
-                         source: str, done: asyncio.Future) -> None:
+                         source: str, ask: bool, done: asyncio.Future) -> None:
         t0 = time.monotonic()
         setup = self.setup  # one configuration for the whole episode
         asking: asyncio.Task[Episode | None] | None = None
@@ -177,8 +180,8 @@ class Recognizer:
             checked: asyncio.Future[None] = loop.create_future()
             pressing = self._start_press(window, checked)
             # Taken (unless given) and prepared for the VLM while the arm moves.
-            photo = asyncio.create_task(self._photo(setup, episode_id, image, checked),
-                                        name="photo")
+            photo = (asyncio.create_task(self._photo(setup, episode_id, image, checked),
+                                         name="photo") if ask else None)
             try:
                 # The press as of its complete window (it goes on: the gripper opens, the arm
                 # returns), or as it ended without one.
@@ -188,7 +191,10 @@ class Recognizer:
                                   software_version=__version__, x_th=setup.cfg.press.x_th,
                                   vlm_mode=setup.vlm.mode)
                 episode, files = await self._analyse(setup, episode, outcome)
-                image, prepared, camera_error = await photo
+                if not ask and episode.status == Status.PENDING:
+                    episode = episode.with_(status=Status.PRESSED)
+                image, prepared, camera_error = (await photo if photo is not None
+                                                 else (None, None, None))
                 if image is not None:
                     kind = ".png" if image.startswith(b"\x89PNG") else ".jpg"
                     files["image" + kind] = image
@@ -212,11 +218,13 @@ class Recognizer:
             episode = episode.with_(press=outcome.summary(),
                                     timings={"press_s": time.monotonic() - t0,
                                              **episode.timings})
-            if asking is not None and not outcome.contact:
+            if episode.status in (Status.PENDING, Status.PRESSED) and not outcome.contact:
                 # The return failed after the window: said on the episode, as without a label.
                 episode = episode.with_(status=Status.FAILED, error=outcome.message)
             if asking is None:
                 await asyncio.to_thread(self.store.create, episode, files)
+                if episode.status == Status.PRESSED:
+                    self.events.publish(TactileResult(episode))
                 final = episode
                 return
             # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before

@@ -296,3 +296,43 @@ async def test_the_vlm_is_asked_at_the_window_while_the_arm_returns(tmp_path):
     assert not rec.lock.locked() and len(vlm.asked) == 1
     kinds = [e["type"] for e in seen]
     assert kinds.index("tactile") < kinds.index("result")
+
+
+async def test_a_press_to_teach_from_is_analysed_and_kept_with_no_question(tmp_path):
+    vlm = ScriptedVLM([])
+    compute = InProcessCompute()
+    camera = FakeCamera(image_bytes(640, 480))
+    rec, events = recognizer(tmp_path, ScriptedPress(pressed()), vlm, compute, camera)
+    with events.subscribe(Hello(PressState.IDLE, None)) as sub:
+        episode = await rec.recognize([], None, True, 10, "teach", ask=False)
+        seen = await drain(sub)
+    assert episode.status == Status.PRESSED and episode.status.final
+    assert episode.label is None and episode.error is None and len(episode.topk) == 3
+    assert episode.press is not None and episode.press.contact
+    # No photo, no question: the analysis and the press's recording only.
+    assert vlm.asked == [] and camera.captures == 0
+    assert compute.calls == ["analyse_press", "to_bytes"]
+    files = sorted(p.name for p in (tmp_path / "episodes" / episode.id).iterdir())
+    assert files == ["episode.json", "model_io.npz", "press.press.npz"]
+    kinds = [e["type"] for e in seen]
+    assert "tactile" in kinds and "result" not in kinds and kinds[-1] == "episode"
+    assert not rec.lock.locked()
+
+
+async def test_a_press_to_teach_from_whose_arm_did_not_return_is_failed(tmp_path):
+    outcome = pressed()
+    press = ScriptedPress(outcome)
+    press.gate, press.hand_over = asyncio.Event(), True
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM([]))
+    running = await rec.recognize([], None, False, None, "teach", ask=False)
+    for _ in range(200):
+        if press.state == PressState.RETURNING:
+            break
+        await asyncio.sleep(0.01)
+    # Analysed at the window; the return fails after it.
+    outcome.result, outcome.message = PressResult.ERROR, "the arm did not return"
+    press.gate.set()
+    await asyncio.gather(*rec.work)
+    episode = await rec.episode(running.id)
+    assert episode.status == Status.FAILED and episode.error == "the arm did not return"
+    assert episode.topk  # the analysis is kept

@@ -255,7 +255,9 @@ function card(ep) {
   const canvas = el("canvas", { class: "trace", "data-episode": ep.id });
   const result = ep.label
     ? el("div", { class: "label", text: ep.label })
-    : el("div", { class: "error", text: ep.error || (ep.status === "pending" ? "waiting for the VLM" : ep.status) });
+    : ep.status === "pressed"
+      ? el("div", { class: "muted", text: "pressed to teach: no question asked" })
+      : el("div", { class: "error", text: ep.error || (ep.status === "pending" ? "waiting for the VLM" : ep.status) });
   const topk = el("ol", { class: "topk" },
     ...(ep.topk || []).map((t) => el("li", { text: `${t.label} (${t.distance.toFixed(3)})` })));
   const tm = ep.timings || {};
