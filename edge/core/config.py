@@ -365,6 +365,9 @@ class VLMConfig:
     # none (free text read by the label parser). A server that refuses the mode makes the
     # client step down one mode at a time for its session (README, "VLM").
     structured_output: Literal["json_schema", "json_object", "none"] = "json_schema"
+    # Ask for a short reason before the label (the answer's ``reason``); off: the paper's
+    # label-only answer, the prompt and schema unchanged.
+    ask_reason: bool = False
 
     @property
     def configured(self) -> bool:
@@ -411,6 +414,8 @@ class VLMConfig:
         _require(self.structured_output in ("json_schema", "json_object", "none"), path,
                  "structured_output", self.structured_output,
                  "must be 'json_schema', 'json_object' or 'none'")
+        _require(isinstance(self.ask_reason, bool), path, "ask_reason", self.ask_reason,
+                 "must be true or false")
 
 
 @dataclass(frozen=True)

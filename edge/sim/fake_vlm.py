@@ -2,7 +2,8 @@
 
 It checks requests the way the real servers do and a little more strictly (the shape the
 runtime promises: ``model``, ``messages`` with a data-URL image that decodes, ``temperature``
-0, and a response format that is a strict ``json_schema`` with an enum of candidates,
+0, and a response format that is a strict ``json_schema`` with an enum of candidates (and
+optionally a ``reason`` string before the ``label``),
 ``json_object`` with a prompt that asks for JSON, or none; without a schema the candidates
 are read from the prompt's "Candidates:" line), answers 400 to a malformed one, 401 to a
 wrong key, 404 to an unknown model, 413 to an oversized body, and records every request
@@ -14,7 +15,10 @@ What it answers is scriptable: queue :class:`Reply` objects with :meth:`FakeVLM.
 trickle, a dropped connection, latency); when the queue is empty it answers the label that
 ``choose`` picks (default: the first candidate), as a model that follows the prompt would:
 ``{"label": ...}`` to a request with a ``response_format`` or whose last message asks for
-JSON, else the label alone. The simulated VLM
+JSON, else the label alone. A request that asks for a reason (a schema with ``reason``, or a
+last message asking for ``{"reason": ...}`` or a ``"Reason:"`` line) gets the one ``explain``
+gives first: ``{"reason": ..., "label": ...}``, or ``Reason: ...`` then ``Label: ...``.
+The simulated VLM
 (:mod:`edge.sim.standin_vlm`, a chooser that knows only what a VLM would know) is served by
 this same class.
 
@@ -91,6 +95,9 @@ REFUSALS: dict[str, tuple[int, str, str]] = {
 PROSE = "The object is most likely the {label} because the photo and the touch both fit it."
 # How a request asks for JSON in its text (the shipped templates, the corrective retry).
 ASKS_JSON = '{"label"'
+# How a request asks for a reason before the label: in JSON, or on a "Reason:" line.
+ASKS_REASON_JSON = '{"reason"'
+ASKS_REASON_LINE = '"Reason:"'
 
 
 @dataclass(frozen=True)
@@ -163,10 +170,16 @@ class FakeRequest:
 
 
 Chooser = Callable[[FakeRequest], str]
+# The reason given for a chosen label, when a request asks for one.
+Explainer = Callable[[FakeRequest, str], str]
 
 
 def first_candidate(req: FakeRequest) -> str:
     return req.candidates[0]
+
+
+def plain_reason(req: FakeRequest, label: str) -> str:
+    return f"{label} is the candidate that fits the question best."
 
 
 def choose_by_description(req: FakeRequest) -> str:
@@ -266,15 +279,20 @@ def prompt_candidates(prompt: str) -> list[str]:
     return [x for x in labels if isinstance(x, str) and x]
 
 
-def _asks_json(body: Any) -> bool:
-    """Whether a well-formed request asks for JSON: a response_format, or its last message
-    says so (free-text mode asks for the label alone)."""
-    if body.get("response_format") is not None:
-        return True
+def _asks(body: Any) -> tuple[bool, bool]:
+    """What a request checked by :func:`validate_chat_request` asks for, as a model that
+    follows it reads it: (JSON, a reason first). JSON: a response_format, or its last
+    message says so (free-text mode asks for the label alone); a reason: a schema with one,
+    or the last message asks for it."""
     content = body["messages"][-1]["content"]
     if isinstance(content, list):
         content = " ".join(p["text"] for p in content if p["type"] == "text")
-    return ASKS_JSON in content
+    rf = body.get("response_format")
+    if rf is not None and rf["type"] == "json_schema":
+        return True, "reason" in rf["json_schema"]["schema"]["properties"]
+    if rf is not None or ASKS_JSON in content or ASKS_REASON_JSON in content:
+        return True, ASKS_REASON_JSON in content
+    return False, ASKS_REASON_LINE in content
 
 
 def _decode_data_url(url: str) -> tuple[str | None, str, bytes]:
@@ -307,6 +325,10 @@ def _check_response_format(rf: Any) -> tuple[str | None, list[str]]:
     if not isinstance(schema, dict) or schema.get("type") != "object":
         return "json_schema.schema.type: must be object", []
     props = schema.get("properties")
+    if isinstance(props, dict) and list(props) not in (["label"], ["reason", "label"]):
+        return "json_schema.schema.properties: only label, or reason then label", []
+    if isinstance(props, dict) and "reason" in props and props["reason"] != {"type": "string"}:
+        return "json_schema.schema.properties.reason: must be a string property", []
     label = props.get("label") if isinstance(props, dict) else None
     if not isinstance(label, dict) or label.get("type") != "string":
         return "json_schema.schema.properties.label: must be a string property", []
@@ -314,10 +336,9 @@ def _check_response_format(rf: Any) -> tuple[str | None, list[str]]:
     if (not isinstance(enum, list) or not enum or not all(isinstance(e, str) and e for e in enum)
             or len(set(enum)) != len(enum)):
         return "json_schema.schema.properties.label.enum: non-empty distinct strings", []
-    if schema.get("required") != ["label"] or schema.get("additionalProperties") is not False:
-        return 'json_schema.schema: needs required ["label"], additionalProperties false', []
-    if set(props) != {"label"}:
-        return "json_schema.schema.properties: only label", []
+    if schema.get("required") != list(props) or schema.get("additionalProperties") is not False:
+        return ("json_schema.schema: needs every property required in order, "
+                "additionalProperties false"), []
     return None, list(enum)
 
 
@@ -332,6 +353,7 @@ class FakeVLM:
         model: str | Sequence[str] | None = "fake-vlm",
         api_key: str | None = None,
         choose: Chooser = first_candidate,
+        explain: Explainer = plain_reason,
         latency_s: float = 0.0,
         max_request_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
         echo_key_in_errors: bool = False,
@@ -355,6 +377,7 @@ class FakeVLM:
         self.fingerprint = fingerprint
         self.api_key = api_key
         self.choose = choose
+        self.explain = explain
         self.latency_s = latency_s
         self.max_request_bytes = max_request_bytes
         # A careless server that quotes the key it got (to test that the client redacts it).
@@ -479,10 +502,8 @@ class FakeVLM:
                 label = reply.label if reply.label is not None else self.choose(rec)
                 if self.structured == "ignored":
                     content = self.prose.replace("{label}", label)
-                elif _asks_json(rec.body):
-                    content = json.dumps({"label": label})
                 else:
-                    content = label
+                    content = self._say(rec, label)
             body = json.dumps(self._completion(rec, content)).encode()
         headers = {"Content-Type": "application/json", **reply.headers}
         if not reply.chunked and not reply.chunk_delay_s:
@@ -500,6 +521,14 @@ class FakeVLM:
                 await asyncio.sleep(reply.chunk_delay_s)
         await resp.write_eof()
         return resp
+
+    def _say(self, rec: FakeRequest, label: str) -> str:
+        """``label`` in the form the request asks for, with a reason first if it asks."""
+        json_form, reason = _asks(rec.body)
+        if json_form:
+            return json.dumps({"reason": self.explain(rec, label), "label": label} if reason
+                              else {"label": label})
+        return f"Reason: {self.explain(rec, label)}\nLabel: {label}" if reason else label
 
     def _completion(self, rec: FakeRequest, content: str) -> dict[str, Any]:
         self._count += 1

@@ -30,7 +30,8 @@ serves two models): ``simulated-vlm`` weighs touch with sight (margin 0.05), and
 keeps its sight's answer unless touch points elsewhere by more than 0.8 on the 0..1 scale.
 
 Serve it: ``vt-edge sim vlm --port 8011`` (or ``python -m edge.sim.standin_vlm``); it prints
-and logs "simulated VLM" on every line, and answers the strict JSON the robot asks for.
+and logs "simulated VLM" on every line, and answers the strict JSON the robot asks for; asked
+for a reason (``vlm.ask_reason``), it says what it saw and felt (:func:`say_why`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from edge.sim import common_sense
-from edge.sim.fake_vlm import FakeRequest, FakeVLM
+from edge.sim.fake_vlm import FakeRequest, FakeVLM, plain_reason
 
 log = logging.getLogger(__name__)
 
@@ -187,23 +188,44 @@ def decide(profile: Profile, image: bytes | None, description: str,
                     f"sight kept (touch {felt:.2f} not clearly nearer another)")
 
 
+def say_why(d: Decision, candidates: Sequence[str]) -> str:
+    """The decision's reason in a sentence, as the answer's ``reason``: what the photo
+    allowed, then what touch did."""
+    if len(d.seen) == len(candidates):
+        sight = f"The photo leaves all {len(candidates)} candidates open"
+    elif len(d.seen) == 1:
+        sight = f"The photo shows {d.seen[0]}"
+    else:
+        sight = f"The photo could show {', '.join(d.seen)}"
+    return f"{sight}; {d.reason}."
+
+
 class StandIn:
     """The chooser for :class:`edge.sim.fake_vlm.FakeVLM`: the request's model picks the
-    profile (an unknown model gets the default one)."""
+    profile (an unknown model gets the default one); :meth:`explain` gives its reason."""
 
     def __call__(self, req: FakeRequest) -> str:
-        model = (req.body or {}).get("model", DEFAULT.model)
-        profile = PROFILES.get(model, DEFAULT)
+        return self._decide(req).label
+
+    def explain(self, req: FakeRequest, label: str) -> str:
+        """Why it answers ``label`` (decided again: the same request decides the same)."""
+        d = self._decide(req)
+        return say_why(d, req.candidates) if d.label == label else plain_reason(req, label)
+
+    @staticmethod
+    def _decide(req: FakeRequest) -> Decision:
+        profile = PROFILES.get((req.body or {}).get("model", DEFAULT.model), DEFAULT)
         image = req.images[0] if req.images else None
         d = decide(profile, image, req.description, req.candidates)
         log.debug("%s %s: %s (%s)", TITLE, profile.model, d.label, d.reason)
-        return d.label
+        return d
 
 
 def server(host: str = "127.0.0.1", port: int = 0) -> FakeVLM:
     """The stand-in behind the strict OpenAI-compatible fake server (both profiles)."""
-    return FakeVLM(host=host, port=port, model=tuple(PROFILES), choose=StandIn(),
-                   title=TITLE, fingerprint=FINGERPRINT)
+    standin = StandIn()
+    return FakeVLM(host=host, port=port, model=tuple(PROFILES), choose=standin,
+                   explain=standin.explain, title=TITLE, fingerprint=FINGERPRINT)
 
 
 async def serve(host: str, port: int, ready=print) -> None:

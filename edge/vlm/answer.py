@@ -5,7 +5,10 @@ The daemon's recognitions, doctor's probe and the evaluation all read answers wi
 
 Asked for (:func:`ask_for`): in the JSON modes (``json_schema``, ``json_object``) the shipped
 templates' last line asks for ``{"label": "<candidate>"}``; in free-text mode (``none``) that
-line asks for the label alone instead (:data:`LABEL_ALONE`).
+line asks for the label alone instead (:data:`LABEL_ALONE`). With ``vlm.ask_reason`` that line
+asks for a short reason first, then the label (:data:`REASON_JSON_REPLY`,
+:data:`REASON_THEN_LABEL`): a model that writes in order gives its reason before it commits
+to a label. Without it the prompt is the template's, byte for byte.
 
 Read (:func:`read_answer`): what follows a reasoning model's ``</think>``, and the inside of
 one markdown code fence around the whole answer (```` ```json ... ``` ```` is JSON), then:
@@ -18,6 +21,13 @@ one markdown code fence around the whole answer (```` ```json ... ``` ```` is JS
 - In free-text mode the whole answer, stripped of surrounding quotes and punctuation and of
   a leading ``label:``, must be one candidate or a variant of one. "This is not a real
   macaron" is never ``macaron``, nor is "macarons" or "macaron or resin_replica_macaron".
+
+The reason, when asked: the JSON object's ``reason``, or in free text what comes before the
+last ``Label:`` (a leading ``Reason:`` dropped), the label part read by the free-text rule
+above (exactly one candidate). A reason is text shown to a person: control characters become
+spaces, runs of spaces one, and one longer than :data:`MAX_REASON_CHARS` is cut, ending in
+"…"; one that is not text, or empty, is no reason (``Reading.reason_note`` says which). The
+label never depends on the reason.
 
 A variant of a candidate is the same label up to case and spacing: runs of spaces, ``_`` and
 ``-`` count as one ``_`` and surrounding punctuation is ignored ("Raw Kiri-Mochi." is
@@ -41,46 +51,75 @@ JSON_REPLY = 'Reply only with JSON: {"label": "<candidate>"}'
 # What free-text mode asks instead of each line that asks for JSON.
 LABEL_ALONE = ("Answer with exactly one label from the candidates, spelled exactly as given, "
                "and nothing else.")
+# With vlm.ask_reason, what each answer line asks instead: a short reason, then the label.
+REASON_JSON_REPLY = ('First give a short reason (one sentence), then exactly one label from '
+                     'the candidates, spelled exactly as given. Reply only with JSON: '
+                     '{"reason": "<short reason>", "label": "<candidate>"}')
+REASON_THEN_LABEL = ('First give a short reason (one sentence) on a line starting "Reason:", '
+                     'then exactly one label from the candidates, spelled exactly as given, '
+                     'on a last line starting "Label:", and nothing else.')
+# A reason longer than this is cut (the whole answer stays in VLMAnswer.raw).
+MAX_REASON_CHARS = 500
 _ASKS_JSON = re.compile(r'^.*\{"label": "<candidate>"\}.*$', re.M)
 # One fence around the whole answer: ```json\n...\n``` (the language tag is optional).
 _FENCE = re.compile(r"```[A-Za-z0-9_+-]*[ \t]*\n?(.*?)\n?[ \t]*```", re.S)
 _LABEL_PREFIX = re.compile(r"label\s*:", re.I)
+# Free text with a reason: "Reason: ... Label: X" (markdown emphasis around either word).
+_LABEL_MARK = re.compile(r"\blabel[\s*_]*:", re.I)
+_REASON_MARK = re.compile(r"reason[\s*_]*:", re.I)
+_MARKUP = " \t\r\n*_`"
 _SEPARATORS = re.compile(r"[\s_\-]+")
 _WORD = re.compile(r"[^\W_]")
 
 
 @dataclass(frozen=True)
 class Reading:
-    """An answer as read: the candidate it names (None: none), and whether it honoured the
+    """An answer as read: the candidate it names (None: none), whether it honoured the
     structured-output mode it was asked with (False: a JSON mode answered with no JSON
-    object; always True in free-text mode)."""
+    object; always True in free-text mode), and its reason when one was asked."""
 
     label: str | None
     honoured: bool = True
+    # The reason given, as shown (None: none asked, none given, or none usable), and why a
+    # reason given was not used as it came ("" when it was).
+    reason: str | None = None
+    reason_note: str = ""
 
 
-def ask_for(prompt: str, mode: str) -> str:
+def answer_line(mode: str, reason: bool = False) -> str:
+    """What the prompt's answer line asks in ``mode``: the label alone (free text), JSON with
+    the label, or, with ``reason``, a short reason first."""
+    if reason:
+        return REASON_THEN_LABEL if mode == "none" else REASON_JSON_REPLY
+    return LABEL_ALONE if mode == "none" else JSON_REPLY
+
+
+def ask_for(prompt: str, mode: str, reason: bool = False) -> str:
     """The rendered template as sent in structured-output ``mode``: free text asks for the
-    label alone; JSON mode asks for JSON where the template does not."""
-    if mode == "none":
-        asked, n = _ASKS_JSON.subn(LABEL_ALONE, prompt)
-        return asked if n else f"{prompt}\n{LABEL_ALONE}"
+    label alone; JSON mode asks for JSON where the template does not; ``reason`` asks for a
+    short reason before the label in every mode. The template's line that asks for JSON is
+    replaced, else the line is added."""
+    if mode == "none" or reason:
+        line = answer_line(mode, reason)
+        asked, n = _ASKS_JSON.subn(lambda _: line, prompt)
+        return asked if n else f"{prompt}\n{line}"
     if mode == "json_object" and '"label"' not in prompt:
         return f"{prompt}\n{JSON_REPLY}"
     return prompt
 
 
-def correction_message(candidates: Sequence[str], mode: str) -> str:
+def correction_message(candidates: Sequence[str], mode: str, reason: bool = False) -> str:
     """The one corrective retry's question, in the answer form of ``mode``."""
-    ask = LABEL_ALONE if mode == "none" else JSON_REPLY
     return ("That answer is not one of the candidates. Answer again with exactly one label "
             f"from the candidates, spelled exactly as given: {format_candidates(candidates)}. "
-            f"{ask}")
+            f"{answer_line(mode, reason)}")
 
 
-def read_answer(text: str, candidates: Sequence[str], mode: str) -> Reading:
-    """The candidate ``text`` names when asked in structured-output ``mode``, as the module
-    docstring says. Never raises on any answer text; linear in its length."""
+def read_answer(text: str, candidates: Sequence[str], mode: str,
+                reason: bool = False) -> Reading:
+    """The candidate ``text`` names when asked in structured-output ``mode``, and with
+    ``reason`` the reason it gives, as the module docstring says. Never raises on any answer
+    text; linear in its length."""
     if not isinstance(text, str) or len(text) > MAX_ANSWER_CHARS:
         return Reading(None)
     end_think = text.lower().rfind("</think>")  # reasoning models: the answer follows
@@ -96,13 +135,53 @@ def read_answer(text: str, candidates: Sequence[str], mode: str) -> Reading:
         value = None
     if isinstance(value, dict):
         label = value.get("label")
-        return Reading(match_label(label, candidates) if isinstance(label, str) else None)
+        found = match_label(label, candidates) if isinstance(label, str) else None
+        if not reason:
+            return Reading(found)
+        if "reason" not in value:
+            return Reading(found, True, None, "no reason given")
+        return Reading(found, True, *_read_reason(value["reason"]))
     if mode != "none":
         return Reading(None, honoured=False)
     bare = _trim(text)
+    if reason and (marks := list(_LABEL_MARK.finditer(bare))):
+        said = bare[:marks[-1].start()].strip(_MARKUP)
+        if prefix := _REASON_MARK.match(said):
+            said = said[prefix.end():]
+        said = said.strip(_MARKUP)
+        found = match_label(_trim(bare[marks[-1].end():]), candidates)
+        if not said:
+            return Reading(found, True, None, "no reason given")
+        return Reading(found, True, *_read_reason(said))
+    if reason:
+        return Reading(match_label(bare, candidates), True, None, "no reason given")
     if prefix := _LABEL_PREFIX.match(bare):
         bare = _trim(bare[prefix.end():])
     return Reading(match_label(bare, candidates))
+
+
+def _read_reason(value: object) -> tuple[str | None, str]:
+    """(the reason as shown, why the given one was not used as it came)."""
+    if not isinstance(value, str):
+        return None, f"the reason is {_kind(value)}, not text: no reason kept"
+    shown = " ".join("".join(c if c.isprintable() else " " for c in value).split())
+    if not shown:
+        return None, "the reason is empty" if value == "" else "the reason is only blanks"
+    if len(shown) > MAX_REASON_CHARS:
+        cut = shown[:MAX_REASON_CHARS - 1].rstrip() + "…"
+        return cut, f"the reason is cut to {MAX_REASON_CHARS} of {len(shown)} characters"
+    return shown, ""
+
+
+def _kind(value: object) -> str:
+    """A JSON value's kind in words."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, int | float):
+        return "a number"
+    return "an array" if isinstance(value, list) else "an object"
 
 
 def normalise_label(text: str) -> str:

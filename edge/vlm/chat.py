@@ -13,20 +13,30 @@ from edge.vlm.images import PreparedImage
 SCHEMA_NAME = "label"
 
 
-def request_head(model: str, seed: int, mode: str, candidates: Sequence[str]
-                 ) -> dict[str, Any]:
+def request_head(model: str, seed: int, mode: str, candidates: Sequence[str],
+                 reason: bool = False) -> dict[str, Any]:
     """The request's settings: deterministic sampling and the ``mode``'s response format
     (none for ``"none"``)."""
     head: dict[str, Any] = {"model": model, "temperature": 0, "seed": seed, "stream": False}
     if mode == "json_schema":
-        head["response_format"] = response_format(candidates)
+        head["response_format"] = response_format(candidates, reason)
     elif mode == "json_object":
         head["response_format"] = {"type": "json_object"}
     return head
 
 
-def response_format(candidates: Sequence[str]) -> dict[str, Any]:
-    """The strict ``json_schema`` response format: one ``label`` from the candidates."""
+def response_format(candidates: Sequence[str], reason: bool = False) -> dict[str, Any]:
+    """The strict ``json_schema`` response format: one ``label`` from the candidates, and
+    with ``reason`` a ``reason`` string before it.
+
+    The order is the point: servers that constrain decoding write the properties in the
+    schema's order, so the model gives its reason before it commits to a label. The reason
+    has no ``maxLength``: strict mode on some servers refuses the keyword (Azure's reference
+    gives it as its example), and the reader cuts a long reason
+    (:data:`edge.vlm.answer.MAX_REASON_CHARS`).
+    """
+    label = {"label": {"type": "string", "enum": list(candidates)}}
+    properties = {"reason": {"type": "string"}, **label} if reason else label
     return {
         "type": "json_schema",
         "json_schema": {
@@ -34,8 +44,8 @@ def response_format(candidates: Sequence[str]) -> dict[str, Any]:
             "strict": True,
             "schema": {
                 "type": "object",
-                "properties": {"label": {"type": "string", "enum": list(candidates)}},
-                "required": ["label"],
+                "properties": properties,
+                "required": list(properties),
                 "additionalProperties": False,
             },
         },

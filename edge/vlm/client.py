@@ -7,7 +7,10 @@ base64 data URL, ``temperature: 0``, ``seed`` and the configured structured outp
 (``vlm.structured_output``: a strict ``json_schema`` whose enum is the candidates,
 ``json_object``, or ``none``), and reads the answer with :func:`edge.vlm.answer.read_answer`:
 a candidate (or a case/spacing variant of one) is ``ok``; anything else gets one corrective
-retry, then an explicit ``invalid_answer``. A label is never invented.
+retry, then an explicit ``invalid_answer``. A label is never invented. With
+``vlm.ask_reason`` the schema and the prompt's answer line ask for a short ``reason`` before
+the ``label`` and the answer carries it (``VLMAnswer.reason``); without it the request is
+the label-only one, byte for byte.
 
 Transport failures (408, 409, 429, 5xx, connection errors, timeouts) are retried with capped
 exponential backoff and jitter, honouring ``Retry-After`` (:mod:`edge.vlm.transport`); other
@@ -93,6 +96,9 @@ class VLMAnswer:
     elapsed_s: float
     # The structured-output mode of the request that answered (None: no request).
     structured_output: str | None = None
+    # The VLM's short reason for its label, as read (edge.vlm.answer.read_answer): None when
+    # vlm.ask_reason is off, or none usable came. What episodes, the page and MQTT show.
+    reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -262,10 +268,11 @@ class OpenAIVLM:
             log.debug("VLM mode %s: image not sent", self.template.mode)
 
         trace = Trace()
+        ask_reason = self.config.ask_reason
         while True:
             mode = self._structured.mode
-            head = request_head(self.config.model, self.config.seed, mode, labels)
-            prompt = ask_for(rendered, mode)
+            head = request_head(self.config.model, self.config.seed, mode, labels, ask_reason)
+            prompt = ask_for(rendered, mode, ask_reason)
             # Both name the image; encode_json puts the data URL in what goes on the wire.
             wire = [user_message(prompt, stored_url)]
             stored = [user_message(prompt, stored_url)]
@@ -276,23 +283,27 @@ class OpenAIVLM:
                 self._structured.step_down(mode, trace, "refused",
                                            f"HTTP {exc.status}: {exc.excerpt}")
                 continue
-            reading = read_answer(raw, labels, mode)
+            # Read as stored: a reason never shows the API key, even cut short.
+            reading = read_answer(self._http.redact(raw), labels, mode, ask_reason)
             if reading.honoured:
                 break
             # A 200 that is not the requested JSON: the server took the mode and ignored it.
             self._structured.step_down(mode, trace, "ignored",
                                        f"answered {self._http.excerpt(raw.encode())!r}, not JSON")
-        label = reading.label
-        if label is None:
+        if reading.label is None:
             log.warning("VLM answer %r is not a candidate; asking once more",
                         self._http.redact(raw[:EXCERPT_CHARS]))
-            correction = {"role": "user", "content": correction_message(labels, mode)}
+            correction = {"role": "user", "content": correction_message(labels, mode, ask_reason)}
             echo = raw[:MAX_ECHO_CHARS] or "(no answer)"
             wire += [{"role": "assistant", "content": echo}, correction]
             stored += [{"role": "assistant", "content": self._http.redact(echo)}, correction]
             response, raw = await self._complete({**head, "messages": wire}, trace, splice,
                                                  max_retries, False)
-            label = read_answer(raw, labels, mode).label
+            reading = read_answer(self._http.redact(raw), labels, mode, ask_reason)
+        label = reading.label
+        if reading.reason_note:
+            log.warning("VLM answer %r: %s", self._http.redact(raw[:EXCERPT_CHARS]),
+                        reading.reason_note)
         status: Status = "ok" if label is not None else "invalid_answer"
         elapsed = time.monotonic() - started
         if label is None:
@@ -308,6 +319,7 @@ class OpenAIVLM:
             image=prepared.info() if prepared else None, attempts=len(trace.outcomes),
             latency_s=tuple(trace.latency_s), outcomes=tuple(trace.outcomes),
             elapsed_s=elapsed, structured_output=mode,
+            reason=reading.reason,
         ), trace
 
     # -- one round: POST with transport retries, then the answer text --

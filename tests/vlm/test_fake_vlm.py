@@ -13,7 +13,7 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from edge.sim.fake_vlm import FakeVLM
+from edge.sim.fake_vlm import FakeVLM, plain_reason
 from edge.vlm.chat import response_format
 from edge.vlm.prompt import format_candidates
 from tests.support.waits import free_port
@@ -71,6 +71,15 @@ IMAGE = ("messages", 0, "content", 1, "image_url", "url")
         (mutated((*SCHEMA, "properties", "label", "enum"), []), "enum"),
         (mutated((*SCHEMA, "properties", "label", "enum"), ["a", "a"]), "enum"),
         (mutated((*SCHEMA, "additionalProperties"), True), "additionalProperties"),
+        (mutated((*SCHEMA, "properties"), {"label": {"type": "string", "enum": ["a"]},
+                                          "reason": {"type": "string"}}),
+         "only label, or reason then label"),
+        (mutated((*SCHEMA, "properties"), {"reason": {"type": "integer"},
+                                          "label": {"type": "string", "enum": ["a"]}}),
+         "reason: must be a string property"),
+        (mutated((*SCHEMA, "properties"), {"reason": {"type": "string"},
+                                          "label": {"type": "string", "enum": ["a"]}}),
+         "every property required in order"),
         (mutated(("messages", 0, "role"), "robot"), "role"),
         ("not json at all", "not valid JSON"),
     ],
@@ -103,6 +112,18 @@ async def test_good_request_is_answered_like_openai(fake):
     assert req.candidates == CANDIDATES and req.description == "a rock"
     assert req.image_mimes == ["image/png"]
 
+
+
+@pytest.mark.asyncio
+async def test_a_schema_with_a_reason_is_answered_with_the_reason_first(fake):
+    body = good_body()
+    body["response_format"] = response_format(CANDIDATES, reason=True)
+    async with aiohttp.ClientSession() as session:
+        async with session.post(f"{fake.base_url}/chat/completions", json=body) as resp:
+            assert resp.status == 200
+            content = (await resp.json())["choices"][0]["message"]["content"]
+    assert content == json.dumps({"reason": plain_reason(fake.requests[0], CANDIDATES[0]),
+                                  "label": CANDIDATES[0]})
 
 
 @pytest.mark.asyncio

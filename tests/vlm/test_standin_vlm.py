@@ -63,6 +63,7 @@ def test_it_imports_and_names_no_physics_and_no_truth(path):
     assert {m for m in imported if m.startswith("edge.")} <= {
         "edge.sim", "edge.sim.common_sense", "edge.sim.fake_vlm",
         "edge.sim.fake_vlm.FakeRequest", "edge.sim.fake_vlm.FakeVLM",
+        "edge.sim.fake_vlm.plain_reason",
         "edge.sim.camera", "edge.sim.camera.render"}
 
 
@@ -202,6 +203,37 @@ async def test_served_through_the_robots_client_with_both_profiles():
     for a in answers.values():
         assert a.status == "ok" and a.response["system_fingerprint"] == "vtzero-simulated-vlm"
     assert listed == ["simulated-vlm", "simulated-vlm-vision-led"]
+
+
+@pytest.mark.asyncio
+async def test_asked_for_a_reason_it_says_what_it_saw_and_felt_and_answers_the_same():
+    questions = [("raw_kabocha_squash", MIDDLE_TOUCH, CUBE), ("macaron", HARD_TOUCH, FOOD),
+                 ("raw_kiri_mochi", "quux widget", CUBE)]
+    async with standin_vlm.server() as fake:
+        answers = {}
+        for ask_reason in (False, True):
+            for mode in ("json_schema", "none"):
+                client = OpenAIVLM(vlm_config(fake.base_url, model="simulated-vlm",
+                                              ask_reason=ask_reason, structured_output=mode))
+                try:
+                    for shown, touch, cands in questions:
+                        answers[ask_reason, mode, shown] = await client.ask(
+                            render(shown), touch, cands)
+                finally:
+                    await client.close()
+    for (ask_reason, mode, shown), a in answers.items():
+        print(f"{mode} {shown}: {a.label} ({a.reason})")
+        assert a.status == "ok" and a.label == answers[False, mode, shown].label
+        assert (a.reason is None) is not ask_reason
+    squash = answers[True, "json_schema", "raw_kabocha_squash"]
+    assert squash.label == "boiled_kabocha_squash"
+    decision = decide(DEFAULT, render("raw_kabocha_squash"), MIDDLE_TOUCH, CUBE)
+    assert squash.reason == standin_vlm.say_why(decision, CUBE)
+    assert squash.reason.startswith("The photo could show raw_kabocha_squash, "
+                                    "boiled_kabocha_squash; touch suggests give ")
+    assert "nearest boiled_kabocha_squash" in squash.reason
+    assert answers[True, "none", "raw_kiri_mochi"].reason.endswith(
+        "sight only (touch names nothing known).")
 
 
 def test_standalone_it_says_simulated_vlm_on_every_line():
