@@ -60,6 +60,8 @@ REASON_THEN_LABEL = ('First give a short reason (one sentence) on a line startin
                      'on a last line starting "Label:", and nothing else.')
 # A reason longer than this is cut (the whole answer stays in VLMAnswer.raw).
 MAX_REASON_CHARS = 500
+# Reading.reason_note when a reason was asked for and none came.
+NO_REASON = "no reason given"
 _ASKS_JSON = re.compile(r'^.*\{"label": "<candidate>"\}.*$', re.M)
 # One fence around the whole answer: ```json\n...\n``` (the language tag is optional).
 _FENCE = re.compile(r"```[A-Za-z0-9_+-]*[ \t]*\n?(.*?)\n?[ \t]*```", re.S)
@@ -139,7 +141,7 @@ def read_answer(text: str, candidates: Sequence[str], mode: str,
         if not reason:
             return Reading(found)
         if "reason" not in value:
-            return Reading(found, True, None, "no reason given")
+            return Reading(found, True, None, NO_REASON)
         return Reading(found, True, *_read_reason(value["reason"]))
     if mode != "none":
         return Reading(None, honoured=False)
@@ -151,10 +153,10 @@ def read_answer(text: str, candidates: Sequence[str], mode: str,
         said = said.strip(_MARKUP)
         found = match_label(_trim(bare[marks[-1].end():]), candidates)
         if not said:
-            return Reading(found, True, None, "no reason given")
+            return Reading(found, True, None, NO_REASON)
         return Reading(found, True, *_read_reason(said))
     if reason:
-        return Reading(match_label(bare, candidates), True, None, "no reason given")
+        return Reading(match_label(bare, candidates), True, None, NO_REASON)
     if prefix := _LABEL_PREFIX.match(bare):
         bare = _trim(bare[prefix.end():])
     return Reading(match_label(bare, candidates))
