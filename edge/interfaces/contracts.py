@@ -1,5 +1,5 @@
-"""What the interfaces (the HTTP API and its operator page, MQTT) need from the daemon: two
-small seams, not the runtime's internals. :class:`edge.runtime.lifecycle.Runtime` is both."""
+"""What the interfaces (the HTTP API and its operator page, MQTT) need from the daemon: small
+seams, not the runtime's internals. :class:`edge.runtime.lifecycle.Runtime` is each."""
 
 from __future__ import annotations
 
@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from edge.runtime.domain import Episode, Health
+from edge.runtime.references import Source, TaughtReference
 from edge.runtime.taps import LiveTaps
+from edge.runtime.teaching import TeachRun
 
 T = TypeVar("T")
 
@@ -43,5 +45,29 @@ class Recognitions(Protocol):
         ...
 
 
-class Serving(Recognitions, LiveTaps, Protocol):
-    """The daemon as an interface serves it: its recognitions and its live taps."""
+class Teaching(Protocol):
+    """Teaching the robot references (edge.runtime.teaching): presses of an object, or an
+    episode's press, named; the taught references listed and removed."""
+
+    async def teach(self, label: str, description: str | None, presses: int, append: bool,
+                    source: Source, *, pause_s: float, wait: bool) -> TeachRun:
+        """Refused before the arm moves (BadRequest, BusyError); with ``wait`` as ended."""
+        ...
+
+    async def teach_episode(self, episode_id: str, label: str, description: str | None,
+                            source: Source) -> TaughtReference: ...
+
+    def teaching(self) -> TeachRun | None:
+        """The teaching under way, or the last one (None: none since the start)."""
+        ...
+
+    async def references(self) -> dict[str, Any]:
+        """``{"directory", "references": [...]}``, each without its embedding."""
+        ...
+
+    async def remove_references(self, ref_id: str | None = None, label: str | None = None
+                                ) -> list[TaughtReference]: ...
+
+
+class Serving(Recognitions, Teaching, LiveTaps, Protocol):
+    """The daemon as an interface serves it: its recognitions, teaching and live taps."""

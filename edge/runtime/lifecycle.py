@@ -35,7 +35,7 @@ import numpy as np
 from edge import __version__
 from edge.core import preprocess
 from edge.core.config import Config, PressConfig, SensorConfig
-from edge.core.errors import EdgeError, StoreError
+from edge.core.errors import BusyError, EdgeError, StoreError
 from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
 from edge.runtime import signals, taps
@@ -52,11 +52,13 @@ from edge.runtime.domain import (
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
 from edge.runtime.recognition import Recognition, Recognizer
+from edge.runtime.references import Source, TaughtReference
 from edge.runtime.ring import FrameRing
 from edge.runtime.sensor import Sampler, SensorTask
 from edge.runtime.store import EpisodeStore
 from edge.runtime.systemd import Notifier, watchdog_period_s
 from edge.runtime.taps import Rows
+from edge.runtime.teaching import PAUSE_S, Teacher, TeachRun
 from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)
@@ -81,6 +83,10 @@ STORE_RETRY_S = 1.0
 # How often the store's retention runs besides after each new episode: the live recording
 # adds segments without any press.
 RETAIN_PERIOD_S = 60.0
+# Before a teaching presses: how long of the stream its rate is measured over, against the
+# rate the class's references were pressed at (the ring holds 30 s). Long: just after a busy
+# start the emulated server caught up on late ticks for 2 s and its median read 139 Hz.
+TEACH_RATE_S = 10.0
 
 
 # Returns the new (configuration, model, VLM client) on SIGHUP; raises EdgeError to refuse.
@@ -119,6 +125,7 @@ class Runtime:
                                      self.events, self.metrics, devices.camera)
         self.sensor = SensorTask(devices.tactile, self.ring, self.press,
                                  on_unusable=self.notifier.status)
+        self.teacher = Teacher(self.recognizer, self.events, self.stream_rate)
         self._stopping = asyncio.Event()
         self.ready = asyncio.Event()
         self.started_at = time.monotonic()
@@ -149,6 +156,9 @@ class Runtime:
     # recognition to its recognizer and answers for the press, the store and the health.
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
                         timeout_s: float | None, source: str) -> Episode:
+        if self.teacher.active:
+            # Its presses are of the object being taught, with pauses between them.
+            raise BusyError("a teaching is under way (GET /v1/teach); one at a time")
         return await self.recognizer.recognize(candidates, image, wait, timeout_s, source)
 
     async def episode(self, episode_id: str) -> Episode:
@@ -165,6 +175,36 @@ class Runtime:
 
     def episode_file(self, episode_id: str, name: str) -> Path:
         return self.store.file(episode_id, name)
+
+    # --- ... teaching (edge.interfaces.contracts.Teaching) ---------------------------------
+    async def teach(self, label: str, description: str | None, presses: int, append: bool,
+                    source: Source, *, pause_s: float = PAUSE_S, wait: bool = True
+                    ) -> TeachRun:
+        return await self.teacher.teach(label, description, presses, append, source,
+                                        pause_s=pause_s, wait=wait)
+
+    async def teach_episode(self, episode_id: str, label: str, description: str | None,
+                            source: Source) -> TaughtReference:
+        if self.teacher.active:
+            raise BusyError("a teaching is under way (GET /v1/teach); one at a time")
+        return await self.teacher.teach_episode(episode_id, label, description, source)
+
+    def teaching(self) -> TeachRun | None:
+        return self.teacher.current
+
+    async def references(self) -> dict[str, Any]:
+        return await self.teacher.references()
+
+    async def remove_references(self, ref_id: str | None = None, label: str | None = None
+                                ) -> list[TaughtReference]:
+        return await self.teacher.remove(ref_id, label)
+
+    def stream_rate(self) -> float | None:
+        """The tactile stream's rate over the last ``TEACH_RATE_S`` (frames/s; None before
+        two fresh frames)."""
+        now = time.monotonic()
+        frames = self.ring.window(now - TEACH_RATE_S, now)
+        return preprocess.fresh_rate(frames.recv_time, frames.sensor_time, frames.seq)
 
     # --- ... and live taps (edge.runtime.taps.LiveTaps) -----------------------------------
     def subscribe(self) -> contextlib.AbstractContextManager[Subscription]:
@@ -267,6 +307,7 @@ class Runtime:
                 # The model loaded and run once in the compute process: the first press
                 # pays nothing for it.
                 await self.compute.run(warm_up, self.model)
+                await self.teacher.check_references()
                 if self._power_on is None:
                     await self._wait_first_frame()
                     self._set_ready()
@@ -361,6 +402,7 @@ class Runtime:
         self.notifier.stopping()
         self.recognizer.accepting = False
         self.press.request_abort()
+        await self.teacher.stop()
         for task in list(self.recognizer.work):
             with contextlib.suppress(TimeoutError, Exception):
                 await asyncio.wait_for(asyncio.shield(task), DRAIN_TIMEOUT_S)
@@ -472,6 +514,8 @@ class Runtime:
         if old.vlm is not vlm:
             await old.vlm.close()
         log.info("reloaded configuration, model, database and VLM client")
+        with contextlib.suppress(EdgeError):  # (the compute process has just read them)
+            await self.teacher.check_references()
         return True
 
 

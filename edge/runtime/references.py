@@ -79,6 +79,10 @@ EXPORT_SPLIT = "train"
 SOURCE_PREFIX = "taught:"
 # A taught class that is new to the model gets this split in the merged database.
 TAUGHT_SPLIT = "taught"
+# What a refusal calls the threshold and the stream: a press's, or the robot's before it
+# presses (its setting, and the stream as it runs).
+PRESS_NAMES = ("this press's x_th", "this press's stream")
+ROBOT_NAMES = ("[press] x_th", "the tactile stream")
 
 
 def references_dir(state_dir: str | Path) -> Path:
@@ -315,33 +319,13 @@ class ReferenceStore:
         the model's database or the overlay has, unless ``append``; a press stopped at
         another ``x_th``, or streamed at another rate, than the class's (or, for a new
         class, the model's); the same press taught already."""
-        if not isinstance(label, str) or not LABEL.fullmatch(label):
-            raise BadRequest(f"label {label!r:.80}: must be 1-64 letters, digits, '_', '-' or "
-                             "'.', starting with a letter or digit")
-        if source not in SOURCES:
-            raise BadRequest(f"source {source!r}: must be one of {', '.join(SOURCES)}")
+        rate_hz = preprocess.recording_rate(rec, model.window).window_hz
         with self._locked():
             digest, everything = self.read()
             overlay = Overlay.of(self.index, digest, everything, model.digest)
-            taught = overlay.labels()
-            known = label in model.database.labels or label in taught
-            if known and not append:
-                where = ("the model's database" if label in model.database.labels
-                         else "the taught references")
-                raise BadRequest(f"{label!r} is in {where} already: say append to add "
-                                 "presses to it, or teach another label")
-            if description is not None and description.strip():
-                try:
-                    description = check_description(description, label)
-                except DescriptionError as exc:
-                    raise BadRequest(str(exc)) from None
-            elif known:
-                description = (taught[label][-1].description if label in taught
-                               else model.database.description(label))
-            else:
-                raise BadRequest(f"{label!r} is a new class: it needs a description that "
-                                 "names the object (e.g. 'wood cube')")
-            self._check_press(model, overlay, label, rec)
+            known = label in model.database.labels or label in overlay.labels()
+            description = self._admitted(model, overlay, label, description, source, append,
+                                         float(rec.threshold), rate_hz, PRESS_NAMES)
             sha = recording.frames_sha256(rec)
             same = [r for r in everything if r.press_sha256 == sha]
             if same:
@@ -351,8 +335,7 @@ class ReferenceStore:
             ref = TaughtReference(
                 id=secrets.token_hex(6), label=label, description=description,
                 episode=episode, taught_at=_iso(now), source=source,
-                x_th=float(rec.threshold),
-                rate_hz=preprocess.recording_rate(rec, model.window).window_hz,
+                x_th=float(rec.threshold), rate_hz=rate_hz,
                 model=model.digest, offsets=tuple(offsets),
                 z=tuple(tuple(float(v) for v in row) for row in z),
                 code=tuple(int(c) for c in code), press_sha256=sha)
@@ -386,14 +369,56 @@ class ReferenceStore:
         log.info("removed %d taught references of %s", len(gone), label)
         return gone
 
-    def _check_press(self, model: Model, overlay: Overlay, label: str,
-                     rec: recording.Recording) -> None:
-        """The press's ``x_th`` and stream rate against the class's (a new class: the
+    def check(self, model: Model, label: str, description: str | None, *, source: Source,
+              append: bool, x_th: float, rate_hz: float | None) -> str:
+        """What :meth:`add` would refuse before there is a press: the label, description
+        and append rules, and presses stopped at ``x_th`` (``[press] x_th``) from a stream
+        at ``rate_hz`` (None: not measured) against the class's; :class:`BadRequest` saying
+        why. The description the presses would be taught with."""
+        digest, everything = self.read()
+        return self._admitted(model, Overlay.of(self.index, digest, everything, model.digest),
+                              label, description, source, append, x_th, rate_hz)
+
+    def _admitted(self, model: Model, overlay: Overlay, label: str, description: str | None,
+                  source: str, append: bool, x_th: float, rate_hz: float | None,
+                  names: tuple[str, str] = ROBOT_NAMES) -> str:
+        """The description ``label`` is taught with, or :class:`BadRequest` saying why a
+        press of it at ``x_th`` and ``rate_hz`` (``names``: what to call them) is refused."""
+        if not isinstance(label, str) or not LABEL.fullmatch(label):
+            raise BadRequest(f"label {label!r:.80}: must be 1-64 letters, digits, '_', '-' or "
+                             "'.', starting with a letter or digit")
+        if source not in SOURCES:
+            raise BadRequest(f"source {source!r}: must be one of {', '.join(SOURCES)}")
+        taught = overlay.labels()
+        known = label in model.database.labels or label in taught
+        if known and not append:
+            where = ("the model's database" if label in model.database.labels
+                     else "the taught references")
+            raise BadRequest(f"{label!r} is in {where} already: say append to add "
+                             "presses to it, or teach another label")
+        if description is not None and description.strip():
+            try:
+                description = check_description(description, label)
+            except DescriptionError as exc:
+                raise BadRequest(str(exc)) from None
+        elif known:
+            description = (taught[label][-1].description if label in taught
+                           else model.database.description(label))
+        else:
+            raise BadRequest(f"{label!r} is a new class: it needs a description that "
+                             "names the object (e.g. 'wood cube')")
+        self._check_stream(model, overlay, label, x_th, rate_hz, names)
+        return description
+
+    def _check_stream(self, model: Model, overlay: Overlay, label: str, x_th: float,
+                      rate_hz: float | None, names: tuple[str, str]) -> None:
+        """Presses at ``x_th`` and ``rate_hz`` against the class's (a new class: the
         model's), in one line naming both."""
         taught = overlay.labels().get(label, [])
         thresholds = class_x_th(model.manifest)
-        x_th = (taught[0].x_th if taught else thresholds.get(label, model_x_th(thresholds)))
-        problem = x_th_mismatch(float(rec.threshold), x_th, "this press's x_th")
+        expected_x_th = (taught[0].x_th if taught
+                         else thresholds.get(label, model_x_th(thresholds)))
+        problem = x_th_mismatch(x_th, expected_x_th, names[0])
         if problem is not None:
             raise BadRequest(f"{label!r}: {problem}")
         rates = class_rate_hz(model.manifest)
@@ -404,12 +429,11 @@ class ReferenceStore:
         else:  # a new class: the model's classes' (the grid's where it records none)
             expected = float(np.median(list(rates.values()))) if rates \
                 else model.window.rate_hz
-        rate = preprocess.recording_rate(rec, model.window).window_hz
-        problem = preprocess.rate_problem(rate, expected)
+        problem = preprocess.rate_problem(rate_hz, expected)
         if problem is not None:
-            raise BadRequest(f"{label!r}: this press's stream at {problem}, the rate the "
-                             "class's references were pressed at: a press at another rate "
-                             "embeds elsewhere")
+            raise BadRequest(f"{label!r}: {names[1]} at {problem}, the rate the class's "
+                             "references were pressed at: a press at another rate embeds "
+                             "elsewhere")
 
     def _write(self, refs: Sequence[TaughtReference]) -> None:
         """The index, atomically; then the presses no entry names are removed (a press

@@ -1,8 +1,11 @@
 """The HTTP API (aiohttp): trigger recognitions, read episodes, follow events.
 
 Routes: ``POST /v1/recognize``, ``GET /v1/episodes/{id}``, ``GET /v1/events`` (server-sent
-events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text); the
-operator page at ``/`` and its data routes (:mod:`edge.interfaces.http.webui`).
+events), ``POST /v1/abort``, ``GET /healthz``, ``GET /metrics`` (Prometheus text); teaching
+(:mod:`edge.runtime.teaching`): ``POST /v1/teach`` (``GET`` its progress),
+``POST /v1/episodes/{id}/teach``, ``GET /v1/references``, ``DELETE /v1/references/{id}`` and
+``DELETE /v1/references?label=L``; the operator page at ``/`` and its data routes
+(:mod:`edge.interfaces.http.webui`).
 Loopback only by default; bound anywhere else it refuses to start without a bearer token,
 and then every route but ``/healthz`` requires it. Bad input gets a 4xx with a message a
 person can act on, and nothing is half-done: validation happens before any arm motion.
@@ -38,8 +41,10 @@ from edge.core.errors import (
     StateError,
 )
 from edge.interfaces.contracts import Recognitions, Serving
-from edge.interfaces.http.webui import OperatorPage
-from edge.interfaces.requests import validate_candidates
+from edge.interfaces.http.webui import UI_HEADER, OperatorPage
+from edge.interfaces.requests import validate_candidates, validate_taught, validate_teach
+from edge.runtime.references import Source
+from edge.runtime.teaching import listed
 from edge.vlm.images import check_image
 
 log = logging.getLogger(__name__)
@@ -53,7 +58,9 @@ _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
 _ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, POST /v1/episodes/{id}/retry, "
            "GET /v1/events, POST /v1/abort, "
            "GET /healthz, GET /metrics, GET / (operator page), GET /v1/episodes?limit=N, "
-           "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile")
+           "GET /v1/episodes/{id}/image, GET /v1/episodes/{id}/trace, GET /v1/tactile, "
+           "POST /v1/teach, GET /v1/teach, POST /v1/episodes/{id}/teach, GET /v1/references, "
+           "DELETE /v1/references/{id}, DELETE /v1/references?label=L")
 
 
 def load_token(cfg: ApiConfig) -> str:
@@ -101,6 +108,24 @@ def _error(status: int, message: str, **extra: Any) -> web.Response:
     return web.json_response({"error": message, **extra}, status=status)
 
 
+async def _json_object(request: web.Request) -> dict[str, Any]:
+    if request.content_type != "application/json":
+        raise BadRequest("send application/json")
+    try:
+        body = await request.json()
+    except (ValueError, RecursionError, LookupError):  # LookupError: bad charset
+        raise BadRequest("body is not valid JSON (or nested too deep, or not in its "
+                         "charset)") from None
+    if not isinstance(body, dict):
+        raise BadRequest("body must be a JSON object")
+    return body
+
+
+def _source(request: web.Request) -> Source:
+    """Who teaches: the operator page (its header) or another API client."""
+    return "page" if request.headers.get(UI_HEADER) == "1" else "api"
+
+
 def validate_image(data: bytes, max_bytes: int) -> bytes:
     if not data:
         raise BadRequest("image is empty")
@@ -145,6 +170,12 @@ class Api:
             web.post("/v1/abort", self.abort),
             web.get("/healthz", self.healthz),
             web.get("/metrics", self.metrics),
+            web.post("/v1/teach", self.teach),
+            web.get("/v1/teach", self.teaching),
+            web.post("/v1/episodes/{id}/teach", self.teach_episode),
+            web.get("/v1/references", self.references),
+            web.delete("/v1/references", self.remove_references),
+            web.delete("/v1/references/{id}", self.remove_references),
         ])
         # The operator page at / and its data: edge/interfaces/http/webui.py.
         self.ui = OperatorPage(runtime, runtime, self.token)
@@ -232,13 +263,7 @@ class Api:
                 raise BadRequest(f"malformed multipart/form-data body: "
                                  f"{type(exc).__name__}: {str(exc)[:200]}") from None
         elif request.content_type == "application/json":
-            try:
-                fields = await request.json()
-            except (ValueError, RecursionError, LookupError):  # LookupError: bad charset
-                raise BadRequest("body is not valid JSON (or nested too deep, or not in "
-                                 "its charset)") from None
-            if not isinstance(fields, dict):
-                raise BadRequest("body must be a JSON object")
+            fields = await _json_object(request)
             unknown = sorted(set(fields) - _RECOGNIZE_FIELDS)
             if unknown:
                 raise BadRequest(f"unknown field {unknown[0]!r}; known: "
@@ -321,6 +346,52 @@ class Api:
         except StateError as exc:
             return _error(409, str(exc))
         return web.json_response(episode.to_json())
+
+    # --- teaching ---------------------------------------------------------------------------
+    async def teach(self, request: web.Request) -> web.Response:
+        """Press the object N times and teach it: 202 as it started (follow ``teach`` events
+        or ``GET /v1/teach``), or with ``"wait": true`` 200 once it ended."""
+        body = await _json_object(request)
+        wait = body.pop("wait", False)
+        if not isinstance(wait, bool):
+            raise BadRequest("wait must be true or false")
+        req = validate_teach(body, frozenset({"wait"}))
+        try:
+            run = await self.runtime.teach(req.label, req.description, req.presses,
+                                           req.append, _source(request), pause_s=req.pause_s,
+                                           wait=wait)
+        except BusyError as exc:
+            return _error(409, str(exc), episode=exc.episode_id)
+        return web.json_response(run.to_json(), status=200 if wait else 202)
+
+    async def teaching(self, request: web.Request) -> web.Response:
+        run = self.runtime.teaching()
+        if run is None:
+            raise NotFoundError("nothing was taught since the daemon started")
+        return web.json_response(run.to_json())
+
+    async def teach_episode(self, request: web.Request) -> web.Response:
+        """What the episode's object really was: its press joins the references."""
+        label, description = validate_taught(await _json_object(request))
+        try:
+            ref = await self.runtime.teach_episode(request.match_info["id"], label,
+                                                   description, _source(request))
+        except (BusyError, StateError) as exc:
+            return _error(409, str(exc))
+        return web.json_response(listed(ref))
+
+    async def references(self, request: web.Request) -> web.Response:
+        return web.json_response(await self.runtime.references())
+
+    async def remove_references(self, request: web.Request) -> web.Response:
+        """``/v1/references/{id}``, or ``/v1/references?label=L``: every one of a label."""
+        ref_id = request.match_info.get("id")
+        label = request.query.get("label")
+        if ref_id is None and not label:
+            raise BadRequest("say which references to remove: DELETE /v1/references/{id}, or "
+                             "/v1/references?label=L")
+        removed = await self.runtime.remove_references(ref_id, None if ref_id else label)
+        return web.json_response({"removed": [listed(r) for r in removed]})
 
     async def abort(self, request: web.Request) -> web.Response:
         aborted = await self.runtime.abort()
