@@ -5,11 +5,17 @@ Topics under the robot's prefix ``P`` (``mqtt.prefix``, default ``vtzero/<hostna
     in   P/cmd/recognize  {"candidates": [...], "request_id": "..."}: start a recognition
                           (the configured camera takes the photo); request_id is optional
     in   P/cmd/abort      empty, or {"request_id": "..."}: abort the running press
-    out  P/ack            QoS 1   a command taken: {"command", "request_id", "episode"} or
-                                  {"command": "abort", "aborted"}
+    in   P/cmd/teach      {"label", "description", "presses", "append", "pause_s",
+                          "request_id"} (as POST /v1/teach): press the object and teach it
+    out  P/ack            QoS 1   a command taken: {"command", "request_id", "episode"},
+                                  {"command": "abort", "aborted"} or {"command": "teach",
+                                  "request_id", "label", "presses", "status": "running"}
     out  P/state          QoS 1, retained  press states: {"state", "episode", "t"}
     out  P/result         QoS 1   each episode once final: {"episode", "request_id",
-                                  "status", "label", "error", "topk", "description", ...}
+                                  "status", "label", "error", "topk", "description", ...};
+                                  each teaching once ended: {"command": "teach",
+                                  "request_id", "label", "status", "episodes", "references",
+                                  "error", ...} (its presses' episodes have their own)
     out  P/error          QoS 1   a command refused, and why: nothing moved
     out  P/health         QoS 1, retained  {"status": "online", ...GET /healthz} on connect
                                   and on change; "offline" as the last will and at shutdown
@@ -44,7 +50,7 @@ from edge.core.errors import BadRequest, BusyError, ConfigError, EdgeError
 from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.interfaces.contracts import Serving
-from edge.interfaces.requests import validate_candidates
+from edge.interfaces.requests import validate_candidates, validate_teach
 from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
@@ -55,6 +61,7 @@ from edge.runtime.domain import (
     StateChanged,
     VLMRefused,
 )
+from edge.runtime.teaching import TeachProgress
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +78,7 @@ RECONNECT_SPREAD = (0.8, 1.2)
 # Reading why a connection ended, after it has (the answer is already there).
 _LOSS_READ_S = 0.5
 _RECOGNIZE_FIELDS = {"candidates", "request_id"}
+_TEACH_EXTRA = frozenset({"request_id"})
 # What of the press a result carries.
 _RESULT_PRESS = PressSummary.keys("result", "message", "stop_latency_ms")
 
@@ -148,6 +156,8 @@ class MqttBridge:
         self._wakeup = asyncio.Event()
         self._requests: collections.OrderedDict[str, str | None] = collections.OrderedDict()
         self._published: collections.OrderedDict[str, None] = collections.OrderedDict()
+        # The request id of the teaching under way (one at a time), for its result.
+        self._teach_request: str | None = None
         self.connected = asyncio.Event()
         self._link = Reconnect(f"MQTT broker {cfg.host}:{cfg.port}",
                                Backoff(cfg.reconnect_base_s, cfg.reconnect_max_backoff_s,
@@ -203,7 +213,8 @@ class MqttBridge:
                          self.cfg.port, self.client_id, self.prefix)
                 try:
                     await client.subscribe([(self.topic("cmd/recognize"), 1),
-                                            (self.topic("cmd/abort"), 1)],
+                                            (self.topic("cmd/abort"), 1),
+                                            (self.topic("cmd/teach"), 1)],
                                            timeout=self.cfg.publish_timeout_s)
                     tasks = [asyncio.create_task(self._receive(client), name="mqtt-receive"),
                              asyncio.create_task(self._send(client), name="mqtt-send"),
@@ -281,6 +292,11 @@ class MqttBridge:
                     }, retain=True)
                 elif isinstance(event, Label | VLMRefused | EpisodeFinished):
                     self._result(event.episode)
+                elif (isinstance(event, TeachProgress) and event.step in ("done", "failed")
+                      and event.run is not None):
+                    request_id, self._teach_request = self._teach_request, None
+                    self._enqueue("result", {"command": "teach", "request_id": request_id,
+                                             **event.run.to_json()}, result=True)
 
     def _result(self, episode: Episode) -> None:
         """``episode``'s result, once it is final (as the event carries it: the store is
@@ -313,6 +329,8 @@ class MqttBridge:
             request_id = _request_id(body)
             if name == "recognize":
                 await self._recognize(body, request_id)
+            elif name == "teach":
+                await self._teach(body, request_id)
             elif name == "abort":
                 unknown = sorted(set(body) - {"request_id"})
                 if unknown:
@@ -344,6 +362,15 @@ class MqttBridge:
         _remember(self._requests, episode.id, request_id)
         self._enqueue("ack", {"command": "recognize", "request_id": request_id,
                               "episode": episode.id, "status": str(episode.status)})
+
+    async def _teach(self, body: dict[str, Any], request_id: str | None) -> None:
+        req = validate_teach(body, _TEACH_EXTRA)
+        run = await self.runtime.teach(req.label, req.description, req.presses, req.append,
+                                       "mqtt", pause_s=req.pause_s, wait=False)
+        self._teach_request = request_id
+        self._enqueue("ack", {"command": "teach", "request_id": request_id,
+                              "label": run.label, "presses": run.presses,
+                              "status": run.status})
 
 
 async def _read_loss(client: Any) -> None:

@@ -66,6 +66,8 @@ class TeachProgress:
     episode: str | None = None
     reference: str | None = None
     message: str | None = None
+    # The teaching as of this step (its readers need no other look at the teacher).
+    run: TeachRun | None = None
     t: float = field(default_factory=time.time)
 
     def to_json(self) -> dict[str, Any]:
@@ -233,7 +235,8 @@ class Teacher:
     def _publish(self, teaching: TeachRun, step: Step, press: int, episode: str | None = None,
                  reference: str | None = None, message: str | None = None) -> None:
         self.events.publish(TeachProgress(
-            teaching.label, step, press, teaching.presses, episode, reference, message))
+            teaching.label, step, press, teaching.presses, episode, reference, message,
+            teaching))
 
     # --- the references ------------------------------------------------------------------
     async def references(self) -> dict[str, Any]:
