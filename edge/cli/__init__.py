@@ -19,6 +19,7 @@ from edge.cli import (
     models,
     pose,
     sim,
+    teach,
 )
 from edge.cli.options import CONFIG_HELP
 from edge.core.errors import EdgeError
@@ -28,7 +29,7 @@ log = logging.getLogger(__name__)
 
 # Each adds its commands' parsers, beside their handlers; in the order of `vt-edge --help`.
 COMMAND_GROUPS = (demo, doctor, daemon, dataset, pose, models, calibrate, bench, episodes,
-                  install, sim)
+                  teach, install, sim)
 
 
 def build_parser() -> argparse.ArgumentParser:

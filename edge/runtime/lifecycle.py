@@ -84,8 +84,9 @@ STORE_RETRY_S = 1.0
 # adds segments without any press.
 RETAIN_PERIOD_S = 60.0
 # Before a teaching presses: how long of the stream its rate is measured over, against the
-# rate the class's references were pressed at (the ring holds 30 s). Long: just after a busy
-# start the emulated server caught up on late ticks for 2 s and its median read 139 Hz.
+# rate the class's references were pressed at (the ring holds 30 s). Long, and not measured
+# on a younger stream: the emulated server's first seconds after a busy start read 139 and
+# 193 frames/s for its 125 (it catches up on late ticks).
 TEACH_RATE_S = 10.0
 
 
@@ -200,9 +201,11 @@ class Runtime:
         return await self.teacher.remove(ref_id, label)
 
     def stream_rate(self) -> float | None:
-        """The tactile stream's rate over the last ``TEACH_RATE_S`` (frames/s; None before
-        two fresh frames)."""
+        """The tactile stream's rate over the last ``TEACH_RATE_S`` (frames/s); None where
+        the stream is younger (each press's own rate is checked as it is taught)."""
         now = time.monotonic()
+        if now - self.ring.oldest_time() < TEACH_RATE_S:
+            return None
         frames = self.ring.window(now - TEACH_RATE_S, now)
         return preprocess.fresh_rate(frames.recv_time, frames.sensor_time, frames.seq)
 
