@@ -1,5 +1,8 @@
 """Recognition: one press -> its analysis in the compute process -> the VLM -> a stored
-episode; and the retry of episodes whose VLM question is still due.
+episode (:class:`OneRecognition`, its stages in order: the press, the photo, the analysis,
+the question while the arm returns, the store); and the retry of episodes whose VLM
+question is still due. A press may also be kept with no question (``ask=False``: a press
+to teach from, stored ``pressed``).
 
 One press at a time (a second trigger gets :class:`BusyError` and never moves the arm). An
 episode is noted as accepted (written and fsynced) before the press runs, so a store that
@@ -23,6 +26,7 @@ from edge.core import recording
 from edge.core.backoff import backoff_s
 from edge.core.config import Config
 from edge.core.errors import (
+    BadRequest,
     BusyError,
     ComputeError,
     EdgeError,
@@ -54,7 +58,7 @@ from edge.runtime.press import PressController, PressOutcome, outcome_recording
 from edge.runtime.startcheck import needs_photo
 from edge.runtime.store import EpisodeStore, new_id
 from edge.vlm.client import VLMClient
-from edge.vlm.images import VLMImage, prepare_for_vlm
+from edge.vlm.images import VLMImage, check_image, prepare_for_vlm
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +112,10 @@ class Recognizer:
                         timeout_s: float | None, source: str, ask: bool = True) -> Episode:
         """Start a recognition: a press, its analysis and, unless ``ask`` is false (a press
         to teach from: no photo, no question), the VLM's question; the episode as it runs,
-        or with ``wait`` as stored once it ends (``pressed`` where nothing was asked)."""
+        or with ``wait`` as stored once it ends (``pressed`` where nothing was asked). An
+        uploaded ``image`` that does not decode is refused (:class:`BadRequest`) before
+        anything moves."""
+        upload = Photo(image, await self._decoded(image)) if image is not None else None
         if not self.accepting:
             raise BusyError("the daemon is shutting down; not starting a press")
         if self.refusal is not None:
@@ -129,12 +136,12 @@ class Recognizer:
             self.current = None
             self.lock.release()
             raise StoreError(f"not pressing: {exc}") from None
+        running = Episode(episode_id, Status.RUNNING, candidates, source)
         done = asyncio.get_running_loop().create_future()
-        task = self._spawn(self._recognize(episode_id, candidates, image, source, ask, done),
+        task = self._spawn(self._recognize(OneRecognition(self, running, upload, ask), done),
                            name=f"recognize {episode_id}")
         self.work.add(task)
         task.add_done_callback(self.work.discard)
-        running = Episode(episode_id, Status.RUNNING, candidates, source)
         if not wait:
             return running
         try:
@@ -143,6 +150,19 @@ class Recognizer:
             return running.with_(note=f"not finished within {timeout_s} s; poll "
                                       f"/v1/episodes/{episode_id}")
         return await self.episode(episode_id)
+
+    async def _decoded(self, image: bytes) -> VLMImage | None:
+        """An uploaded image decoded, once, in the compute process (a decoder crash on a
+        hostile file costs that process, not the daemon): prepared for the VLM where its
+        question takes one, else only checked. :class:`BadRequest` if it does not decode."""
+        limits = self.setup.vlm.image_limits()
+        try:
+            if limits is None:
+                await self.compute.run(check_image, image)
+                return None
+            return await self.compute.run(prepare_for_vlm, image, *limits)
+        except (ImageError, ComputeError) as exc:
+            raise BadRequest(f"image must be a JPEG or PNG file that decodes: {exc}") from None
 
     async def trigger_default(self, source: str) -> None:
         """A button or a signal: the configured default candidates, the camera's photo."""
@@ -165,116 +185,34 @@ class Recognizer:
             raise
 
     # --- one recognition ----------------------------------------------------------------
-    async def _recognize(self, episode_id: str, candidates: list[str], image: bytes | None,
-                         source: str, ask: bool, done: asyncio.Future) -> None:
-        t0 = time.monotonic()
-        setup = self.setup  # one configuration for the whole episode
-        asking: asyncio.Task[Episode | None] | None = None
-        photo: asyncio.Task | None = None
+    async def _recognize(self, recognition: OneRecognition, done: asyncio.Future) -> None:
+        """Run ``recognition``; a failure is kept as a failed episode. Whatever happens, the
+        press's end frees the lock, waiters are told, and the episode's end is published."""
+        started = recognition.episode
         # The episode as this recognition leaves it (running: cancelled before it was kept).
-        final = Episode(episode_id, Status.RUNNING, candidates, source)
+        final = started
         try:
-            self.events.publish(EpisodeStarted(episode_id))
-            loop = asyncio.get_running_loop()
-            window: asyncio.Future[PressOutcome] = loop.create_future()
-            checked: asyncio.Future[None] = loop.create_future()
-            pressing = self._start_press(window, checked)
-            # Taken (unless given) and prepared for the VLM while the arm moves.
-            photo = (asyncio.create_task(self._photo(setup, episode_id, image, checked),
-                                         name="photo") if ask else None)
-            try:
-                # The press as of its complete window (it goes on: the gripper opens, the arm
-                # returns), or as it ended without one.
-                await asyncio.wait({window, pressing}, return_when=asyncio.FIRST_COMPLETED)
-                outcome = window.result() if window.done() else pressing.result()
-                episode = Episode(episode_id, Status.RUNNING, candidates, source,
-                                  software_version=__version__, x_th=setup.cfg.press.x_th,
-                                  vlm_mode=setup.vlm.mode)
-                episode, files = await self._analyse(setup, episode, outcome)
-                if not ask and episode.status == Status.PENDING:
-                    episode = episode.with_(status=Status.PRESSED)
-                image, prepared, camera_error = (await photo if photo is not None
-                                                 else (None, None, None))
-                if image is not None:
-                    kind = ".png" if image.startswith(b"\x89PNG") else ".jpg"
-                    files["image" + kind] = image
-                if (camera_error is not None and episode.status == Status.PENDING
-                        and needs_photo(setup.vlm.mode)):
-                    # The VLM would refuse the question without its photo: the camera is why.
-                    episode = episode.with_(status=Status.CAMERA_ERROR, error=camera_error)
-                stored: asyncio.Future[Episode] = loop.create_future()
-                if episode.status == Status.PENDING:
-                    # Asked while the arm returns; the answer is stored once the episode is.
-                    asking = asyncio.create_task(self._ask(
-                        episode, prepared if prepared is not None else image, setup.vlm,
-                        stored), name=f"ask {episode_id}")
-                outcome = await pressing
-            except asyncio.CancelledError:
-                pressing.cancel()
-                raise
-            # The whole recording (the window's margins came in after the question left).
-            files.update(await self._press_file(setup, outcome))
-            self.metrics.observe_press(outcome)
-            episode = episode.with_(press=outcome.summary(),
-                                    timings={"press_s": time.monotonic() - t0,
-                                             **episode.timings})
-            if episode.status in (Status.PENDING, Status.PRESSED) and not outcome.contact:
-                # The return failed after the window: said on the episode, as without a label.
-                episode = episode.with_(status=Status.FAILED, error=outcome.message)
-            if asking is None:
-                await asyncio.to_thread(self.store.create, episode, files)
-                if episode.status == Status.PRESSED:
-                    self.events.publish(TactileResult(episode))
-                final = episode
-                return
-            # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before
-            # the write completes loses the press, as it would have a moment earlier.
-            created = loop.run_in_executor(None, self.store.create, episode, files)
-            created.add_done_callback(self._tactile_event(episode))
-            await created
-            stored.set_result(episode)
-            final = await asking or episode
+            final = await recognition.run()
         except EdgeError as exc:
-            log.error("episode %s failed: %s", episode_id, exc)
-            final = await self._keep_failure(episode_id, candidates, source, exc)
+            log.error("episode %s failed: %s", started.id, exc)
+            final = await self._keep_failure(started, exc)
         except Exception as exc:
-            log.exception("episode %s failed", episode_id)
-            final = await self._keep_failure(episode_id, candidates, source, exc)
+            log.exception("episode %s failed", started.id)
+            final = await self._keep_failure(started, exc)
         finally:
-            if photo is not None and not photo.done():
-                photo.cancel()  # the episode failed before it needed the photo
-            if asking is not None and not asking.done():
-                asking.cancel()  # its episode was never stored
-            if self.current == episode_id:
+            recognition.cancel_leftovers()
+            if self.current == started.id:
                 self.current = None
             if not done.done():
                 done.set_result(None)
             self.events.publish(EpisodeFinished(final))
 
-    def _start_press(self, window: asyncio.Future[PressOutcome],
-                     checked: asyncio.Future[None]) -> asyncio.Task:
-        """The press as a task that releases the lock once it has ended: the arm is back
-        (or left where it stands), whatever the recognition does meanwhile. ``checked``
-        is resolved by its motor check, or by its end where it never got that far."""
-        try:
-            pressing = asyncio.create_task(self.press.run(window, checked), name="press")
-        except BaseException:
-            self.lock.release()
-            raise
-
-        def ended(_: asyncio.Task) -> None:
-            self.lock.release()
-            if not checked.done():
-                checked.set_result(None)
-
-        pressing.add_done_callback(ended)
-        return pressing
-
-    async def _keep_failure(self, episode_id: str, candidates: list[str], source: str,
-                            exc: Exception) -> Episode:
-        """The failed episode, stored if it can be (else answered for from memory)."""
+    async def _keep_failure(self, started: Episode, exc: Exception) -> Episode:
+        """The ``started`` episode failed with ``exc``: stored if it can be (else answered
+        for from memory)."""
+        episode_id = started.id
         error = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
-        failed = Episode(episode_id, Status.FAILED, candidates, source, error=error)
+        failed = started.with_(status=Status.FAILED, error=error)
         try:
             await asyncio.to_thread(self.store.create, failed, {})
         except StoreError as store_exc:
@@ -289,85 +227,9 @@ class Recognizer:
             log.exception("episode %s: the failure could not be stored", episode_id)
         return failed
 
-    async def _photo(self, setup: Recognition, episode_id: str, image: bytes | None,
-                     checked: asyncio.Future[None]
-                     ) -> tuple[bytes | None, VLMImage | None, str | None]:
-        """(the photo, its form for the VLM, why the camera gave none): the camera's photo
-        unless one was given, prepared in the compute process while the press runs, so
-        that the question leaves with no image work once the window is complete."""
-        # Once the press has checked the motors (or ended): the photo's work (a capture, an
-        # encode, a megabyte handed to the compute process) would otherwise hold the host
-        # while the check's round trips wait for it, and the press would start later.
-        await asyncio.shield(checked)
-        if image is None and self.camera is not None:
-            try:
-                image = await self.camera.capture()
-            except (EdgeError, OSError) as exc:
-                why = " ".join(str(exc).split()) or type(exc).__name__
-                log.warning("episode %s: camera failed: %s", episode_id, why)
-                return None, None, why
-        limits = setup.vlm.image_limits()
-        if image is None or limits is None:
-            return image, None, None
-        try:
-            # What the VLM client would run itself (its offload is the compute process).
-            prepared = await self.compute.run(prepare_for_vlm, image, *limits)
-        except (ComputeError, ImageError) as exc:
-            # Left to the client, which refuses a photo that cannot be sent.
-            log.warning("episode %s: the photo was not prepared ahead: %s", episode_id, exc)
-            return image, None, None
-        return image, prepared, None
-
-    async def _analyse(self, setup: Recognition, episode: Episode, outcome: PressOutcome
-                       ) -> tuple[Episode, dict[str, bytes]]:
-        """The episode (``failed``, or ``pending`` for the VLM) and the model's files: one
-        round trip to the compute process, on the press's model window."""
-        if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
-            return (episode.with_(status=Status.FAILED,
-                                  error=outcome.message or outcome.result), {})
-        t = time.monotonic()
-        try:
-            rec = outcome_recording(outcome, setup.cfg)
-            analysis: Analysis = await self.compute.run(analyse_press, setup.model, rec)
-        except EdgeError as exc:
-            # E.g. the stream died before the window after the stop was complete: the press
-            # is still kept, raw, with why it could not be recognised.
-            log.error("episode %s: press not usable for recognition: %s", episode.id, exc)
-            why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
-                   else "its tactile window is unusable")
-            return (episode.with_(status=Status.FAILED,
-                                  error=f"the press worked but {why}: {exc}"), {})
-        episode = episode.with_(
-            status=Status.PENDING, code=analysis.code, z=analysis.z,
-            topk=[Neighbour(label, d) for label, d in analysis.topk],
-            description=analysis.description,
-            timings={**episode.timings, "encode_s": time.monotonic() - t})
-        return episode, {"model_io.npz": analysis.model_io_npz}
-
-    async def _press_file(self, setup: Recognition, outcome: PressOutcome
-                          ) -> dict[str, bytes]:
-        """The press as a recording file, when it has a window (a compressed write: CPU
-        work for the compute process, or a thread when the process cannot)."""
-        try:
-            rec = outcome_recording(outcome, setup.cfg)
-        except EdgeError:
-            return {}  # no stop, no window: nothing was recorded
-        try:
-            data = await self.compute.run(recording.to_bytes, rec)
-        except ComputeError:
-            data = await asyncio.to_thread(recording.to_bytes, rec)
-        return {"press.press.npz": data}
-
-    def _tactile_event(self, episode: Episode) -> Callable[[asyncio.Future], None]:
-        """Publishes the tactile result once the episode is stored (a done-callback)."""
-        def done(stored: asyncio.Future) -> None:
-            if not stored.cancelled() and stored.exception() is None:
-                self.events.publish(TactileResult(episode))
-        return done
-
     # --- the VLM ------------------------------------------------------------------------
-    async def _ask(self, episode: Episode, image: bytes | VLMImage | None, vlm: VLMClient,
-                   stored: asyncio.Future[Episode] | None = None) -> Episode | None:
+    async def ask(self, episode: Episode, image: bytes | VLMImage | None, vlm: VLMClient,
+                  stored: asyncio.Future[Episode] | None = None) -> Episode | None:
         """Ask about ``episode``; ``stored`` (the episode as first written, once it is) is
         awaited before any update. Never two questions about one episode at once. The
         episode as stored with the answer (None if it was being asked about already)."""
@@ -478,5 +340,219 @@ class Recognizer:
             with contextlib.suppress(NotFoundError):
                 path = self.store.file(episode.id, name)
                 image = await asyncio.to_thread(path.read_bytes)
-        await self._ask(episode, image, self.setup.vlm)
+        await self.ask(episode, image, self.setup.vlm)
 
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A recognition's photo: as taken or uploaded (kept with the episode), its form for the
+    VLM where it was prepared, and why the camera gave none."""
+
+    data: bytes | None
+    prepared: VLMImage | None = None
+    error: str | None = None
+
+    @property
+    def for_vlm(self) -> bytes | VLMImage | None:
+        """What the question sends: the prepared form, else the bytes (the client prepares
+        them itself, or refuses a photo that cannot be sent)."""
+        return self.prepared if self.prepared is not None else self.data
+
+
+NO_PHOTO = Photo(None)
+
+
+class OneRecognition:
+    """One recognition: its stages in the order they run (:meth:`run`), the press going on
+    beside the others. It holds the configuration in force when it began (a reload swaps
+    the recognizer's between presses)."""
+
+    def __init__(self, recognizer: Recognizer, episode: Episode, upload: Photo | None,
+                 ask: bool) -> None:
+        self.recognizer = recognizer
+        self.setup = recognizer.setup
+        self.episode = episode  # as it began (running)
+        self.upload = upload  # decoded (and prepared) before anything moved
+        self.ask = ask
+        self.t0 = time.monotonic()
+        loop = asyncio.get_running_loop()
+        self.window: asyncio.Future[PressOutcome] = loop.create_future()
+        self.checked: asyncio.Future[None] = loop.create_future()
+        self.stored: asyncio.Future[Episode] = loop.create_future()
+        self.photo: asyncio.Task[Photo] | None = None
+        self.asking: asyncio.Task[Episode | None] | None = None
+
+    async def run(self) -> Episode:
+        """The stages in order; the episode as stored (with its answer, if asked)."""
+        self.recognizer.events.publish(EpisodeStarted(self.episode.id))
+        pressing = self.press()  # frees the lock once the arm is back
+        try:
+            self.photo = self.take_photo()  # once the motors are checked
+            outcome = await self.window_complete(pressing)  # the arm still to return
+            episode, files = await self.analysis(outcome)
+            photo = await self.photo if self.photo is not None else NO_PHOTO
+            episode = self.keep_photo(episode, photo, files)
+            self.asking = self.question(episode, photo)  # leaves while the arm returns
+            outcome = await pressing
+        except asyncio.CancelledError:
+            pressing.cancel()
+            raise
+        episode = await self.store(episode, outcome, files)
+        return (await self.asking or episode) if self.asking is not None else episode
+
+    def cancel_leftovers(self) -> None:
+        """After a failure: the photo it never needed, the question about an episode that
+        was never stored."""
+        for task in (self.photo, self.asking):
+            if task is not None and not task.done():
+                task.cancel()
+
+    # --- the stages, in order ------------------------------------------------------------
+    def press(self) -> asyncio.Task[PressOutcome]:
+        """The press as a task that releases the lock once it has ended: the arm is back
+        (or left where it stands), whatever the recognition does meanwhile. ``checked``
+        is resolved by its motor check, or by its end where it never got that far."""
+        recognizer, checked = self.recognizer, self.checked
+        try:
+            pressing = asyncio.create_task(recognizer.press.run(self.window, checked),
+                                           name="press")
+        except BaseException:
+            recognizer.lock.release()
+            raise
+
+        def ended(_: asyncio.Task) -> None:
+            recognizer.lock.release()
+            if not checked.done():
+                checked.set_result(None)
+
+        pressing.add_done_callback(ended)
+        return pressing
+
+    def take_photo(self) -> asyncio.Task[Photo] | None:
+        """The photo, taken and prepared while the press runs; none for a press with no
+        question."""
+        if not self.ask:
+            return None
+        return asyncio.create_task(self._photo(), name="photo")
+
+    async def _photo(self) -> Photo:
+        """The upload as decoded, else the camera's photo, prepared for the VLM in the
+        compute process, so that the question leaves with no image work once the window is
+        complete."""
+        if self.upload is not None:
+            return self.upload
+        # Once the press has checked the motors (or ended): the photo's work (a capture, an
+        # encode, a megabyte handed to the compute process) would otherwise hold the host
+        # while the check's round trips wait for it, and the press would start later.
+        await asyncio.shield(self.checked)
+        camera, episode_id = self.recognizer.camera, self.episode.id
+        if camera is None:
+            return NO_PHOTO
+        try:
+            image = await camera.capture()
+        except (EdgeError, OSError) as exc:
+            why = " ".join(str(exc).split()) or type(exc).__name__
+            log.warning("episode %s: camera failed: %s", episode_id, why)
+            return Photo(None, error=why)
+        limits = self.setup.vlm.image_limits()
+        if limits is None:
+            return Photo(image)
+        try:
+            # What the VLM client would run itself (its offload is the compute process).
+            prepared = await self.recognizer.compute.run(prepare_for_vlm, image, *limits)
+        except (ComputeError, ImageError) as exc:
+            # Left to the client, which refuses a photo that cannot be sent.
+            log.warning("episode %s: the photo was not prepared ahead: %s", episode_id, exc)
+            return Photo(image)
+        return Photo(image, prepared)
+
+    async def window_complete(self, pressing: asyncio.Task[PressOutcome]) -> PressOutcome:
+        """The press as of its complete window (it goes on: the gripper opens, the arm
+        returns), or as it ended without one."""
+        await asyncio.wait({self.window, pressing}, return_when=asyncio.FIRST_COMPLETED)
+        return self.window.result() if self.window.done() else pressing.result()
+
+    async def analysis(self, outcome: PressOutcome) -> tuple[Episode, dict[str, bytes]]:
+        """The episode (``failed``; ``pending`` for the VLM, or ``pressed`` with no
+        question) and the model's files: one round trip to the compute process, on the
+        press's model window."""
+        setup = self.setup
+        episode = self.episode.with_(software_version=__version__, x_th=setup.cfg.press.x_th,
+                                     vlm_mode=setup.vlm.mode)
+        if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
+            return (episode.with_(status=Status.FAILED,
+                                  error=outcome.message or outcome.result), {})
+        t = time.monotonic()
+        try:
+            rec = outcome_recording(outcome, setup.cfg)
+            analysis: Analysis = await self.recognizer.compute.run(analyse_press,
+                                                                   setup.model, rec)
+        except EdgeError as exc:
+            # E.g. the stream died before the window after the stop was complete: the press
+            # is still kept, raw, with why it could not be recognised.
+            log.error("episode %s: press not usable for recognition: %s", episode.id, exc)
+            why = ("its analysis failed" if isinstance(exc, ComputeError | ModelError)
+                   else "its tactile window is unusable")
+            return (episode.with_(status=Status.FAILED,
+                                  error=f"the press worked but {why}: {exc}"), {})
+        episode = episode.with_(
+            status=Status.PENDING if self.ask else Status.PRESSED, code=analysis.code,
+            z=analysis.z, topk=[Neighbour(label, d) for label, d in analysis.topk],
+            description=analysis.description,
+            timings={**episode.timings, "encode_s": time.monotonic() - t})
+        return episode, {"model_io.npz": analysis.model_io_npz}
+
+    def keep_photo(self, episode: Episode, photo: Photo, files: dict[str, bytes]) -> Episode:
+        """The photo among the episode's files; ``camera_error`` where the question needs
+        the photo the camera did not give (the VLM would refuse it)."""
+        if photo.data is not None:
+            kind = ".png" if photo.data.startswith(b"\x89PNG") else ".jpg"
+            files["image" + kind] = photo.data
+        if (photo.error is not None and episode.status == Status.PENDING
+                and needs_photo(self.setup.vlm.mode)):
+            return episode.with_(status=Status.CAMERA_ERROR, error=photo.error)
+        return episode
+
+    def question(self, episode: Episode, photo: Photo) -> asyncio.Task[Episode | None] | None:
+        """The VLM asked at once about a ``pending`` episode; its answer is stored once the
+        episode is (:attr:`stored`)."""
+        if episode.status != Status.PENDING:
+            return None
+        return asyncio.create_task(
+            self.recognizer.ask(episode, photo.for_vlm, self.setup.vlm, self.stored),
+            name=f"ask {episode.id}")
+
+    async def store(self, episode: Episode, outcome: PressOutcome, files: dict[str, bytes]
+                    ) -> Episode:
+        """The episode with its whole press (the window's margins came in after the
+        question left), written; its tactile result published."""
+        recognizer = self.recognizer
+        files.update(await self._press_file(outcome))
+        recognizer.metrics.observe_press(outcome)
+        episode = episode.with_(press=outcome.summary(),
+                                timings={"press_s": time.monotonic() - self.t0,
+                                         **episode.timings})
+        if episode.status in (Status.PENDING, Status.PRESSED) and not outcome.contact:
+            # The return failed after the window: said on the episode, as without a label.
+            episode = episode.with_(status=Status.FAILED, error=outcome.message)
+        # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before
+        # the write completes loses the press, as it would have a moment earlier.
+        await asyncio.to_thread(recognizer.store.create, episode, files)
+        if episode.topk is not None:
+            recognizer.events.publish(TactileResult(episode))
+        self.stored.set_result(episode)
+        return episode
+
+    async def _press_file(self, outcome: PressOutcome) -> dict[str, bytes]:
+        """The press as a recording file, when it has a window (a compressed write: CPU
+        work for the compute process, or a thread when the process cannot)."""
+        try:
+            rec = outcome_recording(outcome, self.setup.cfg)
+        except EdgeError:
+            return {}  # no stop, no window: nothing was recorded
+        try:
+            data = await self.recognizer.compute.run(recording.to_bytes, rec)
+        except ComputeError:
+            data = await asyncio.to_thread(recording.to_bytes, rec)
+        return {"press.press.npz": data}

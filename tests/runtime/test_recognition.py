@@ -11,6 +11,7 @@ import pytest
 
 from edge.core.config import Config
 from edge.core.errors import (
+    BadRequest,
     BusyError,
     ComputeError,
     StoreError,
@@ -172,11 +173,25 @@ async def test_the_photo_waits_for_the_press_to_check_the_motors(tmp_path, uploa
     running = asyncio.create_task(rec.recognize(CANDIDATES, image, True, 10, "api"))
     for _ in range(20):
         await asyncio.sleep(0)
-    assert camera.captures == 0 and compute.calls == [] and not running.done()
+    # An upload was decoded (once, for the VLM) before anything moved; nothing else runs.
+    assert camera.captures == 0 and not running.done()
+    assert compute.calls == (["prepare_for_vlm"] if uploaded else [])
     press.check_gate.set()
     episode = await running
-    assert camera.captures == (0 if uploaded else 1) and "prepare_for_vlm" in compute.calls
+    assert camera.captures == (0 if uploaded else 1)
+    assert compute.calls.count("prepare_for_vlm") == 1
     assert episode.status == Status.DONE
+
+
+async def test_an_upload_that_does_not_decode_is_refused_before_anything_moves(tmp_path):
+    press = ScriptedPress(pressed())
+    compute = InProcessCompute()
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM([]), compute)
+    broken = image_bytes(64, 48)[:40]  # a JPEG's header, its pixels cut off
+    with pytest.raises(BadRequest, match="image must be a JPEG or PNG file that decodes"):
+        await rec.recognize(CANDIDATES, broken, True, 10, "api")
+    assert compute.calls == ["prepare_for_vlm"] and len(press.outcomes) == 1
+    assert rec.store.list() == [] and not rec.lock.locked()
 
 
 async def test_a_press_failing_before_its_check_still_keeps_the_photo(tmp_path):
