@@ -33,19 +33,16 @@ from edge.core.config import ApiConfig
 from edge.core.errors import (
     BadRequest,
     BusyError,
-    ComputeError,
     ConfigError,
     EdgeError,
-    ImageError,
     NotFoundError,
     StateError,
 )
-from edge.interfaces.contracts import Recognitions, Serving
+from edge.interfaces.contracts import Serving
 from edge.interfaces.http.webui import UI_HEADER, OperatorPage
 from edge.interfaces.requests import validate_candidates, validate_taught, validate_teach
 from edge.runtime.references import Source
 from edge.runtime.teaching import listed
-from edge.vlm.images import check_image
 
 log = logging.getLogger(__name__)
 # Bound beyond loopback, the API asks for a bearer token at least this long.
@@ -133,17 +130,6 @@ def validate_image(data: bytes, max_bytes: int) -> bytes:
         raise BadRequest(f"image has {len(data)} bytes (at most {max_bytes})")
     if not data.startswith(_IMAGE_MAGIC):
         raise BadRequest("image must be a JPEG or PNG file")
-    return data
-
-
-async def decodable_image(runtime: Recognitions, data: bytes) -> bytes:
-    """The image, if it decodes: a broken one must be refused before the arm moves, not
-    found out by the VLM call after the press. Decoded in the compute process: an image
-    that crashes the decoder costs that process, not the daemon."""
-    try:
-        await runtime.run_cpu(check_image, data)
-    except (ImageError, ComputeError) as exc:
-        raise BadRequest(f"image must be a JPEG or PNG file that decodes: {exc}") from None
     return data
 
 
@@ -287,8 +273,8 @@ class Api:
                                     or not 0 < timeout <= 600):
             raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
         candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
-        if image is not None:
-            image = await decodable_image(self.runtime, image)
+        # (Decoded once, by the recognizer, before the arm moves: one that does not decode
+        # is refused there with a BadRequest.)
         return _Parsed(candidates, image, wait, timeout)
 
     async def _read_multipart(self, request: web.Request) -> tuple[dict[str, Any],
