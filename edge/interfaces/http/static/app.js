@@ -22,10 +22,11 @@ function el(tag, attrs = {}, ...children) {
   return node;
 }
 
-async function call(path, body) {
+async function call(path, body, method) {
   const opts = { credentials: "same-origin", headers: { ...UI } };
+  if (method) opts.method = method;
   if (body !== undefined) {
-    opts.method = "POST";
+    opts.method = method || "POST";
     opts.headers["Content-Type"] = "application/json";
     opts.body = JSON.stringify(body);
   }
@@ -74,6 +75,7 @@ function followEvents() {
   for (const kind of ["episode", "tactile", "result"]) {
     events.addEventListener(kind, () => refreshEpisodes());
   }
+  events.addEventListener("teach", (e) => onTeach(JSON.parse(e.data)));
 }
 
 // --- the live view ----------------------------------------------------------------------
@@ -270,7 +272,8 @@ function card(ep) {
        el("span", { class: "id", text: ep.id }), el("span", { class: "muted", text: when })),
     photo,
     el("div", {}, result, el("div", { class: "muted", text: "touch: similar to" }), topk, timings),
-    el("div", { class: "info" }, ep.trace ? canvas : el("div", { class: "muted", text: "no press recording" })));
+    el("div", { class: "info" }, ep.trace ? canvas : el("div", { class: "muted", text: "no press recording" }),
+       thisWas(ep)));
   if (ep.trace) traceOf(ep).then((tr) => tr && drawTrace(canvas, tr));
   return node;
 }
@@ -299,11 +302,85 @@ async function refreshEpisodes() {
   }
 }
 
+// --- teaching ---------------------------------------------------------------------------
+// POST /v1/teach (the robot presses the object, asking between presses to move it), the
+// progress from the "teach" events, GET/DELETE /v1/references, and "this was..." on each
+// episode (POST /v1/episodes/{id}/teach).
+function sayTeach(text, kind = "muted") {
+  const m = $("teach-msg");
+  m.textContent = text;
+  m.className = kind;
+}
+
+async function teach(ev) {
+  ev.preventDefault();
+  const body = { label: $("teach-label").value.trim(), presses: Number($("teach-presses").value),
+                 append: $("teach-append").checked };
+  const description = $("teach-description").value.trim();
+  if (description) body.description = description;
+  const { status, data } = await call("/v1/teach", body);
+  if (status === 202) sayTeach(`teaching ${data.label}: ${data.presses} press(es)`);
+  else sayTeach(`refused (${status}): ${data ? data.error : "no answer"}`, "error");
+}
+
+function onTeach(e) {
+  if (e.step === "pressing") sayTeach(`${e.label}: press ${e.press} of ${e.presses}…`);
+  else if (e.step === "move") sayTeach(e.message, "move");
+  else if (e.step === "taught") sayTeach(`${e.label}: press ${e.press} of ${e.presses} taught (reference ${e.reference})`);
+  else if (e.step === "done") sayTeach(`taught ${e.label}: ${e.presses} presses`, "ok");
+  else if (e.step === "failed") sayTeach(`teaching ${e.label} stopped: ${e.message}`, "error");
+  if (e.step !== "pressing" && e.step !== "move") refreshReferences();
+}
+
+async function refreshReferences() {
+  const { status, data } = await call("/v1/references");
+  if (status !== 200) {
+    $("references-note").textContent = data ? data.error : `HTTP ${status}`;
+    return;
+  }
+  $("references").replaceChildren(...data.references.map((r) => {
+    const remove = el("button", { type: "button", class: "danger", text: "remove",
+                                  title: `DELETE /v1/references/${r.id}` });
+    remove.addEventListener("click", async () => {
+      const answer = await call(`/v1/references/${encodeURIComponent(r.id)}`, undefined, "DELETE");
+      if (answer.status !== 200) sayTeach(`not removed: ${answer.data ? answer.data.error : answer.status}`, "error");
+      refreshReferences();
+    });
+    return el("li", { class: r.stale ? "stale" : "", "data-id": r.id },
+      el("b", { text: r.label }), el("span", { class: "desc",
+        text: `${r.description} · ${r.source}${r.episode ? ` · episode ${r.episode}` : ""}` +
+          (r.stale ? " · another model embedded it: not used" : "") }), remove);
+  }));
+  $("references-note").textContent = data.references.length ? `${data.references.length}` : "none yet";
+}
+
+// "This was...": the episode's press taught as what its object really was.
+function thisWas(ep) {
+  if (!ep.trace || ep.status === "running" || ep.status === "pending") return null;
+  const label = el("input", { placeholder: "label", "aria-label": "what it was" });
+  const description = el("input", { placeholder: "description (a new label)", "aria-label": "its description" });
+  const button = el("button", { type: "button", text: "teach" });
+  const msg = el("span", { class: "muted" });
+  button.addEventListener("click", async () => {
+    const body = { label: label.value.trim() };
+    if (description.value.trim()) body.description = description.value.trim();
+    const { status, data } = await call(`/v1/episodes/${encodeURIComponent(ep.id)}/teach`, body);
+    msg.textContent = status === 200 ? `taught as ${data.label} (reference ${data.id})`
+      : `refused (${status}): ${data ? data.error : "no answer"}`;
+    msg.className = status === 200 ? "muted" : "error";
+    if (status === 200) refreshReferences();
+  });
+  return el("details", { class: "this-was" }, el("summary", { text: "this was…" }),
+            label, description, button, el("div", {}, msg));
+}
+
 // --- start ------------------------------------------------------------------------------
 $("candidates").value = localStorage.getItem("vtzero.candidates") || "";
 $("recognize-form").addEventListener("submit", recognize);
 $("abort").addEventListener("click", abort);
 $("tare").addEventListener("click", () => call("/v1/tactile/tare", {}));
+$("teach-form").addEventListener("submit", teach);
+refreshReferences();
 pollHealth();
 setInterval(pollHealth, 1000);
 followEvents();
