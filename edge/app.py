@@ -32,6 +32,7 @@ from edge.runtime.devices import close_devices, enable_torque, open_devices
 from edge.runtime.lifecycle import ControllerFactory, Runtime
 from edge.runtime.press import PressController
 from edge.runtime.realtime import Realtime, unpin_thread
+from edge.runtime.references import references_dir
 from edge.runtime.startcheck import check_devices, check_model
 from edge.runtime.store import EpisodeStore
 from edge.runtime.systemd import Notifier
@@ -69,9 +70,12 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
     return loop
 
 
-def model_ref(cfg: Config) -> ModelRef:
-    """The configured model by its manifest; the compute process loads and verifies it."""
-    return _model_ref(cfg.runtime.models_dir)
+def model_ref(cfg: Config, state_dir: str | None = None) -> ModelRef:
+    """The configured model by its manifest, with the references taught beside it in the
+    state directory (``state_dir``, else the configuration's: a reload keeps the running
+    one); the compute process loads and verifies both."""
+    return _model_ref(cfg.runtime.models_dir,
+                      references_dir(state_dir or cfg.runtime.state_dir))
 
 
 def vlm_config(cfg: Config):
@@ -177,7 +181,7 @@ async def assemble(cfg: Config, config_path: str | None = None, *,
 
         def reload() -> tuple[Config, ModelRef, Any]:
             new = load_config(config_path) if config_path else cfg
-            new_model = model_ref(new)
+            new_model = model_ref(new, cfg.runtime.state_dir)
             check_model(cfg.sensor, new_model)  # the pads stay the ones opened at start
             _warn_x_th(new, new_model)
             return new, new_model, make_vlm(new, compute)

@@ -234,6 +234,12 @@ class Episode:
     z: list[float] | None = None
     topk: list[Neighbour] | None = None
     description: str | None = None
+    # The nearest reference's distance as a percentile of the database's own leave-one-out
+    # nearest-neighbour distances (0: closer than every reference's nearest other press,
+    # 100: farther than all; None for a database of one press), and whether it is at or
+    # past [runtime] unfamiliar_percentile: a touch like none the robot knows.
+    familiarity: float | None = None
+    unfamiliar: bool | None = None
     # The VLM's part.
     attempts: int = 0
     next_retry_at: float = 0.0
@@ -381,7 +387,9 @@ class TactileResult:
     def to_json(self) -> dict[str, Any]:
         return {"t": self.t, "type": self.kind, "episode": self.episode.id,
                 "description": self.episode.description,
-                "topk": [n.to_json() for n in self.episode.topk or ()]}
+                "topk": [n.to_json() for n in self.episode.topk or ()],
+                "familiarity": self.episode.familiarity,
+                "unfamiliar": self.episode.unfamiliar}
 
 
 @dataclass(frozen=True)

@@ -47,11 +47,20 @@ class Metrics:
         self.vlm_latency = Histogram((0.25, 0.5, 1, 2, 5, 10, 30, 60))
         # Answers by the structured-output mode that answered.
         self.vlm_answers: dict[str, int] = {}
+        # Analysed presses' familiarity (a percentile: edge.core.model.Familiarity), and
+        # those at or past [runtime] unfamiliar_percentile.
+        self.familiarity = Histogram((5, 25, 50, 75, 90, 95, 99, 100))
+        self.unfamiliar = 0
 
     def observe_press(self, outcome: PressOutcome) -> None:
         self.presses[outcome.result] = self.presses.get(outcome.result, 0) + 1
         if outcome.stop_latency_s is not None:
             self.stop_latency.observe(outcome.stop_latency_s)
+
+    def observe_familiarity(self, familiarity: float | None, unfamiliar: bool) -> None:
+        if familiarity is not None:
+            self.familiarity.observe(familiarity)
+        self.unfamiliar += unfamiliar
 
     def observe_vlm(self, latency_s: float, structured_output: str | None = None) -> None:
         self.vlm_latency.observe(latency_s)
@@ -74,6 +83,15 @@ class Metrics:
             "vtzero_stop_latency_seconds", "Frame over x_th received to stop packet written.")
         lines += self.vlm_latency.render("vtzero_vlm_latency_seconds",
                                          "Duration of successful VLM calls.")
+        lines += self.familiarity.render(
+            "vtzero_familiarity_percentile", "Analysed presses' nearest-reference distance as "
+            "a percentile of the database's own leave-one-out nearest-neighbour distances.")
+        lines += [
+            "# HELP vtzero_unfamiliar_presses_total Analysed presses at or past [runtime] "
+            "unfamiliar_percentile (like no reference).",
+            "# TYPE vtzero_unfamiliar_presses_total counter",
+            f"vtzero_unfamiliar_presses_total {self.unfamiliar}",
+        ]
         lines += [
             "# HELP vtzero_vlm_errors_total VLM calls that failed and were left pending.",
             "# TYPE vtzero_vlm_errors_total counter",

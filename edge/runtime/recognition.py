@@ -486,8 +486,8 @@ class OneRecognition:
         t = time.monotonic()
         try:
             rec = outcome_recording(outcome, setup.cfg)
-            analysis: Analysis = await self.recognizer.compute.run(analyse_press,
-                                                                   setup.model, rec)
+            analysis: Analysis = await self.recognizer.compute.run(
+                analyse_press, setup.model, rec, setup.cfg.runtime.unfamiliar_percentile)
         except EdgeError as exc:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
@@ -499,8 +499,10 @@ class OneRecognition:
         episode = episode.with_(
             status=Status.PENDING if self.ask else Status.PRESSED, code=analysis.code,
             z=analysis.z, topk=[Neighbour(label, d) for label, d in analysis.topk],
-            description=analysis.description,
+            description=analysis.description, familiarity=analysis.familiarity,
+            unfamiliar=analysis.unfamiliar,
             timings={**episode.timings, "encode_s": time.monotonic() - t})
+        self.recognizer.metrics.observe_familiarity(analysis.familiarity, analysis.unfamiliar)
         return episode, {"model_io.npz": analysis.model_io_npz}
 
     def keep_photo(self, episode: Episode, photo: Photo, files: dict[str, bytes]) -> Episode:

@@ -180,3 +180,28 @@ def _gone(pid: int) -> bool:
             return f.read().rpartition(")")[2].split()[0] == "Z"
     except OSError:
         return True
+
+
+async def test_the_daemon_looks_a_press_up_with_the_references_taught_in_its_state_dir(
+        tmp_path):
+    from edge.app import model_ref as daemon_model_ref
+    from edge.core.config import Config
+    from edge.runtime.compute import teach_press
+    from edge.runtime.references import references_dir
+
+    cfg = Config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, models_dir=str(MODELS),
+                                       state_dir=str(tmp_path / "state")))
+    ref = daemon_model_ref(cfg)
+    assert ref.references == references_dir(tmp_path / "state").resolve()
+    # A reload reads the new file's model but keeps the running state directory.
+    moved = replace(cfg, runtime=replace(cfg.runtime, state_dir=str(tmp_path / "other")))
+    assert daemon_model_ref(moved, cfg.runtime.state_dir).references == ref.references
+    new = "boiled_kiri_mochi"  # a FoodReplica object the shipped model has no class for
+    before = analyse_press(ref, replace(recording_of(new, 17), label="unknown"))
+    teach_press(ref, replace(recording_of(new, 1), label="unknown"), new,
+                "boiled kiri mochi (a rice cake)", "api")
+    after = analyse_press(ref, replace(recording_of(new, 17), label="unknown"))
+    print("before", before.topk, before.familiarity, "after", after.topk, after.familiarity)
+    assert new not in dict(before.topk) and new in dict(after.topk)
+    assert after.references and not before.references

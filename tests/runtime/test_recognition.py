@@ -351,3 +351,28 @@ async def test_a_press_to_teach_from_whose_arm_did_not_return_is_failed(tmp_path
     episode = await rec.episode(running.id)
     assert episode.status == Status.FAILED and episode.error == "the arm did not return"
     assert episode.topk  # the analysis is kept
+
+
+async def test_every_analysed_press_carries_its_familiarity_and_a_reload_moves_the_flag(
+        tmp_path):
+    press = ScriptedPress(pressed(), pressed())
+    vlm = ScriptedVLM(["macaron", "macaron"])
+    rec, events = recognizer(tmp_path, press, vlm)
+    with events.subscribe(Hello(PressState.IDLE, None)) as sub:
+        first = await rec.recognize(CANDIDATES, None, True, 10, "api")
+        seen = await drain(sub)
+    print("familiarity", first.familiarity)
+    # A macaron, unlike every reference's nearest other press more than most (the shipped
+    # database): familiar at the default 95th percentile.
+    assert 50 < first.familiarity < 95 and first.unfamiliar is False
+    tactile = next(e for e in seen if e["type"] == "tactile")
+    assert tactile["familiarity"] == first.familiarity and tactile["unfamiliar"] is False
+    # As a reload swaps it: [runtime] unfamiliar_percentile = 50 from the next press on.
+    cfg = Config()
+    cfg = replace(cfg, runtime=replace(cfg.runtime, unfamiliar_percentile=50.0))
+    rec.setup = Recognition(cfg, MODEL, vlm)
+    second = await rec.recognize(CANDIDATES, None, True, 10, "api")
+    assert second.familiarity == first.familiarity and second.unfamiliar is True
+    stored = (tmp_path / "episodes" / second.id / "episode.json").read_text()
+    assert '"unfamiliar": true' in stored
+    assert rec.metrics.unfamiliar == 1 and rec.metrics.familiarity.n == 2

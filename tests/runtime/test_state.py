@@ -167,7 +167,8 @@ def test_health_on_the_wire_says_the_state_as_a_string():
 
 def test_the_events_on_the_wire_are_the_json_they_always_were():
     done = Episode("e1", Status.DONE, ["a", "b"], "api", label="a", description="soft",
-                   topk=[Neighbour("a", 0.25), Neighbour("b", 0.5)])
+                   topk=[Neighbour("a", 0.25), Neighbour("b", 0.5)], familiarity=97.5,
+                   unfamiliar=True)
     refused = done.with_(status=Status.VLM_ERROR, label=None, last_error="HTTP 400")
     pending = done.with_(status=Status.PENDING, label=None, last_error="unreachable")
     t = 1700000000.5
@@ -181,7 +182,8 @@ def test_the_events_on_the_wire_are_the_json_they_always_were():
         {"t": t, "type": "state", "state": "closing", "episode": "e1"},
         {"t": t, "type": "episode", "episode": "e1", "status": "running"},
         {"t": t, "type": "tactile", "episode": "e1", "description": "soft",
-         "topk": [{"label": "a", "distance": 0.25}, {"label": "b", "distance": 0.5}]},
+         "topk": [{"label": "a", "distance": 0.25}, {"label": "b", "distance": 0.5}],
+         "familiarity": 97.5, "unfamiliar": True},
         {"t": t, "type": "result", "episode": "e1", "status": "done", "label": "a"},
         {"t": t, "type": "result", "episode": "e1", "status": "vlm_error",
          "error": "HTTP 400"},
