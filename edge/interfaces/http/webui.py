@@ -3,8 +3,9 @@
 Plain HTML, CSS and JavaScript shipped in ``edge/interfaces/http/static`` (no build step, nothing
 fetched from elsewhere: it works offline). It shows the daemon's state and health, a live
 view of both pads (``GET /v1/tactile``: server-sent events at 30 Hz from
-:mod:`edge.interfaces.http.tactile_feed`), a Recognize control and an Abort button (the API's own
-routes), and the last episodes (``GET /v1/episodes?limit=N``) with their photo
+:mod:`edge.interfaces.http.tactile_feed`), a Recognize control and an Abort button, a Teach
+panel with the taught references (the API's own routes; "this was..." on each episode), and
+the last episodes (``GET /v1/episodes?limit=N``) with their photo
 (``/v1/episodes/{id}/image``) and press trace (``/v1/episodes/{id}/trace``, computed in the
 compute process by :mod:`edge.interfaces.http.trace`).
 
