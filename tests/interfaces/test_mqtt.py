@@ -180,6 +180,47 @@ async def test_malformed_commands_publish_an_error_and_move_nothing(tmp_path):
             assert after == before
 
 
+@requires_mosquitto
+@pytest.mark.asyncio
+async def test_teach_by_message_result_on_the_topic(tmp_path):
+    """P/cmd/teach (the JSON of POST /v1/teach): acknowledged, its presses' episodes and then
+    the teaching's own result on P/result; one a class refuses, on P/error with nothing
+    moved."""
+    with Mosquitto(tmp_path) as broker:
+        cfg = mqtt_config(fast_config(), broker.port)
+        async with Observer(broker.port) as obs, \
+                sim_daemon(tmp_path / "state", "macaron", cfg=cfg) as (robot, d):
+            await obs.wait(f"{PREFIX}/health", online)
+            before = (joints(robot, d.cfg), robot.dxl.true_position(d.cfg.bus.gripper_id))
+            await obs.publish("teach", {"label": "gelatin_soft", "append": True,
+                                        "request_id": "t0"})
+            error = await obs.wait(f"{PREFIX}/error", lambda m: m["request_id"] == "t0")
+            assert error["command"] == "teach" and "x_th" in error["error"], error
+            await obs.publish("teach", {"label": "lab_macaron", "presses": "two"})
+            error = await obs.wait(f"{PREFIX}/error", lambda m: "presses" in m["error"])
+            assert d.store.ids() == [] and not obs.on(f"{PREFIX}/ack")
+            assert (joints(robot, d.cfg), robot.dxl.true_position(d.cfg.bus.gripper_id)) \
+                == before
+
+            await obs.publish("teach", {"label": "lab_macaron", "presses": 2, "pause_s": 0.1,
+                                        "description": "lab macaron (a French sandwich "
+                                                       "cookie)", "request_id": "t1"})
+            ack = await obs.wait(f"{PREFIX}/ack", lambda m: m.get("request_id") == "t1")
+            assert ack == {"command": "teach", "request_id": "t1", "label": "lab_macaron",
+                           "presses": 2, "status": "running"}
+            result = await obs.wait(f"{PREFIX}/result", lambda m: m.get("command") == "teach",
+                                    timeout_s=60)
+            assert result["request_id"] == "t1" and result["status"] == "done", result
+            assert result["source"] == "mqtt" and len(result["references"]) == 2
+            pressed = [m for m in obs.on(f"{PREFIX}/result") if m.get("episode")]
+            assert [m["episode"] for m in pressed] == result["episodes"]
+            assert {m["status"] for m in pressed} == {"pressed"}
+            _, listing = await d.get("/v1/references")
+            assert [r["id"] for r in listing["references"]] == result["references"]
+            assert {r["source"] for r in listing["references"]} == {"mqtt"}
+            assert gripper_open(robot)
+
+
 @pytest.mark.parametrize(("raw", "needle"), [
     ({"mqtt": {"port": 0}}, "mqtt.port = 0"),
     ({"mqtt": {"prefix": "vtzero/+/x"}}, "mqtt.prefix = 'vtzero/+/x': must be a topic"),

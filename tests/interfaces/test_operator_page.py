@@ -174,3 +174,94 @@ async def test_operator_page_in_a_real_browser(tmp_path):
     assert {"closing", "holding"} & found["states"], found["states"]
     assert all(lit > 1000 for lit in found["pads"]), found["pads"]  # both pads drawn
     assert not found["console"], found["console"]
+
+
+TAUGHT = "lab_macaron"
+
+
+def teach_on_the_page(url: str, tmp: Path) -> dict:
+    """The Teach panel, "this was..." on an episode and the references' remove button, in
+    the browser (blocking: runs in a thread beside the daemon's loop)."""
+    from selenium.webdriver.common.by import By
+
+    found: dict = {}
+    driver = start_browser(tmp)
+    try:
+        driver.get(url + f"/?token={TOKEN}")
+        driver.get_log("browser")
+        wait_until(driver, "document.getElementById('references-note').textContent"
+                           " === 'none yet'", what="the empty list of references")
+        # Refused before anything moves: a new label without its description.
+        driver.find_element(By.ID, "teach-label").send_keys(TAUGHT)
+        driver.find_element(By.ID, "teach-button").click()
+        found["refusal"] = wait_until(
+            driver, "document.getElementById('teach-msg').className === 'error'"
+                    " && document.getElementById('teach-msg').textContent", 10, "a refusal")
+        driver.find_element(By.ID, "teach-description").send_keys(
+            "lab macaron (a French sandwich cookie)")
+        presses = driver.find_element(By.ID, "teach-presses")
+        presses.clear()
+        presses.send_keys("2")
+        driver.find_element(By.ID, "teach-button").click()
+        # The operator is asked to move the object between the presses.
+        found["move"] = wait_until(
+            driver, "document.getElementById('teach-msg').className === 'move'"
+                    " && document.getElementById('teach-msg').textContent", 60,
+            "the request to move the object")
+        found["done"] = wait_until(
+            driver, "document.getElementById('teach-msg').className === 'ok'"
+                    " && document.getElementById('teach-msg').textContent", 60,
+            "the teaching's end")
+        wait_until(driver, "document.querySelectorAll('#references li').length === 2", 10,
+                   "two references listed")
+        # A recognition, then "this was..." on its episode.
+        box = driver.find_element(By.ID, "candidates")
+        box.send_keys("macaron, resin_replica_macaron")
+        driver.find_element(By.ID, "recognize").click()
+        card = "document.querySelector('.episode[data-status=not_configured]')"
+        wait_until(driver, f"{card} && {card}.querySelector('.this-was')", 30,
+                   "the recognition's episode")
+        driver.execute_script(f"{card}.querySelector('.this-was').open = true")
+        this_was = driver.execute_script(f"return {card}.querySelector('.this-was')")
+        this_was.find_element(By.CSS_SELECTOR, "input").send_keys(TAUGHT)
+        this_was.find_element(By.CSS_SELECTOR, "button").click()
+        found["this_was"] = wait_until(
+            driver, f"{card}.querySelector('.this-was span').textContent", 20,
+            "the episode taught")
+        wait_until(driver, "document.querySelectorAll('#references li').length === 3", 10,
+                   "three references listed")
+        found["references"] = driver.execute_script(
+            "return [...document.querySelectorAll('#references li')].map(li => li.textContent)")
+        found["screenshot"] = tmp / "operator-page-teach.png"
+        driver.save_screenshot(str(found["screenshot"]))
+        driver.find_element(By.CSS_SELECTOR, "#references li button").click()
+        wait_until(driver, "document.querySelectorAll('#references li').length === 2", 10,
+                   "a reference removed")
+        found["console"] = [e for e in driver.get_log("browser")
+                            if e["level"] == "SEVERE" and e.get("source") != "network"]
+    finally:
+        driver.quit()
+    return found
+
+
+async def test_the_teach_panel_in_a_real_browser(tmp_path):
+    cfg = fast_config()
+    cfg = replace(cfg, api=replace(cfg.api, token=TOKEN))
+    async with sim_daemon(tmp_path / "state", "macaron", cfg=cfg) as (_robot, d):
+        found = await asyncio.to_thread(teach_on_the_page, d.url, tmp_path)
+        _, listing = await d.get("/v1/references", {"Authorization": f"Bearer {TOKEN}"})
+        # The API's token rules hold for teaching: no token, nothing taught or removed.
+        status, _ = await d.post("/v1/teach", {"label": TAUGHT, "append": True})
+        assert status == 401
+        async with d.http.delete(f"{d.url}/v1/references?label={TAUGHT}") as resp:
+            assert resp.status == 401
+        assert (await d.get("/v1/references"))[0] == 401
+    print(f"screenshot: {found['screenshot']}\n{found['refusal']}\n{found['move']}\n"
+          f"{found['done']}\n{found['this_was']}\n{found['references']}")
+    assert "needs a description" in found["refusal"]
+    assert "move the lab_macaron slightly" in found["move"]
+    assert found["done"] == f"taught {TAUGHT}: 2 presses"
+    assert found["this_was"].startswith(f"taught as {TAUGHT}")
+    assert len(listing["references"]) == 2 and {r["source"] for r in listing["references"]} \
+        == {"page"}
+    assert not found["console"], found["console"]
