@@ -125,7 +125,7 @@ def _store(ref: ModelRef) -> ReferenceStore:
 
 class Teacher:
     """Teaches through the daemon's recognizer. ``stream_rate`` measures the tactile
-    stream's rate now (frames/s; None before two fresh frames)."""
+    stream's rate now (frames/s; None: not measured)."""
 
     def __init__(self, recognizer: Recognizer, events: EventBus,
                  stream_rate: Callable[[], float | None]) -> None:
@@ -202,11 +202,14 @@ class Teacher:
             teaching.status, teaching.error = "failed", "the daemon stopped"
             self._publish(teaching, "failed", len(teaching.episodes), message=teaching.error)
             raise
-        except EdgeError as exc:
-            teaching.status, teaching.error = "failed", str(exc)
+        except Exception as exc:
+            # Said on the teaching (a bug included: it must not read "running" forever).
+            why = str(exc) if isinstance(exc, EdgeError) else f"{type(exc).__name__}: {exc}"
+            teaching.status, teaching.error = "failed", why
             log.error("teaching %s stopped after %d of %d presses: %s", label,
-                      len(teaching.references), n, exc)
-            self._publish(teaching, "failed", len(teaching.episodes), message=str(exc))
+                      len(teaching.references), n, why,
+                      exc_info=not isinstance(exc, EdgeError))
+            self._publish(teaching, "failed", len(teaching.episodes), message=why)
         return teaching
 
     async def teach_episode(self, episode_id: str, label: str, description: str | None,

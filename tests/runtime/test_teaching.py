@@ -24,8 +24,10 @@ from tests.support.daemon import (
     Daemon,
     base_config,
     fast_config,
+    gripper_open,
     joints,
     recognize,
+    recording_events,
     sim_daemon,
 )
 from tests.support.presses import recording_of
@@ -241,3 +243,35 @@ async def test_references_another_model_embedded_are_listed_stale_logged_and_not
             in caplog.text
         ep = await recognize(d)
         assert TAUGHT not in [n["label"] for n in ep["topk"]], ep["topk"]
+
+
+@pytest.mark.asyncio
+async def test_a_press_that_fails_mid_teaching_ends_it_failed_keeping_what_was_taught(
+        tmp_path):
+    async with sim_daemon(tmp_path / "state", OBJECT) as (robot, d):
+        async with recording_events(d) as events:
+            status, run = await d.post("/v1/teach", {"label": TAUGHT, "presses": 3,
+                                                      "description": DESCRIPTION,
+                                                      "pause_s": 1.0})
+            assert status == 202, run
+            await wait_until(lambda: any(e["type"] == "teach" and e["step"] == "move"
+                                         for e in events), 30, "the first press taught")
+            # During the pause: the next press closes for 50 ms only, and finds nothing.
+            cfg = d.runtime.press.cfg
+            d.runtime.press.cfg = replace(cfg, runtime=replace(cfg.runtime,
+                                                               close_timeout_s=0.05))
+            await wait_until(lambda: next((e for e in events if e["type"] == "teach"
+                                                 and e["step"] == "failed"), None), 30,
+                                   "the teaching's end")
+        _, run = await d.get("/v1/teach")
+        print(f"\n{run['error']}")
+        assert run["status"] == "failed" and "press 2 of 3" in run["error"], run
+        assert len(run["episodes"]) == 2 and len(run["references"]) == 1
+        _, ep = await d.get(f"/v1/episodes/{run['episodes'][1]}")
+        assert ep["status"] == "failed" and ep["press"]["result"] == "no_contact", ep
+        _, listing = await d.get("/v1/references")
+        assert [r["id"] for r in listing["references"]] == run["references"]
+        await d.wait_idle()
+        assert gripper_open(robot)
+        steps = [e["step"] for e in events if e["type"] == "teach"]
+        assert steps == ["pressing", "taught", "move", "pressing", "failed"], steps
