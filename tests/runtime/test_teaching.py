@@ -260,9 +260,8 @@ async def test_a_press_that_fails_mid_teaching_ends_it_failed_keeping_what_was_t
             cfg = d.runtime.press.cfg
             d.runtime.press.cfg = replace(cfg, runtime=replace(cfg.runtime,
                                                                close_timeout_s=0.05))
-            await wait_until(lambda: next((e for e in events if e["type"] == "teach"
-                                                 and e["step"] == "failed"), None), 30,
-                                   "the teaching's end")
+            await wait_until(lambda: any(e["type"] == "teach" and e["step"] == "failed"
+                                         for e in events), 30, "the teaching's end")
         _, run = await d.get("/v1/teach")
         print(f"\n{run['error']}")
         assert run["status"] == "failed" and "press 2 of 3" in run["error"], run
