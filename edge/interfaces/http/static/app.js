@@ -370,7 +370,9 @@ function thisWas(ep) {
     msg.className = status === 200 ? "muted" : "error";
     if (status === 200) refreshReferences();
   });
-  return el("details", { class: "this-was" }, el("summary", { text: "this was…" }),
+  // An unfamiliar touch (like no reference) is offered open: teaching it is the likely fix.
+  return el("details", { class: "this-was", ...(ep.unfamiliar ? { open: "" } : {}) },
+            el("summary", { text: ep.unfamiliar ? "unfamiliar: this was…" : "this was…" }),
             label, description, button, el("div", {}, msg));
 }
 
