@@ -3,7 +3,8 @@
 Tasks: ``sensor`` (frames -> ring buffer + the threshold on every frame), ``sampler``
 (125 Hz), ``watchdog`` (sd_notify only while frames keep arriving, or while torque is off),
 ``button``, ``vlm-retry`` (pending episodes), ``store`` (retention; a store that could not
-write, tried again), one ``recognize`` task per request, and, after
+write, tried again), one ``recognize`` task per request, ``teach LABEL`` while a teaching
+runs (:mod:`edge.runtime.teaching`: ended on every path out), and, after
 a start without the sensor stream, ``power-on`` (torque on when the stream arrives). The bus
 has its own owner thread (:mod:`edge.hw.dynamixel`). Signals set events: SIGTERM/SIGINT
 stop taking work and make the arm safe; SIGHUP reloads configuration, model, database and
@@ -339,6 +340,8 @@ class Runtime:
                     # way to safety short.
                     signal.signal(sig, previous)
             await _unless_cancelled_twice(self._make_safe())
+            # Then a teaching under way ends (it could start no press: none is accepted).
+            await self.teacher.stop()
 
     def _set_ready(self) -> None:
         self.ready.set()
@@ -405,7 +408,6 @@ class Runtime:
         self.notifier.stopping()
         self.recognizer.accepting = False
         self.press.request_abort()
-        await self.teacher.stop()
         for task in list(self.recognizer.work):
             with contextlib.suppress(TimeoutError, Exception):
                 await asyncio.wait_for(asyncio.shield(task), DRAIN_TIMEOUT_S)

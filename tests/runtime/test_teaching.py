@@ -274,3 +274,20 @@ async def test_a_press_that_fails_mid_teaching_ends_it_failed_keeping_what_was_t
         assert gripper_open(robot)
         steps = [e["step"] for e in events if e["type"] == "teach"]
         assert steps == ["pressing", "taught", "move", "pressing", "failed"], steps
+
+
+@pytest.mark.asyncio
+async def test_a_teaching_waiting_between_presses_ends_with_the_daemon(tmp_path):
+    async with sim_daemon(tmp_path / "state", OBJECT) as (robot, d):
+        async with recording_events(d) as events:
+            status, _ = await d.post("/v1/teach", {"label": TAUGHT, "presses": 3,
+                                                    "description": DESCRIPTION,
+                                                    "pause_s": 30})
+            assert status == 202
+            await wait_until(lambda: any(e["type"] == "teach" and e["step"] == "move"
+                                         for e in events), 30, "the first press taught")
+        runtime = d.runtime
+    run = runtime.teaching()
+    assert run.status == "failed" and run.error == "the daemon stopped", run
+    assert len(run.references) == 1 and not runtime.teacher.active
+    assert gripper_open(robot)
