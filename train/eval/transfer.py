@@ -82,6 +82,8 @@ METRICS = (("first", "sensible first neighbour"), ("top3", "partner in top 3"),
            ("loo_1nn", "LOO 1-NN among seen"))
 TOP = 3
 QUERY_OFFSET = 0
+PHAC2_CREDIT = ("PHAC-2 data: the Penn Haptic Adjective Corpus 2 (Chu et al., University of "
+                "Pennsylvania GRASP Laboratory), BioTac squeezes by a PR2 robot.")
 
 
 @dataclass(frozen=True)
@@ -336,6 +338,7 @@ def markdown(report: dict[str, Any]) -> str:
         f"{cfg['std_floor']:g} x the RMS of the channels' spreads. Wall time "
         f"{report['seconds']:.0f} s.", "",
         f"Command: `{report['command']}`", "",
+        *([PHAC2_CREDIT, ""] if cfg["format"] == "phac2" else []),
         "Partners (written before the run): " + "; ".join(
             f"{o} -> {', '.join(p)}" for o, p in report["partners"].items()) + "."
         + (f" Not scored (no partner written): {', '.join(report['not_scored'])}."
