@@ -264,75 +264,104 @@ class PressController:
         outcome = PressOutcome()
         self._outcome = outcome
         self._user_abort.clear()
-        trace_task: asyncio.Task | None = None
-        moved = False  # whether this press has moved the arm
-        touched = False  # whether this press has commanded the gripper
+        done = _Done()
         try:
-            await self._await_fresh()
-            if self.recover is not None:
-                await self.recover()
-            if checked is not None and not checked.done():
-                checked.set_result(None)
-            self._enter(outcome, PressState.ABOVE)
-            # Open before anything moves: a gripper left closed (a crash, a motor that
-            # dropped out) would lift the object and tare on a squeeze.
-            touched = True
-            await self.open_gripper()
-            moved = True
-            await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
-            free = self._pads_now()
-            self._enter(outcome, PressState.LOWERED)
-            await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
-            self._enter(outcome, PressState.TARE)
-            outcome.tare = await self._tare()
-            self._check_untouched(outcome, free)
-            press = self.cfg.press
-            armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
-            self._armed = armed
-            self._enter(outcome, PressState.CLOSING)
-            trace_task = asyncio.create_task(self._trace(outcome, armed), name="gripper-trace")
-            goal_ma = self._current_cap_ma()
-            # Both fingers move: each closes at half the gap speed.
-            await self.gripper.close(press.close_speed_mps / 2, goal_ma)
-            await self._wait_closing(armed, outcome)
-            if outcome.result == PressResult.OK and outcome.t_stop is not None:
-                self._enter(outcome, PressState.HOLDING)
-                hold_left = outcome.t_stop + press.dt_stopping_s - self.clock()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
-                # The peak norm takes the hold's squeeze in (preprocess.peak_norm).
-                outcome.peak_level = armed.peak
-                if armed.abort.is_set():
-                    self._abort_reason(outcome, armed)
-        except _AbortRequested:
-            outcome.result, outcome.message = PressResult.ABORTED, "aborted on request"
-        except StaleSensorError as exc:
-            outcome.result, outcome.message = PressResult.STALE, str(exc)
-        except EdgeError as exc:
-            outcome.result, outcome.message = PressResult.ERROR, str(exc)
-            log.error("press failed: %s", exc)
+            await self._check(checked)
+            await self._approach(outcome, done)
+            armed = await self._close(outcome, done)
+            await self._hold(outcome, armed)
         except Exception as exc:
-            # A bug must still end in an open gripper and a press that says what went wrong.
-            log.exception("press failed on an unexpected error")
-            outcome.result = PressResult.ERROR
-            outcome.message = f"internal error: {type(exc).__name__}: {exc}"
+            _ended_by(outcome, exc)
         finally:
             self._armed = None
             # Refused before touching anything (stale sensor, a motor down): nothing to undo.
-            opened, opening = await self._open_safely(outcome) if touched else (False, None)
-            if trace_task is not None:
-                await cancel_and_wait(trace_task)
+            opened, opening = (await self._open_safely(outcome) if done.touched
+                               else (False, None))
+            if done.trace is not None:
+                await cancel_and_wait(done.trace)
+        returning = self._leave(outcome, done.moved, opened, opening)
+        await self._record(outcome, window_ready, returning, opening)
+        self._enter(outcome, PressState.IDLE)
+        self._outcome = None
+        if self.on_outcome is not None:
+            self.on_outcome(outcome)
+        return outcome
+
+    # --- its phases, in order ---------------------------------------------------------------
+    async def _check(self, checked: asyncio.Future[None] | None) -> None:
+        """A fresh stream and the motors answering (a tripped Bus Watchdog cleared) before
+        anything moves; then ``checked``."""
+        await self._await_fresh()
+        if self.recover is not None:
+            await self.recover()
+        if checked is not None and not checked.done():
+            checked.set_result(None)
+
+    async def _approach(self, outcome: PressOutcome, done: _Done) -> None:
+        """The gripper open, the arm above the object, then lowered around it, and the
+        tare; refused where lowering the arm alone moved the pads as far as contact."""
+        self._enter(outcome, PressState.ABOVE)
+        # Open before anything moves: a gripper left closed (a crash, a motor that
+        # dropped out) would lift the object and tare on a squeeze.
+        done.touched = True
+        await self.open_gripper()
+        done.moved = True
+        await self.arm.move_to("above", self.cfg.runtime.move_timeout_s)
+        free = self._pads_now()
+        self._enter(outcome, PressState.LOWERED)
+        await self.arm.move_to("lowered", self.cfg.runtime.move_timeout_s)
+        self._enter(outcome, PressState.TARE)
+        outcome.tare = await self._tare()
+        self._check_untouched(outcome, free)
+
+    async def _close(self, outcome: PressOutcome, done: _Done) -> _Armed:
+        """The threshold armed and the gripper closing, until the stop went out, an abort,
+        a stall under x_th or the closing's timeout (the outcome says which)."""
+        press = self.cfg.press
+        armed = _Armed(outcome.tare, press.x_th, press.abort_factor * press.x_th)
+        self._armed = armed
+        self._enter(outcome, PressState.CLOSING)
+        done.trace = asyncio.create_task(self._trace(outcome, armed), name="gripper-trace")
+        goal_ma = self._current_cap_ma()
+        # Both fingers move: each closes at half the gap speed.
+        await self.gripper.close(press.close_speed_mps / 2, goal_ma)
+        await self._wait_closing(armed, outcome)
+        return armed
+
+    async def _hold(self, outcome: PressOutcome, armed: _Armed) -> None:
+        """After a stop at the threshold, held for ``dt_stopping_s`` (an abort ends it)."""
+        if outcome.result != PressResult.OK or outcome.t_stop is None:
+            return
+        self._enter(outcome, PressState.HOLDING)
+        hold_left = outcome.t_stop + self.cfg.press.dt_stopping_s - self.clock()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(armed.abort.wait(), max(hold_left, 0.0))
+        # The peak norm takes the hold's squeeze in (preprocess.peak_norm).
+        outcome.peak_level = armed.peak
+        if armed.abort.is_set():
+            self._abort_reason(outcome, armed)
+
+    def _leave(self, outcome: PressOutcome, moved: bool, opened: bool,
+               opening: asyncio.Task[DeviceError | None] | None) -> asyncio.Task | None:
+        """The arm's return, begun once the gripper opened; where it may still be closed,
+        the arm stays where it stands."""
         if moved and not opened:
             # Lifting a gripper that may still hold the object would drag or lift it.
             log.error("the gripper may still be closed: the arm stays where it stands")
             outcome.message += "; arm left where it stands: free the object by hand"
-        returning: asyncio.Task | None = None
-        if moved and opened:
-            self._enter(outcome, PressState.RETURNING)
-            # The window completes while the arm returns: whoever waits for it starts on it
-            # at once, not once the arm is back.
-            returning = asyncio.create_task(self._return(outcome, opening),
-                                            name="press-return")
+        if not (moved and opened):
+            return None
+        self._enter(outcome, PressState.RETURNING)
+        # The window completes while the arm returns: whoever waits for it starts on it
+        # at once, not once the arm is back.
+        return asyncio.create_task(self._return(outcome, opening), name="press-return")
+
+    async def _record(self, outcome: PressOutcome,
+                      window_ready: asyncio.Future[PressOutcome] | None,
+                      returning: asyncio.Task | None,
+                      opening: asyncio.Task[DeviceError | None] | None) -> None:
+        """The window handed over once the model's crop is complete, the recording's
+        margin after it, and the arm back."""
         try:
             if outcome.t_stop is not None:
                 # The model's crop is complete with the first frame at or past its last
@@ -355,11 +384,6 @@ class PressController:
             for task in (returning, opening):
                 if task is not None and not task.done():
                     task.cancel()
-        self._enter(outcome, PressState.IDLE)
-        self._outcome = None
-        if self.on_outcome is not None:
-            self.on_outcome(outcome)
-        return outcome
 
     async def _return(self, outcome: PressOutcome,
                       opening: asyncio.Task[DeviceError | None] | None) -> None:
@@ -611,6 +635,31 @@ _ABORTABLE = frozenset({PressState.LOWERED, PressState.TARE, PressState.CLOSING}
 
 class _AbortRequested(Exception):
     """An abort request reached the press before the gripper closed."""
+
+
+@dataclass
+class _Done:
+    """What a press has done so far: what its end undoes."""
+
+    touched: bool = False  # the gripper commanded: it is opened
+    moved: bool = False  # the arm moved: it returns (once the gripper opened)
+    trace: asyncio.Task | None = None  # the gripper trace: ended
+
+
+def _ended_by(outcome: PressOutcome, exc: Exception) -> None:
+    """Said on ``outcome``: what ended the press before its stop and hold were through."""
+    if isinstance(exc, _AbortRequested):
+        outcome.result, outcome.message = PressResult.ABORTED, "aborted on request"
+    elif isinstance(exc, StaleSensorError):
+        outcome.result, outcome.message = PressResult.STALE, str(exc)
+    elif isinstance(exc, EdgeError):
+        outcome.result, outcome.message = PressResult.ERROR, str(exc)
+        log.error("press failed: %s", exc)
+    else:
+        # A bug must still end in an open gripper and a press that says what went wrong.
+        log.exception("press failed on an unexpected error")
+        outcome.result = PressResult.ERROR
+        outcome.message = f"internal error: {type(exc).__name__}: {exc}"
 
 
 def _stalled(trace: list[GripperState], cap_ma: float) -> bool:
