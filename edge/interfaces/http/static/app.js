@@ -262,6 +262,11 @@ function card(ep) {
       : el("div", { class: "error", text: ep.error || (ep.status === "pending" ? "waiting for the VLM" : ep.status) });
   const topk = el("ol", { class: "topk" },
     ...(ep.topk || []).map((t) => el("li", { text: `${t.label} (${t.distance.toFixed(3)})` })));
+  // The nearest reference's distance as a percentile of the references' own: past the
+  // configured one, a touch like none the robot knows.
+  const familiarity = ep.familiarity == null ? null : el("div", {
+    class: ep.unfamiliar ? "error familiarity" : "muted familiarity",
+    text: `familiarity: percentile ${ep.familiarity.toFixed(0)}` + (ep.unfamiliar ? " · unfamiliar: like no reference" : "") });
   const tm = ep.timings || {};
   const fmt = (k) => (tm[k] != null ? `${k.replace("_s", "")} ${(tm[k] * 1000).toFixed(0)} ms` : null);
   const timings = el("div", { class: "timings",
@@ -271,7 +276,8 @@ function card(ep) {
     el("div", { class: "head" }, el("span", { class: `badge ${ep.status}`, text: ep.status }),
        el("span", { class: "id", text: ep.id }), el("span", { class: "muted", text: when })),
     photo,
-    el("div", {}, result, el("div", { class: "muted", text: "touch: similar to" }), topk, timings),
+    el("div", {}, result, el("div", { class: "muted", text: "touch: similar to" }), topk,
+       familiarity, timings),
     el("div", { class: "info" }, ep.trace ? canvas : el("div", { class: "muted", text: "no press recording" }),
        thisWas(ep)));
   if (ep.trace) traceOf(ep).then((tr) => tr && drawTrace(canvas, tr));
