@@ -142,6 +142,7 @@ def test_the_std_floor_is_a_setting():
         Normaliser.fit(x, -0.5)
 
 
+@pytest.mark.integration  # trains two small models
 def test_one_validation_class_keeps_a_metric_term_against_the_training_presses(tmp_path):
     """One validation class has no other class to be told apart from in its own samples: its
     metric term is measured against the training presses, so early stopping still sees it."""

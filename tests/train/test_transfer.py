@@ -24,6 +24,7 @@ def made(tmp_path_factory):
     return root
 
 
+@pytest.mark.integration  # trains 20 small models
 def test_transfer_scores_every_candidate_against_partners_beside_chance(made):
     out = made / "out"
     report = run(TransferConfig(made / "data", made / "partners.json", out, seeds=2,
