@@ -290,7 +290,8 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
     pump = asyncio.create_task(bridge._pump())
     await asyncio.sleep(0)
     done = Episode("e1", Status.DONE, ["a", "b"], "mqtt", label="a", description="soft",
-                   topk=[Neighbour("a", 0.25)], timings={"vlm_s": 0.5}, last_error="slow")
+                   topk=[Neighbour("a", 0.25)], timings={"vlm_s": 0.5}, last_error="slow",
+                   familiarity=97.5, unfamiliar=True)
     failed = Episode("e2", Status.FAILED, ["a"], "api", error="no contact")
     for event in (StateChanged(PressState.CLOSING, "e1"), Label(done), EpisodeFinished(done),
                   VLMUnreachable(done.with_(id="e3", status=Status.PENDING)),
@@ -306,7 +307,8 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
     assert sent[2][1] == {
         "episode": "e1", "request_id": None, "status": "done", "label": "a", "error": None,
         "candidates": ["a", "b"], "topk": [{"label": "a", "distance": 0.25}],
-        "description": "soft", "timings": {"vlm_s": 0.5}, "source": "mqtt",
+        "description": "soft", "familiarity": 97.5, "unfamiliar": True,
+        "timings": {"vlm_s": 0.5}, "source": "mqtt",
         "press": {"result": None, "message": None, "stop_latency_ms": None}}
     assert sent[3][1]["episode"] == "e2" and sent[3][1]["status"] == "failed"
     assert sent[3][1]["error"] == "no contact" and sent[3][1]["topk"] is None
