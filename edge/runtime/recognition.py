@@ -115,6 +115,8 @@ class Recognizer:
         or with ``wait`` as stored once it ends (``pressed`` where nothing was asked). An
         uploaded ``image`` that does not decode is refused (:class:`BadRequest`) before
         anything moves."""
+        if image is not None and not ask:
+            raise ValueError("a press with no question takes no photo: give no image")
         upload = Photo(image, await self._decoded(image)) if image is not None else None
         if not self.accepting:
             raise BusyError("the daemon is shutting down; not starting a press")

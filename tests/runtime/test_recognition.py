@@ -376,3 +376,11 @@ async def test_every_analysed_press_carries_its_familiarity_and_a_reload_moves_t
     stored = (tmp_path / "episodes" / second.id / "episode.json").read_text()
     assert '"unfamiliar": true' in stored
     assert rec.metrics.unfamiliar == 1 and rec.metrics.familiarity.n == 2
+
+
+async def test_a_press_with_no_question_refuses_a_photo_before_anything_moves(tmp_path):
+    press = ScriptedPress(pressed())
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM([]))
+    with pytest.raises(ValueError, match="no question takes no photo"):
+        await rec.recognize([], image_bytes(), True, 10, "teach", ask=False)
+    assert len(press.outcomes) == 1 and rec.store.list() == []
