@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.support.daemon import CUBE, fast_config, sim_daemon
+from tests.support.daemon import CUBE, fast_config, recognize, sim_daemon
 from tests.support.waits import wait_until_sync
 
 CHROMIUM = next((p for p in (shutil.which("chromium"), shutil.which("chromium-browser"))
@@ -179,7 +179,7 @@ async def test_operator_page_in_a_real_browser(tmp_path):
 TAUGHT = "lab_macaron"
 
 
-def teach_on_the_page(url: str, tmp: Path) -> dict:
+def teach_on_the_page(url: str, tmp: Path, episode_id: str) -> dict:
     """The Teach panel, "this was..." on an episode and the references' remove button, in
     the browser (blocking: runs in a thread beside the daemon's loop)."""
     from selenium.webdriver.common.by import By
@@ -214,11 +214,8 @@ def teach_on_the_page(url: str, tmp: Path) -> dict:
             "the teaching's end")
         wait_until(driver, "document.querySelectorAll('#references li').length === 2", 10,
                    "two references listed")
-        # A recognition, then "this was..." on its episode.
-        box = driver.find_element(By.ID, "candidates")
-        box.send_keys("macaron, resin_replica_macaron")
-        driver.find_element(By.ID, "recognize").click()
-        card = "document.querySelector('.episode[data-status=not_configured]')"
+        # "This was..." on the recognition's episode.
+        card = f"document.getElementById('ep-{episode_id}')"
         wait_until(driver, f"{card} && {card}.querySelector('.this-was')", 30,
                    "the recognition's episode")
         driver.execute_script(f"{card}.querySelector('.this-was').open = true")
@@ -247,15 +244,18 @@ def teach_on_the_page(url: str, tmp: Path) -> dict:
 async def test_the_teach_panel_in_a_real_browser(tmp_path):
     cfg = fast_config()
     cfg = replace(cfg, api=replace(cfg.api, token=TOKEN))
-    async with sim_daemon(tmp_path / "state", "macaron", cfg=cfg) as (_robot, d):
-        found = await asyncio.to_thread(teach_on_the_page, d.url, tmp_path)
-        _, listing = await d.get("/v1/references", {"Authorization": f"Bearer {TOKEN}"})
+    async with sim_daemon(tmp_path / "state", "macaron", cfg=cfg,
+                          headers={"Authorization": f"Bearer {TOKEN}"}) as (_robot, d):
+        ep = await recognize(d)  # (pressed again where a loaded host failed the press)
+        found = await asyncio.to_thread(teach_on_the_page, d.url, tmp_path, ep["id"])
+        _, listing = await d.get("/v1/references")
         # The API's token rules hold for teaching: no token, nothing taught or removed.
-        status, _ = await d.post("/v1/teach", {"label": TAUGHT, "append": True})
-        assert status == 401
-        async with d.http.delete(f"{d.url}/v1/references?label={TAUGHT}") as resp:
+        none = {"Authorization": ""}
+        assert (await d.post("/v1/teach", {"label": TAUGHT, "append": True}, none))[0] == 401
+        async with d.http.delete(f"{d.url}/v1/references?label={TAUGHT}",
+                                 headers=none) as resp:
             assert resp.status == 401
-        assert (await d.get("/v1/references"))[0] == 401
+        assert (await d.get("/v1/references", none))[0] == 401
     print(f"screenshot: {found['screenshot']}\n{found['refusal']}\n{found['move']}\n"
           f"{found['done']}\n{found['this_was']}\n{found['references']}")
     assert "needs a description" in found["refusal"]

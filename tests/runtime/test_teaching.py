@@ -20,6 +20,8 @@ from edge.core.model import load_model
 from edge.runtime.references import ReferenceStore, references_dir
 from edge.sim.robot import SimRobot
 from tests.support.daemon import (
+    LOADED_HOST_ERRORS,
+    LOADED_HOST_TRIES,
     ROOT,
     Daemon,
     base_config,
@@ -43,6 +45,31 @@ PRESSES = 2
 
 def top1(ep: dict) -> str:
     return ep["topk"][0]["label"]
+
+
+def loaded_host(error: str | None) -> bool:
+    return any(e in (error or "") for e in LOADED_HOST_ERRORS)
+
+
+async def top_up(d: Daemon, run: dict) -> dict:
+    """``run`` as ended, where a press failed for a loaded host's reason (the stream stale
+    for a moment, a stall past the Bus Watchdog: the press did what it must and the teaching
+    stopped, its presses taught kept) with the presses left taught again (append), up to
+    LOADED_HOST_TRIES: its taught presses' episodes and references."""
+    for _ in range(LOADED_HOST_TRIES):
+        if run["status"] == "done" or not loaded_host(run["error"]):
+            break
+        print(f"  a press failed on a loaded host, taught again: {run['error']}")
+        status, more = await d.post("/v1/teach", {
+            "label": run["label"], "description": DESCRIPTION, "append": True,
+            "presses": run["presses"] - len(run["references"]), "pause_s": 0.2,
+            "wait": True})
+        assert status == 200, more
+        run = {**more, "presses": run["presses"],
+               "episodes": run["episodes"][:len(run["references"])] + more["episodes"],
+               "references": run["references"] + more["references"],
+               "press_s": run["press_s"] + more["press_s"]}
+    return run
 
 
 async def still(robot: SimRobot, d: Daemon) -> tuple:
@@ -95,6 +122,7 @@ async def test_taught_presses_answer_the_next_recognition_until_removed(tmp_path
 
             run = await wait_until(ended, 60, "the teaching's end", interval_s=0.1)
             elapsed = time.monotonic() - t0
+            run = await top_up(d, run)
             assert run["status"] == "done", run
             assert len(run["episodes"]) == len(run["references"]) == PRESSES
             print(f"\ntaught {PRESSES} presses in {elapsed:.1f} s: "
@@ -189,10 +217,13 @@ async def test_the_cli_teaches_reviews_removes_and_exports_through_the_running_d
         return code, capsys.readouterr().out
 
     async with sim_daemon(state, OBJECT) as (_robot, d):
-        code, out = await asyncio.to_thread(
-            cli, "teach", TAUGHT, "--description", DESCRIPTION, "--presses", "1",
-            "--url", d.url)
-        print(out)
+        for _ in range(LOADED_HOST_TRIES):
+            code, out = await asyncio.to_thread(
+                cli, "teach", TAUGHT, "--description", DESCRIPTION, "--presses", "1",
+                "--url", d.url)
+            print(out)
+            if not (code == 1 and loaded_host(out)):
+                break
         assert code == 0 and f"taught {TAUGHT}: 1 press(es)" in out
         code, out = await asyncio.to_thread(cli, "teach", TAUGHT, "--url", d.url)
         assert code == 2 and "append" in caplog.text  # a known label needs --append
