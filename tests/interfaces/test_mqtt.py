@@ -12,7 +12,15 @@ import pytest
 from edge.core.config import MqttConfig, config_from_dict
 from edge.core.errors import ConfigError
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.support.daemon import CUBE, fast_config, gripper_open, joints, sim_daemon
+from tests.support.daemon import (
+    CUBE,
+    LOADED_HOST_ERRORS,
+    LOADED_HOST_TRIES,
+    fast_config,
+    gripper_open,
+    joints,
+    sim_daemon,
+)
 from tests.support.mosquitto import Mosquitto, requires_mosquitto
 from tests.support.waits import wait_until
 
@@ -183,7 +191,7 @@ async def test_malformed_commands_publish_an_error_and_move_nothing(tmp_path):
 @requires_mosquitto
 @pytest.mark.asyncio
 async def test_teach_by_message_result_on_the_topic(tmp_path):
-    """P/cmd/teach (the JSON of POST /v1/teach): acknowledged, its presses' episodes and then
+    """P/cmd/teach (the JSON of POST /v1/teach): acknowledged, its press's episode and then
     the teaching's own result on P/result; one a class refuses, on P/error with nothing
     moved."""
     with Mosquitto(tmp_path) as broker:
@@ -202,19 +210,25 @@ async def test_teach_by_message_result_on_the_topic(tmp_path):
             assert (joints(robot, d.cfg), robot.dxl.true_position(d.cfg.bus.gripper_id)) \
                 == before
 
-            await obs.publish("teach", {"label": "lab_macaron", "presses": 2, "pause_s": 0.1,
-                                        "description": "lab macaron (a French sandwich "
-                                                       "cookie)", "request_id": "t1"})
-            ack = await obs.wait(f"{PREFIX}/ack", lambda m: m.get("request_id") == "t1")
-            assert ack == {"command": "teach", "request_id": "t1", "label": "lab_macaron",
-                           "presses": 2, "status": "running"}
-            result = await obs.wait(f"{PREFIX}/result", lambda m: m.get("command") == "teach",
-                                    timeout_s=60)
-            assert result["request_id"] == "t1" and result["status"] == "done", result
-            assert result["source"] == "mqtt" and len(result["references"]) == 2
-            pressed = [m for m in obs.on(f"{PREFIX}/result") if m.get("episode")]
-            assert [m["episode"] for m in pressed] == result["episodes"]
-            assert {m["status"] for m in pressed} == {"pressed"}
+            for attempt in range(1, LOADED_HOST_TRIES + 1):
+                rid = f"t{attempt}"
+                await obs.publish("teach", {"label": "lab_macaron", "request_id": rid,
+                                            "description": "lab macaron (a French sandwich "
+                                                           "cookie)"})
+                ack = await obs.wait(f"{PREFIX}/ack", lambda m, r=rid: m["request_id"] == r)
+                result = await obs.wait(f"{PREFIX}/result", lambda m, r=rid:
+                                        m.get("command") == "teach" and m["request_id"] == r,
+                                        timeout_s=60)
+                if not (result["status"] == "failed" and attempt < LOADED_HOST_TRIES and any(
+                        e in result["error"] for e in LOADED_HOST_ERRORS)):
+                    break
+                print(f"  the press failed on a loaded host, taught again: {result['error']}")
+            assert ack == {"command": "teach", "request_id": rid, "label": "lab_macaron",
+                           "presses": 1, "status": "running"}
+            assert result["status"] == "done" and result["source"] == "mqtt", result
+            [episode], [_] = result["episodes"], result["references"]
+            [pressed] = [m for m in obs.on(f"{PREFIX}/result") if m.get("episode") == episode]
+            assert pressed["status"] == "pressed" and pressed["source"] == "mqtt"
             _, listing = await d.get("/v1/references")
             assert [r["id"] for r in listing["references"]] == result["references"]
             assert {r["source"] for r in listing["references"]} == {"mqtt"}
