@@ -266,7 +266,7 @@ class PressController:
         self._user_abort.clear()
         done = _Done()
         try:
-            await self._check(checked)
+            await self._preflight(checked)
             await self._approach(outcome, done)
             armed = await self._close(outcome, done)
             await self._hold(outcome, armed)
@@ -288,7 +288,7 @@ class PressController:
         return outcome
 
     # --- its phases, in order ---------------------------------------------------------------
-    async def _check(self, checked: asyncio.Future[None] | None) -> None:
+    async def _preflight(self, checked: asyncio.Future[None] | None) -> None:
         """A fresh stream and the motors answering (a tripped Bus Watchdog cleared) before
         anything moves; then ``checked``."""
         await self._await_fresh()
