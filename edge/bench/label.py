@@ -28,7 +28,7 @@ from edge.bench.figures import figure, stats, target
 from edge.bench.load import Helper
 from edge.bench.results import PhaseResult, progress
 from edge.bench.settings import CUBE, MODELS, OBJECTS, ROOT, SIM_CONFIG, Settings
-from edge.runtime.domain import Label, PressState, VLMRefused
+from edge.runtime.domain import EpisodeFinished, Label, PressState, VLMRefused
 
 ROBOT_CONFIG = ROOT / "configs" / "robot.toml"
 LABEL_TIMEOUT_S = 60.0
@@ -86,9 +86,12 @@ async def _presses(robot: dict[str, Any], vlm: dict[str, Any], state: Path, pres
                     t_label = None
                     async with asyncio.timeout(LABEL_TIMEOUT_S):
                         async for event in events:
-                            if (isinstance(event, Label | VLMRefused)
+                            # The label, or the episode's end without one (a failed
+                            # press: said below, and the next press goes on).
+                            if (isinstance(event, Label | VLMRefused | EpisodeFinished)
                                     and event.episode.id == ep["id"]):
-                                t_label = time.monotonic()
+                                if not isinstance(event, EpisodeFinished):
+                                    t_label = time.monotonic()
                                 break
                 outcome = await asyncio.wait_for(ctl.outcomes.get(), LABEL_TIMEOUT_S)
                 async with http.get(f"{vlm['bench_url']}/received") as r:
