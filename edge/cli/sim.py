@@ -86,6 +86,30 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     cons.add_argument("--out", default=None, help="write consistency.md/.json here")
     cons.set_defaults(func=_cmd_sim_consistency)
 
+    teach = simsub.add_parser(
+        "teaching", help="what teaching buys: the teaching curve of the unseen classes, the "
+        "familiarity's ROC AUC and teaching through the running daemon (exit 1 if the "
+        "daemon's presses and the recorder's do not agree)")
+    teach.add_argument("--classes", nargs="+", default=None,
+                       help="unseen classes (default: the 26 FoodReplica and Cube classes)")
+    teach.add_argument("--ks", nargs="+", type=int, default=[1, 2, 5],
+                       help="presses taught per class")
+    teach.add_argument("--fresh", type=int, default=5,
+                       help="fresh presses per class looked up after teaching")
+    teach.add_argument("--reference-presses", type=int, default=10,
+                       help="presses per reference class for the trivial baseline")
+    teach.add_argument("--held-out", type=int, default=5,
+                       help="held-out presses per reference class (familiarity)")
+    teach.add_argument("--e2e-classes", nargs="*", default=None,
+                       help="classes taught through the running daemon (default: macaron "
+                            "and boiled_kiri_mochi; none: skip it)")
+    teach.add_argument("--seed", type=int, default=0)
+    teach.add_argument("--workers", type=int, default=2, help="recorder processes")
+    teach.add_argument("--models", default="models")
+    config_option(teach, "configs/sim.toml")
+    teach.add_argument("--out", default=None, help="write teaching.md/.json here")
+    teach.set_defaults(func=_cmd_sim_teaching)
+
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")
     press.add_argument("--seed", type=int, default=0)
@@ -237,6 +261,18 @@ def _cmd_sim_consistency(args: argparse.Namespace) -> int:
                              runs=args.runs)
     print(report.markdown(command.strip()))
     return 0 if report.passed else 1
+
+
+def _cmd_sim_teaching(args: argparse.Namespace) -> int:
+    from edge.lab.teaching_eval import markdown, run_teaching
+
+    command = " ".join(["vt-edge sim teaching", *sys.argv[3:]])
+    report = run_teaching(args.classes, args.ks, args.fresh, args.reference_presses,
+                          args.held_out, args.e2e_classes, args.seed, args.models, args.config,
+                          args.out, command=command, workers=args.workers)
+    print(markdown(report))
+    e2e = report["end_to_end"]
+    return 0 if e2e is None or e2e["agree"] else 1
 
 
 def _cmd_sim_press(args: argparse.Namespace) -> int:

@@ -256,7 +256,7 @@ def daemon_recordings(objects: Sequence[str], presses: int, runs: int, config: s
             for name in objects:
                 out[run][name] = []
                 for i in range(presses):
-                    ep, tries = _daemon_press(stack, name, objects)
+                    ep, tries = daemon_press(stack, name, objects)
                     failed += tries - 1
                     if ep is None:
                         left_out += 1
@@ -273,7 +273,7 @@ def daemon_recordings(objects: Sequence[str], presses: int, runs: int, config: s
     return out, failed, left_out
 
 
-def _daemon_press(stack, name: str, objects: Sequence[str]) -> tuple[dict | None, int]:
+def daemon_press(stack, name: str, objects: Sequence[str]) -> tuple[dict | None, int]:
     """One recognition of ``name`` (a new draw of it, as a person puts it back) and the
     tries it took; a press that fails is tried again, up to ``DAEMON_TRIES``."""
     backoff = Backoff(DAEMON_RETRY_PAUSE_S, DAEMON_RETRY_MAX_PAUSE_S)
