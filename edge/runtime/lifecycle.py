@@ -470,11 +470,19 @@ class Runtime:
         if button is None:
             return
         async for _ in button.presses():
-            await self.recognizer.trigger_default("button")
+            await self._trigger("button")
 
     def _sigusr1(self) -> None:
-        asyncio.get_running_loop().create_task(self.recognizer.trigger_default("SIGUSR1"),
-                                               name="sigusr1")
+        asyncio.get_running_loop().create_task(self._trigger("SIGUSR1"), name="sigusr1")
+
+    async def _trigger(self, source: str) -> None:
+        """A button or a signal: a recognition, unless a teaching is under way (its presses
+        are the operator's object, one after another; a recognition between two would
+        press it as something else)."""
+        if self.teacher.active:
+            log.warning("%s trigger ignored: a teaching is under way", source)
+            return
+        await self.recognizer.trigger_default(source)
 
     def _sighup(self) -> None:
         if self.reloader is None:

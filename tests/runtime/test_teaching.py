@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
 import time
 from dataclasses import replace
 
@@ -308,7 +310,7 @@ async def test_a_press_that_fails_mid_teaching_ends_it_failed_keeping_what_was_t
 
 
 @pytest.mark.asyncio
-async def test_a_teaching_waiting_between_presses_ends_with_the_daemon(tmp_path):
+async def test_a_teaching_waiting_between_presses_ends_with_the_daemon(tmp_path, caplog):
     async with sim_daemon(tmp_path / "state", OBJECT) as (robot, d):
         async with recording_events(d) as events:
             status, _ = await d.post("/v1/teach", {"label": TAUGHT, "presses": 3,
@@ -317,6 +319,12 @@ async def test_a_teaching_waiting_between_presses_ends_with_the_daemon(tmp_path)
             assert status == 202
             await wait_until(lambda: any(e["type"] == "teach" and e["step"] == "move"
                                          for e in events), 30, "the first press taught")
+            # A button or SIGUSR1 between two taught presses presses nothing.
+            before = set(d.store.ids())
+            os.kill(os.getpid(), signal.SIGUSR1)
+            await wait_until(lambda: "SIGUSR1 trigger ignored: a teaching is under way"
+                             in caplog.text, 10, "the trigger ignored")
+            assert set(d.store.ids()) == before
         runtime = d.runtime
     run = runtime.teaching()
     assert run.status == "failed" and run.error == "the daemon stopped", run
