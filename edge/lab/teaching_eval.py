@@ -487,7 +487,8 @@ def markdown(r: dict) -> str:
             "## End to end: teaching through the running daemon",
             "",
             f"{', '.join(row['name'] for row in e2e['classes'])}: each taught "
-            f"{e2e['taught_presses']} presses through `POST /v1/teach` on `vt-edge run` on "
+            f"{e2e['taught_presses']} press{'es' * (e2e['taught_presses'] != 1)} through "
+            "`POST /v1/teach` on `vt-edge run` on "
             "the emulated robot (`vt-edge sim serve`), then recognised through "
             "`POST /v1/recognize`; beside them the recorder path with the same classes "
             "taught together, the same number of presses.",
