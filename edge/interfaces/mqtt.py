@@ -12,7 +12,7 @@ Topics under the robot's prefix ``P`` (``mqtt.prefix``, default ``vtzero/<hostna
                                   "request_id", "label", "presses", "status": "running"}
     out  P/state          QoS 1, retained  press states: {"state", "episode", "t"}
     out  P/result         QoS 1   each episode once final: {"episode", "request_id",
-                                  "status", "label", "error", "topk", "description",
+                                  "status", "label", "reason", "error", "topk", "description",
                                   "familiarity", "unfamiliar", ...};
                                   each teaching once ended: {"command": "teach",
                                   "request_id", "label", "status", "episodes", "references",
@@ -307,7 +307,8 @@ class MqttBridge:
         _remember(self._published, episode.id, None)
         self._enqueue("result", {
             "episode": episode.id, "request_id": self._requests.pop(episode.id, None),
-            "status": episode.status.value, "label": episode.label, "error": episode.why,
+            "status": episode.status.value, "label": episode.label, "reason": episode.reason,
+            "error": episode.why,
             "candidates": episode.candidates, "topk": episode.topk_json(),
             "description": episode.description, "familiarity": episode.familiarity,
             "unfamiliar": episode.unfamiliar, "timings": episode.timings,

@@ -245,6 +245,9 @@ class Episode:
     next_retry_at: float = 0.0
     last_error: str | None = None
     label: str | None = None
+    # The VLM's short reason for its label ([vlm] ask_reason; control characters already
+    # made spaces by the reader, markup left to whoever shows it to escape).
+    reason: str | None = None
     vlm: dict[str, Any] | None = None
     # The structured-output mode of the request that answered (json_schema, json_object, none).
     structured_output: str | None = None
@@ -402,8 +405,11 @@ class Label:
     t: float = field(default_factory=time.time)
 
     def to_json(self) -> dict[str, Any]:
-        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
-                "status": self.episode.status.value, "label": self.episode.label}
+        out = {"t": self.t, "type": self.kind, "episode": self.episode.id,
+               "status": self.episode.status.value, "label": self.episode.label}
+        if self.episode.reason is not None:
+            out["reason"] = self.episode.reason
+        return out
 
 
 @dataclass(frozen=True)

@@ -287,7 +287,7 @@ class Recognizer:
             status = Status.FAILED  # the label is kept; the failed return stays said
         labelled = await asyncio.to_thread(
             self.store.update, episode.id, status=status, label=answer.label,
-            vlm=answer.to_dict(), attempts=attempts,
+            reason=answer.reason, vlm=answer.to_dict(), attempts=attempts,
             structured_output=answer.structured_output,
             timings={**episode.timings, "vlm_s": latency})
         self.events.publish(Label(labelled))

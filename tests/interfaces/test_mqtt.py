@@ -303,7 +303,8 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
                         hostname="arm")
     pump = asyncio.create_task(bridge._pump())
     await asyncio.sleep(0)
-    done = Episode("e1", Status.DONE, ["a", "b"], "mqtt", label="a", description="soft",
+    done = Episode("e1", Status.DONE, ["a", "b"], "mqtt", label="a", reason="<b>soft</b>",
+                   description="soft",
                    topk=[Neighbour("a", 0.25)], timings={"vlm_s": 0.5}, last_error="slow",
                    familiarity=97.5, unfamiliar=True)
     failed = Episode("e2", Status.FAILED, ["a"], "api", error="no contact")
@@ -319,7 +320,8 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
     assert [topic for topic, _ in sent] == ["state", "state", "result", "result"]
     assert sent[1][1]["state"] == "closing" and sent[1][1]["episode"] == "e1"
     assert sent[2][1] == {
-        "episode": "e1", "request_id": None, "status": "done", "label": "a", "error": None,
+        "episode": "e1", "request_id": None, "status": "done", "label": "a",
+        "reason": "<b>soft</b>", "error": None,
         "candidates": ["a", "b"], "topk": [{"label": "a", "distance": 0.25}],
         "description": "soft", "familiarity": 97.5, "unfamiliar": True,
         "timings": {"vlm_s": 0.5}, "source": "mqtt",

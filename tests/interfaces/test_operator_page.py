@@ -122,6 +122,10 @@ def drive_the_page(url: str, tmp: Path, candidates: list[str]) -> dict:
             f"return [...{card}.querySelectorAll('.topk li')].map(li => li.textContent)")
         found["timings"] = driver.execute_script(f"return {card}.querySelector('.timings')"
                                                  ".textContent")
+        # As text, the markup not made elements.
+        found["reason"] = driver.execute_script(
+            f"const r = {card}.querySelector('.reason');"
+            " return [r.textContent, r.children.length]")
         found["episode_id"] = driver.execute_script(f"return {card}.querySelector('.id')"
                                                     ".textContent")
         found["pads"] = driver.execute_script(
@@ -146,11 +150,16 @@ def drive_the_page(url: str, tmp: Path, candidates: list[str]) -> dict:
     return found
 
 
+REASON = "Round <b>bun</b> & a crust"
+
+
 async def test_operator_page_in_a_real_browser(tmp_path):
-    async with FakeVLM(model="fake-vlm") as fake:
+    # Its reason asked for, with markup the page must show as text.
+    async with FakeVLM(model="fake-vlm", explain=lambda req, label: REASON) as fake:
         fake.script(Reply(label="melon_pan"))
         cfg = fast_config(fake.base_url)
-        cfg = replace(cfg, api=replace(cfg.api, token=TOKEN))
+        cfg = replace(cfg, api=replace(cfg.api, token=TOKEN),
+                      vlm=replace(cfg.vlm, ask_reason=True))
         async with sim_daemon(tmp_path / "state", cfg=cfg) as (_robot, d):
             candidates = [*CUBE, "melon_pan"]
             found = await asyncio.to_thread(drive_the_page, d.url, tmp_path, candidates)
@@ -170,6 +179,7 @@ async def test_operator_page_in_a_real_browser(tmp_path):
     assert ep["label"] == "melon_pan" and ep["source"] == "api"
     assert [t.split(" (")[0] for t in found["topk"]] == [t["label"] for t in ep["topk"]]
     assert "press" in found["timings"] and "vlm" in found["timings"]
+    assert ep["reason"] == REASON and found["reason"] == ["why: " + REASON, 0]
     assert "healthy" in found["header"] and "idle" in found["header"]
     assert {"closing", "holding"} & found["states"], found["states"]
     assert all(lit > 1000 for lit in found["pads"]), found["pads"]  # both pads drawn

@@ -4,6 +4,7 @@ VLM client and a real store (no emulator, no compute process): every way an epis
 from __future__ import annotations
 
 import asyncio
+import json
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -25,11 +26,13 @@ from edge.runtime.press import PressOutcome
 from edge.runtime.recognition import Recognition, Recognizer
 from edge.runtime.ring import Window
 from edge.runtime.store import EpisodeStore
-from edge.vlm.client import VLMAnswer
+from edge.sim.fake_vlm import FakeVLM
+from edge.vlm.client import OpenAIVLM, VLMAnswer
 from tests.support.daemon import ROOT
 from tests.support.fakes import FakeCamera
 from tests.support.presses import recording_of
-from tests.vlm.helpers import image_bytes
+from tests.vlm.helpers import MODEL as VLM_MODEL
+from tests.vlm.helpers import image_bytes, vlm_config
 
 pytestmark = pytest.mark.asyncio
 CANDIDATES = ["macaron", "resin_replica_macaron"]
@@ -384,3 +387,26 @@ async def test_a_press_with_no_question_refuses_a_photo_before_anything_moves(tm
     with pytest.raises(ValueError, match="no question takes no photo"):
         await rec.recognize([], image_bytes(), True, 10, "teach", ask=False)
     assert len(press.outcomes) == 1 and rec.store.list() == []
+
+
+@pytest.mark.parametrize("ask_reason", [True, False], ids=["asked", "not asked"])
+async def test_the_vlms_reason_is_kept_on_the_episode_and_its_result_when_asked(
+        tmp_path, ask_reason):
+    # The real client against the fake server, which reasons only when asked.
+    hostile = "Soft <script>alert(1)</script> & pale"
+    async with FakeVLM(model=VLM_MODEL, explain=lambda req, label: hostile) as fake, \
+            OpenAIVLM(vlm_config(fake.base_url, ask_reason=ask_reason)) as vlm:
+        rec, events = recognizer(tmp_path, ScriptedPress(pressed()), vlm,
+                                 camera=FakeCamera(image_bytes()))
+        with events.subscribe(Hello(PressState.IDLE, None)) as sub:
+            episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
+            seen = await drain(sub)
+    assert episode.status == Status.DONE and episode.label == CANDIDATES[0]
+    result = next(e for e in seen if e["type"] == "result")
+    stored = json.loads((tmp_path / "episodes" / episode.id / "episode.json").read_text())
+    if ask_reason:
+        # Kept as the reader made it: markup is for the page to escape (textContent).
+        assert episode.reason == hostile == result["reason"] == stored["reason"]
+        assert rec.store.get(episode.id).reason == hostile
+    else:
+        assert episode.reason is None and "reason" not in result and "reason" not in stored

@@ -200,8 +200,9 @@ class OperatorPage:
                 "id": eid, "status": episode.status.value, "created": episode.created,
                 "updated": episode.updated, "source": episode.source,
                 "candidates": episode.candidates, "label": episode.label,
-                "error": episode.why, "topk": episode.topk_json(),
-                "description": episode.description, "timings": episode.timings,
+                "reason": episode.reason, "error": episode.why, "topk": episode.topk_json(),
+                "description": episode.description, "familiarity": episode.familiarity,
+                "unfamiliar": episode.unfamiliar, "timings": episode.timings,
                 "vlm_mode": episode.vlm_mode, "press": episode.press_json(LISTED_PRESS),
                 "image": f"/v1/episodes/{eid}/image" if files & {"image.jpg", "image.png"}
                 else None,

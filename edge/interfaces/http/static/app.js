@@ -260,6 +260,8 @@ function card(ep) {
     : ep.status === "pressed"
       ? el("div", { class: "muted", text: "pressed to teach: no question asked" })
       : el("div", { class: "error", text: ep.error || (ep.status === "pending" ? "waiting for the VLM" : ep.status) });
+  // The VLM's reason ([vlm] ask_reason) as text, never markup: it is the server's words.
+  const reason = ep.reason ? el("div", { class: "reason", text: `why: ${ep.reason}` }) : null;
   const topk = el("ol", { class: "topk" },
     ...(ep.topk || []).map((t) => el("li", { text: `${t.label} (${t.distance.toFixed(3)})` })));
   // The nearest reference's distance as a percentile of the references' own: past the
@@ -276,7 +278,7 @@ function card(ep) {
     el("div", { class: "head" }, el("span", { class: `badge ${ep.status}`, text: ep.status }),
        el("span", { class: "id", text: ep.id }), el("span", { class: "muted", text: when })),
     photo,
-    el("div", {}, result, el("div", { class: "muted", text: "touch: similar to" }), topk,
+    el("div", {}, result, reason, el("div", { class: "muted", text: "touch: similar to" }), topk,
        familiarity, timings),
     el("div", { class: "info" }, ep.trace ? canvas : el("div", { class: "muted", text: "no press recording" }),
        thisWas(ep)));
