@@ -347,7 +347,8 @@ def markdown(report: dict[str, Any]) -> str:
         "| candidate | " + " | ".join(title for _, title in METRICS) + " |",
         "|---" * (len(METRICS) + 1) + "|",
     ]
-    for res in report["candidates"].values():
+    names = list(cfg["candidates"])  # in the order asked (the JSON's keys are sorted)
+    for res in (report["candidates"][n] for n in names):
         lines.append(f"| {res['title']} | "
                      + " | ".join(_cell(res[key]) for key, _ in METRICS) + " |")
     lines.append("| chance | " + " | ".join(f"{report['chance'][key]:.2f}"
@@ -355,11 +356,11 @@ def markdown(report: dict[str, Any]) -> str:
     lines += ["", "## Inside or beyond the seed spread", ""]
     lines += [f"- {line}" for line in report["differences"]]
     lines += ["", "## First neighbours of each held-out object (share of its presses over the "
-              "seeds)", "", "| held out | partners | " + " | ".join(report["candidates"])
-              + " |", "|---" * (len(report["candidates"]) + 2) + "|"]
+              "seeds)", "", "| held out | partners | " + " | ".join(names) + " |",
+              "|---" * (len(names) + 2) + "|"]
     for obj in objects:
         cells = [", ".join(f"{n} {share:.2f}" for n, share in report["neighbours"][c][obj][:2])
-                 for c in report["candidates"]]
+                 for c in names]
         lines.append(f"| {obj} | {', '.join(report['partners'].get(obj, ())) or '-'} | "
                      + " | ".join(cells) + " |")
     lines.append("")
