@@ -15,6 +15,8 @@ from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
 from tests.support.daemon import (
     FOOD,
+    LOADED_HOST_ERRORS,
+    LOADED_HOST_TRIES,
     QUICK_OBJECT,
     ROOT,
     at_pose,
@@ -29,13 +31,23 @@ pytestmark = pytest.mark.asyncio
 
 async def test_compute_worker_killed_during_a_press(tmp_path):
     async with sim_daemon(tmp_path) as (robot, d):
-        first_worker = d.compute.pid()
-        status, ep = await d.post("/v1/recognize", {"candidates": FOOD})
-        assert status == 202
-        await d.wait_press_state({"closing"})
-        os.kill(first_worker, signal.SIGKILL)  # as the OOM killer would
-        failed = await d.wait_status(ep["id"], {"failed", "not_configured"})
-        await d.wait_idle()
+        for attempt in range(1, LOADED_HOST_TRIES + 1):
+            worker = d.compute.pid()
+            status, ep = await d.post("/v1/recognize", {"candidates": FOOD})
+            assert status == 202
+            await d.wait_press_state({"closing"})
+            os.kill(worker, signal.SIGKILL)  # as the OOM killer would
+            failed = await d.wait_status(ep["id"], {"failed", "not_configured"})
+            await d.wait_idle()
+            # A press that failed for a loaded host's reason (a stall past the Bus Watchdog)
+            # says nothing about the worker: pressed again, on the worker started since.
+            if attempt < LOADED_HOST_TRIES and any(
+                    e in (failed["error"] or "") and not failed["press"]["contact"]
+                    for e in LOADED_HOST_ERRORS):
+                print(f"  press {attempt} failed on a loaded host: {failed['error']}")
+                continue
+            break
+        first_worker = worker
         # The robot: the press itself did not need the worker; it ended as always.
         assert gripper_open(robot) and at_pose(robot, d.cfg, "above")
         assert failed["press"]["contact"] and failed["press"]["result"] == "ok"
@@ -46,13 +58,13 @@ async def test_compute_worker_killed_during_a_press(tmp_path):
         assert "compute worker died" in failed["error"]
         assert (await d.get("/healthz"))[0] == 200
         # Kept: the raw press, whole.
-        (kept,) = store_consistent(d.store.root)
+        kept = next(e for e in store_consistent(d.store.root) if e["id"] == failed["id"])
         rec = recording.load(d.store.root / kept["id"] / "press.press.npz")
         assert rec.frames.shape[0] > 100
         # The next press gets a new worker and a normal answer.
         status, ep2 = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
         assert status == 200 and ep2["status"] == "not_configured" and ep2["description"]
-        assert d.compute.pid() not in (None, first_worker) and d.compute.restarts == 1
+        assert d.compute.pid() not in (None, first_worker) and d.compute.restarts == attempt
 
 
 async def test_a_damaged_model_stops_the_daemon_before_any_motor_moves(tmp_path):
