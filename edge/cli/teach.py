@@ -10,15 +10,11 @@ with the daemon stopped too.
 from __future__ import annotations
 
 import argparse
-import json
-import urllib.error
 import urllib.parse
-import urllib.request
 from typing import Any
 
 from edge.cli.options import config_option
 from edge.core.config import Config
-from edge.core.errors import BadRequest, BusyError, EdgeError, NotFoundError
 
 # How long one taught press may take the daemon (arm moves, the press, the compute process),
 # beyond the pause between presses.
@@ -76,7 +72,7 @@ def _cmd_teach(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     if args.episode is not None:
-        ref = ask_daemon(cfg, "POST", f"/v1/episodes/{_quoted(args.episode)}/teach",
+        ref = _ask(cfg, "POST", f"/v1/episodes/{_quoted(args.episode)}/teach",
                          _without_none({"label": args.label,
                                         "description": args.description}), args.url)
         print(f"episode {args.episode} taught as {ref['label']}: reference {ref['id']}")
@@ -87,7 +83,7 @@ def _cmd_teach(args: argparse.Namespace) -> int:
     timeout = max(1, args.presses) * (PRESS_TIMEOUT_S + (args.pause or PAUSE_S))
     print(f"teaching {args.label}: {args.presses} press(es); move the object slightly "
           "between presses")
-    run = ask_daemon(cfg, "POST", "/v1/teach", body, args.url, timeout)
+    run = _ask(cfg, "POST", "/v1/teach", body, args.url, timeout)
     for episode, ref in zip(run["episodes"], run["references"], strict=False):
         print(f"  episode {episode} -> reference {ref}")
     if run["status"] != "done":
@@ -110,11 +106,11 @@ def _cmd_references(args: argparse.Namespace) -> int:
     if args.references_command == "remove":
         path = (f"/v1/references/{_quoted(args.id)}" if args.id is not None
                 else f"/v1/references?label={urllib.parse.quote(args.label)}")
-        removed = ask_daemon(cfg, "DELETE", path, None, args.url)["removed"]
+        removed = _ask(cfg, "DELETE", path, None, args.url)["removed"]
         for ref in removed:
             print(f"removed {ref['id']}  {ref['label']}")
         return 0
-    listing = ask_daemon(cfg, "GET", "/v1/references", None, args.url)
+    listing = _ask(cfg, "GET", "/v1/references", None, args.url)
     for ref in listing["references"]:
         stale = "  (stale: another model embedded it, not used)" if ref["stale"] else ""
         print(f"{ref['id']}  {ref['label']:24s} {ref['taught_at']}  {ref['source']:5s} "
@@ -124,36 +120,13 @@ def _cmd_references(args: argparse.Namespace) -> int:
     return 0
 
 
-def ask_daemon(cfg: Config, method: str, path: str, body: dict[str, Any] | None,
-               url: str | None = None, timeout_s: float = REQUEST_TIMEOUT_S) -> Any:
-    """The running daemon's JSON answer to ``method path``; its refusal as the
-    :class:`EdgeError` its status means, with the daemon's one-line reason."""
-    from edge.interfaces.http.api import load_token
-    from edge.ops.episode_retry import daemon_url
+def _ask(cfg: Config, method: str, path: str, body: dict[str, Any] | None,
+         url: str | None = None, timeout_s: float = REQUEST_TIMEOUT_S) -> Any:
+    """The running daemon's answer (teaching and the references go through it)."""
+    from edge.ops.daemon_http import ask_daemon
 
-    base = url or daemon_url(cfg)
-    data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(base + path, data=data, method=method)
-    if data is not None:
-        request.add_header("Content-Type", "application/json")
-    token = load_token(cfg.api)
-    if token:
-        request.add_header("Authorization", f"Bearer {token}")
-    try:
-        with urllib.request.urlopen(request, timeout=timeout_s) as resp:
-            return json.loads(resp.read())
-    except urllib.error.HTTPError as exc:
-        try:
-            reason = json.loads(exc.read()).get("error", exc.reason)
-        except (ValueError, AttributeError):
-            reason = exc.reason
-        error = {400: BadRequest, 404: NotFoundError, 409: BusyError}.get(exc.code, EdgeError)
-        raise error(f"the daemon at {base} refused: {reason}") from None
-    except (urllib.error.URLError, OSError) as exc:
-        why = getattr(exc, "reason", exc)
-        raise EdgeError(f"no daemon answers at {base} ({why}): teaching and the taught "
-                        "references go through the running daemon; start it with `vt-edge run "
-                        "--config FILE` (or give --url)") from None
+    return ask_daemon(cfg, method, path, body, timeout_s=timeout_s, url=url,
+                      what="teaching (and the taught references)")
 
 
 def _quoted(segment: str) -> str:
