@@ -122,7 +122,7 @@ def load(path: str | Path) -> Recording:
     return from_bytes(data, str(path))
 
 
-def _check_size(npz: np.lib.npyio.NpzFile, key: str, name: str) -> None:
+def check_size(npz: np.lib.npyio.NpzFile, key: str, name: str) -> None:
     """Refuse a member whose header claims more than MAX_ARRAY_BYTES, before reading it."""
     with npz.zip.open(f"{key}.npy") as fh:
         version = np.lib.format.read_magic(fh)
@@ -148,7 +148,7 @@ def from_bytes(data: bytes, name: str = "<recording>") -> Recording:
                 raise RecordingError(
                     f"{name}: not a press recording, missing {', '.join(missing)}")
             for key in ("meta", *_ARRAYS):
-                _check_size(npz, key, name)
+                check_size(npz, key, name)
             meta_arr = npz["meta"]
             arrays = {key: npz[key] for key in _ARRAYS}
     except RecordingError:

@@ -36,7 +36,7 @@ import numpy as np
 from edge.core import preprocess
 from edge.core.atomic import atomic_write_bytes
 from edge.core.errors import PreprocessError, RecordingError
-from edge.core.recording import MAX_ARRAY_BYTES
+from edge.core.recording import check_size
 
 SUFFIX = ".seq.npz"
 REQUIRED = ("samples", "rate_hz", "label")
@@ -133,7 +133,7 @@ def load(path: str | Path) -> Sequence:
             arrays = {}
             for key in (*REQUIRED, *OPTIONAL):
                 if key in npz.files:
-                    _check_size(npz, key, name)
+                    check_size(npz, key, name)
                     arrays[key] = npz[key]
         except RecordingError:
             raise
@@ -144,19 +144,6 @@ def load(path: str | Path) -> Sequence:
     stop = arrays.get("stop_s")
     return Sequence(arrays["samples"].astype(np.float32), float(arrays["rate_hz"]),
                     str(arrays["label"]), None if stop is None else float(stop), name)
-
-
-def _check_size(npz: np.lib.npyio.NpzFile, key: str, name: str) -> None:
-    """Refuse a member whose header claims more than a recording may hold, before reading."""
-    with npz.zip.open(f"{key}.npy") as fh:
-        version = np.lib.format.read_magic(fh)
-        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                       else np.lib.format.read_array_header_2_0)
-        shape, _, dtype = read_header(fh)
-    size = math.prod(shape) * dtype.itemsize
-    if size > MAX_ARRAY_BYTES:
-        raise RecordingError(f"{name}: field {key} claims {size} bytes (shape {shape}): the "
-                             "file is corrupt")
 
 
 def _scalar(arrays: dict[str, np.ndarray], key: str, name: str) -> float:
