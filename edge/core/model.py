@@ -1,6 +1,8 @@
 """The tactile encoder and the tactile-to-text reference database, as the robot uses them.
 
-numpy + onnxruntime only (never torch). A model directory holds:
+numpy + onnxruntime only (never torch). A model directory holds an encoder of the kind its
+manifest names (``encoder.kind``; absent: ``onnx``, every model built before the kind was a
+setting):
 
 - ``encoder.onnx``: input ``x`` (batch, 25, channels) float32 (96 for two 4 x 4 pads; the
   manifest's ``encoder.input_shape`` says how many, ``sensor_layout`` of which pads) in *tactile
@@ -9,6 +11,10 @@ numpy + onnxruntime only (never torch). A model directory holds:
   *inside* the graph, so the robot never applies it by hand and can never apply the wrong one.
   Outputs ``z`` (batch, D) float32 (D = 16 as shipped), the continuous embedding, and
   ``code`` (batch,) int64, the index of the nearest codebook vector.
+- or, of kind ``mean``, ``encoder.npz`` (``mean`` and ``std``, (channels,) float32, the
+  normaliser fitted on the training classes as for a network): the trivial feature, each
+  channel's mean over the window of the normalised input (:class:`MeanEncoder`, pure numpy).
+  D = channels; ``code`` is 0 throughout (no codebook).
 - ``database.npz`` (numpy arrays, loaded with ``allow_pickle=False``) and ``database.json``
   (labels, their descriptions, the retrieval settings): the embeddings of every reference
   sample, grouped by class: every subsampling offset of every reference press (the paper's
@@ -53,6 +59,10 @@ ENCODER_FILE = "encoder.onnx"
 DATABASE_ARRAYS = "database.npz"
 DATABASE_INDEX = "database.json"
 REQUIRED_FILES = (ENCODER_FILE, DATABASE_ARRAYS, DATABASE_INDEX)
+MEAN_ENCODER_FILE = "encoder.npz"
+# The manifest's encoder.kind -> the encoder's file; a manifest without a kind is "onnx".
+ENCODER_FILES = {"onnx": ENCODER_FILE, "mean": MEAN_ENCODER_FILE}
+DEFAULT_ENCODER_KIND = "onnx"
 MANIFEST_SCHEMA = 1
 DATABASE_SCHEMA = 1
 DEFAULT_K = 3
@@ -133,6 +143,65 @@ class OnnxEncoder:
             raise ModelError("encoder input contains NaN or infinity")
         z, code = self._session.run(list(OUTPUT_NAMES), {INPUT_NAME: x})
         return np.asarray(z, dtype=np.float32), np.asarray(code, dtype=np.int64)
+
+
+class MeanEncoder:
+    """The trivial feature as an encoder: each channel's mean over the window of the input
+    normalised as a network's is (``(x - mean) / std`` with the training classes'
+    statistics). Pure numpy; the same call as :class:`OnnxEncoder`."""
+
+    def __init__(self, data: bytes, steps: int, *, name: str = MEAN_ENCODER_FILE) -> None:
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                mean, std = npz["mean"], npz["std"]
+        except KeyError as exc:
+            raise ModelError(f"{name}: missing array {exc}") from None
+        except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
+            raise ModelError(f"{name}: truncated or corrupt ({exc})") from None
+        if (mean.ndim != 1 or mean.shape != std.shape or not mean.size
+                or not np.all(np.isfinite(mean)) or not np.all(std > 0)):
+            raise ModelError(f"{name}: mean and std must be one finite value per channel, "
+                             f"std > 0; got shapes {mean.shape} and {std.shape}")
+        self._mean = mean.astype(np.float32)
+        self._std = std.astype(np.float32)
+        self.steps, self.channels = int(steps), int(mean.shape[0])
+        self.dim: int | None = self.channels
+        self.name = name
+
+    @staticmethod
+    def to_bytes(mean: np.ndarray, std: np.ndarray) -> bytes:
+        """The ``encoder.npz`` of a normaliser's per-channel ``mean`` and ``std``."""
+        buf = io.BytesIO()
+        np.savez(buf, mean=np.asarray(mean, np.float32), std=np.asarray(std, np.float32))
+        return buf.getvalue()
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``x`` (B, steps, channels) in tactile units -> z (B, channels) float32, code (B,)
+        int64 zeros."""
+        x = np.asarray(x, dtype=np.float32)
+        if x.ndim != 3 or x.shape[1:] != (self.steps, self.channels):
+            raise ModelError(
+                f"encoder input must be (batch, {self.steps}, {self.channels}), got {x.shape}")
+        if x.shape[0] == 0:
+            raise ModelError("encoder input has an empty batch")
+        if not np.all(np.isfinite(x)):
+            raise ModelError("encoder input contains NaN or infinity")
+        z = ((x - self._mean) / self._std).mean(axis=1, dtype=np.float64)
+        return z.astype(np.float32), np.zeros(x.shape[0], dtype=np.int64)
+
+
+def encoder_kind(manifest: Mapping[str, Any], name: str = MANIFEST) -> str:
+    """The manifest's ``encoder.kind`` (``onnx`` where it names none); refuses another."""
+    kind = manifest.get("encoder", {}).get("kind", DEFAULT_ENCODER_KIND)
+    if kind not in ENCODER_FILES:
+        raise ModelError(f"{name}: encoder.kind must be one of {', '.join(ENCODER_FILES)}, "
+                         f"got {kind!r:.40}")
+    return kind
+
+
+def required_files(kind: str = DEFAULT_ENCODER_KIND) -> tuple[str, ...]:
+    """The files a model directory with an encoder of ``kind`` cannot do without."""
+    return (ENCODER_FILES[kind], DATABASE_ARRAYS, DATABASE_INDEX)
 
 
 # --------------------------------------------------------------------------------------
@@ -552,7 +621,7 @@ class Model:
 
     directory: Path
     manifest: dict[str, Any]
-    encoder: OnnxEncoder
+    encoder: OnnxEncoder | MeanEncoder
     database: ReferenceDatabase
     window: WindowSpec
 
@@ -762,7 +831,8 @@ def read_manifest(directory: str | Path) -> dict[str, Any]:
     if not isinstance(files, dict) or not all(
             isinstance(v, dict) and isinstance(v.get("sha256"), str) for v in files.values()):
         raise ModelError(f"{path}: 'files' must map names to {{'sha256': ...}}")
-    missing = [name for name in REQUIRED_FILES if name not in files]
+    missing = [name for name in required_files(encoder_kind(manifest, str(path)))
+               if name not in files]
     if missing:
         raise ModelError(f"{path}: does not list {', '.join(missing)}")
     if manifest.get("origin") is not None:
@@ -808,22 +878,27 @@ def load_model(models_dir: str | Path, *, threads: int = 1) -> Model:
     directory = Path(models_dir)
     manifest = read_manifest(directory)
     data = verified_files(directory, manifest)
-    encoder = OnnxEncoder(data[ENCODER_FILE], threads=threads,
-                          name=str(directory / ENCODER_FILE))
+    window = _window(manifest)
+    kind = encoder_kind(manifest)
+    encoder_path = directory / ENCODER_FILES[kind]
+    encoder: OnnxEncoder | MeanEncoder
+    if kind == "mean":
+        encoder = MeanEncoder(data[MEAN_ENCODER_FILE], window.n_steps, name=str(encoder_path))
+    else:
+        encoder = OnnxEncoder(data[ENCODER_FILE], threads=threads, name=str(encoder_path))
     database = ReferenceDatabase.from_bytes(
         data[DATABASE_ARRAYS], data[DATABASE_INDEX],
         (str(directory / DATABASE_ARRAYS), str(directory / DATABASE_INDEX)))
-    window = _window(manifest)
     layout = manifest_layout(manifest, str(directory / MANIFEST))
     if encoder.channels != layout.channels:
-        raise ModelError(f"{directory / ENCODER_FILE}: takes {encoder.channels} channels but "
+        raise ModelError(f"{encoder_path}: takes {encoder.channels} channels but "
                          f"the manifest says {layout.text()}")
     if encoder.steps != window.n_steps:
-        raise ModelError(f"{directory / ENCODER_FILE}: takes {encoder.steps} steps but the "
+        raise ModelError(f"{encoder_path}: takes {encoder.steps} steps but the "
                          f"manifest window gives {window.n_steps}")
     if encoder.dim is not None and encoder.dim != database.dim:
         raise ModelError(f"{directory / DATABASE_ARRAYS}: embeddings have {database.dim} "
                          f"dims, the encoder gives {encoder.dim}")
-    log.info("model %s: %d reference presses of %d classes, retrieval in %s space",
-             directory, len(database), len(database.classes), database.space)
+    log.info("model %s: %s encoder, %d reference presses of %d classes, retrieval in %s "
+             "space", directory, kind, len(database), len(database.classes), database.space)
     return Model(directory, manifest, encoder, database, window)

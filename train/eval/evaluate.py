@@ -71,6 +71,9 @@ VARIANT_TITLES = {
                 "only",
     "vq_zeros": "VQ-VAE, zero-input decoder (z_q alone)",
     "beta": "beta-VAE (paper's decoder), posterior mean",
+    "mean": "the trivial feature as deployed (vt-train build --embedding mean): each "
+            "channel's mean over the crop window of the input after the training classes' "
+            "normaliser, L2 nearest neighbours",
     "baseline": "trivial baseline: each channel's mean over the crop window, standardised "
                 "with the reference presses' statistics, L2 nearest neighbours",
 }

@@ -10,9 +10,13 @@ inputs, so a rerun after an interruption skips what is done and says so:
    class, every reference class present (refused, naming the class and the presses); every
    class at one stream rate (within ``preprocess.RATE_TOLERANCE``: a class pressed at
    100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``;
-2. train the VQ-VAE with the paper's decoder (and, with ``--variant``, the beta-VAE and the
-   zero-input decoder for the comparison rows of the evaluation and of Table I);
-3. export the encoder to ONNX with its parity check;
+2. train the embedding ``--embedding`` names: ``shipped`` (the VQ-VAE with the paper's
+   decoder, z of 16 and the metric term), ``paper`` (the same in the paper's configuration:
+   z of 4, reconstruction only) or ``mean`` (the trivial feature, each channel's mean over
+   the window after the normaliser: nothing to train); with ``--variant``, the beta-VAE and
+   the zero-input decoder for the comparison rows of the evaluation and of Table I;
+3. export the encoder: a network to ONNX with its parity check, ``mean`` to ``encoder.npz``
+   (the normaliser's statistics; the manifest's ``encoder.kind``);
 4. the database of every offset of every press of the train and val classes;
 5. the prompt templates copied (the manifest hashes them);
 6. the retrieval evaluation (``eval/eval.md``, ``eval/eval.json``), the trivial baseline beside
@@ -40,14 +44,23 @@ from typing import Any
 import numpy as np
 
 from edge.core import preprocess
-from edge.core.atomic import atomic_write_text, swap_in
+from edge.core.atomic import atomic_write_bytes, atomic_write_text, swap_in
 from edge.core.errors import ModelError, RecordingError
 from edge.core.layout import XR1944, PadLayout
-from edge.core.model import ENCODER_FILE, REQUIRED_FILES, OnnxEncoder, Origin
+from edge.core.model import (
+    DATABASE_ARRAYS,
+    DATABASE_INDEX,
+    ENCODER_FILES,
+    MEAN_ENCODER_FILE,
+    MeanEncoder,
+    OnnxEncoder,
+    Origin,
+)
 from edge.core.recording import DATASET_INDEX
 from train.eval import evaluate
 from train.learn.data import (
     STD_FLOOR_FRACTION,
+    Normaliser,
     PressSet,
     Splits,
     load_presses,
@@ -59,7 +72,13 @@ from train.learn.trainer import train as train_model
 from train.ship import database
 from train.ship.export import check_parity, codebook_of, export_onnx, parity
 from train.ship.manifest import PROMPTS_DIR, dumps, versions, write_manifest
-from train.ship.release import EVAL_DIR, encode_timing, encoder_section, prompt_hashes
+from train.ship.release import (
+    EVAL_DIR,
+    encode_timing,
+    encoder_section,
+    prompt_hashes,
+    window_section,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +90,10 @@ SHIPPED_PROMPTS = Path(__file__).resolve().parents[2] / "models" / PROMPTS_DIR
 VARIANTS = {"beta": {"variant": "beta"}, "zeros": {"decoder": "zeros"}, "paper": PAPER}
 # Checkpoint directories under training/, as release names them (vt-train table1 --beta/--zeros).
 VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros", "paper": "vq_paper"}
+# The embeddings a build can deploy (--embedding): name -> the network trained for it (None:
+# the trivial feature, nothing to train).
+EMBEDDINGS = {"shipped": "vq", "paper": "paper", "mean": None}
+MEAN_ROW = "mean"  # the evaluation's row of the deployed trivial feature
 
 
 @dataclass(frozen=True)
@@ -86,9 +109,11 @@ class BuildConfig:
     threads: int = 1
     mixed_rates: bool = False  # build from classes pressed at different stream rates
     std_floor: float = STD_FLOOR_FRACTION  # the normaliser's (train.learn.data)
+    embedding: str = "shipped"  # what the model deploys (EMBEDDINGS)
 
     def command(self) -> str:
         parts = [f"vt-train build --data {self.data} --out {self.out}",
+                 *([f"--embedding {self.embedding}"] if self.embedding != "shipped" else []),
                  *(f"--variant {v}" for v in self.variants),
                  *(["--mixed-rates"] if self.mixed_rates else []),
                  *([f"--std-floor {self.std_floor:g}"]
@@ -269,8 +294,18 @@ class Job:
         return self._reference
 
     @property
+    def network(self) -> str | None:
+        """The trained network the model deploys (a VARIANTS name), None for ``mean``."""
+        return EMBEDDINGS[self.cfg.embedding]
+
+    @property
     def encoder(self) -> Path:
-        return self.work / ENCODER_FILE
+        return self.work / ENCODER_FILES["onnx" if self.network else "mean"]
+
+    @property
+    def row(self) -> str:
+        """The deployed embedding's row in the evaluation."""
+        return VARIANT_DIRS[self.network] if self.network else MEAN_ROW
 
     def checkpoint(self, name: str) -> Path:
         return self.work / TRAINING_DIR / VARIANT_DIRS[name] / CHECKPOINT
@@ -300,6 +335,9 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
 
 def _check_request(cfg: BuildConfig) -> list[Path]:
     """Refuse unknown variants and a prompt directory without templates; the templates."""
+    if cfg.embedding not in EMBEDDINGS:
+        raise ValueError(f"unknown embedding {cfg.embedding!r}; choose from "
+                         f"{', '.join(EMBEDDINGS)}")
     unknown = [v for v in cfg.variants if v not in VARIANTS]
     if unknown:
         raise ValueError(f"unknown variant {', '.join(unknown)}; choose from "
@@ -335,7 +373,8 @@ def _train(job: Job) -> dict[str, dict[str, Any]]:
     base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
                        threads=cfg.threads)
     trained: dict[str, dict[str, Any]] = {}
-    for name in ("vq", *cfg.variants):
+    network = (job.network,) if job.network else ()
+    for name in dict.fromkeys((*network, *cfg.variants)):
         config = replace(base, model=replace(job.model_config, **VARIANTS.get(name, {})))
         where = job.checkpoint(name).parent
 
@@ -354,9 +393,16 @@ def _train(job: Job) -> dict[str, dict[str, Any]]:
 
 
 def _export(job: Job) -> dict[str, Any]:
-    """Step "export": the VQ-VAE's encoder to ONNX, parity-checked on the real presses."""
+    """Step "export": the deployed network's encoder to ONNX, parity-checked on the real
+    presses; for ``mean``, the normaliser fitted on the train classes to ``encoder.npz``."""
+    # An encoder of the other kind left by an earlier build of this directory goes.
+    for other in set(ENCODER_FILES.values()) - {job.encoder.name}:
+        (job.work / other).unlink(missing_ok=True)
+    if job.network is None:
+        return _export_mean(job)
+
     def export() -> dict[str, Any]:
-        model, norm, _ = load_checkpoint(job.checkpoint("vq"))
+        model, norm, _ = load_checkpoint(job.checkpoint(job.network))
         onnx_bytes = export_onnx(model, norm, job.encoder)
         real = job.reference().inputs(0)
         if job.unseen is not None:
@@ -365,19 +411,50 @@ def _export(job: Job) -> dict[str, Any]:
         check_parity(par)
         return {"parity": par.to_dict(), "timing": encode_timing(onnx_bytes, real)}
 
-    return job.steps.run("export", _key(_sha(job.checkpoint("vq"))), [job.encoder], export)
+    return job.steps.run("export", _key(_sha(job.checkpoint(job.network))), [job.encoder],
+                         export)
+
+
+def _export_mean(job: Job) -> dict[str, Any]:
+    """The trivial feature's encoder: the statistics a network's normaliser would have."""
+    cfg = job.cfg
+
+    def export() -> dict[str, Any]:
+        train_x = job.reference().select(job.ds.splits.train).x
+        norm = Normaliser.fit(train_x, cfg.std_floor)
+        data = MeanEncoder.to_bytes(norm.mean, norm.std)
+        atomic_write_bytes(job.encoder, data)
+        real = job.reference().inputs(0)
+        return {"norm": norm.to_dict(),
+                "timing": encode_timing(MeanEncoder(data, real.shape[1]), real)}
+
+    return job.steps.run("export", _key(job.ds.sha256, "mean", cfg.std_floor), [job.encoder],
+                         export)
+
+
+def _encoder(job: Job) -> OnnxEncoder | MeanEncoder:
+    """The deployed encoder as the robot loads it."""
+    data = job.encoder.read_bytes()
+    if job.network is None:
+        return MeanEncoder(data, job.reference().x.shape[2])
+    return OnnxEncoder(data)
 
 
 def _database(job: Job) -> dict[str, Any]:
     """Step "database": every offset of every train and val press, encoded by the graph."""
     def build_db() -> dict[str, Any]:
-        db = database.build_database(job.encoder.read_bytes(), job.reference(),
-                                     job.ds.splits)
+        if job.network is None:
+            presses = job.reference().select(job.ds.splits.classes)
+            z, code = database.encode_presses(_encoder(job), presses)
+            db = database.from_embeddings(presses, job.ds.splits, z, None, code)
+        else:
+            db = database.build_database(job.encoder.read_bytes(), job.reference(),
+                                         job.ds.splits)
         db.save(job.work)
         return database.summary(db) | {"codes_used": len(np.unique(db.code))}
 
     return job.steps.run("database", _key(_sha(job.encoder), job.ds.sha256),
-                         [job.work / name for name in REQUIRED_FILES[1:]], build_db)
+                         [job.work / DATABASE_ARRAYS, job.work / DATABASE_INDEX], build_db)
 
 
 def _copy_prompts(work: Path, prompts: list[Path]) -> None:
@@ -393,18 +470,23 @@ def _evaluate(job: Job, trained: dict[str, dict[str, Any]]) -> dict[str, Any]:
     work = job.work
 
     def run_eval() -> dict[str, Any]:
-        onnx_bytes = job.encoder.read_bytes()
-        codebook = codebook_of(onnx_bytes)
-        embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {
-            "vq": (evaluate.onnx_embedder(OnnxEncoder(onnx_bytes), codebook), codebook)}
+        encoder = _encoder(job)
+        embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {}
+        if isinstance(encoder, MeanEncoder):
+            embedders[job.row] = ((lambda x: (encoder(x)[0], None)), None)
+        else:
+            codebook = codebook_of(job.encoder.read_bytes())
+            embedders[job.row] = (evaluate.onnx_embedder(encoder, codebook), codebook)
         for name in job.cfg.variants:
+            if name == job.network:
+                continue
             model, norm, _ = load_checkpoint(work / trained[name]["checkpoint"])
             book = None if model.quantiser is None else \
                 model.quantiser.codebook.detach().numpy().copy()
             embedders[VARIANT_DIRS[name]] = (
                 (lambda x, m=model, n=norm: embed(m, n, x)), book)
         report = evaluate.evaluate(embedders, job.reference(), job.ds.splits, job.unseen,
-                                   work / EVAL_DIR, seed=job.cfg.seed)
+                                   work / EVAL_DIR, primary=(job.row, "z"), seed=job.cfg.seed)
         return evaluate.summary_metrics(report)
 
     variant_shas = {name: _sha(work / t["checkpoint"]) for name, t in trained.items()}
@@ -424,8 +506,7 @@ def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: d
         database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
         database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
         database.PRESS_SHA256: ds.press_sha256,
-        "encoder": encoder_section(load_checkpoint(job.checkpoint("vq"))[1], job.model_config,
-                                   exported["parity"]),
+        "encoder": _encoder_section(job, exported),
         "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
                           "taxel_rows": ds.layout.rows},
         "training": {
@@ -451,6 +532,27 @@ def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: d
     if ds.index.get("plan_sha256"):
         sections["plan_sha256"] = ds.index["plan_sha256"]
     return sections
+
+
+def _encoder_section(job: Job, exported: dict[str, Any]) -> dict[str, Any]:
+    """The manifest's ``encoder``, with its ``kind`` (``onnx`` or ``mean``)."""
+    if job.network is not None:
+        config = replace(job.model_config, **VARIANTS.get(job.network, {}))
+        return {"kind": "onnx", "embedding": job.cfg.embedding} | encoder_section(
+            load_checkpoint(job.checkpoint(job.network))[1], config, exported["parity"])
+    norm = Normaliser.from_dict(exported["norm"])
+    steps, channels = job.model_config.steps, job.model_config.channels
+    return {
+        "kind": "mean", "embedding": job.cfg.embedding, "file": MEAN_ENCODER_FILE,
+        "input": "x", "input_shape": ["batch", steps, channels],
+        "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
+        "normalisation": "(x - mean) / std, per channel, training stats, then the mean over "
+                         "the window: z is each channel's mean (edge.core.model.MeanEncoder)",
+        "mean": norm.mean.tolist(), "std": norm.std.tolist(),
+        "outputs": {"z": ["batch", channels], "code": ["batch"]},
+        "embedding_dim": channels, "codebook_size": 0,
+        "window": window_section(),
+    }
 
 
 def checkpoints(model_dir: str | Path) -> dict[str, Path]:

@@ -2,7 +2,8 @@
 versions. Written last (atomically) by every command that changes a model directory, so
 :func:`edge.core.model.load_model` either sees a consistent directory or refuses it by name.
 
-``files`` (verified by the robot at load): ``encoder.onnx``, ``database.npz``,
+``files`` (verified by the robot at load): the encoder (``encoder.onnx``, or ``encoder.npz``
+for ``encoder.kind`` ``mean``), ``database.npz``,
 ``database.json`` and every ``prompts/*.txt`` present (another component writes those; they
 are hashed as found). ``reports`` (evaluation JSON/Markdown/PNG) are hashed for the record but
 not required at load.
@@ -22,13 +23,20 @@ import numpy as np
 from edge import __version__
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import ModelError
-from edge.core.model import MANIFEST, MANIFEST_SCHEMA, REQUIRED_FILES, file_entry
+from edge.core.model import (
+    DEFAULT_ENCODER_KIND,
+    MANIFEST,
+    MANIFEST_SCHEMA,
+    encoder_kind,
+    file_entry,
+    required_files,
+)
 
 PROMPTS_DIR = "prompts"
 
 
-def runtime_files(directory: Path) -> list[str]:
-    names = list(REQUIRED_FILES)
+def runtime_files(directory: Path, kind: str = DEFAULT_ENCODER_KIND) -> list[str]:
+    names = list(required_files(kind))
     prompts = directory / PROMPTS_DIR
     if prompts.is_dir():
         names += sorted(p.relative_to(directory).as_posix() for p in prompts.glob("*.txt"))
@@ -65,11 +73,13 @@ def write_manifest(directory: str | Path, sections: Mapping[str, Any] | None = N
     """Re-hash the runtime files, merge ``sections`` into the existing manifest, write it."""
     directory = Path(directory)
     manifest = read_raw(directory)
-    missing = [name for name in REQUIRED_FILES if not (directory / name).exists()]
+    kind = encoder_kind({**manifest, **(sections or {})}, str(directory / MANIFEST))
+    missing = [name for name in required_files(kind) if not (directory / name).exists()]
     if missing:
         raise ModelError(f"{directory}: cannot write a manifest without {', '.join(missing)}")
     manifest["schema_version"] = MANIFEST_SCHEMA
-    manifest["files"] = {name: file_entry(directory / name) for name in runtime_files(directory)}
+    manifest["files"] = {name: file_entry(directory / name)
+                         for name in runtime_files(directory, kind)}
     if reports is not None:
         manifest["reports"] = {name: file_entry(directory / name) for name in sorted(reports)}
     if "versions" not in manifest:

@@ -29,6 +29,7 @@ from edge.core.model import (
     ENCODER_FILE,
     MANIFEST,
     REQUIRED_FILES,
+    MeanEncoder,
     OnnxEncoder,
     Origin,
     ReferenceDatabase,
@@ -133,9 +134,12 @@ def _recorded(directory: Path, dataset: str, presses: int, seed: int, workers: i
     return False
 
 
-def encode_timing(onnx_bytes: bytes, x: np.ndarray, repeats: int = 200) -> dict[str, float]:
-    """Median wall time of one single-sequence encode with the robot's session options."""
-    encoder = OnnxEncoder(onnx_bytes)
+def encode_timing(encoder: bytes | MeanEncoder, x: np.ndarray, repeats: int = 200
+                  ) -> dict[str, float]:
+    """Median wall time of one single-sequence encode: an ONNX graph's bytes with the robot's
+    session options, or the trivial feature's encoder."""
+    if isinstance(encoder, bytes):
+        encoder = OnnxEncoder(encoder)
     one = x[:1]
     for _ in range(10):
         encoder(one)
@@ -164,6 +168,12 @@ def prompt_hashes(model_dir: Path) -> dict[str, Any]:
     return out
 
 
+def window_section() -> dict[str, Any]:
+    """The manifest's ``encoder.window``: where the model's input is cut around the stop."""
+    return {k: getattr(DEFAULT_WINDOW, k) for k in
+            ("rate_hz", "before_s", "after_s", "subsample", "sigma_samples")}
+
+
 def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
                     ) -> dict[str, Any]:
     """The manifest's ``encoder``: what the exported graph takes and gives, and its parity."""
@@ -175,8 +185,7 @@ def encoder_section(norm: Normaliser, model: ModelConfig, par: dict[str, Any]
         "outputs": {"z": ["batch", model.latent], "code": ["batch"]},
         "embedding_dim": model.latent,
         "codebook_size": model.codebook_size,
-        "window": {k: getattr(DEFAULT_WINDOW, k) for k in
-                   ("rate_hz", "before_s", "after_s", "subsample", "sigma_samples")},
+        "window": window_section(),
         "opset": OPSET, "exporter": "torch.onnx.export(dynamo=False)",
         "parity": par | {"bound": PARITY_BOUND},
     }
