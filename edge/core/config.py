@@ -277,6 +277,10 @@ class RuntimeConfig:
     # reference database's own leave-one-out nearest-neighbour distances is flagged
     # unfamiliar (edge.core.model.Familiarity; 100: only one farther than every reference's).
     unfamiliar_percentile: float = 95.0
+    # How the presses of a recognition of several presses ({"presses": N}) are fused into one
+    # top-k (edge.runtime.compute.fuse_presses): "votes" (each press and subsampling
+    # offset's top-k vote) or "mean" (their mean embedding looked up once).
+    fusion: str = "votes"
 
     def validate(self, path: str) -> None:
         for name in ("move_time_s", "move_timeout_s", "close_timeout_s", "vlm_retry_base_s",
@@ -295,6 +299,8 @@ class RuntimeConfig:
                  "must be a CPU number, or -1 for the last one the daemon may use")
         _require(0 < self.unfamiliar_percentile <= 100, path, "unfamiliar_percentile",
                  self.unfamiliar_percentile, "must be a percentile in (0, 100]")
+        _require(self.fusion in ("votes", "mean"), path, "fusion", self.fusion,
+                 'must be "votes" or "mean"')
 
 
 def _default_poses() -> dict[str, tuple[int, ...]]:

@@ -8,9 +8,10 @@ from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
 from edge.runtime.domain import Episode, Health
+from edge.runtime.recognition import Presses
 from edge.runtime.references import Source, TaughtReference
 from edge.runtime.taps import LiveTaps
-from edge.runtime.teaching import TeachRun
+from edge.runtime.teaching import PAUSE_S, TeachRun
 
 T = TypeVar("T")
 
@@ -19,7 +20,11 @@ class Recognitions(Protocol):
     """Recognitions and their episodes, the abort, and the daemon's health and metrics."""
 
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str) -> Episode: ...
+                        timeout_s: float | None, source: str, presses: Presses = 1,
+                        pause_s: float = PAUSE_S) -> Episode:
+        """``presses``: 1..MAX_FUSED_PRESSES presses of the object, ``pause_s`` apart, or
+        "auto", fused into one question."""
+        ...
 
     async def episode(self, episode_id: str) -> Episode: ...
 

@@ -2,8 +2,9 @@
 
 Topics under the robot's prefix ``P`` (``mqtt.prefix``, default ``vtzero/<hostname>``)::
 
-    in   P/cmd/recognize  {"candidates": [...], "request_id": "..."}: start a recognition
-                          (the configured camera takes the photo); request_id is optional
+    in   P/cmd/recognize  {"candidates": [...], "request_id": "...", "presses", "pause_s"}:
+                          start a recognition (the configured camera takes the photo);
+                          request_id, presses and pause_s (as POST /v1/recognize) optional
     in   P/cmd/abort      empty, or {"request_id": "..."}: abort the running press
     in   P/cmd/teach      {"label", "description", "presses", "append", "pause_s",
                           "request_id"} (as POST /v1/teach): press the object and teach it
@@ -51,7 +52,7 @@ from edge.core.errors import BadRequest, BusyError, ConfigError, EdgeError
 from edge.core.reconnect import Reconnect
 from edge.core.tasks import cancel_and_wait
 from edge.interfaces.contracts import Serving
-from edge.interfaces.requests import validate_candidates, validate_teach
+from edge.interfaces.requests import validate_candidates, validate_presses, validate_teach
 from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
@@ -78,7 +79,7 @@ REMEMBERED = 1000
 RECONNECT_SPREAD = (0.8, 1.2)
 # Reading why a connection ended, after it has (the answer is already there).
 _LOSS_READ_S = 0.5
-_RECOGNIZE_FIELDS = {"candidates", "request_id"}
+_RECOGNIZE_FIELDS = {"candidates", "request_id", "presses", "pause_s"}
 _TEACH_EXTRA = frozenset({"request_id"})
 # What of the press a result carries.
 _RESULT_PRESS = PressSummary.keys("result", "message", "stop_latency_ms")
@@ -361,7 +362,9 @@ class MqttBridge:
             raise CommandError(f"unknown field {unknown[0]!r}; known: "
                                + ", ".join(sorted(_RECOGNIZE_FIELDS)))
         candidates = validate_candidates(body.get("candidates"), self.max_candidates)
-        episode = await self.runtime.recognize(candidates, None, False, None, "mqtt")
+        presses, pause_s = validate_presses(body)
+        episode = await self.runtime.recognize(candidates, None, False, None, "mqtt",
+                                               presses, pause_s)
         _remember(self._requests, episode.id, request_id)
         self._enqueue("ack", {"command": "recognize", "request_id": request_id,
                               "episode": episode.id, "status": str(episode.status)})

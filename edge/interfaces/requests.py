@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edge.core.errors import BadRequest
+from edge.runtime.recognition import AUTO, MAX_FUSED_PRESSES, Presses
 from edge.runtime.teaching import MAX_PAUSE_S, MAX_PRESSES, PAUSE_S
 
 MAX_LABEL_CHARS = 80
@@ -30,6 +31,28 @@ def validate_candidates(value: Any, max_candidates: int) -> list[str]:
             raise BadRequest(f"duplicate candidate {label!r}")
         out.append(label)
     return out
+
+
+def validate_presses(body: dict[str, Any]) -> tuple[Presses, float]:
+    """A recognition's ``presses`` (1, the paper's, by default; up to MAX_FUSED_PRESSES,
+    or "auto": a second only where the first is unfamiliar or its offsets disagree) and the
+    ``pause_s`` between them."""
+    presses = body.get("presses", 1)
+    if presses != AUTO and (type(presses) is not int
+                            or not 1 <= presses <= MAX_FUSED_PRESSES):
+        raise BadRequest(f"presses must be an integer 1..{MAX_FUSED_PRESSES} or {AUTO!r}, "
+                         f"got {presses!r:.40}")
+    return presses, _pause_s(body)
+
+
+def _pause_s(body: dict[str, Any]) -> float:
+    pause_s = body.get("pause_s", PAUSE_S)
+    if isinstance(pause_s, bool) or not isinstance(pause_s, int | float) \
+            or not 0 <= pause_s <= MAX_PAUSE_S:
+        raise BadRequest(f"pause_s must be a number of seconds 0..{MAX_PAUSE_S:g} (the "
+                         f"operator's time to move the object between presses), got "
+                         f"{pause_s!r:.40}")
+    return float(pause_s)
 
 
 # What a teaching request may say (POST /v1/teach, MQTT P/cmd/teach), beside what each
@@ -60,14 +83,9 @@ def validate_teach(body: dict[str, Any], extra: frozenset[str] = frozenset()) ->
     append = body.get("append", False)
     if not isinstance(append, bool):
         raise BadRequest(f"append must be true or false, got {append!r:.40}")
-    pause_s = body.get("pause_s", PAUSE_S)
-    if isinstance(pause_s, bool) or not isinstance(pause_s, int | float) \
-            or not 0 <= pause_s <= MAX_PAUSE_S:
-        raise BadRequest(f"pause_s must be a number of seconds 0..{MAX_PAUSE_S:g} (the "
-                         f"operator's time to move the object between presses), got "
-                         f"{pause_s!r:.40}")
+    pause_s = _pause_s(body)
     label, description = validate_taught(body, TEACH_FIELDS | extra)
-    return TeachRequest(label, description, presses, append, float(pause_s))
+    return TeachRequest(label, description, presses, append, pause_s)
 
 
 def validate_taught(body: dict[str, Any], known: frozenset[str] = TAUGHT_FIELDS

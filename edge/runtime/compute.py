@@ -23,6 +23,7 @@ import asyncio
 import contextlib
 import io
 import logging
+import math
 import os
 import select
 import signal
@@ -39,7 +40,7 @@ import numpy as np
 from edge.core import preprocess, recording
 from edge.core.config import RuntimeConfig
 from edge.core.errors import ComputeError, ModelError
-from edge.core.model import Model, ModelRef, load_model
+from edge.core.model import Model, ModelRef, load_model, nearest_code
 from edge.runtime import forkserver
 from edge.runtime.references import (
     Lookup,
@@ -274,6 +275,10 @@ class Analysis:
     unfamiliar: bool = False
     # The taught references' index the press was looked up with (its sha256; "": none).
     references: str = ""
+    # The share of the database's subsampling offsets whose embedding of this press has the
+    # same nearest class as the first offset's (1.0: the offsets agree; lower: the press's
+    # nearest class depends on which frames are read, a second press is worth its time).
+    agreement: float = 1.0
 
 
 def analyse_press(ref: ModelRef, rec: recording.Recording,
@@ -286,22 +291,89 @@ def analyse_press(ref: ModelRef, rec: recording.Recording,
     question has left)."""
     model = model_for(ref)
     lookup = lookup_for(ref)
-    spec = model.window
-    units = preprocess.recording_units(rec)
-    window = preprocess.crop(rec.recv_time, units, rec.t_stop, spec)
-    x = preprocess.subsample(window, 0, spec)
+    window = _window(model, rec)
+    x = preprocess.subsample(window, 0, model.window)
     z, code = model.encode(x)
     z = np.asarray(z).reshape(-1)
     code = int(np.asarray(code).reshape(-1)[0])
     topk = lookup.database.topk(z, TOPK)
-    description = lookup.database.describe([label for label, _ in topk])
-    familiarity = lookup.familiarity.percentile(topk[0][1])
+    # The other offsets' nearest classes (an encode is ~0.1 ms): do the frames read decide?
+    nearest = [lookup.database.topk(zo, 1)[0][0]
+               for zo in _offset_embeddings(model, window, lookup.database.offsets[1:])]
+    agreement = (1 + sum(label == topk[0][0] for label in nearest)) / (1 + len(nearest))
     buf = io.BytesIO()
     np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
+    return _analysis(lookup, z, code, topk, buf.getvalue(), unfamiliar_percentile,
+                     agreement)
+
+
+def _window(model: Model, rec: recording.Recording) -> np.ndarray:
+    """The press's model window (the crop around its stop, in the model's units)."""
+    units = preprocess.recording_units(rec)
+    return preprocess.crop(rec.recv_time, units, rec.t_stop, model.window)
+
+
+def _offset_embeddings(model: Model, window: np.ndarray, offsets: list[int]
+                       ) -> list[np.ndarray]:
+    return [np.asarray(model.encode(preprocess.subsample(window, o, model.window))[0])
+            .reshape(-1) for o in offsets]
+
+
+def _analysis(lookup: Lookup, z: np.ndarray, code: int, topk: list[tuple[str, float]],
+              model_io: bytes, unfamiliar_percentile: float, agreement: float) -> Analysis:
+    familiarity = lookup.familiarity.percentile(topk[0][1])
     return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
-                    description, buf.getvalue(), familiarity,
+                    lookup.database.describe([label for label, _ in topk]), model_io,
+                    familiarity,
                     familiarity is not None and familiarity >= unfamiliar_percentile,
-                    lookup.overlay.digest)
+                    lookup.overlay.digest, agreement)
+
+
+# How a recognition's presses are fused into one top-k ([runtime] fusion).
+FUSIONS = ("votes", "mean")
+
+
+def fuse_presses(ref: ModelRef, recs: list[recording.Recording], fusion: str,
+                 unfamiliar_percentile: float = RuntimeConfig.unfamiliar_percentile
+                 ) -> Analysis:
+    """Several presses of one object as one analysis, every press read at each of the
+    database's subsampling offsets (as its references were cut):
+
+    - ``votes``: each (press, offset) embedding's top-k classes vote, the nearest
+      ``TOPK`` points, the next one fewer (a Borda count); classes ranked by points, ties
+      by their nearest distance; each class's distance is its nearest over the presses.
+    - ``mean``: the mean of those embeddings, looked up once.
+
+    ``z`` and ``code`` are the mean embedding's (its nearest codebook entry); ``agreement``
+    the share of the (press, offset) embeddings whose nearest class is the fused first."""
+    if fusion not in FUSIONS:
+        raise ValueError(f"fusion {fusion!r}: one of {', '.join(FUSIONS)}")
+    if not recs:
+        raise ValueError("no presses to fuse")
+    model = model_for(ref)
+    lookup = lookup_for(ref)
+    db = lookup.database
+    windows = [_window(model, rec) for rec in recs]
+    zs = np.stack([z for w in windows for z in _offset_embeddings(model, w, db.offsets)])
+    mean = zs.mean(axis=0)
+    code = int(np.asarray(nearest_code(mean[None, :], db.codebook)).reshape(-1)[0])
+    ranked = [db.topk(z, TOPK) for z in zs]
+    if fusion == "mean":
+        topk = db.topk(mean, TOPK)
+    else:
+        points: dict[str, int] = {}
+        nearest: dict[str, float] = {}
+        for each in ranked:
+            for rank, (label, d) in enumerate(each):
+                points[label] = points.get(label, 0) + TOPK - rank
+                nearest[label] = min(nearest.get(label, math.inf), d)
+        order = sorted(points, key=lambda label: (-points[label], nearest[label]))
+        topk = [(label, nearest[label]) for label in order[:TOPK]]
+    agreement = sum(each[0][0] == topk[0][0] for each in ranked) / len(ranked)
+    buf = io.BytesIO()
+    np.savez(buf, windows=np.stack(windows), z=zs, mean=mean, code=np.asarray(code))
+    return _analysis(lookup, mean, code, topk, buf.getvalue(), unfamiliar_percentile,
+                     agreement)
 
 
 def teach_press(ref: ModelRef, rec: recording.Recording, label: str,
@@ -316,5 +388,5 @@ def teach_press(ref: ModelRef, rec: recording.Recording, label: str,
                                               source=source, episode=episode, append=append)
 
 
-__all__ = ["Analysis", "ComputeError", "ComputeWorker", "analyse_press", "lookup_for",
-           "model_for", "reload_model", "teach_press", "warm_up"]
+__all__ = ["FUSIONS", "Analysis", "ComputeError", "ComputeWorker", "analyse_press",
+           "fuse_presses", "lookup_for", "model_for", "reload_model", "teach_press", "warm_up"]

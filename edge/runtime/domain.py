@@ -240,6 +240,12 @@ class Episode:
     # past [runtime] unfamiliar_percentile: a touch like none the robot knows.
     familiarity: float | None = None
     unfamiliar: bool | None = None
+    # A recognition of several presses: each press as it went ({"t": wall-clock start,
+    # "press_s": until the arm was back, "encode_s", "result", "topk", "familiarity",
+    # "unfamiliar", "agreement": its offsets' agreement}, in order) and how their top-k were
+    # fused into ``topk`` ([runtime] fusion); None for one press.
+    presses: list[dict[str, Any]] | None = None
+    fusion: str | None = None
     # The VLM's part.
     attempts: int = 0
     next_retry_at: float = 0.0

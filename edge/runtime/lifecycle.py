@@ -52,7 +52,7 @@ from edge.runtime.domain import (
 )
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
-from edge.runtime.recognition import Recognition, Recognizer
+from edge.runtime.recognition import Presses, Recognition, Recognizer
 from edge.runtime.references import Source, TaughtReference
 from edge.runtime.ring import FrameRing
 from edge.runtime.sensor import Sampler, SensorTask
@@ -157,11 +157,13 @@ class Runtime:
     # One object behind both seams: an interface asks the runtime, which hands a
     # recognition to its recognizer and answers for the press, the store and the health.
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str) -> Episode:
+                        timeout_s: float | None, source: str, presses: Presses = 1,
+                        pause_s: float = PAUSE_S) -> Episode:
         if self.teacher.active:
             # Its presses are of the object being taught, with pauses between them.
             raise BusyError("a teaching is under way (GET /v1/teach); one at a time")
-        return await self.recognizer.recognize(candidates, image, wait, timeout_s, source)
+        return await self.recognizer.recognize(candidates, image, wait, timeout_s, source,
+                                               presses=presses, pause_s=pause_s)
 
     async def episode(self, episode_id: str) -> Episode:
         return await self.recognizer.episode(episode_id)

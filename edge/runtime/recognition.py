@@ -20,6 +20,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Literal
 
 from edge import __version__
 from edge.core import recording
@@ -40,7 +41,7 @@ from edge.core.errors import (
 )
 from edge.core.model import ModelRef
 from edge.hw.contracts import Camera
-from edge.runtime.compute import Analysis, ComputeWorker, analyse_press
+from edge.runtime.compute import Analysis, ComputeWorker, analyse_press, fuse_presses
 from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
@@ -57,6 +58,7 @@ from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController, PressOutcome, outcome_recording
 from edge.runtime.startcheck import needs_photo
 from edge.runtime.store import EpisodeStore, new_id
+from edge.runtime.teaching import PAUSE_S
 from edge.vlm.client import VLMClient
 from edge.vlm.images import VLMImage, check_image, prepare_for_vlm
 
@@ -67,6 +69,11 @@ log = logging.getLogger(__name__)
 UNSTORED_KEPT = 100
 # Final statuses a person may have asked again (the server or its settings fixed since).
 RE_ASKABLE = (Status.VLM_ERROR, Status.INVALID_ANSWER)
+# A recognition's presses of one object ({"presses": N}, fused into one question): at most
+# this many, or "auto": a second only where the first is unfamiliar or its offsets disagree.
+MAX_FUSED_PRESSES = 5
+AUTO = "auto"
+Presses = int | Literal["auto"]
 
 
 @dataclass
@@ -109,14 +116,21 @@ class Recognizer:
 
     # --- triggering -------------------------------------------------------------------
     async def recognize(self, candidates: list[str], image: bytes | None, wait: bool,
-                        timeout_s: float | None, source: str, ask: bool = True) -> Episode:
+                        timeout_s: float | None, source: str, ask: bool = True,
+                        presses: Presses = 1, pause_s: float = PAUSE_S) -> Episode:
         """Start a recognition: a press, its analysis and, unless ``ask`` is false (a press
         to teach from: no photo, no question), the VLM's question; the episode as it runs,
-        or with ``wait`` as stored once it ends (``pressed`` where nothing was asked). An
-        uploaded ``image`` that does not decode is refused (:class:`BadRequest`) before
-        anything moves."""
+        or with ``wait`` as stored once it ends (``pressed`` where nothing was asked). With
+        ``presses`` N (1..``MAX_FUSED_PRESSES``, or ``AUTO``) the object is pressed N times,
+        ``pause_s`` apart (the operator moves it slightly), their analyses fused ([runtime]
+        fusion) for the one question. An uploaded ``image`` that does not decode is refused
+        (:class:`BadRequest`) before anything moves."""
         if image is not None and not ask:
             raise ValueError("a press with no question takes no photo: give no image")
+        if presses != AUTO and (type(presses) is not int
+                                or not 1 <= presses <= MAX_FUSED_PRESSES):
+            raise BadRequest(f"presses must be an integer 1..{MAX_FUSED_PRESSES} or "
+                             f"{AUTO!r}, got {presses!r:.40}")
         upload = Photo(image, await self._decoded(image)) if image is not None else None
         if not self.accepting:
             raise BusyError("the daemon is shutting down; not starting a press")
@@ -140,8 +154,8 @@ class Recognizer:
             raise StoreError(f"not pressing: {exc}") from None
         running = Episode(episode_id, Status.RUNNING, candidates, source)
         done = asyncio.get_running_loop().create_future()
-        task = self._spawn(self._recognize(OneRecognition(self, running, upload, ask), done),
-                           name=f"recognize {episode_id}")
+        one = OneRecognition(self, running, upload, ask, presses, pause_s)
+        task = self._spawn(self._recognize(one, done), name=f"recognize {episode_id}")
         self.work.add(task)
         task.add_done_callback(self.work.discard)
         if not wait:
@@ -368,15 +382,22 @@ NO_PHOTO = Photo(None)
 class OneRecognition:
     """One recognition: its stages in the order they run (:meth:`run`), the press going on
     beside the others. It holds the configuration in force when it began (a reload swaps
-    the recognizer's between presses)."""
+    the recognizer's between presses).
+
+    Of several presses, each but the last is analysed and kept while the arm returns, then
+    the operator's pause; the last one's analysis is fused with theirs
+    (:func:`edge.runtime.compute.fuse_presses`) before the one question. The lock is held
+    from the first press until the last has ended."""
 
     def __init__(self, recognizer: Recognizer, episode: Episode, upload: Photo | None,
-                 ask: bool) -> None:
+                 ask: bool, presses: Presses = 1, pause_s: float = PAUSE_S) -> None:
         self.recognizer = recognizer
         self.setup = recognizer.setup
         self.episode = episode  # as it began (running)
         self.upload = upload  # decoded (and prepared) before anything moved
         self.ask = ask
+        self.presses = presses
+        self.pause_s = pause_s
         self.t0 = time.monotonic()
         loop = asyncio.get_running_loop()
         self.window: asyncio.Future[PressOutcome] = loop.create_future()
@@ -384,22 +405,42 @@ class OneRecognition:
         self.stored: asyncio.Future[Episode] = loop.create_future()
         self.photo: asyncio.Task[Photo] | None = None
         self.asking: asyncio.Task[Episode | None] | None = None
+        # The lock stays held past a press's end while another press may follow.
+        self.holding = presses != 1
+        self.freed = False
+        # Each press so far: its recording (for the fusion) and how it went (the episode's
+        # ``presses``); the time the current one began.
+        self.recs: list[recording.Recording] = []
+        self.pressed: list[dict[str, Any]] = []
+        self.press_t0 = self.t0
 
     async def run(self) -> Episode:
         """The stages in order; the episode as stored (with its answer, if asked)."""
         self.recognizer.events.publish(EpisodeStarted(self.episode.id))
-        pressing = self.press()  # frees the lock once the arm is back
-        try:
-            self.photo = self.take_photo()  # once the motors are checked
-            outcome = await self.window_complete(pressing)  # the arm still to return
-            episode, files = await self.analysis(outcome)
-            photo = await self.photo if self.photo is not None else NO_PHOTO
-            episode = self.keep_photo(episode, photo, files)
-            self.asking = self.question(episode, photo)  # leaves while the arm returns
-            outcome = await pressing
-        except asyncio.CancelledError:
-            pressing.cancel()
-            raise
+        earlier: dict[str, bytes] = {}  # the files of the presses before the last
+        while True:
+            pressing = self.press()  # frees the lock once the arm is back from the last
+            try:
+                if self.photo is None:
+                    self.photo = self.take_photo()  # once the motors are checked
+                outcome = await self.window_complete(pressing)  # the arm still to return
+                episode, files = await self.analysis(outcome)
+                if self.again(episode):
+                    earlier |= await self.kept_earlier(pressing, files)
+                    await self.pause()
+                    continue
+                self.last_press(pressing)
+                episode, files = await self.fused(episode, files, earlier)
+                photo = await self.photo if self.photo is not None else NO_PHOTO
+                episode = self.keep_photo(episode, photo, files)
+                self.asking = self.question(episode, photo)  # leaves while the arm returns
+                outcome = await pressing
+            except BaseException as exc:
+                self.last_press(pressing)
+                if isinstance(exc, asyncio.CancelledError):
+                    pressing.cancel()
+                raise
+            break
         episode = await self.store(episode, outcome, files)
         return (await self.asking or episode) if self.asking is not None else episode
 
@@ -416,20 +457,94 @@ class OneRecognition:
         (or left where it stands), whatever the recognition does meanwhile. ``checked``
         is resolved by its motor check, or by its end where it never got that far."""
         recognizer, checked = self.recognizer, self.checked
+        self.press_t0 = time.monotonic()
+        if self.window.done():  # a press after the first: its own window (the photo
+            self.window = asyncio.get_running_loop().create_future()  # waited for the first)
         try:
-            pressing = asyncio.create_task(recognizer.press.run(self.window, checked),
-                                           name="press")
+            pressing = asyncio.create_task(
+                recognizer.press.run(self.window, None if checked.done() else checked),
+                name="press")
         except BaseException:
-            recognizer.lock.release()
+            self._free()
             raise
 
         def ended(_: asyncio.Task) -> None:
-            recognizer.lock.release()
+            if not self.holding:
+                self._free()
             if not checked.done():
                 checked.set_result(None)
 
         pressing.add_done_callback(ended)
         return pressing
+
+    def _free(self) -> None:
+        if not self.freed:
+            self.freed = True
+            self.recognizer.lock.release()
+
+    def last_press(self, pressing: asyncio.Task[PressOutcome]) -> None:
+        """``pressing`` is the recognition's last press: the lock is freed as it ends (now,
+        if it has)."""
+        self.holding = False
+        if pressing.done():
+            self._free()
+
+    def again(self, episode: Episode) -> bool:
+        """Whether the object is pressed again after the press analysed as ``episode``:
+        N presses asked for, or ``auto`` and the first is unfamiliar or its subsampling
+        offsets disagree on its nearest class."""
+        n = len(self.pressed)
+        if episode.status == Status.FAILED:
+            return False
+        if self.presses == AUTO:
+            first = self.pressed[0]
+            return n == 1 and (bool(first["unfamiliar"]) or first["agreement"] < 1.0)
+        return n < self.presses
+
+    async def kept_earlier(self, pressing: asyncio.Task[PressOutcome],
+                           files: dict[str, bytes]) -> dict[str, bytes]:
+        """A press before the last, once its arm is back: its files (numbered from the
+        second press on), for the episode written at the end."""
+        n = len(self.pressed)
+        outcome = await pressing
+        self.recognizer.metrics.observe_press(outcome)
+        self.pressed[-1]["press_s"] = time.monotonic() - self.press_t0
+        if not outcome.contact:
+            raise StateError(f"press {n}: {outcome.message or outcome.result}")
+        return {_numbered(name, n): data
+                for name, data in (files | await self._press_file(outcome)).items()}
+
+    async def pause(self) -> None:
+        """The operator's time to move the object slightly before the next press."""
+        n = len(self.pressed) + 1
+        of = "" if self.presses == AUTO else f" of {self.presses}"
+        log.info("episode %s: move the object slightly on the table: press %d%s in %g s",
+                 self.episode.id, n, of, self.pause_s)
+        await asyncio.sleep(self.pause_s)
+
+    async def fused(self, episode: Episode, files: dict[str, bytes],
+                    earlier: dict[str, bytes]) -> tuple[Episode, dict[str, bytes]]:
+        """The last press's episode with the presses' fused analysis, where there were
+        several; a failed last press fails the recognition, naming the press."""
+        n = len(self.pressed)
+        if n <= 1:
+            return episode, files
+        files = earlier | {_numbered(name, n): data for name, data in files.items()}
+        if episode.status == Status.FAILED:
+            return episode.with_(error=f"press {n}: {episode.error}",
+                                 presses=self.pressed), files
+        setup, t = self.setup, time.monotonic()
+        fusion = setup.cfg.runtime.fusion
+        analysis: Analysis = await self.recognizer.compute.run(
+            fuse_presses, setup.model, self.recs, fusion,
+            setup.cfg.runtime.unfamiliar_percentile)
+        files["model_io-fused.npz"] = analysis.model_io_npz
+        return episode.with_(
+            code=analysis.code, z=analysis.z,
+            topk=[Neighbour(label, d) for label, d in analysis.topk],
+            description=analysis.description, familiarity=analysis.familiarity,
+            unfamiliar=analysis.unfamiliar, presses=self.pressed, fusion=fusion,
+            timings={**episode.timings, "fuse_s": time.monotonic() - t}), files
 
     def take_photo(self) -> asyncio.Task[Photo] | None:
         """The photo, taken and prepared while the press runs; none for a press with no
@@ -482,6 +597,8 @@ class OneRecognition:
         setup = self.setup
         episode = self.episode.with_(software_version=__version__, x_th=setup.cfg.press.x_th,
                                      vlm_mode=setup.vlm.mode)
+        self.pressed.append({"t": time.time() - (time.monotonic() - self.press_t0),
+                             "result": str(outcome.result)})
         if not outcome.contact or outcome.window is None or len(outcome.window.raw) < 2:
             return (episode.with_(status=Status.FAILED,
                                   error=outcome.message or outcome.result), {})
@@ -505,6 +622,10 @@ class OneRecognition:
             unfamiliar=analysis.unfamiliar,
             timings={**episode.timings, "encode_s": time.monotonic() - t})
         self.recognizer.metrics.observe_familiarity(analysis.familiarity, analysis.unfamiliar)
+        self.recs.append(rec)
+        self.pressed[-1].update(encode_s=episode.timings["encode_s"],
+                                topk=episode.topk_json(), familiarity=analysis.familiarity,
+                                unfamiliar=analysis.unfamiliar, agreement=analysis.agreement)
         return episode, {"model_io.npz": analysis.model_io_npz}
 
     def keep_photo(self, episode: Episode, photo: Photo, files: dict[str, bytes]) -> Episode:
@@ -532,8 +653,12 @@ class OneRecognition:
         """The episode with its whole press (the window's margins came in after the
         question left), written; its tactile result published."""
         recognizer = self.recognizer
-        files.update(await self._press_file(outcome))
+        n = len(self.pressed)
+        files.update({_numbered(name, n): data
+                      for name, data in (await self._press_file(outcome)).items()})
         recognizer.metrics.observe_press(outcome)
+        if episode.presses is not None:
+            self.pressed[-1]["press_s"] = time.monotonic() - self.press_t0
         episode = episode.with_(press=outcome.summary(),
                                 timings={"press_s": time.monotonic() - self.t0,
                                          **episode.timings})
@@ -560,3 +685,12 @@ class OneRecognition:
         except ComputeError:
             data = await asyncio.to_thread(recording.to_bytes, rec)
         return {"press.press.npz": data}
+
+
+def _numbered(name: str, press: int) -> str:
+    """An episode file's name for its ``press``-th press: the first's as one press's
+    (``press.press.npz``), the next numbered (``press-2.press.npz``, ``model_io-2.npz``)."""
+    if press <= 1:
+        return name
+    stem, dot, ext = name.partition(".")
+    return f"{stem}-{press}{dot}{ext}"

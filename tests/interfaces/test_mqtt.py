@@ -328,3 +328,34 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
         "press": {"result": None, "message": None, "stop_latency_ms": None}}
     assert sent[3][1]["episode"] == "e2" and sent[3][1]["status"] == "failed"
     assert sent[3][1]["error"] == "no contact" and sent[3][1]["topk"] is None
+
+
+@pytest.mark.asyncio
+async def test_recognize_by_message_takes_presses_or_refuses_them_naming_the_field():
+    from edge.interfaces.mqtt import MqttBridge
+    from edge.runtime.domain import Episode, Status
+
+    class Recognizing(_Recognitions):
+        def __init__(self):
+            super().__init__()
+            self.asked = []
+
+        async def recognize(self, candidates, image, wait, timeout_s, source, presses=1,
+                            pause_s=5.0):
+            self.asked.append((candidates, source, presses, pause_s))
+            return Episode(f"e{len(self.asked)}", Status.RUNNING, candidates, source)
+
+    cfg = config_from_dict({})
+    runtime = Recognizing()
+    bridge = MqttBridge(runtime, cfg.mqtt, cfg.api.max_candidates,  # type: ignore[arg-type]
+                        hostname="arm")
+    topic = bridge.prefix + "/cmd/recognize"
+    await bridge.command(topic, b'{"candidates": ["a"], "presses": 3, "pause_s": 0}')
+    await bridge.command(topic, b'{"candidates": ["a"], "presses": "auto"}')
+    await bridge.command(topic, b'{"candidates": ["a"], "presses": 7, "request_id": "r"}')
+    sent = [(item.topic.rsplit("/", 1)[-1], json.loads(item.payload)) for item in bridge._outbox]
+    print(sent)
+    assert runtime.asked == [(["a"], "mqtt", 3, 0.0), (["a"], "mqtt", "auto", 5.0)]
+    assert [topic for topic, _ in sent] == ["ack", "ack", "error"]
+    assert sent[2][1]["request_id"] == "r"
+    assert "presses must be an integer 1..5 or 'auto'" in sent[2][1]["error"]

@@ -10,7 +10,13 @@ import aiohttp
 import pytest
 
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.support.daemon import CUBE, fast_config, sim_daemon
+from tests.support.daemon import (
+    CUBE,
+    LOADED_HOST_ERRORS,
+    LOADED_HOST_TRIES,
+    fast_config,
+    sim_daemon,
+)
 
 pytestmark = pytest.mark.asyncio
 TOKEN = "vtzero-test-token-0123456789abcdef"
@@ -129,3 +135,33 @@ async def test_open_event_streams_do_not_hold_the_daemon_stop(tmp_path):
         for resp in streams:
             resp.close()
     assert stop_s < 5.0, stop_s  # (aiohttp would wait 60 s for the streams to end)
+
+
+async def test_recognize_presses_again_and_fuses_through_the_daemon(tmp_path):
+    async with FakeVLM(model="fake-vlm") as fake, \
+            sim_daemon(tmp_path, cfg=fast_config(fake.base_url)) as (_robot, d):
+        for bad in (0, 6, "3", True):
+            status, body = await d.post("/v1/recognize", {"candidates": CUBE, "presses": bad})
+            assert status == 400 and "presses must be an integer 1..5 or 'auto'" in body["error"]
+        status, body = await d.post("/v1/recognize", {"candidates": CUBE, "pause_s": -1})
+        assert status == 400 and "pause_s must be" in body["error"]
+        assert d.store.list() == []  # nothing moved
+        for _attempt in range(LOADED_HOST_TRIES):
+            t = time.monotonic()
+            status, ep = await d.post("/v1/recognize", {"candidates": CUBE, "presses": 2,
+                                                        "pause_s": 0, "wait": True})
+            print(f"two presses fused: {time.monotonic() - t:.1f} s, {ep.get('presses')}")
+            assert status == 200, ep
+            # A press failed for a loaded host's reason: said, naming the press; again.
+            if not (ep["status"] == "failed"
+                    and any(e in ep["error"] for e in LOADED_HOST_ERRORS)):
+                break
+        assert ep["status"] == "done" and ep["fusion"] == d.cfg.runtime.fusion
+        assert [p["result"] for p in ep["presses"]] == ["ok", "ok"]
+        assert len(fake.chat_requests) == 1  # one question for the two presses
+        # The second press began once the first's arm was back (wall clock from monotonic).
+        gap = ep["presses"][1]["t"] - ep["presses"][0]["t"]
+        assert gap > ep["presses"][0]["press_s"] - 0.05
+        status, trace = await d.get(f"/v1/episodes/{ep['id']}/trace")
+        assert status == 200 and trace["episode"] == ep["id"]  # the first press's, as for one
+        assert d.store.file(ep["id"], "press-2.press.npz").stat().st_size > 0

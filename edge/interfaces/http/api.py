@@ -40,7 +40,13 @@ from edge.core.errors import (
 )
 from edge.interfaces.contracts import Serving
 from edge.interfaces.http.webui import UI_HEADER, OperatorPage
-from edge.interfaces.requests import validate_candidates, validate_taught, validate_teach
+from edge.interfaces.requests import (
+    validate_candidates,
+    validate_presses,
+    validate_taught,
+    validate_teach,
+)
+from edge.runtime.recognition import Presses
 from edge.runtime.references import Source
 from edge.runtime.teaching import listed
 
@@ -50,7 +56,7 @@ MIN_TOKEN_CHARS = 16
 # Connections the listening socket queues until they are accepted (aiohttp's own default).
 LISTEN_BACKLOG = 128
 SSE_KEEPALIVE_S = 15.0
-_RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s"}
+_RECOGNIZE_FIELDS = {"candidates", "wait", "image", "timeout_s", "presses", "pause_s"}
 _IMAGE_MAGIC = (b"\xff\xd8\xff", b"\x89PNG\r\n\x1a\n")
 _ROUTES = ("POST /v1/recognize, GET /v1/episodes/{id}, POST /v1/episodes/{id}/retry, "
            "GET /v1/events, POST /v1/abort, "
@@ -139,6 +145,8 @@ class _Parsed:
     image: bytes | None
     wait: bool
     timeout_s: float | None
+    presses: Presses
+    pause_s: float
 
 
 class Api:
@@ -273,9 +281,10 @@ class Api:
                                     or not 0 < timeout <= 600):
             raise BadRequest("timeout_s must be a number of seconds in (0, 600]")
         candidates = validate_candidates(fields.get("candidates"), self.cfg.max_candidates)
+        presses, pause_s = validate_presses(fields)
         # (Decoded once, by the recognizer, before the arm moves: one that does not decode
         # is refused there with a BadRequest.)
-        return _Parsed(candidates, image, wait, timeout)
+        return _Parsed(candidates, image, wait, timeout, presses, pause_s)
 
     async def _read_multipart(self, request: web.Request) -> tuple[dict[str, Any],
                                                                    bytes | None]:
@@ -315,7 +324,8 @@ class Api:
         parsed = await self._parse_recognize(request)
         try:
             episode = await self.runtime.recognize(parsed.candidates, parsed.image,
-                                                   parsed.wait, parsed.timeout_s, "api")
+                                                   parsed.wait, parsed.timeout_s, "api",
+                                                   parsed.presses, parsed.pause_s)
         except BusyError as exc:
             return _error(409, str(exc), episode=exc.episode_id)
         status = 200 if parsed.wait else 202

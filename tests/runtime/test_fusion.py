@@ -1,0 +1,160 @@
+"""Press again and fuse: a recognition of several presses of one object (the simulator's
+presses through a scripted controller, the analysis and the fusion run in-process, a
+scripted VLM, a real store), and the two fusions on their own."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from edge.core.config import Config, RuntimeConfig, from_dict
+from edge.core.errors import BadRequest, BusyError, ConfigError
+from edge.interfaces.requests import validate_presses
+from edge.runtime.compute import FUSIONS, analyse_press, fuse_presses
+from edge.runtime.domain import PressResult, Status
+from edge.runtime.press import PressOutcome
+from edge.runtime.recognition import AUTO
+from tests.runtime.test_recognition import (
+    CANDIDATES,
+    MODEL,
+    InProcessCompute,
+    ScriptedPress,
+    ScriptedVLM,
+    pressed,
+    recognizer,
+)
+from tests.support.presses import recording_of
+from tests.support.waits import wait_until
+
+
+def with_fusion(fusion: str) -> Config:
+    cfg = Config()
+    return replace(cfg, runtime=replace(cfg.runtime, fusion=fusion))
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("fusion", FUSIONS)
+async def test_three_presses_are_fused_into_one_question(tmp_path, fusion):
+    press = ScriptedPress(pressed(3), pressed(4), pressed(5))
+    vlm = ScriptedVLM(["macaron"])
+    compute = InProcessCompute()
+    rec, _ = recognizer(tmp_path, press, vlm, compute, cfg=with_fusion(fusion))
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=3, pause_s=0)
+    assert episode.status == Status.DONE and episode.label == "macaron"
+    assert not press.outcomes and len(vlm.asked) == 1  # three presses, one question
+    assert not rec.lock.locked()
+    expected = fuse_presses(MODEL, [recording_of("macaron", s) for s in (3, 4, 5)], fusion)
+    print(fusion, [(n.label, round(n.distance, 3)) for n in episode.topk],
+          [p["topk"][0]["label"] for p in episode.presses])
+    assert [(n.label, n.distance) for n in episode.topk] == expected.topk
+    assert vlm.asked[0][1] == episode.description == expected.description
+    assert episode.fusion == fusion and len(episode.presses) == 3
+    for i, p in enumerate(episode.presses):
+        alone = analyse_press(MODEL, recording_of("macaron", 3 + i))
+        assert p["topk"] == [{"label": lb, "distance": d} for lb, d in alone.topk]
+        assert p["result"] == "ok" and p["press_s"] > 0 and p["encode_s"] > 0
+        assert 0 < p["agreement"] <= 1 and p["agreement"] == alone.agreement
+    assert episode.presses[0]["t"] <= episode.presses[1]["t"] <= episode.presses[2]["t"]
+    assert "fuse_s" in episode.timings
+    assert compute.calls.count("analyse_press") == 3 and "fuse_presses" in compute.calls
+    files = sorted(p.name for p in (tmp_path / "episodes" / episode.id).iterdir())
+    assert files == ["episode.json", "model_io-2.npz", "model_io-3.npz", "model_io-fused.npz",
+                     "model_io.npz", "press-2.press.npz", "press-3.press.npz",
+                     "press.press.npz"]
+    stored = json.loads((tmp_path / "episodes" / episode.id / "episode.json").read_text())
+    assert stored["fusion"] == fusion and len(stored["presses"]) == 3
+
+
+@pytest.mark.asyncio
+async def test_one_press_stays_the_papers_episode(tmp_path):
+    rec, _ = recognizer(tmp_path, ScriptedPress(pressed()), ScriptedVLM(["macaron"]))
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api")
+    stored = json.loads((tmp_path / "episodes" / episode.id / "episode.json").read_text())
+    assert "presses" not in stored and "fusion" not in stored
+
+
+@pytest.mark.asyncio
+async def test_a_later_press_that_fails_fails_the_recognition_naming_it(tmp_path):
+    failed = PressOutcome(result=PressResult.NO_CONTACT, message="no contact")
+    press = ScriptedPress(pressed(3), failed)
+    vlm = ScriptedVLM([])
+    rec, _ = recognizer(tmp_path, press, vlm)
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=2, pause_s=0)
+    assert episode.status == Status.FAILED and episode.error == "press 2: no contact"
+    assert not vlm.asked and not rec.lock.locked()
+    files = sorted(p.name for p in (tmp_path / "episodes" / episode.id).iterdir())
+    assert "press.press.npz" in files and "model_io.npz" in files  # the first kept
+
+
+@pytest.mark.asyncio
+async def test_the_lock_is_held_between_the_presses_and_freed_if_cancelled(tmp_path):
+    press = ScriptedPress(pressed(3), pressed(4))
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]))
+    await rec.recognize(CANDIDATES, None, False, None, "api", presses=2, pause_s=60)
+    await wait_until(lambda: len(press.outcomes) == 1, 10, "the first press")
+    await asyncio.sleep(0.1)
+    # The first press taken (its end, its analysis or the operator's 60 s pause under way):
+    # no other press may start until the recognition's last press has ended.
+    assert len(press.outcomes) == 1 and rec.lock.locked()
+    with pytest.raises(BusyError):
+        await rec.recognize(CANDIDATES, None, False, None, "api")
+    for task in rec.work:
+        task.cancel()
+    await asyncio.gather(*rec.work, return_exceptions=True)
+    assert not rec.lock.locked() and len(press.outcomes) == 1
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize(("seed", "pressed_again"), [(3, False), (4, True)])
+async def test_auto_presses_again_only_when_the_offsets_disagree_or_unfamiliar(
+        tmp_path, seed, pressed_again):
+    alone = analyse_press(MODEL, recording_of("macaron", seed))
+    print(f"seed {seed}: agreement {alone.agreement}, familiarity {alone.familiarity}, "
+          f"unfamiliar {alone.unfamiliar}")
+    assert (alone.agreement < 1 or alone.unfamiliar) is pressed_again
+    press = ScriptedPress(pressed(seed), pressed(seed + 10))
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]))
+    episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=AUTO, pause_s=0)
+    assert episode.status == Status.DONE
+    assert len(press.outcomes) == (0 if pressed_again else 1)
+    assert (episode.presses is not None and len(episode.presses) == 2) is pressed_again
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("presses", [0, 6, -1, 2.0, True, "two", "AUTO", None])
+async def test_a_bad_number_of_presses_is_refused_naming_the_field(tmp_path, presses):
+    with pytest.raises(BadRequest, match=r"presses must be an integer 1\.\.5 or 'auto'"):
+        validate_presses({"presses": presses})
+    press = ScriptedPress(pressed())
+    rec, _ = recognizer(tmp_path, press, ScriptedVLM([]))
+    with pytest.raises(BadRequest, match="presses must be"):
+        await rec.recognize(CANDIDATES, None, True, 10, "api", presses=presses)
+    assert len(press.outcomes) == 1 and rec.store.list() == []
+
+
+def test_the_fusions_on_their_own():
+    recs = [recording_of("macaron", s) for s in (3, 4, 5)]
+    votes = fuse_presses(MODEL, recs, "votes")
+    mean = fuse_presses(MODEL, recs, "mean")
+    print("votes", votes.topk, votes.agreement, "mean", mean.topk, mean.agreement)
+    for fused in (votes, mean):
+        assert len(fused.topk) == 3 and len({lb for lb, _ in fused.topk}) == 3
+        assert 0 < fused.agreement <= 1 and len(fused.z) == len(votes.z)
+    # Both summarise the same embeddings: the mean is one vector, shared.
+    assert np.allclose(votes.z, mean.z) and votes.code == mean.code
+    # One press's offsets voting keep its nearest class.
+    one = fuse_presses(MODEL, recs[:1], "votes")
+    assert one.topk[0][0] == analyse_press(MODEL, recs[0]).topk[0][0]
+    with pytest.raises(ValueError, match="fusion 'median'"):
+        fuse_presses(MODEL, recs, "median")
+
+
+def test_the_fusion_setting_names_the_field():
+    assert RuntimeConfig().fusion in FUSIONS
+    assert from_dict(RuntimeConfig, {"fusion": "mean"}, "runtime").fusion == "mean"
+    with pytest.raises(ConfigError, match=r"runtime\.fusion = .*must be \"votes\" or \"mean\""):
+        from_dict(RuntimeConfig, {"fusion": "median"}, "runtime")
