@@ -307,12 +307,12 @@ def _cmd_build(args: argparse.Namespace) -> int:
                       prompts=Path(args.prompts) if args.prompts else SHIPPED_PROMPTS,
                       seed=args.seed, max_epochs=args.max_epochs, patience=args.patience,
                       threads=args.threads, mixed_rates=args.mixed_rates,
-                      std_floor=args.std_floor, embedding=args.embedding)
+                      std_floor=args.std_floor, embedding=args.embedding, seeds=args.seeds)
     manifest = build(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     base = m["comparison"].get("baseline/z", {})
     print(f"built {cfg.out} from {cfg.data} ({manifest['origin']['kind']} data, embedding "
-          f"{cfg.embedding}): "
+          f"{manifest['encoder']['embedding']}{'' if cfg.embedding else ' (chosen)'}): "
           f"{manifest['database']['references']} references of "
           f"{manifest['database']['classes']} classes; LOO 1-NN {m['loo_1nn']:.3f} "
           f"(trivial baseline {base.get('loo_1nn', float('nan')):.3f}); report "
@@ -587,11 +587,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also train this comparison variant (repeatable): the beta-VAE, the "
                    "zero-input decoder, the paper's configuration (z of 4, no metric term); "
                    "their rows join the evaluation (beta, zeros: and Table I)")
-    p.add_argument("--embedding", choices=["shipped", "paper", "mean"], default="shipped",
-                   help="the embedding the model deploys: shipped (z of 16 and the metric "
-                   "term), paper (z of 4, reconstruction only) or mean (each channel's mean "
-                   "over the window after the normaliser: no training, served with numpy); "
-                   "the manifest's encoder.kind says which the daemon loads")
+    p.add_argument("--embedding", choices=["shipped", "paper", "mean"],
+                   help="deploy this embedding and train no other: shipped (z of 16 and the "
+                   "metric term), paper (z of 4, reconstruction only) or mean (each "
+                   "channel's mean over the window after the normaliser: no training, "
+                   "served with numpy). Default: all three are tried and the one whose "
+                   "validation classes' presses find their own class best wins (eval.md "
+                   "says by how much)")
+    p.add_argument("--seeds", type=int, default=1,
+                   help="seeds each candidate is trained with for the choice (default "
+                   "%(default)s; 2 or more give a spread to judge the difference by)")
     p.add_argument("--unseen", nargs="+", help="further test sets for the evaluation")
     p.add_argument("--prompts", help="prompt templates to ship (default: models/prompts)")
     p.add_argument("--seed", type=int, default=0)

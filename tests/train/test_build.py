@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from edge.core import recording
-from edge.core.errors import RecordingError
+from edge.core.errors import ModelError, RecordingError
 from edge.core.model import load_model, model_ref
 from edge.sim.robot import SimRobot
 from tests.support.daemon import QUICK_OBJECT, ROOT, Daemon, base_config
@@ -25,7 +25,16 @@ from tests.support.waits import wait_until
 from train.cli import main
 from train.eval import evaluate
 from train.learn.trainer import Progress
-from train.ship.build import BuildConfig, Steps, build, partial_dir, read_dataset
+from train.ship.build import (
+    EMBEDDINGS,
+    BuildConfig,
+    Steps,
+    build,
+    choice_markdown,
+    choice_of,
+    partial_dir,
+    read_dataset,
+)
 
 REFERENCE = {"wood_cube": ("train", 3, False), "sponge_cube": ("train", 3, False),
              "otedama": ("train", 3, False), "marshmallow": ("val", 3, False)}
@@ -42,7 +51,8 @@ def lab_food(tmp_path_factory) -> Path:
 
 
 def quick(data: Path, out: Path, **kw) -> BuildConfig:
-    return BuildConfig(data=data, out=out, max_epochs=EPOCHS, **kw)
+    """The shipped embedding, without the choice (tested on its own)."""
+    return BuildConfig(data=data, out=out, max_epochs=EPOCHS, **({"embedding": "shipped"} | kw))
 
 
 @pytest.mark.asyncio
@@ -59,7 +69,8 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
         _, health = await d.get("/healthz")
         t0 = time.perf_counter()
         rc = await asyncio.to_thread(main, ["build", "--data", str(lab_food), "--out",
-                                            str(models), "--max-epochs", str(EPOCHS), "-q"])
+                                            str(models), "--max-epochs", str(EPOCHS),
+                                            "--embedding", "shipped", "-q"])
         print(f"vt-train build: {time.perf_counter() - t0:.1f} s")
         assert rc == 0
         assert not partial_dir(models).exists()
@@ -348,3 +359,63 @@ def test_table1_and_fig6_on_a_lab_named_set_describe_its_data(lab_model, lab_foo
     md = (fig / "fig6.md").read_text()
     assert "decoder `teacher`: the paper's" in md and "lab_food (as FoodReplica)" in md
     assert "real presses by the robot `lab-arm-1`" in md and "photos beside the presses" in md
+
+
+# --- the embedding deployed, chosen by held-out evidence --------------------------------------
+
+def test_a_build_chooses_its_embedding_on_the_validation_classes_and_says_why(lab_food,
+                                                                              tmp_path):
+    out = tmp_path / "models"
+    t0 = time.perf_counter()
+    manifest = build(quick(lab_food, out, embedding=None, seeds=2), Progress(enabled=False))
+    print(f"build with the choice over 2 seeds: {time.perf_counter() - t0:.1f} s")
+    choice = manifest["metrics"]["choice"]
+    figures = choice["figures"]
+    assert set(figures) == set(EMBEDDINGS) and choice["seeds"] == 2
+    for name, f in figures.items():
+        val = f["loo_1nn_val_classes"]
+        assert len(val["seeds"]) == 2 and 0 <= val["min"] <= val["mean"] <= val["max"] <= 1
+        assert len(f["top3_consistency"]["seeds"]) == 2  # the test classes' consistency
+        print(name, val, f["top3_consistency"]["mean"])
+    assert figures["mean"]["loo_1nn_val_classes"]["min"] == \
+        figures["mean"]["loo_1nn_val_classes"]["max"]  # nothing random in a channel mean
+    winner = choice["winner"]
+    best = max(f["loo_1nn_val_classes"]["mean"] for f in figures.values())
+    assert figures[winner]["loo_1nn_val_classes"]["mean"] == best
+    assert choice["margin"] == pytest.approx(
+        best - figures[choice["runner_up"]]["loo_1nn_val_classes"]["mean"])
+    # The winner is what the directory deploys, served as its kind.
+    assert manifest["encoder"]["embedding"] == winner
+    assert manifest["encoder"]["kind"] == ("mean" if winner == "mean" else "onnx")
+    assert load_model(out).manifest["encoder"]["embedding"] == winner
+    md = (out / "eval" / "eval.md").read_text()
+    section = md[md.index("## The embedding deployed"):]
+    print(section)
+    assert f"| {winner} (deployed) |" in section
+    assert all(f"| {name}" in section for name in EMBEDDINGS)
+    assert f"`{winner}` won, {choice['margin']:.3f} above `{choice['runner_up']}`" in section
+    assert ("beyond the seed spread" in section) == choice["beyond_spread"]
+    assert "--seeds 2" in manifest["created_by"]
+    # A rerun trains nothing again.
+    again = build(quick(lab_food, out, embedding=None, seeds=2), Progress(enabled=False))
+    assert {"train vq", "train paper", "train vq seed 1", "train paper seed 1", "choose"} \
+        <= set(again["timings"]["steps_skipped"])
+
+
+def test_the_choice_says_whether_a_difference_is_beyond_the_seed_spread():
+    def scores(shipped, paper, mean):
+        return {name: {"loo_1nn_val_classes": v, "top3_consistency": [0.5] * len(v)}
+                for name, v in (("shipped", shipped), ("paper", paper), ("mean", mean))}
+
+    apart = choice_of(scores([0.9, 0.8], [0.5, 0.6], [0.7, 0.7]), 2)
+    assert apart["winner"] == "shipped" and apart["runner_up"] == "mean"
+    assert apart["beyond_spread"] and apart["margin"] == pytest.approx(0.15)
+    close = choice_of(scores([0.9, 0.6], [0.5, 0.6], [0.7, 0.7]), 2)
+    assert close["winner"] == "shipped" and not close["beyond_spread"]
+    assert "does not tell them apart" in choice_markdown(close)
+    one = choice_of(scores([0.9], [0.5], [0.7]), 1)
+    assert not one["beyond_spread"] and "one seed" in choice_markdown(one)
+    tie = choice_of(scores([0.7], [0.7], [0.7]), 1)
+    assert tie["winner"] == "shipped"  # the candidates' order breaks a full tie
+    with pytest.raises(ModelError, match="no validation class"):
+        choice_of(scores([], [], []), 1)

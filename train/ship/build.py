@@ -10,11 +10,17 @@ inputs, so a rerun after an interruption skips what is done and says so:
    class, every reference class present (refused, naming the class and the presses); every
    class at one stream rate (within ``preprocess.RATE_TOLERANCE``: a class pressed at
    100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``;
-2. train the embedding ``--embedding`` names: ``shipped`` (the VQ-VAE with the paper's
-   decoder, z of 16 and the metric term), ``paper`` (the same in the paper's configuration:
-   z of 4, reconstruction only) or ``mean`` (the trivial feature, each channel's mean over
-   the window after the normaliser: nothing to train); with ``--variant``, the beta-VAE and
-   the zero-input decoder for the comparison rows of the evaluation and of Table I;
+2. choose the embedding to deploy by held-out evidence (step "choose"): the candidates
+   ``shipped`` (the VQ-VAE with the paper's decoder, z of 16 and the metric term),
+   ``paper`` (the same in the paper's configuration: z of 4, reconstruction only) and
+   ``mean`` (the trivial feature, each channel's mean over the window after the normaliser:
+   nothing to train) are trained over ``--seeds`` seeds and the one whose validation
+   classes' presses have their own class nearest most often (leave one press out, among every
+   reference press) wins, the unseen top-3 consistency breaking a tie; ``eval.md`` says what
+   won, by how much, and whether beyond the seed spread. ``--embedding NAME`` deploys that
+   one and trains nothing else. Then the deployed network is trained (the first seed's
+   training is the choice's own, kept) and, with ``--variant``, the beta-VAE and the
+   zero-input decoder for the comparison rows of the evaluation and of Table I;
 3. export the encoder: a network to ONNX with its parity check, ``mean`` to ``encoder.npz``
    (the normaliser's statistics; the manifest's ``encoder.kind``);
 4. the database of every offset of every press of the train and val classes;
@@ -94,6 +100,10 @@ VARIANT_DIRS = {"vq": "vq", "beta": "beta", "zeros": "vq_zeros", "paper": "vq_pa
 # the trivial feature, nothing to train).
 EMBEDDINGS = {"shipped": "vq", "paper": "paper", "mean": None}
 MEAN_ROW = "mean"  # the evaluation's row of the deployed trivial feature
+CHOICE_DIR = "choice"  # under OUT: the choice's evaluations (and its further seeds' training)
+# The choice's figure, and the one that breaks a tie (evaluate's row keys).
+CHOICE_METRIC = ("loo_1nn_val_classes", "validation classes' LOO 1-NN")
+CHOICE_TIE = ("top3_consistency", "unseen top-3 consistency")
 
 
 @dataclass(frozen=True)
@@ -109,11 +119,13 @@ class BuildConfig:
     threads: int = 1
     mixed_rates: bool = False  # build from classes pressed at different stream rates
     std_floor: float = STD_FLOOR_FRACTION  # the normaliser's (train.learn.data)
-    embedding: str = "shipped"  # what the model deploys (EMBEDDINGS)
+    embedding: str | None = None  # what the model deploys (EMBEDDINGS); None: choose
+    seeds: int = 1  # seeds of each candidate the choice is made over
 
     def command(self) -> str:
         parts = [f"vt-train build --data {self.data} --out {self.out}",
-                 *([f"--embedding {self.embedding}"] if self.embedding != "shipped" else []),
+                 *([f"--embedding {self.embedding}"] if self.embedding else
+                   [f"--seeds {self.seeds}"]),
                  *(f"--variant {v}" for v in self.variants),
                  *(["--mixed-rates"] if self.mixed_rates else []),
                  *([f"--std-floor {self.std_floor:g}"]
@@ -285,6 +297,7 @@ class Job:
     unseen_key: str
     model_config: ModelConfig
     progress: Progress | None
+    embedding: str  # the embedding deployed: the one asked for, or the choice's winner
     _reference: PressSet | None = None
 
     def reference(self) -> PressSet:
@@ -296,7 +309,7 @@ class Job:
     @property
     def network(self) -> str | None:
         """The trained network the model deploys (a VARIANTS name), None for ``mean``."""
-        return EMBEDDINGS[self.cfg.embedding]
+        return EMBEDDINGS[self.embedding]
 
     @property
     def encoder(self) -> Path:
@@ -307,8 +320,12 @@ class Job:
         """The deployed embedding's row in the evaluation."""
         return VARIANT_DIRS[self.network] if self.network else MEAN_ROW
 
-    def checkpoint(self, name: str) -> Path:
-        return self.work / TRAINING_DIR / VARIANT_DIRS[name] / CHECKPOINT
+    def checkpoint(self, name: str, seed_index: int = 0) -> Path:
+        """A network's checkpoint; the choice's further seeds are kept apart."""
+        where = self.work / TRAINING_DIR
+        if seed_index:
+            where = where / CHOICE_DIR / f"seed{seed_index}"
+        return where / VARIANT_DIRS[name] / CHECKPOINT
 
 
 def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
@@ -318,11 +335,14 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
     ds = read_dataset(cfg.data, progress=progress is None or progress.enabled,
                       mixed_rates=cfg.mixed_rates)
     job = _start(cfg, ds, progress)
+    choice = _choose(job) if cfg.embedding is None else None
+    if choice is not None:
+        job.embedding = choice["winner"]
     trained = _train(job)
     exported = _export(job)
     db_summary = _database(job)
     _copy_prompts(job.work, prompts)
-    metrics = _evaluate(job, trained)
+    metrics = _evaluate(job, trained, choice)
     manifest = write_manifest(
         job.work, _manifest_sections(job, trained, exported, db_summary, metrics, started),
         reports=[f"{EVAL_DIR}/{name}" for name in evaluate.FILES])
@@ -335,7 +355,9 @@ def build(cfg: BuildConfig, progress: Progress | None = None) -> dict[str, Any]:
 
 def _check_request(cfg: BuildConfig) -> list[Path]:
     """Refuse unknown variants and a prompt directory without templates; the templates."""
-    if cfg.embedding not in EMBEDDINGS:
+    if cfg.seeds < 1:
+        raise ValueError(f"--seeds must be at least 1, got {cfg.seeds}")
+    if cfg.embedding is not None and cfg.embedding not in EMBEDDINGS:
         raise ValueError(f"unknown embedding {cfg.embedding!r}; choose from "
                          f"{', '.join(EMBEDDINGS)}")
     unknown = [v for v in cfg.variants if v not in VARIANTS]
@@ -364,19 +386,23 @@ def _start(cfg: BuildConfig, ds: Dataset, progress: Progress | None) -> Job:
                       if unseen else [])
     # The model takes the channels of the pads the presses were made with.
     model_config = replace(ModelConfig(), channels=ds.layout.channels)
-    return Job(cfg, ds, work, Steps(work), unseen, unseen_key, model_config, progress)
+    return Job(cfg, ds, work, Steps(work), unseen, unseen_key, model_config, progress,
+               cfg.embedding or "shipped")
 
 
-def _train(job: Job) -> dict[str, dict[str, Any]]:
-    """Step "train NAME": the shipped VQ-VAE, then each comparison variant asked for."""
+def _train(job: Job, names: tuple[str, ...] | None = None, seed_index: int = 0
+           ) -> dict[str, dict[str, Any]]:
+    """Step "train NAME": the deployed network, then each comparison variant asked for (or
+    the networks ``names`` at the ``seed_index``-th seed, for the choice)."""
     cfg = job.cfg
-    base = TrainConfig(seed=cfg.seed, max_epochs=cfg.max_epochs, patience=cfg.patience,
-                       threads=cfg.threads)
+    base = TrainConfig(seed=cfg.seed + seed_index, max_epochs=cfg.max_epochs,
+                       patience=cfg.patience, threads=cfg.threads)
     trained: dict[str, dict[str, Any]] = {}
-    network = (job.network,) if job.network else ()
-    for name in dict.fromkeys((*network, *cfg.variants)):
+    if names is None:
+        names = tuple(dict.fromkeys(((job.network,) if job.network else ()) + cfg.variants))
+    for name in names:
         config = replace(base, model=replace(job.model_config, **VARIANTS.get(name, {})))
-        where = job.checkpoint(name).parent
+        where = job.checkpoint(name, seed_index).parent
 
         def fit(config: TrainConfig = config, where: Path = where) -> dict[str, Any]:
             data = training_data_of(job.reference(), job.ds.splits, cfg.std_floor)
@@ -385,11 +411,112 @@ def _train(job: Job) -> dict[str, dict[str, Any]]:
 
         # The default floor keeps the key builds made before the floor was a setting.
         floor = [] if cfg.std_floor == STD_FLOOR_FRACTION else [cfg.std_floor]
+        step = f"train {name}" + (f" seed {seed_index}" if seed_index else "")
         trained[name] = job.steps.run(
-            f"train {name}", _key(job.ds.sha256, config.to_dict(), *floor),
-            [job.checkpoint(name)], fit) | {
-            "checkpoint": f"{TRAINING_DIR}/{VARIANT_DIRS[name]}/{CHECKPOINT}"}
+            step, _key(job.ds.sha256, config.to_dict(), *floor),
+            [job.checkpoint(name, seed_index)], fit) | {
+            "checkpoint": job.checkpoint(name, seed_index).relative_to(job.work).as_posix()}
     return trained
+
+
+def _choose(job: Job) -> dict[str, Any]:
+    """Step "choose": every candidate over ``--seeds`` seeds, scored on the validation
+    classes (and the unseen classes' consistency for a tie); the winner and the figures."""
+    cfg = job.cfg
+    networks = tuple(n for n in EMBEDDINGS.values() if n)
+    trained = [_train(job, networks, i) for i in range(cfg.seeds)]
+
+    def choose() -> dict[str, Any]:
+        norm = Normaliser.fit(job.reference().select(job.ds.splits.train).x, cfg.std_floor)
+        mean = MeanEncoder(MeanEncoder.to_bytes(norm.mean, norm.std),
+                           job.reference().x.shape[2])
+        scores: dict[str, dict[str, list[float]]] = {
+            name: {CHOICE_METRIC[0]: [], CHOICE_TIE[0]: []} for name in EMBEDDINGS}
+        for i, runs in enumerate(trained):
+            embedders: dict[str, tuple[evaluate.Embedder, np.ndarray | None]] = {}
+            for name, network in EMBEDDINGS.items():
+                if network is None:
+                    embedders[name] = ((lambda x: (mean(x)[0], None)), None)
+                    continue
+                model, n, _ = load_checkpoint(job.work / runs[network]["checkpoint"])
+                embedders[name] = ((lambda x, m=model, n=n: (embed(m, n, x)[0], None)), None)
+            report = evaluate.evaluate(embedders, job.reference(), job.ds.splits, job.unseen,
+                                       job.work / CHOICE_DIR / f"seed{i}",
+                                       primary=(next(iter(EMBEDDINGS)), "z"),
+                                       seed=cfg.seed + i)
+            rows = {r["variant"]: r for r in report["rows"]}
+            for name in EMBEDDINGS:
+                for key in scores[name]:
+                    value = rows[name].get(key)
+                    if value is not None:
+                        scores[name][key].append(float(value))
+        return choice_of(scores, cfg.seeds)
+
+    shas = [{n: _sha(job.work / t["checkpoint"]) for n, t in runs.items()} for runs in trained]
+    return job.steps.run("choose", _key(job.ds.sha256, job.unseen_key, shas, cfg.std_floor),
+                         [], choose)
+
+
+def choice_of(scores: dict[str, dict[str, list[float]]], seeds: int) -> dict[str, Any]:
+    """The winner by the mean of ``CHOICE_METRIC`` over the seeds (``CHOICE_TIE`` breaking a
+    tie, then the candidates' order), the runner-up, and whether the gap is beyond the seed
+    spread (the winner's lowest seed above the runner-up's highest; one seed of a network:
+    no spread to judge by)."""
+    # None where the figure was not measured (no validation or no unseen classes).
+    figures = {name: {key: {"mean": float(np.mean(v)), "min": min(v), "max": max(v),
+                            "seeds": v} if v else None
+                      for key, v in by.items()} for name, by in scores.items()}
+    order = list(EMBEDDINGS)
+
+    def rank(name: str) -> tuple[float, float, int]:
+        metric, tie = (figures[name][key] for key in (CHOICE_METRIC[0], CHOICE_TIE[0]))
+        return (metric["mean"] if metric else -1.0, tie["mean"] if tie else -1.0,
+                -order.index(name))
+
+    winner, runner = sorted(EMBEDDINGS, key=rank, reverse=True)[:2]
+    w, r = figures[winner][CHOICE_METRIC[0]], figures[runner][CHOICE_METRIC[0]]
+    if w is None or r is None:
+        raise ModelError(f"the choice needs {CHOICE_METRIC[1]}: the dataset has no "
+                         "validation class (split val); add one, or name the embedding "
+                         "(--embedding)")
+    one_seed = seeds < 2 and any(EMBEDDINGS[n] is not None for n in (winner, runner))
+    return {"winner": winner, "runner_up": runner, "metric": CHOICE_METRIC[0],
+            "tie_break": CHOICE_TIE[0], "seeds": seeds, "margin": w["mean"] - r["mean"],
+            "beyond_spread": bool(w["min"] > r["max"] and not one_seed),
+            "one_seed": one_seed, "figures": figures}
+
+
+def choice_markdown(choice: dict[str, Any]) -> str:
+    """``eval.md``'s section on the choice: what won, by how much, beyond the noise or not."""
+    metric, tie = CHOICE_METRIC[1], CHOICE_TIE[1]
+    figures, winner, runner = choice["figures"], choice["winner"], choice["runner_up"]
+
+    def cell(f: dict[str, Any] | None) -> str:
+        if f is None:
+            return "n/a"
+        return f"{f['mean']:.3f}" if f["min"] == f["max"] else \
+            f"{f['mean']:.3f} ({f['min']:.3f}-{f['max']:.3f})"
+
+    seeds = choice["seeds"]
+    lines = ["", "## The embedding deployed", "",
+             f"Chosen by {metric} (each validation-class press's nearest reference press, "
+             f"its own press left out; {tie} breaks a tie) over {seeds} seed"
+             f"{'s' * (seeds != 1)} (`vt-train build --seeds N`; `--embedding NAME` deploys "
+             "one without the choice):", "",
+             f"| candidate | {metric} | {tie} |", "| --- | --- | --- |"]
+    for name, f in figures.items():
+        mark = " (deployed)" if name == winner else ""
+        lines.append(f"| {name}{mark} | {cell(f[CHOICE_METRIC[0]])} | "
+                     f"{cell(f[CHOICE_TIE[0]])} |")
+    if choice["beyond_spread"]:
+        verdict = "beyond the seed spread"
+    elif choice["one_seed"]:
+        verdict = "one seed, so no spread to judge it by (--seeds)"
+    else:
+        verdict = "inside the seed spread: this data does not tell them apart"
+    lines += ["", f"`{winner}` won, {choice['margin']:.3f} above `{runner}` on {metric}: "
+              f"{verdict}."]
+    return "\n".join(lines) + "\n"
 
 
 def _export(job: Job) -> dict[str, Any]:
@@ -464,9 +591,10 @@ def _copy_prompts(work: Path, prompts: list[Path]) -> None:
         shutil.copyfile(template, work / PROMPTS_DIR / template.name)
 
 
-def _evaluate(job: Job, trained: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Step "eval": retrieval through the exported graph and each variant's checkpoint,
-    the trivial baseline beside them."""
+def _evaluate(job: Job, trained: dict[str, dict[str, Any]], choice: dict[str, Any] | None
+              ) -> dict[str, Any]:
+    """Step "eval": retrieval through the deployed encoder and each variant's checkpoint,
+    the trivial baseline beside them; with a choice made, what won and by how much."""
     work = job.work
 
     def run_eval() -> dict[str, Any]:
@@ -487,11 +615,14 @@ def _evaluate(job: Job, trained: dict[str, dict[str, Any]]) -> dict[str, Any]:
                 (lambda x, m=model, n=norm: embed(m, n, x)), book)
         report = evaluate.evaluate(embedders, job.reference(), job.ds.splits, job.unseen,
                                    work / EVAL_DIR, primary=(job.row, "z"), seed=job.cfg.seed)
-        return evaluate.summary_metrics(report)
+        if choice is not None:
+            md = work / EVAL_DIR / "eval.md"
+            atomic_write_text(md, md.read_text() + choice_markdown(choice))
+        return evaluate.summary_metrics(report) | ({"choice": choice} if choice else {})
 
     variant_shas = {name: _sha(work / t["checkpoint"]) for name, t in trained.items()}
     return job.steps.run(
-        "eval", _key(_sha(job.encoder), job.ds.sha256, job.unseen_key, variant_shas),
+        "eval", _key(_sha(job.encoder), job.ds.sha256, job.unseen_key, variant_shas, choice),
         [work / EVAL_DIR / name for name in evaluate.FILES], run_eval)
 
 
@@ -538,12 +669,12 @@ def _encoder_section(job: Job, exported: dict[str, Any]) -> dict[str, Any]:
     """The manifest's ``encoder``, with its ``kind`` (``onnx`` or ``mean``)."""
     if job.network is not None:
         config = replace(job.model_config, **VARIANTS.get(job.network, {}))
-        return {"kind": "onnx", "embedding": job.cfg.embedding} | encoder_section(
+        return {"kind": "onnx", "embedding": job.embedding} | encoder_section(
             load_checkpoint(job.checkpoint(job.network))[1], config, exported["parity"])
     norm = Normaliser.from_dict(exported["norm"])
     steps, channels = job.model_config.steps, job.model_config.channels
     return {
-        "kind": "mean", "embedding": job.cfg.embedding, "file": MEAN_ENCODER_FILE,
+        "kind": "mean", "embedding": job.embedding, "file": MEAN_ENCODER_FILE,
         "input": "x", "input_shape": ["batch", steps, channels],
         "input_units": "tactile units (raw - tare) / 65536, edge.core.preprocess.model_input",
         "normalisation": "(x - mean) / std, per channel, training stats, then the mean over "
