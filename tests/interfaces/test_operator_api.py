@@ -165,3 +165,6 @@ async def test_recognize_presses_again_and_fuses_through_the_daemon(tmp_path):
         status, trace = await d.get(f"/v1/episodes/{ep['id']}/trace")
         assert status == 200 and trace["episode"] == ep["id"]  # the first press's, as for one
         assert d.store.file(ep["id"], "press-2.press.npz").stat().st_size > 0
+        status, body = await d.get("/v1/episodes")  # what the page's card reads
+        [listed] = [e for e in body["episodes"] if e["id"] == ep["id"]]
+        assert listed["presses"] == ep["presses"] and listed["fusion"] == ep["fusion"]

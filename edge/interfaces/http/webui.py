@@ -202,7 +202,8 @@ class OperatorPage:
                 "candidates": episode.candidates, "label": episode.label,
                 "reason": episode.reason, "error": episode.why, "topk": episode.topk_json(),
                 "description": episode.description, "familiarity": episode.familiarity,
-                "unfamiliar": episode.unfamiliar, "timings": episode.timings,
+                "unfamiliar": episode.unfamiliar, "presses": episode.presses,
+                "fusion": episode.fusion, "timings": episode.timings,
                 "vlm_mode": episode.vlm_mode, "press": episode.press_json(LISTED_PRESS),
                 "image": f"/v1/episodes/{eid}/image" if files & {"image.jpg", "image.png"}
                 else None,

@@ -273,7 +273,8 @@ function card(ep) {
   const fmt = (k) => (tm[k] != null ? `${k.replace("_s", "")} ${(tm[k] * 1000).toFixed(0)} ms` : null);
   const timings = el("div", { class: "timings",
     text: ["press_s", "encode_s", "vlm_s"].map(fmt).filter(Boolean).join(" · ") +
-      (ep.press && ep.press.stop_latency_ms != null ? ` · stop latency ${ep.press.stop_latency_ms.toFixed(2)} ms` : "") });
+      (ep.press && ep.press.stop_latency_ms != null ? ` · stop latency ${ep.press.stop_latency_ms.toFixed(2)} ms` : "") +
+      (ep.presses ? ` · ${ep.presses.length} presses fused (${ep.fusion})` : "") });
   const node = el("div", { class: "episode", id: `ep-${ep.id}`, "data-status": ep.status },
     el("div", { class: "head" }, el("span", { class: `badge ${ep.status}`, text: ep.status }),
        el("span", { class: "id", text: ep.id }), el("span", { class: "muted", text: when })),
