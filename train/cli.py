@@ -406,8 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     db = sub.add_parser("db", help="the reference database")
     dbsub = db.add_subparsers(dest="db_command", required=True)
-    p = dbsub.add_parser("build", help="encode the reference presses with MODEL/encoder.onnx")
-    p.add_argument("--model", required=True, help="model directory (has encoder.onnx)")
+    p = dbsub.add_parser("build", help="encode the reference presses with MODEL's encoder")
+    p.add_argument("--model", required=True,
+                   help="model directory (its encoder: encoder.onnx, or encoder.npz of kind mean)")
     p.add_argument("--recordings", required=True)
     p.add_argument("--splits")
     p.add_argument("--space", choices=["z", "z_q"], default="z")

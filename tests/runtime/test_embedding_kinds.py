@@ -7,6 +7,7 @@ loaded and checked as doctor does, and recognises a pressed object on the emulat
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -141,3 +142,13 @@ async def test_the_daemon_serves_each_kind_and_recognises_the_pressed_object(
     assert len(labels) == 3 and set(labels) <= set(REFERENCE)
     if embedding == "mean":  # no training to vary: the trivial feature knows a sponge
         assert labels[0] == PRESSED, labels
+
+
+def test_db_build_on_a_mean_model_embeds_with_its_own_encoder(mean_model, lab, tmp_path):
+    model = Path(shutil.copytree(mean_model, tmp_path / "model"))
+    before = load_model(model).database
+    (model / "database.npz").unlink()
+    assert main(["db", "build", "--model", str(model), "--recordings", str(lab)]) == 0
+    after = load_model(model).database
+    assert np.allclose(np.sort(after.z, axis=0), np.sort(before.z, axis=0), atol=1e-6)
+    assert after.labels == before.labels and len(after) == len(before)

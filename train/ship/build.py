@@ -570,13 +570,8 @@ def _encoder(job: Job) -> OnnxEncoder | MeanEncoder:
 def _database(job: Job) -> dict[str, Any]:
     """Step "database": every offset of every train and val press, encoded by the graph."""
     def build_db() -> dict[str, Any]:
-        if job.network is None:
-            presses = job.reference().select(job.ds.splits.classes)
-            z, code = database.encode_presses(_encoder(job), presses)
-            db = database.from_embeddings(presses, job.ds.splits, z, None, code)
-        else:
-            db = database.build_database(job.encoder.read_bytes(), job.reference(),
-                                         job.ds.splits)
+        db = database.build_database(job.encoder.read_bytes(), job.reference(),
+                                     job.ds.splits, kind="onnx" if job.network else "mean")
         db.save(job.work)
         return database.summary(db) | {"codes_used": len(np.unique(db.code))}
 

@@ -29,11 +29,13 @@ from edge.core.layout import XR1944, PadLayout
 from edge.core.model import (
     CLASS_X_TH,
     DEFAULT_K,
-    ENCODER_FILE,
+    ENCODER_FILES,
     ClassInfo,
+    MeanEncoder,
     OnnxEncoder,
     ReferenceDatabase,
     Space,
+    encoder_kind,
     load_model,
     nearest_code,
 )
@@ -129,15 +131,19 @@ def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
         offset=np.tile(np.asarray(offsets, dtype=np.int8), len(presses)))
 
 
-def build_database(encoder_onnx: bytes, presses: PressSet, splits: Splits,
-                   space: Space = "z", k: int = DEFAULT_K) -> ReferenceDatabase:
-    """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_onnx``."""
+def build_database(encoder_file: bytes, presses: PressSet, splits: Splits,
+                   space: Space = "z", k: int = DEFAULT_K, kind: str = "onnx"
+                   ) -> ReferenceDatabase:
+    """The database of ``presses`` (classes of ``splits``) encoded by ``encoder_file``, an
+    encoder of ``kind`` (``edge.core.model.ENCODER_FILES``)."""
+    presses = presses.select(splits.classes)
+    if kind == "mean":  # the trivial feature: no codebook
+        z, code = encode_presses(MeanEncoder(encoder_file, presses.x.shape[2]), presses)
+        return from_embeddings(presses, splits, z, None, code, space, k)
     from train.ship.export import codebook_of  # onnx: not needed to add to a database
 
-    encoder = OnnxEncoder(encoder_onnx)
-    presses = presses.select(splits.classes)
-    z, code = encode_presses(encoder, presses)
-    return from_embeddings(presses, splits, z, codebook_of(encoder_onnx), code, space, k)
+    z, code = encode_presses(OnnxEncoder(encoder_file), presses)
+    return from_embeddings(presses, splits, z, codebook_of(encoder_file), code, space, k)
 
 
 def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | None = None,
@@ -145,13 +151,15 @@ def build_into(model_dir: str | Path, recordings: str | Path, splits: Splits | N
     """``vt-train db build``: encode ``recordings`` with ``model_dir/encoder.onnx``, write
     the database files and re-hash the manifest."""
     model_dir = Path(model_dir)
+    kind = encoder_kind(read_raw(model_dir))
+    path = model_dir / ENCODER_FILES[kind]
     try:
-        onnx_bytes = (model_dir / ENCODER_FILE).read_bytes()
+        encoder_file = path.read_bytes()
     except OSError as exc:
-        raise ModelError(f"{model_dir / ENCODER_FILE}: {exc.strerror or exc}") from None
+        raise ModelError(f"{path}: {exc.strerror or exc}") from None
     splits = splits or Splits.of_dataset(recordings)
     presses = load_presses(recordings, splits.classes)
-    db = build_database(onnx_bytes, presses, splits, space, k)
+    db = build_database(encoder_file, presses, splits, space, k, kind)
     thresholds = {}
     for label, values in grouped(press_index(recordings), "x_th").items():
         problem = mixed(label, "thresholds x_th", values)
