@@ -402,6 +402,19 @@ def test_a_build_chooses_its_embedding_on_the_validation_classes_and_says_why(la
         <= set(again["timings"]["steps_skipped"])
 
 
+def test_the_choice_without_a_validation_class_is_refused_before_any_training(lab_food,
+                                                                             tmp_path):
+    data = Path(shutil.copytree(lab_food, tmp_path / "no_val"))
+    index = json.loads((data / "dataset.json").read_text())
+    for c in index["classes"]:
+        if c["split"] == "val":
+            c["split"] = "train"
+    (data / "dataset.json").write_text(json.dumps(index))
+    with pytest.raises(ModelError, match=r"no validation class .*--embedding"):
+        build(quick(data, tmp_path / "m", embedding=None), Progress(enabled=False))
+    assert not (partial_dir(tmp_path / "m") / "training").exists()
+
+
 def test_the_choice_says_whether_a_difference_is_beyond_the_seed_spread():
     def scores(shipped, paper, mean):
         return {name: {"loo_1nn_val_classes": v, "top3_consistency": [0.5] * len(v)}

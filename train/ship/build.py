@@ -423,6 +423,8 @@ def _choose(job: Job) -> dict[str, Any]:
     """Step "choose": every candidate over ``--seeds`` seeds, scored on the validation
     classes (and the unseen classes' consistency for a tie); the winner and the figures."""
     cfg = job.cfg
+    if not job.ds.splits.val:  # said before any training
+        raise _no_validation_class()
     networks = tuple(n for n in EMBEDDINGS.values() if n)
     trained = [_train(job, networks, i) for i in range(cfg.seeds)]
 
@@ -476,14 +478,18 @@ def choice_of(scores: dict[str, dict[str, list[float]]], seeds: int) -> dict[str
     winner, runner = sorted(EMBEDDINGS, key=rank, reverse=True)[:2]
     w, r = figures[winner][CHOICE_METRIC[0]], figures[runner][CHOICE_METRIC[0]]
     if w is None or r is None:
-        raise ModelError(f"the choice needs {CHOICE_METRIC[1]}: the dataset has no "
-                         "validation class (split val); add one, or name the embedding "
-                         "(--embedding)")
+        raise _no_validation_class()
     one_seed = seeds < 2 and any(EMBEDDINGS[n] is not None for n in (winner, runner))
     return {"winner": winner, "runner_up": runner, "metric": CHOICE_METRIC[0],
             "tie_break": CHOICE_TIE[0], "seeds": seeds, "margin": w["mean"] - r["mean"],
             "beyond_spread": bool(w["min"] > r["max"] and not one_seed),
             "one_seed": one_seed, "figures": figures}
+
+
+def _no_validation_class() -> ModelError:
+    return ModelError(f"the choice of embedding needs {CHOICE_METRIC[1]}: the dataset has no "
+                      "validation class (split val); add one, or name the embedding "
+                      "(--embedding)")
 
 
 def choice_markdown(choice: dict[str, Any]) -> str:
