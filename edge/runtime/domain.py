@@ -386,6 +386,25 @@ class EpisodeStarted:
 
 
 @dataclass(frozen=True)
+class PressAgain:
+    """A recognition of several presses will press the object again in ``pause_s``: the
+    operator moves it slightly (``message`` says so)."""
+
+    kind: ClassVar[str] = "press_again"
+    episode_id: str
+    press: int  # the press to come
+    presses: int | None  # of how many (None: "auto", a second press asked for)
+    pause_s: float
+    message: str
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "episode": self.episode_id,
+                "press": self.press, "presses": self.presses, "pause_s": self.pause_s,
+                "message": self.message}
+
+
+@dataclass(frozen=True)
 class TactileResult:
     """The press's analysis, once the episode holding it is stored."""
 
@@ -461,7 +480,7 @@ class EpisodeFinished:
                 "status": "finished"}
 
 
-Event = (Hello | StateChanged | EpisodeStarted | TactileResult | Label | VLMRefused
+Event = (Hello | StateChanged | EpisodeStarted | PressAgain | TactileResult | Label | VLMRefused
          | VLMUnreachable | EpisodeFinished)
 
 

@@ -49,6 +49,7 @@ from edge.runtime.domain import (
     EventBus,
     Label,
     Neighbour,
+    PressAgain,
     Status,
     TactileResult,
     VLMRefused,
@@ -515,11 +516,15 @@ class OneRecognition:
                 for name, data in (files | await self._press_file(outcome)).items()}
 
     async def pause(self) -> None:
-        """The operator's time to move the object slightly before the next press."""
+        """The operator's time to move the object slightly before the next press (said
+        on the event stream and logged)."""
         n = len(self.pressed) + 1
-        of = "" if self.presses == AUTO else f" of {self.presses}"
-        log.info("episode %s: move the object slightly on the table: press %d%s in %g s",
-                 self.episode.id, n, of, self.pause_s)
+        presses = None if self.presses == AUTO else int(self.presses)
+        of = "" if presses is None else f" of {presses}"
+        message = f"move the object slightly on the table: press {n}{of} in {self.pause_s:g} s"
+        log.info("episode %s: %s", self.episode.id, message)
+        self.recognizer.events.publish(
+            PressAgain(self.episode.id, n, presses, self.pause_s, message))
         await asyncio.sleep(self.pause_s)
 
     async def fused(self, episode: Episode, files: dict[str, bytes],

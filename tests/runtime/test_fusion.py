@@ -15,7 +15,7 @@ from edge.core.config import Config, RuntimeConfig, from_dict
 from edge.core.errors import BadRequest, BusyError, ConfigError
 from edge.interfaces.requests import validate_presses
 from edge.runtime.compute import FUSIONS, analyse_press, fuse_presses
-from edge.runtime.domain import PressResult, Status
+from edge.runtime.domain import Hello, PressResult, PressState, Status
 from edge.runtime.press import PressOutcome
 from edge.runtime.recognition import AUTO
 from tests.runtime.test_recognition import (
@@ -24,6 +24,7 @@ from tests.runtime.test_recognition import (
     InProcessCompute,
     ScriptedPress,
     ScriptedVLM,
+    drain,
     pressed,
     recognizer,
 )
@@ -42,8 +43,15 @@ async def test_three_presses_are_fused_into_one_question(tmp_path, fusion):
     press = ScriptedPress(pressed(3), pressed(4), pressed(5))
     vlm = ScriptedVLM(["macaron"])
     compute = InProcessCompute()
-    rec, _ = recognizer(tmp_path, press, vlm, compute, cfg=with_fusion(fusion))
-    episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=3, pause_s=0)
+    rec, events = recognizer(tmp_path, press, vlm, compute, cfg=with_fusion(fusion))
+    with events.subscribe(Hello(PressState.IDLE, None)) as sub:
+        episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=3,
+                                      pause_s=0)
+        seen = await drain(sub)
+    cues = [e for e in seen if e["type"] == "press_again"]
+    assert [(e["press"], e["presses"], e["episode"]) for e in cues] == [
+        (2, 3, episode.id), (3, 3, episode.id)]
+    assert cues[0]["message"] == "move the object slightly on the table: press 2 of 3 in 0 s"
     assert episode.status == Status.DONE and episode.label == "macaron"
     assert not press.outcomes and len(vlm.asked) == 1  # three presses, one question
     assert not rec.lock.locked()

@@ -76,6 +76,8 @@ function followEvents() {
     events.addEventListener(kind, () => refreshEpisodes());
   }
   events.addEventListener("teach", (e) => onTeach(JSON.parse(e.data)));
+  // A recognition of several presses: the operator's cue before the next.
+  events.addEventListener("press_again", (e) => say(JSON.parse(e.data).message));
 }
 
 // --- the live view ----------------------------------------------------------------------
