@@ -345,7 +345,9 @@ def fuse_presses(ref: ModelRef, recs: list[recording.Recording], fusion: str,
     - ``mean``: the mean of those embeddings, looked up once.
 
     ``z`` and ``code`` are the mean embedding's (its nearest codebook entry); ``agreement``
-    the share of the (press, offset) embeddings whose nearest class is the fused first."""
+    the share of the (press, offset) embeddings whose nearest class is the fused first. The
+    familiarity is of the fused first class's distance: with votes the nearest of many
+    looks, so lower (more familiar) than one press's would be."""
     if fusion not in FUSIONS:
         raise ValueError(f"fusion {fusion!r}: one of {', '.join(FUSIONS)}")
     if not recs:
