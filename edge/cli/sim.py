@@ -110,6 +110,19 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     teach.add_argument("--out", default=None, help="write teaching.md/.json here")
     teach.set_defaults(func=_cmd_sim_teaching)
 
+    fusion = simsub.add_parser(
+        "fusion", help="press again and fuse, measured: top-3 consistency of recognitions of "
+        "1 and 3 presses of the unseen classes (both fusions, the simulated VLM's accuracy) "
+        "and the seconds per recognition on the running daemon")
+    fusion.add_argument("--presses", type=int, default=15, help="recorder presses per class")
+    fusion.add_argument("--daemon", type=int, default=5,
+                        help="recognitions of 1 and of 3 presses timed on the daemon (0: none)")
+    fusion.add_argument("--classes", nargs="+", default=None,
+                        help="unseen classes (default: the 26 FoodReplica and Cube classes)")
+    fusion.add_argument("--models", default="models")
+    fusion.add_argument("--out", default=None, help="write fusion.md/.json here")
+    fusion.set_defaults(func=_cmd_sim_fusion)
+
     press = simsub.add_parser("press", help="press objects once and print a summary")
     press.add_argument("objects", nargs="+", help="object class names")
     press.add_argument("--seed", type=int, default=0)
@@ -273,6 +286,17 @@ def _cmd_sim_teaching(args: argparse.Namespace) -> int:
     print(markdown(report))
     e2e = report["end_to_end"]
     return 0 if e2e is None or e2e["agree"] else 1
+
+
+def _cmd_sim_fusion(args: argparse.Namespace) -> int:
+    from edge.lab.fusion_eval import run_fusion
+
+    if args.presses < 3:
+        raise EdgeError("--presses must be at least 3 (a recognition of 3 presses needs them)")
+    command = " ".join(["vt-edge sim fusion", *sys.argv[3:]])
+    print(run_fusion(args.models, args.presses, args.daemon, args.out, args.classes,
+                     command=command), end="")
+    return 0
 
 
 def _cmd_sim_press(args: argparse.Namespace) -> int:

@@ -1,42 +1,35 @@
 """Press again and fuse, measured: top-3 consistency of recognitions of 1 and 3 presses of
 the unseen FoodReplica and Cube classes, both fusions, and the time per recognition on the
-daemon. Run from the repository root:
-
-    .venv/bin/python models/eval/fusion/fusion.py [--presses 15] [--daemon 3]
+daemon (``vt-edge sim fusion --out models/eval/fusion``).
 
 Consistency: each class pressed ``--presses`` times by the dataset recorder (the robot's own
 press controller on the virtual clock), the presses grouped into recognitions (1 press each,
 or 3), each recognition's top-3 classes from the daemon's code (``analyse_press`` for one
 press as the daemon has it, ``fuse_presses`` for the fusions), and the project's measure
-(``train.eval.evaluate.consistency``: the share of same-class pairs of recognitions with the
+(:func:`edge.core.consistency.consistency`: the share of same-class pairs of recognitions with the
 same top-3 set). Time: ``--daemon`` recognitions of 1 and of 3 presses (``pause_s`` 0)
 through ``POST /v1/recognize`` on ``vt-edge run`` on the emulated robot with no VLM endpoint
 configured (episodes ``not_configured``: the press, analysis, fusion and store, not the
-VLM's answer), wall clock per recognition. Writes fusion.md and fusion.json beside this file.
+VLM's answer), wall clock per recognition. Writes fusion.md and fusion.json.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parents[2]))
-
-from edge.core.atomic import atomic_write_text  # noqa: E402
-from edge.core.model import model_ref  # noqa: E402
-from edge.lab.record import record_press  # noqa: E402
-from edge.lab.stack import http_json, sim_stack  # noqa: E402
-from edge.lab.teaching_eval import candidates_of, unseen_classes  # noqa: E402
-from edge.runtime.compute import analyse_press, fuse_presses  # noqa: E402
-from edge.sim.camera import render  # noqa: E402
-from edge.sim.standin_vlm import DEFAULT as VLM_PROFILE  # noqa: E402
-from edge.sim.standin_vlm import decide  # noqa: E402
-from train.eval.evaluate import consistency  # noqa: E402
+from edge.core.atomic import atomic_write_text
+from edge.core.consistency import consistency
+from edge.core.model import model_ref
+from edge.lab.record import record_press
+from edge.lab.stack import http_json, sim_stack
+from edge.lab.teaching_eval import candidates_of, unseen_classes
+from edge.runtime.compute import analyse_press, fuse_presses
+from edge.sim.camera import render
+from edge.sim.standin_vlm import DEFAULT as VLM_PROFILE
+from edge.sim.standin_vlm import decide
 
 SEED = 7000
 
@@ -89,19 +82,18 @@ def daemon_times(n: int, classes: list[str]) -> dict[str, list[float]]:
     return times
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--presses", type=int, default=15, help="recorder presses per class")
-    ap.add_argument("--daemon", type=int, default=5, help="daemon recognitions per size")
-    args = ap.parse_args()
-    ref = model_ref(HERE.parents[1])
-    classes = unseen_classes(ref)
+def run_fusion(models: str | Path, presses: int, daemon: int, out: str | Path | None,
+               classes: list[str] | None = None, command: str = "vt-edge sim fusion") -> str:
+    """Measure, write fusion.md and fusion.json into ``out`` (when given) and return the
+    Markdown."""
+    ref = model_ref(models)
+    classes = classes or unseen_classes(ref)
     t0 = time.monotonic()
-    rows = top3s(ref, classes, args.presses)
+    rows = top3s(ref, classes, presses)
     figures = {k: consistency(r, labels) for k, (r, labels, _) in rows.items()}
-    times = daemon_times(args.daemon, classes) if args.daemon else {}
+    times = daemon_times(daemon, classes) if daemon else {}
     report = {
-        "classes": classes, "presses_per_class": args.presses, "seed": SEED,
+        "classes": classes, "presses_per_class": presses, "seed": SEED,
         "consistency": {k: {m: f[m] for m in ("top3_consistency", "top1_consistency",
                                               "top3_overlap")}
                         for k, f in figures.items()},
@@ -110,9 +102,9 @@ def main() -> int:
         "simulated_vlm": "edge/sim/standin_vlm.py: a stand-in, not a real VLM",
         "daemon_s": times, "elapsed_s": time.monotonic() - t0}
     lines = ["# Press again and fuse", "",
-             f"{len(classes)} unseen FoodReplica and Cube classes, {args.presses} recorder "
+             f"{len(classes)} unseen FoodReplica and Cube classes, {presses} recorder "
              "presses each (the daemon's analysis and fusion code), the shipped model. "
-             "Command: `.venv/bin/python models/eval/fusion/fusion.py`.", "",
+             f"Command: `{command}`.", "",
              "| recognition | recognitions | pairs | top-3 consistency (± binomial SE) | "
              "top-1 consistency | top-3 overlap | simulated VLM accuracy |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -139,11 +131,9 @@ def main() -> int:
                   + ", ".join(f"{p} press(es) {statistics.median(v):.1f} s "
                               f"({min(v):.1f}-{max(v):.1f}, n = {len(v)})"
                               for p, v in times.items() if v) + "."]
-    atomic_write_text(HERE / "fusion.json", json.dumps(report, indent=1) + "\n")
-    atomic_write_text(HERE / "fusion.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    text = "\n".join(lines) + "\n"
+    if out is not None:
+        Path(out).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(out) / "fusion.json", json.dumps(report, indent=1) + "\n")
+        atomic_write_text(Path(out) / "fusion.md", text)
+    return text
