@@ -12,17 +12,14 @@ renamed field fails where it is read, not in a client far away. The episode's JS
 this version does not know (written by a newer one) are carried through unchanged in
 ``extra`` rather than refused or lost.
 
-Publishing an event never waits: each subscriber has a bounded queue, and a slow one loses
-its oldest events, never the daemon its pace.
+The bus that carries the events is :mod:`edge.runtime.events` (asyncio's, kept out of here so
+that what reads these types, the command line included, loads no event loop machinery).
 """
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import dataclasses
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, ClassVar
@@ -343,9 +340,6 @@ _ALWAYS = frozenset({"id", "status", "candidates", "source"})
 # names it, ``t`` is the wall-clock time it was published); the objects carry what their
 # readers need beyond it (the episode as stored).
 
-EVENT_QUEUE = 256
-
-
 @dataclass(frozen=True)
 class Hello:
     """A subscription's first event: the press's state when it began."""
@@ -482,46 +476,3 @@ class EpisodeFinished:
 
 Event = (Hello | StateChanged | EpisodeStarted | PressAgain | TactileResult | Label | VLMRefused
          | VLMUnreachable | EpisodeFinished)
-
-
-class Subscription:
-    """One listener's queue. Waiting on it with a timeout (``asyncio.wait_for(sub.get(),
-    t)``) is safe: a timeout cancels only that wait, never the subscription."""
-
-    def __init__(self, first: Event, size: int = EVENT_QUEUE) -> None:
-        self._queue: asyncio.Queue[Event] = asyncio.Queue(size)
-        self._queue.put_nowait(first)
-
-    def put(self, event: Event) -> None:
-        if self._queue.full():
-            with contextlib.suppress(asyncio.QueueEmpty):
-                self._queue.get_nowait()  # a slow client loses the oldest event
-        self._queue.put_nowait(event)
-
-    async def get(self) -> Event:
-        return await self._queue.get()
-
-    def __aiter__(self) -> Subscription:
-        return self
-
-    async def __anext__(self) -> Event:
-        return await self._queue.get()
-
-
-class EventBus:
-    def __init__(self) -> None:
-        self._subscribers: set[Subscription] = set()
-
-    def publish(self, event: Event) -> None:
-        for sub in list(self._subscribers):
-            sub.put(event)
-
-    @contextlib.contextmanager
-    def subscribe(self, hello: Hello) -> Iterator[Subscription]:
-        """A subscription whose first event is ``hello`` (the state when it began)."""
-        sub = Subscription(hello)
-        self._subscribers.add(sub)
-        try:
-            yield sub
-        finally:
-            self._subscribers.discard(sub)

@@ -41,15 +41,8 @@ from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
 from edge.runtime import signals, taps
 from edge.runtime.compute import ComputeWorker, reload_model, warm_up
-from edge.runtime.domain import (
-    Episode,
-    EventBus,
-    Health,
-    Hello,
-    PressState,
-    StateChanged,
-    Subscription,
-)
+from edge.runtime.domain import Episode, Health, Hello, PressState, StateChanged
+from edge.runtime.events import EventBus, Subscription
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
 from edge.runtime.recognition import Presses, Recognition, Recognizer

@@ -46,7 +46,6 @@ from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
     EpisodeStarted,
-    EventBus,
     Label,
     Neighbour,
     PressAgain,
@@ -55,6 +54,7 @@ from edge.runtime.domain import (
     VLMRefused,
     VLMUnreachable,
 )
+from edge.runtime.events import EventBus
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController, PressOutcome, outcome_recording
 from edge.runtime.startcheck import needs_photo

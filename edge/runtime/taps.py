@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from edge.core.config import PressConfig, SensorConfig
-from edge.runtime.domain import Subscription
+from edge.runtime.events import Subscription
 from edge.runtime.ring import FrameRing
 
 

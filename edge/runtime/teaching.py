@@ -35,7 +35,7 @@ from edge.runtime.domain import Status
 from edge.runtime.references import ReferenceStore, Source, TaughtReference
 
 if TYPE_CHECKING:
-    from edge.runtime.domain import EventBus
+    from edge.runtime.events import EventBus
     from edge.runtime.recognition import Recognizer
 
 log = logging.getLogger(__name__)

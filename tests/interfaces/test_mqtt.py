@@ -270,7 +270,7 @@ class _Recognitions:
     """The daemon's two seams as the bridge sees them; its store is never read."""
 
     def __init__(self):
-        from edge.runtime.domain import EventBus
+        from edge.runtime.events import EventBus
 
         self.bus = EventBus()
 

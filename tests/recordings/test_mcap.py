@@ -178,7 +178,7 @@ class _Runtime:
     its settings."""
 
     def __init__(self):
-        from edge.runtime.domain import EventBus
+        from edge.runtime.events import EventBus
         from edge.runtime.ring import FrameRing
 
         self.cfg = fast_config()

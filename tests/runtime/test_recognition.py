@@ -20,7 +20,8 @@ from edge.core.errors import (
     VLMRejectedError,
 )
 from edge.core.model import model_ref
-from edge.runtime.domain import EventBus, Hello, PressResult, PressState, Status
+from edge.runtime.domain import Hello, PressResult, PressState, Status
+from edge.runtime.events import EventBus
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.recognition import Recognition, Recognizer

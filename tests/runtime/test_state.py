@@ -21,7 +21,6 @@ from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
     EpisodeStarted,
-    EventBus,
     Health,
     Hello,
     Label,
@@ -35,6 +34,7 @@ from edge.runtime.domain import (
     VLMRefused,
     VLMUnreachable,
 )
+from edge.runtime.events import EventBus
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressOutcome
 from edge.runtime.sensor import SamplerStats
