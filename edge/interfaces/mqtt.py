@@ -14,7 +14,7 @@ Topics under the robot's prefix ``P`` (``mqtt.prefix``, default ``vtzero/<hostna
     out  P/state          QoS 1, retained  press states: {"state", "episode", "t"}
     out  P/result         QoS 1   each episode once final: {"episode", "request_id",
                                   "status", "label", "reason", "error", "topk", "description",
-                                  "familiarity", "unfamiliar", ...};
+                                  "familiarity", "unfamiliar", "presses", "fusion", ...};
                                   each teaching once ended: {"command": "teach",
                                   "request_id", "label", "status", "episodes", "references",
                                   "error", ...} (its presses' episodes have their own)
@@ -314,6 +314,9 @@ class MqttBridge:
             "description": episode.description, "familiarity": episode.familiarity,
             "unfamiliar": episode.unfamiliar, "timings": episode.timings,
             "source": episode.source, "press": episode.press_json(_RESULT_PRESS),
+            # A recognition of several presses: each press as it went, and how they were
+            # fused (None for one press).
+            "presses": episode.presses, "fusion": episode.fusion,
         }, result=True)
 
     # --- commands ---------------------------------------------------------------------

@@ -306,7 +306,8 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
     done = Episode("e1", Status.DONE, ["a", "b"], "mqtt", label="a", reason="<b>soft</b>",
                    description="soft",
                    topk=[Neighbour("a", 0.25)], timings={"vlm_s": 0.5}, last_error="slow",
-                   familiarity=97.5, unfamiliar=True)
+                   familiarity=97.5, unfamiliar=True, fusion="votes",
+                   presses=[{"press_s": 2.5}, {"press_s": 2.4}])
     failed = Episode("e2", Status.FAILED, ["a"], "api", error="no contact")
     for event in (StateChanged(PressState.CLOSING, "e1"), Label(done), EpisodeFinished(done),
                   VLMUnreachable(done.with_(id="e3", status=Status.PENDING)),
@@ -325,8 +326,10 @@ async def test_a_result_is_published_once_from_the_episode_its_event_carries():
         "candidates": ["a", "b"], "topk": [{"label": "a", "distance": 0.25}],
         "description": "soft", "familiarity": 97.5, "unfamiliar": True,
         "timings": {"vlm_s": 0.5}, "source": "mqtt",
-        "press": {"result": None, "message": None, "stop_latency_ms": None}}
+        "press": {"result": None, "message": None, "stop_latency_ms": None},
+        "presses": [{"press_s": 2.5}, {"press_s": 2.4}], "fusion": "votes"}
     assert sent[3][1]["episode"] == "e2" and sent[3][1]["status"] == "failed"
+    assert sent[3][1]["presses"] is None and sent[3][1]["fusion"] is None
     assert sent[3][1]["error"] == "no contact" and sent[3][1]["topk"] is None
 
 
