@@ -75,6 +75,7 @@ from edge.interfaces.mqtt import check_config, read_password, tls_context
 from edge.ops.calibrate import NOISE_FLOOR_FACTOR
 from edge.ops.hosttiming import MEASURE_S, HostTiming, measure
 from edge.runtime.devices import make_button, make_camera
+from edge.runtime.references import Overlay, ReferenceStore, references_dir
 from edge.runtime.startcheck import BUILD_FOR_THESE_PADS, model_mismatch
 from edge.runtime.store import MIN_FREE_BYTES as STORE_MIN_FREE_BYTES
 from edge.runtime.store import EpisodeStore
@@ -725,6 +726,7 @@ def _check_model(cfg: Config) -> list[Check]:
     if why is not None:
         checks.append(fail(MODEL_PADS, f"the model {why}", BUILD_FOR_THESE_PADS))
     checks.append(_check_x_th(cfg, model))
+    checks.append(_check_taught(cfg, model))
     origin = model.origin
     data = {"origin": origin.to_json()}
     if origin.emulated:
@@ -746,6 +748,31 @@ def _check_model(cfg: Config) -> list[Check]:
     else:
         checks.append(ok("references", found, **data))
     return checks
+
+
+def _check_taught(cfg: Config, model: Model) -> Check:
+    """The references taught beside the model: readable, and embedded by this model (those
+    another model embedded are kept but never used: the daemon recognises without them)."""
+    store = ReferenceStore(references_dir(cfg.runtime.state_dir))
+    if not store.root.is_dir():  # (a state directory that cannot be one is its own check's)
+        return ok("taught references", "none taught", current=0, stale=0)
+    try:
+        digest, refs = store.read()
+    except ModelError as exc:
+        return fail("taught references", str(exc), "the daemon refuses to start with them: "
+                    "restore the file, or move it aside to start without taught references")
+    overlay = Overlay.of(store.index, digest, refs, model.digest)
+    labels = sorted({r.label for r in overlay.current})
+    found = (f"{len(overlay.current)} taught presses of {len(labels)} objects "
+             f"({', '.join(labels)})" if labels else "none taught")
+    data = {"current": len(overlay.current), "stale": len(overlay.stale)}
+    if overlay.stale:
+        stale = ", ".join(sorted({r.label for r in overlay.stale}))
+        return warn("taught references", f"{found}; {len(overlay.stale)} embedded by another "
+                    f"model are not used ({stale})", "teach those objects again (`vt-edge "
+                    "teach`), or fold them into the next build (`vt-edge references export "
+                    "DIR`, then `vt-train build`)", **data)
+    return ok("taught references", found, **data)
 
 
 def _check_x_th(cfg: Config, model: Model) -> Check:

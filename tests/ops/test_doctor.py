@@ -27,6 +27,7 @@ from edge.core.config import Config
 from edge.core.model import Origin
 from edge.ops import doctor as doctor_module
 from edge.ops.doctor import Level, Report, run_doctor
+from edge.runtime.references import references_dir
 from edge.sim.fake_vlm import FakeVLM
 from edge.sim.robot import SimRobot
 from edge.sim.xela_server import Fault, encode_frame
@@ -332,10 +333,10 @@ def test_a_lab_database_is_ok_on_its_robot_and_warned_with_other_pads(tmp_path):
     (models / "manifest.json").write_text(json.dumps(manifest))
     cfg = Config(mode="robot")
     cfg = sub(cfg, "runtime", models_dir=str(models))
-    model, _x_th, refs = doctor_module._check_model(cfg)
+    model, _x_th, _taught, refs = doctor_module._check_model(cfg)
     assert model.level is Level.OK and "every file verified" in model.found
     assert refs.level is Level.OK and "pressed by a real robot (arm-3)" in refs.found
-    _, _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
+    _, _, _, refs = doctor_module._check_model(sub(cfg, "sensor", model="uSPa46"))
     assert refs.level is Level.WARN and "XR1944" in refs.found and "uSPa46" in refs.fix
     (models / "database.npz").write_bytes(b"damaged")
     (broken,) = doctor_module._check_model(cfg)
@@ -489,3 +490,24 @@ def test_the_store_line_gives_its_size_growth_and_days_left(tmp_path):
     off = sub(cfg, "runtime", keep_free_mb=0.0)
     (line,) = doctor_module._check_store(off)
     assert "its disk is full (retention off)" in line.found
+
+
+def test_taught_references_are_checked_against_the_model(tmp_path):
+    """None taught is OK; a damaged index is the FAIL the daemon's start would be, naming
+    the file (the stale case shares the daemon's Overlay: tests/runtime/test_references.py)."""
+    cfg = sub(Config(), "runtime", state_dir=str(tmp_path / "state"),
+              models_dir=str(ROOT / "models"))
+
+    def taught():
+        (check,) = [c for c in doctor_module._check_model(cfg) if c.part == "taught references"]
+        return check
+
+    none = taught()
+    assert none.level is Level.OK and none.found == "none taught"
+    assert none.data == {"current": 0, "stale": 0}
+    index = references_dir(tmp_path / "state") / "references.json"
+    index.parent.mkdir(parents=True)
+    index.write_text("{not json")
+    damaged = taught()
+    assert damaged.level is Level.FAIL and str(index) in damaged.found
+    assert "move it aside" in damaged.fix
