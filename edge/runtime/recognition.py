@@ -611,7 +611,8 @@ class OneRecognition:
         try:
             rec = outcome_recording(outcome, setup.cfg)
             analysis: Analysis = await self.recognizer.compute.run(
-                analyse_press, setup.model, rec, setup.cfg.runtime.unfamiliar_percentile)
+                analyse_press, setup.model, rec, setup.cfg.runtime.unfamiliar_percentile,
+                self.presses != 1)
         except EdgeError as exc:
             # E.g. the stream died before the window after the stop was complete: the press
             # is still kept, raw, with why it could not be recognised.
