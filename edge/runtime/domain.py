@@ -454,9 +454,7 @@ class VLMUnreachable:
     episode: Episode
     t: float = field(default_factory=time.time)
 
-    def to_json(self) -> dict[str, Any]:
-        return {"t": self.t, "type": self.kind, "episode": self.episode.id,
-                "status": self.episode.status.value, "error": self.episode.last_error}
+    to_json = VLMRefused.to_json  # the same form: the episode, its status and why
 
 
 @dataclass(frozen=True)
