@@ -288,7 +288,8 @@ def _cmd_release(args: argparse.Namespace) -> int:
                         presses=args.presses, unseen_presses=args.unseen_presses,
                         max_epochs=args.max_epochs, patience=args.patience,
                         beta=not args.no_beta, zeros=not args.no_zeros,
-                        paper=not args.no_paper, workers=args.workers)
+                        paper=not args.no_paper, workers=args.workers,
+                        std_floor=args.std_floor)
     manifest = release(cfg, Progress(enabled=not args.quiet))
     m = manifest["metrics"]
     print(f"released {cfg.out}: kiri mochi AUC {m['kiri_mochi_auc']}, LOO 1-NN "
@@ -570,6 +571,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-paper", action="store_true",
                    help="skip the paper's configuration (z of 4, no metric term)")
     p.add_argument("--workers", type=int, default=None, help="recorder processes")
+    p.add_argument("--std-floor", type=float, default=STD_FLOOR_FRACTION,
+                   help="the normaliser's floor, a fraction of the RMS of the channel stds "
+                   "(default %(default)s)")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=_cmd_release)
 

@@ -81,6 +81,7 @@ class ReleaseConfig:
     zeros: bool = True  # also train the VQ-VAE with the zero-input decoder (comparison)
     paper: bool = True  # also train the paper's configuration (model.PAPER) (comparison)
     workers: int | None = None  # recorder processes
+    std_floor: float = STD_FLOOR_FRACTION  # the normaliser's (train.learn.data)
 
     def command(self) -> str:
         parts = ["vt-train release", f"--out {self.out}", f"--seed {self.seed}",
@@ -92,6 +93,8 @@ class ReleaseConfig:
             parts.append("--no-zeros")
         if not self.paper:
             parts.append("--no-paper")
+        if self.std_floor != STD_FLOOR_FRACTION:
+            parts.append(f"--std-floor {self.std_floor:g}")
         return " ".join(parts)
 
 
@@ -217,7 +220,7 @@ def release(cfg: ReleaseConfig, progress: Progress | None = None) -> dict[str, A
     started = time.perf_counter()
     rec = record(cfg)
     t_rec = time.perf_counter() - started
-    data = training_data(rec.reference)
+    data = training_data(rec.reference, floor_fraction=cfg.std_floor)
     runs = train_all(cfg, data, progress)
 
     stage = Path(cfg.work) / "stage"
@@ -364,7 +367,7 @@ def manifest_sections(cfg: ReleaseConfig, data: TrainingData, runs: Trainings, p
             "vq_zeros": {"config": zeros.config.to_dict(), "result": zeros.summary()}
             if zeros else None,
             "beta": {"config": beta.config.to_dict(), "result": beta.summary()} if beta else None,
-            "normalisation_floor": f"per-channel std floored at {STD_FLOOR_FRACTION} x the "
+            "normalisation_floor": f"per-channel std floored at {cfg.std_floor:g} x the "
                                    "RMS of the channel stds",
         },
         "evaluation": {"unseen": {"foodreplica_presses_per_class": cfg.unseen_presses,
