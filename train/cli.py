@@ -633,7 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/transfer")
     p.add_argument("--candidates", default="shipped,paper,mean",
                    help="comma-separated: shipped (z of 16, metric term), paper (z of 4, "
-                   "reconstruction only), mean (each channel's mean over the window)")
+                   "reconstruction only), mean (each channel's mean over the window), "
+                   "physics (the press's peak, stiffness, relaxation, spread), mean+physics")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--max-epochs", type=int, default=300)
     p.add_argument("--patience", type=int, default=25)

@@ -52,6 +52,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.consistency import consistency
 from edge.core.model import OnnxEncoder, ReferenceDatabase, Space
+from train.learn import physics
 from train.learn.data import PressSet, Splits
 from train.ship import database
 
@@ -77,6 +78,11 @@ VARIANT_TITLES = {
             "normaliser, L2 nearest neighbours",
     "baseline": "trivial baseline: each channel's mean over the crop window, standardised "
                 "with the reference presses' statistics, L2 nearest neighbours",
+    "physics": "the press's physics (train/learn/physics.py: peak load, stiffness, "
+               "relaxation over the hold, spread across the channels), each standardised "
+               "with the reference presses' statistics, L2 nearest neighbours",
+    "mean+physics": "the trivial baseline's channel means and the physics features side by "
+                    "side, each block weighted alike, L2 nearest neighbours",
 }
 BASELINE = "baseline"
 NEIGHBOURS = 3  # per unseen class in the report: the most frequent nearest classes
@@ -117,6 +123,34 @@ def baseline_embedder(x_reference: np.ndarray) -> Embedder:
     def embed(x: np.ndarray) -> tuple[np.ndarray, None]:
         return ((x.mean(axis=1, dtype=np.float64) - mean) / std).astype(np.float32), None
     return embed
+
+
+def physics_embedder(x_reference: np.ndarray) -> Embedder:
+    """The press's physics features (:mod:`train.learn.physics`), standardised with the
+    statistics of ``x_reference`` (N, steps, channels)."""
+    apply = physics.standardised(x_reference)
+
+    def embed(x: np.ndarray) -> tuple[np.ndarray, None]:
+        return apply(x).astype(np.float32), None
+    return embed
+
+
+def mean_physics_embedder(x_reference: np.ndarray) -> Embedder:
+    """The channel means and the physics features side by side. Each block is divided by the
+    root of its length, so each adds the same expected squared distance: 4 features beside
+    96 channel means would otherwise weigh next to nothing."""
+    means, phys = baseline_embedder(x_reference), physics.standardised(x_reference)
+
+    def embed(x: np.ndarray) -> tuple[np.ndarray, None]:
+        m, p = means(x)[0], phys(x)
+        return np.concatenate([m / np.sqrt(m.shape[1]), p / np.sqrt(p.shape[1])],
+                              axis=1).astype(np.float32), None
+    return embed
+
+
+# The numpy candidates fitted on reference inputs (N, steps, channels), by name.
+FEATURE_EMBEDDERS: dict[str, Callable[[np.ndarray], Embedder]] = {
+    "physics": physics_embedder, "mean+physics": mean_physics_embedder}
 
 
 def pairs_of(labels: Sequence[str]) -> list[tuple[str, str, str]]:

@@ -22,7 +22,9 @@ one object out at a time:
 Candidates: ``shipped`` (the shipped training configuration: z of 16 and the metric term),
 ``paper`` (the paper's: z of 4, reconstruction only, :data:`train.learn.model.PAPER`) and
 ``mean`` (the trivial baseline of :mod:`train.eval.evaluate`: each channel's mean over the
-window, standardised; no training, so one value whatever the seed). The networks train with
+window, standardised; no training, so one value whatever the seed), ``physics`` (the press's
+peak, stiffness, relaxation and spread, :mod:`train.learn.physics`, standardised) and
+``mean+physics`` (both side by side), numpy features like ``mean``. The networks train with
 no validation classes (one object left out leaves too few to hold some back for early
 stopping), so early stopping watches the training loss, within ``max_epochs``. Every figure is
 given per seed (mean, lowest, highest over the seeds), and a difference between two
@@ -45,6 +47,7 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -74,10 +77,16 @@ REPORT_MD = "transfer.md"
 REPORT_JSON = "transfer.json"
 FORMATS = ("presses", "phac2")
 # Candidate embeddings: what changes from the shipped model configuration (None: no network).
-CANDIDATES: dict[str, dict[str, Any] | None] = {"shipped": {}, "paper": PAPER, "mean": None}
+CANDIDATES: dict[str, dict[str, Any] | None] = {
+    "shipped": {}, "paper": PAPER, "mean": None, "physics": None, "mean+physics": None}
+# The numpy candidates (no network): fitted on the seen presses' windows.
+FEATURES: dict[str, Callable[[np.ndarray], evaluate.Embedder]] = {
+    "mean": evaluate.baseline_embedder, **evaluate.FEATURE_EMBEDDERS}
 TITLES = {"shipped": "shipped configuration (z of 16, the metric term)",
           "paper": "paper's configuration (z of 4, reconstruction only)",
-          "mean": "trivial baseline (each channel's mean over the window)"}
+          "mean": "trivial baseline (each channel's mean over the window)",
+          "physics": "the press's physics (peak, stiffness, relaxation, spread)",
+          "mean+physics": "channel means and the press's physics side by side"}
 METRICS = (("first", "sensible first neighbour"), ("top3", "partner in top 3"),
            ("loo_1nn", "LOO 1-NN among seen"))
 TOP = 3
@@ -92,7 +101,7 @@ class TransferConfig:
     partners: Path
     out: Path
     format: str = "presses"
-    candidates: tuple[str, ...] = tuple(CANDIDATES)
+    candidates: tuple[str, ...] = ("shipped", "paper", "mean")
     seeds: int = 5
     max_epochs: int = 300
     patience: int = 25
@@ -158,7 +167,7 @@ def fit(name: str, seen: PressSet, seed: int, cfg: TransferConfig
     """Candidate ``name`` fitted on the ``seen`` presses: its embedder and what training did."""
     change = CANDIDATES[name]
     if change is None:
-        return evaluate.baseline_embedder(database.reference_inputs(seen)), {}
+        return FEATURES[name](database.reference_inputs(seen)), {}
     shape = seen.x.shape  # (presses, offsets, steps, channels)
     model = replace(ModelConfig(), steps=shape[2], channels=shape[3], **change)
     config = TrainConfig(model=model, seed=seed, max_epochs=cfg.max_epochs,
@@ -220,10 +229,10 @@ def run(cfg: TransferConfig, progress: bool = True) -> dict[str, Any]:
     networks = [c for c in cfg.candidates if CANDIDATES[c] is not None]
     results: dict[str, dict[str, Any]] = {}
     with Bar("transfer", len(objects) * (len(seeds) * len(networks)
-                                         + (len(networks) < len(cfg.candidates))),
+                                         + len(cfg.candidates) - len(networks)),
              "folds", enabled=progress) as bar:
         for name in cfg.candidates:
-            # The baseline has no seed: one fold per object stands for every seed.
+            # A numpy feature has no seed: one fold per object stands for every seed.
             runs = seeds if CANDIDATES[name] is not None else seeds[:1]
             per_seed: list[dict[str, Any]] = []
             for seed in runs:
@@ -286,7 +295,7 @@ def _neighbours(results: dict[str, dict[str, Any]], objects: list[str]
 
 def differences(results: dict[str, dict[str, Any]], seeds: int) -> list[str]:
     """A plain sentence per pair of candidates and figure: beyond the seed spread or not (a
-    network's spread needs two seeds at least; the trivial baseline has none)."""
+    network's spread needs two seeds at least; the numpy features have none)."""
     lines = []
     names = list(results)
     for key, title in METRICS:
@@ -299,6 +308,10 @@ def differences(results: dict[str, dict[str, Any]], seeds: int) -> list[str]:
                 if round(gap, 2) == 0 and h["min"] == lw["min"] and h["max"] == lw["max"]:
                     lines.append(f"{title}: {a} and {b} are level at {h['mean']:.2f}, seed for "
                                  "seed.")
+                elif all(CANDIDATES[n] is None for n in (a, b)):
+                    lines.append(f"{title}: {hi} {h['mean']:.2f} against {lo} "
+                                 f"{lw['mean']:.2f}: neither depends on a seed, so no spread "
+                                 f"to judge the difference of {gap:.2f} by.")
                 elif seeds < 2 and any(CANDIDATES[n] is not None for n in (a, b)):
                     lines.append(f"{title}: {hi} {h['mean']:.2f} against {lo} "
                                  f"{lw['mean']:.2f}: one seed, so no spread to judge the "

@@ -1,0 +1,136 @@
+"""The press's physics features (train/learn/physics.py): ordered as the physics says on
+presses made here with known stiffness, relaxation and spread; hostile input refused; the
+candidates through vt-train transfer and the evaluation's embedders."""
+
+import json
+
+import numpy as np
+import pytest
+
+from edge.core import preprocess
+from edge.core.errors import PreprocessError
+from train.eval import evaluate
+from train.eval.transfer import TransferConfig, run
+from train.learn import physics
+
+from .synthetic import write_set
+
+STOP, HOLD_END = physics.steps_of()
+CHANNELS = 12
+
+
+def press(stiffness: float = 1.0, relaxation: float = 0.0, taxels: int = CHANNELS,
+          onset: int = 4) -> np.ndarray:
+    """One window (25 steps, 12 channels): the load rises at ``stiffness`` units per step from
+    ``onset`` steps before the stop, falls by the share ``relaxation`` over the hold, then the
+    gripper opens; ``taxels`` channels carry it (the rest stay at rest)."""
+    steps = preprocess.DEFAULT_WINDOW.n_steps
+    n = np.zeros(steps)
+    rise = np.arange(1, onset + 2) * stiffness
+    n[STOP - onset:STOP + 1] = rise
+    top = rise[-1]
+    hold = np.linspace(top, top * (1 - relaxation), HOLD_END - STOP + 1)
+    n[STOP:HOLD_END + 1] = hold
+    x = np.zeros((steps, CHANNELS))
+    x[:, :taxels] = n[:, None] / np.sqrt(taxels)
+    return x
+
+
+def feature(windows, name):
+    return physics.features(np.stack(windows))[:, physics.FEATURES.index(name)]
+
+
+def test_features_come_out_ordered_as_the_physics_says():
+    stiff = feature([press(stiffness=k) for k in (0.5, 1.0, 2.0, 4.0)], "stiffness")
+    print("stiffness", stiff)
+    assert np.all(np.diff(stiff) > 0)
+    assert stiff[1] == pytest.approx(1.0 * preprocess.DEFAULT_WINDOW.step_hz)  # per second
+    peak = feature([press(stiffness=k) for k in (0.5, 1.0, 2.0)], "peak")
+    assert np.all(np.diff(peak) > 0)
+    relax = feature([press(relaxation=r) for r in (0.0, 0.1, 0.3, 0.6)], "relaxation")
+    print("relaxation", relax)
+    assert relax == pytest.approx([0.0, 0.1, 0.3, 0.6])
+    spread = feature([press(taxels=t) for t in (12, 6, 3, 1)], "spread")
+    print("spread", spread)
+    assert spread[0] == pytest.approx(0.0) and np.all(np.diff(spread) > 0)
+    # What the window starts at is not load: a sensor in raw counts gives the same figures.
+    base = np.stack([press(stiffness=2.0, relaxation=0.3, taxels=4)])
+    assert physics.features(base + 1000.0) == pytest.approx(physics.features(base))
+
+
+def test_a_press_stream_is_cut_as_the_recognition_input():
+    rate = preprocess.DEFAULT_WINDOW.rate_hz
+    times = np.arange(round(2.0 * rate)) / rate
+    t_stop = 0.9
+    load = np.clip((times - (t_stop - 0.2)) / 0.2, 0, 1) * np.where(times > t_stop + 0.3, 0, 1)
+    units = np.outer(load, np.linspace(0.2, 1.0, CHANNELS))
+    got = physics.press_features(times, units, t_stop)
+    window = preprocess.model_input(times, units, t_stop)
+    assert got == pytest.approx(physics.features(window[None])[0])
+    # The load reaches its full pattern at the stop and holds it: peak its norm, no relaxation.
+    assert got[0] == pytest.approx(np.linalg.norm(np.linspace(0.2, 1.0, CHANNELS)), rel=0.05)
+    assert got[2] == pytest.approx(0.0, abs=0.01)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda t, u, s: (t, u, None), "stop"),
+    (lambda t, u, s: (t, u, float("nan")), "stop"),
+    (lambda t, u, s: (t[:100], u[:100], s), "does not cover the window"),
+    (lambda t, u, s: (t, np.where(np.arange(len(t))[:, None] == 120, np.nan, u), s),
+     "non-finite"),
+    (lambda t, u, s: (t, u[:, 0], s), r"samples \(T, C\)"),
+    (lambda t, u, s: (t, np.zeros_like(u), s), "never changes"),
+])
+def test_hostile_presses_are_refused_with_what_is_wrong(change, message):
+    rate = preprocess.DEFAULT_WINDOW.rate_hz
+    times = np.arange(round(2.0 * rate)) / rate
+    units = np.outer(np.clip(times - 0.5, 0, 1), np.ones(CHANNELS))
+    with pytest.raises(PreprocessError, match=message):
+        physics.press_features(*change(times, units, 0.9))
+
+
+def test_windows_too_short_for_the_hold_or_not_finite_are_refused():
+    with pytest.raises(PreprocessError, match="more than 15 steps"):
+        physics.features(np.ones((2, HOLD_END, 3)))
+    bad = np.stack([press(), press()])
+    bad[1, 3, 2] = np.inf
+    with pytest.raises(PreprocessError, match=r"window 1 .*step 3, channel 2"):
+        physics.features(bad)
+
+
+def test_the_side_by_side_embedding_weighs_each_block_alike():
+    rng = np.random.default_rng(0)
+    x = np.stack([press(stiffness=rng.uniform(0.5, 3), relaxation=rng.uniform(0, 0.5),
+                        taxels=int(rng.integers(1, CHANNELS + 1))) for _ in range(40)])
+    x += rng.normal(0, 0.01, x.shape)
+    z, _ = evaluate.mean_physics_embedder(x)(x)
+    means, phys = z[:, :CHANNELS], z[:, CHANNELS:]
+    # Standardised features have a mean square of 1 each; each block then sums to 1.
+    assert (means ** 2).sum(axis=1).mean() == pytest.approx(1.0, rel=1e-3)
+    assert (phys ** 2).sum(axis=1).mean() == pytest.approx(1.0, rel=1e-3)
+    z_phys, _ = evaluate.physics_embedder(x)(x)
+    assert z_phys.shape == (40, len(physics.FEATURES))
+    assert z_phys.mean(axis=0) == pytest.approx(np.zeros(4), abs=1e-5)
+
+
+def test_the_physics_candidates_run_through_transfer(tmp_path):
+    # Families differ in how fast the load builds (hard: 0.05 s, soft: 0.3 s), which the
+    # physics features read as stiffness.
+    write_set(tmp_path / "data", presses=4)
+    partners = {"hard_a": ["hard_b"], "hard_b": ["hard_a"], "soft_a": ["soft_b"],
+                "soft_b": ["soft_a"]}
+    (tmp_path / "partners.json").write_text(json.dumps(partners))
+    report = run(TransferConfig(tmp_path / "data", tmp_path / "partners.json",
+                                tmp_path / "out", candidates=("mean", "physics",
+                                                              "mean+physics"), seeds=2),
+                 progress=False)
+    assert list(report["candidates"]) == ["mean", "physics", "mean+physics"]
+    for name, res in report["candidates"].items():
+        print(name, {k: res[k]["mean"] for k in ("first", "top3", "loo_1nn")})
+        assert [s["seed"] for s in res["seeds"]] == [0, 1]
+        assert res["first"]["min"] == res["first"]["max"]  # no seed in a numpy feature
+    physics_first = report["candidates"]["physics"]["first"]["mean"]
+    assert physics_first > report["chance"]["first"] + 0.3
+    assert any("neither depends on a seed" in line for line in report["differences"])
+    md = (tmp_path / "out" / "transfer.md").read_text()
+    assert "the press's physics (peak, stiffness, relaxation, spread)" in md
