@@ -134,3 +134,31 @@ def test_the_physics_candidates_run_through_transfer(tmp_path):
     assert any("neither depends on a seed" in line for line in report["differences"])
     md = (tmp_path / "out" / "transfer.md").read_text()
     assert "the press's physics (peak, stiffness, relaxation, spread)" in md
+
+
+@pytest.mark.integration  # records the tiny sets and a tiny release (session fixtures)
+def test_the_simulated_measurement_reports_every_variant_and_the_assumptions(work, released,
+                                                                          tmp_path):
+    from train.eval import physics_eval
+
+    rec = work / "recordings"
+    out = tmp_path / "physics"
+    assert physics_eval.main(["--model", str(released), "--reference", str(rec / "reference"),
+                              "--unseen", str(rec / "foodreplica"), str(rec / "cube"),
+                              "--out", str(out)]) == 0
+    report = json.loads((out / "physics.json").read_text())
+    assert set(report["variants"]) == set(physics_eval.VARIANTS)
+    for name, v in report["variants"].items():
+        print(name, {k: v[k] for k, _ in physics_eval.FIGURES})
+        assert all(0 <= v[k] <= 1 for k, _ in physics_eval.FIGURES)
+        assert all(0 <= v["se"][k] < 0.5 for k, _ in physics_eval.FIGURES)
+    a = report["assumptions"]
+    print(a)
+    # The emulated gripper closes at a constant speed: no slowing as the load builds.
+    assert 1 < a["closing_speed_mm_s"]["median"] < 50
+    assert 0.8 < a["second_half_over_first"]["median"] < 1.2
+    # The harder the object pushes back, the more current the hold draws.
+    assert a["spearman_with_hold_current"]["peak"] > 0.3
+    md = (out / "physics.md").read_text()
+    assert md.splitlines()[2].startswith("Command: `python -m train.eval.physics_eval")
+    assert (out / "eval" / "eval.json").exists()

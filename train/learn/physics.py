@@ -13,8 +13,8 @@ load's L2 norm over the channels. ``FEATURES``, in order:
   to a halt (a stiff cube overshoots, a sponge does not).
 - ``stiffness``: the steepest rise of ``n`` between two steps up to the hold's end, per
   second. The rise against time stands for the rise against the closing distance because
-  the gripper closes at a constant speed until the stop (the emulated robot's release sets:
-  ``vt-train``'s physics measurement reports the speed's spread per press).
+  the gripper closes at a constant speed until the stop (:mod:`train.eval.physics_eval`
+  measures it on the release's reference presses: ``models/eval/physics/physics.md``).
 - ``relaxation``: the fall of ``n`` over the hold (``HOLD_S`` after the stop) from its
   highest point in the hold, relative to that point: a viscoelastic object (foam, dough)
   gives way under a constant grip, an elastic one does not.
@@ -35,8 +35,8 @@ from edge.core import preprocess
 from edge.core.errors import PreprocessError
 
 FEATURES = ("peak", "stiffness", "relaxation", "spread")
-# The press holds the grip this long after the stop before it opens (the robot's press
-# cycle; the emulated recordings' load is flat for 5 steps at 25 Hz, then falls).
+# The press holds the grip this long after the stop before it opens (the press setting
+# dt_stopping_s of the release's datasets; their load is flat 5 steps at 25 Hz, then falls).
 HOLD_S = 0.2
 
 
