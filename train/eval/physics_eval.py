@@ -10,7 +10,7 @@ consistency, the spread of the mean over the unseen classes resampled (bootstrap
 measures what the stiffness feature assumes: how constant the gripper's closing speed is
 before the stop, and how the feature ranks beside the Present Current the gripper draws
 during the hold (which it does not read). Files: ``physics.md`` and ``physics.json`` in
-``--out``, the evaluation's own files in ``--out/eval``.
+``--out``, the evaluation's tables (``eval.md``, ``eval.json``) in ``--out/eval``.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import argparse
 import json
 import logging
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -117,7 +118,13 @@ def run(model_dir: Path, reference_dir: Path, unseen_dirs: list[Path], out: Path
     embedders = {"vq": (evaluate.onnx_embedder(model.encoder, codebook), codebook),
                  **{name: (make(x_ref), None)
                     for name, make in evaluate.FEATURE_EMBEDDERS.items()}}
-    report = evaluate.evaluate(embedders, reference, splits, unseen, out / "eval", seed=seed)
+    # The evaluation's tables are kept; its pictures and retrieval list are the shipped
+    # model's, as in models/eval, so they are written aside and dropped.
+    with tempfile.TemporaryDirectory() as scratch:
+        report = evaluate.evaluate(embedders, reference, splits, unseen, scratch, seed=seed)
+        (out / "eval").mkdir(parents=True, exist_ok=True)
+        for name in ("eval.md", "eval.json"):
+            atomic_write_text(out / "eval" / name, (Path(scratch) / name).read_text())
     rows = {r["variant"]: r for r in report["rows"] if r["space"] == "z"}
     result = {
         "command": command,
