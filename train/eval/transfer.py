@@ -80,7 +80,7 @@ FORMATS = ("presses", "phac2")
 CANDIDATES: dict[str, dict[str, Any] | None] = {
     "shipped": {}, "paper": PAPER, "mean": None, "physics": None, "mean+physics": None}
 # The numpy candidates (no network): fitted on the seen presses' windows.
-FEATURES: dict[str, Callable[[np.ndarray], evaluate.Embedder]] = {
+FEATURE_CANDIDATES: dict[str, Callable[[np.ndarray], evaluate.Embedder]] = {
     "mean": evaluate.baseline_embedder, **evaluate.FEATURE_EMBEDDERS}
 TITLES = {"shipped": "shipped configuration (z of 16, the metric term)",
           "paper": "paper's configuration (z of 4, reconstruction only)",
@@ -167,7 +167,7 @@ def fit(name: str, seen: PressSet, seed: int, cfg: TransferConfig
     """Candidate ``name`` fitted on the ``seen`` presses: its embedder and what training did."""
     change = CANDIDATES[name]
     if change is None:
-        return FEATURES[name](database.reference_inputs(seen)), {}
+        return FEATURE_CANDIDATES[name](database.reference_inputs(seen)), {}
     shape = seen.x.shape  # (presses, offsets, steps, channels)
     model = replace(ModelConfig(), steps=shape[2], channels=shape[3], **change)
     config = TrainConfig(model=model, seed=seed, max_epochs=cfg.max_epochs,
