@@ -153,7 +153,10 @@ def markdown(r: dict[str, Any]) -> str:
         f"classes ({len(r['reference']['val_classes'])} validation classes); unseen: "
         f"{r['unseen']['presses']} presses of {r['unseen']['classes']} classes. The protocol "
         "of `models/eval/eval.md` (`eval/eval.md` here: that evaluation's full table). Features: "
-        + ", ".join(r["features"]) + " (`train/learn/physics.py`).", "",
+        + ", ".join(r["features"]) + " (`train/learn/physics.py`). The emulated objects are "
+        "made of what these features read (`edge/sim/`: stiffness, relaxation, the contact "
+        "patch), so these figures flatter them; `docs/method.md` sets them beside PHAC-2's.",
+        "",
         "Value (standard error: binomial for the 1-NN shares, the bootstrap over the unseen "
         "classes for consistency).", "",
         "| variant | " + " | ".join(t for _, t in FIGURES) + " |",
