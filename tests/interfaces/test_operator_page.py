@@ -275,3 +275,77 @@ async def test_the_teach_panel_in_a_real_browser(tmp_path):
     assert len(listing["references"]) == 2 and {r["source"] for r in listing["references"]} \
         == {"page"}
     assert not found["console"], found["console"]
+
+
+def recognize_twice_on_the_page(url: str, tmp: Path, candidates: list[str]) -> dict:
+    """The Recognize form with its presses control at 2, in the browser (blocking: runs in
+    a thread beside the daemon's loop)."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import Select
+
+    found: dict = {}
+    driver = start_browser(tmp)
+    try:
+        driver.get(url + f"/?token={TOKEN}")
+        driver.get_log("browser")
+        wait_until(driver, "document.getElementById('health').textContent === 'healthy'",
+                   what="the health badge")
+        found["choices"] = [o.get_attribute("value") for o in
+                            Select(driver.find_element(By.ID, "presses")).options]
+        found["default"] = driver.find_element(By.ID, "presses").get_attribute("value")
+        box = driver.find_element(By.ID, "candidates")
+        box.clear()
+        box.send_keys(", ".join(candidates))
+        Select(driver.find_element(By.ID, "presses")).select_by_value("2")
+        driver.find_element(By.ID, "recognize").click()
+        found["started"] = wait_until(
+            driver, "document.getElementById('control-msg').textContent.includes('running')"
+                    " && document.getElementById('control-msg').textContent", 10,
+            "the recognition to start")
+        # The operator's cue before the second press, on the control line.
+        found["cue"] = wait_until(
+            driver, "document.getElementById('control-msg').textContent.includes('press 2')"
+                    " && document.getElementById('control-msg').textContent", 60,
+            "the cue to move the object")
+        card = "document.querySelector('.episode[data-presses=\"2\"]')"
+        wait_until(driver, f"{card} && {card}.dataset.status !== 'running'", 90,
+                   "an episode of two presses")
+        found["episode_id"] = driver.execute_script(f"return {card}.querySelector('.id')"
+                                                    ".textContent")
+        found["timings"] = driver.execute_script(f"return {card}.querySelector('.timings')"
+                                                 ".textContent")
+        found["presses"] = driver.execute_script(
+            f"return [...{card}.querySelectorAll('.presses li')].map(li => li.textContent)")
+        found["summary"] = driver.execute_script(
+            f"return {card}.querySelector('.presses summary').textContent")
+        found["console"] = [e for e in driver.get_log("browser")
+                            if e["level"] == "SEVERE" and e.get("source") != "network"]
+    finally:
+        driver.quit()
+    return found
+
+
+async def test_a_recognition_of_two_presses_from_the_page(tmp_path):
+    cfg = fast_config()
+    cfg = replace(cfg, api=replace(cfg.api, token=TOKEN))
+    async with sim_daemon(tmp_path / "state", "macaron", cfg=cfg,
+                          headers={"Authorization": f"Bearer {TOKEN}"}) as (_robot, d):
+        found = await asyncio.to_thread(recognize_twice_on_the_page, d.url, tmp_path,
+                                        ["macaron", *CUBE])
+        status, ep = await d.get(f"/v1/episodes/{found['episode_id']}")
+        assert status == 200, ep
+    print(f"{found['started']}\n{found['cue']}\n{found['timings']}\n{found['summary']}\n"
+          + "\n".join(found["presses"]))
+    assert found["choices"] == ["1", "2", "3", "4", "5", "auto"] and found["default"] == "1"
+    assert "(2 presses)" in found["started"] and "press 2 of 2" in found["cue"]
+    # The episode as stored: two presses, fused, each as the page lists it.
+    assert ep["candidates"] == ["macaron", *CUBE] and ep["source"] == "api"
+    assert len(ep["presses"]) == 2 and ep["fusion"] in ("votes", "mean"), ep
+    assert f"2 presses fused ({ep['fusion']})" in found["timings"]
+    assert found["summary"] == f"each press (fused by {ep['fusion']})"
+    assert len(found["presses"]) == 2
+    for shown, press in zip(found["presses"], ep["presses"], strict=True):
+        assert shown.startswith(press["result"]), (shown, press)
+        if press.get("topk"):
+            assert f"nearest {press['topk'][0]['label']}" in shown, (shown, press)
+    assert not found["console"], found["console"]

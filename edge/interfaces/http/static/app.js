@@ -186,8 +186,12 @@ async function recognize(ev) {
   ev.preventDefault();
   const candidates = $("candidates").value.split(/[,\n]/).map((s) => s.trim()).filter(Boolean);
   localStorage.setItem("vtzero.candidates", $("candidates").value);
-  const { status, data } = await call("/v1/recognize", { candidates });
-  if (status === 202 || status === 200) say(`episode ${data.id}: ${data.status}`);
+  // 1..5 presses fused into one question, or "auto" (a second only where the first is unsure).
+  const chosen = $("presses").value;
+  const presses = chosen === "auto" ? "auto" : Number(chosen);
+  const { status, data } = await call("/v1/recognize", { candidates, presses });
+  const of = presses === 1 ? "" : ` (${presses === "auto" ? "auto" : presses} presses)`;
+  if (status === 202 || status === 200) say(`episode ${data.id}: ${data.status}${of}`);
   else if (status === 409) say(`busy: ${data.error}`, true);
   else say(`refused (${status}): ${data ? data.error : "no answer"}`, true);
 }
@@ -277,16 +281,34 @@ function card(ep) {
     text: ["press_s", "encode_s", "vlm_s"].map(fmt).filter(Boolean).join(" · ") +
       (ep.press && ep.press.stop_latency_ms != null ? ` · stop latency ${ep.press.stop_latency_ms.toFixed(2)} ms` : "") +
       (ep.presses ? ` · ${ep.presses.length} presses fused (${ep.fusion})` : "") });
-  const node = el("div", { class: "episode", id: `ep-${ep.id}`, "data-status": ep.status },
+  const node = el("div", { class: "episode", id: `ep-${ep.id}`, "data-status": ep.status,
+                           "data-presses": ep.presses ? ep.presses.length : 1 },
     el("div", { class: "head" }, el("span", { class: `badge ${ep.status}`, text: ep.status }),
        el("span", { class: "id", text: ep.id }), el("span", { class: "muted", text: when })),
     photo,
     el("div", {}, result, reason, el("div", { class: "muted", text: "touch: similar to" }), topk,
-       familiarity, timings),
+       familiarity, timings, pressList(ep)),
     el("div", { class: "info" }, ep.trace ? canvas : el("div", { class: "muted", text: "no press recording" }),
        thisWas(ep)));
   if (ep.trace) traceOf(ep).then((tr) => tr && drawTrace(canvas, tr));
   return node;
+}
+
+// A recognition of several presses: each as it went (its nearest class, familiarity and
+// subsampling offsets' agreement), before the fused top-k above.
+function pressList(ep) {
+  if (!ep.presses) return null;
+  const pct = (v) => (v == null ? "–" : v.toFixed(0));
+  return el("details", { class: "presses" },
+    el("summary", { text: `each press (fused by ${ep.fusion})` }),
+    el("ol", {}, ...ep.presses.map((p) => {
+      const near = p.topk && p.topk.length ? `${p.topk[0].label} (${p.topk[0].distance.toFixed(3)})` : "–";
+      return el("li", { class: p.result === "ok" ? "" : "error",
+        text: `${p.result}` + (p.press_s != null ? ` · ${p.press_s.toFixed(1)} s` : "") +
+          (p.topk ? ` · nearest ${near} · familiarity ${pct(p.familiarity)}` : "") +
+          (p.unfamiliar ? " · unfamiliar" : "") +
+          (p.agreement != null ? ` · offsets agree ${(p.agreement * 100).toFixed(0)} %` : "") });
+    })));
 }
 
 async function refreshEpisodes() {
