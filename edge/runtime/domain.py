@@ -160,7 +160,12 @@ class Health:
          "episode": str | null,           # the episode running
          "last_frame_age_s": float | null,# null before the first frame
          "model_digest": str,             # changes when a reload took a new model
-         "version": str}                  # the software's
+         "version": str,                  # the software's
+         "stale_references": int,         # taught references another model embedded
+         "stale_reference_labels": [str]} # ... their labels (kept, never used: teach
+                                          # again, or fold them into the next build)
+
+    ``ok`` does not read the stale references: the daemon recognises without them.
     """
 
     ok: bool
@@ -176,9 +181,13 @@ class Health:
     last_frame_age_s: float | None
     model_digest: str
     version: str
+    stale_references: int = 0
+    stale_reference_labels: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
-        return dataclasses.asdict(self) | {"state": str(self.state)}
+        return dataclasses.asdict(self) | {"state": str(self.state),
+                                           "stale_reference_labels":
+                                               list(self.stale_reference_labels)}
 
 
 # --- the episode ----------------------------------------------------------------------

@@ -255,7 +255,10 @@ class Runtime:
                       # Which model answers: changes when a reload took a new model or
                       # database.
                       model_digest=self.model.digest,
-                      version=__version__)
+                      version=__version__,
+                      stale_references=len(self.teacher.stale),
+                      stale_reference_labels=tuple(sorted({r.label
+                                                           for r in self.teacher.stale})))
 
     def metrics_text(self) -> str:
         return self.metrics.render(self.sampler.stats, self.sensor, self.devices.bus, self.vlm,

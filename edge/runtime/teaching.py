@@ -134,6 +134,8 @@ class Teacher:
         self.stream_rate = stream_rate
         self.current: TeachRun | None = None  # the teaching running, or the last one
         self._task: asyncio.Task[TeachRun] | None = None
+        # The references another model embedded, as last read (the health says them).
+        self.stale: tuple[TaughtReference, ...] = ()
 
     @property
     def active(self) -> bool:
@@ -255,20 +257,27 @@ class Teacher:
         looked up without them. :class:`NotFoundError` where there is none."""
         store = _store(self.recognizer.setup.model)
         if ref_id is not None:
-            return [await asyncio.to_thread(store.remove, ref_id)]
-        if label is None:
+            removed = [await asyncio.to_thread(store.remove, ref_id)]
+        elif label is not None:
+            removed = await asyncio.to_thread(store.remove_label, label)
+        else:
             raise BadRequest("say which references to remove: an id, or a label")
-        return await asyncio.to_thread(store.remove_label, label)
+        if {ref.id for ref in removed} & {ref.id for ref in self.stale}:
+            await self.check_references()
+        return removed
 
     async def check_references(self) -> None:
         """Read the taught references as the daemon's model sees them and log what is used
         (those another model embedded are logged as not used, by the store); a malformed
         index: :class:`ModelError` naming the file and field (the compute process refuses it
-        at start and on reload, before this)."""
+        at start and on reload, before this); those another model embedded are kept in
+        :attr:`stale`."""
         model = self.recognizer.setup.model
         if model.references is None:
+            self.stale = ()
             return
         overlay = await asyncio.to_thread(ReferenceStore(model.references).load, model.digest)
+        self.stale = overlay.stale
         if overlay.current or overlay.stale:
             log.info("taught references in %s: %d used (%s), %d not used", model.references,
                      len(overlay.current), ", ".join(sorted(overlay.labels())) or "none",

@@ -284,6 +284,15 @@ async def test_references_another_model_embedded_are_listed_stale_logged_and_not
             in caplog.text
         ep = await recognize(d)
         assert TAUGHT not in [n["label"] for n in ep["topk"]], ep["topk"]
+        # The health says them (the daemon is healthy without them); removed, it does not.
+        _, health = await d.get("/healthz")
+        print(f"/healthz with a stale reference: ok {health['ok']}, stale_references "
+              f"{health['stale_references']}, labels {health['stale_reference_labels']}")
+        assert health["stale_references"] == 1 and health["stale_reference_labels"] == [TAUGHT]
+        async with d.http.delete(f"{d.url}/v1/references/{ref['id']}") as resp:
+            assert resp.status == 200, await resp.text()
+        _, health = await d.get("/healthz")
+        assert health["stale_references"] == 0 and health["stale_reference_labels"] == []
 
 
 @pytest.mark.asyncio

@@ -59,6 +59,12 @@ async function pollHealth() {
     if (data.vlm_error) why.push(data.vlm_error);
     $("health-detail").textContent = (why.join("; ") || "sensor fresh, bus and store fine") +
       ` · v${data.version}`;
+    // Taught references another model embedded: kept, never used (absent from an older daemon).
+    const stale = data.stale_references || 0;
+    $("health-warning").textContent = stale
+      ? `${stale} taught reference(s) not used, another model embedded them ` +
+        `(${data.stale_reference_labels.join(", ")}): teach them again or fold them into a build`
+      : "";
     showState(data.state, data.episode);
   } catch (e) {
     $("health").textContent = "unreachable";
