@@ -105,7 +105,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from train.learn.data import PressSet, Splits, load_presses
     from train.learn.trainer import embed, load_checkpoint
 
-    model = load_model(args.model)
+    model = load_model(args.model, any_sensor=True)  # a model of any sensor is evaluated
     splits = _splits(args) or Splits.of_dataset(args.reference)
     reference = load_presses(args.reference, splits.classes).select(splits.classes)
     unseen = PressSet.concat(*(load_presses(d) for d in args.unseen))

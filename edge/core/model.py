@@ -868,17 +868,31 @@ def _window(manifest: dict[str, Any]) -> WindowSpec:
         raise ModelError(f"{MANIFEST}: encoder.window is malformed: {exc}") from None
 
 
-def load_model(models_dir: str | Path, *, threads: int = 1) -> Model:
+# The manifest's record of another sensor's sequences a model was built from (their rate and
+# channels): the robot's runtime refuses such a model, `vt-train eval` reads it.
+SEQUENCES = "sequences"
+
+
+def load_model(models_dir: str | Path, *, threads: int = 1, any_sensor: bool = False
+               ) -> Model:
     """Verify ``models_dir/manifest.json`` and load the encoder and database.
 
     Every file the manifest lists (encoder, database, prompt templates) must exist and match
     its sha256; otherwise :class:`ModelError` names the file. Reads each file once, so what
-    is checked is what is loaded.
+    is checked is what is loaded. A model built from another sensor's sequences is refused
+    unless ``any_sensor`` (an evaluation, not the robot).
     """
     directory = Path(models_dir)
     manifest = read_manifest(directory)
     data = verified_files(directory, manifest)
     window = _window(manifest)
+    if manifest.get(SEQUENCES) is not None and not any_sensor:
+        raise ModelError(
+            f"{directory}: built from another sensor's sequences, {window.rate_hz:g} Hz x "
+            f"{manifest_layout(manifest).channels} channels; the robot crops its pads' stream "
+            f"at {DEFAULT_WINDOW.rate_hz:g} Hz into {LEGACY_LAYOUT.text()} by default. Build "
+            "the robot's model from its own presses (vt-train build on a vt-edge collect "
+            "dataset); `vt-train eval` reads this one")
     kind = encoder_kind(manifest)
     encoder_path = directory / ENCODER_FILES[kind]
     encoder: OnnxEncoder | MeanEncoder

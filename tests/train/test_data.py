@@ -15,6 +15,7 @@ from train.learn.data import (
 )
 
 from .conftest import PRESSES
+from .synthetic import write_set
 
 
 def test_samples_follow_design_section_1(data, reference_dir):
@@ -71,3 +72,19 @@ def test_offset_selection_and_missing_class(reference_dir, data):
     assert len(s0) == PRESSES and set(s0.offset.tolist()) == {0}
     with pytest.raises(RecordingError, match="no recordings of nothing"):
         presses.select(["nothing"])
+
+
+def test_sequences_without_a_dataset_json_split_by_name(tmp_path):
+    # Ten classes: the last fifth by name validate; each label is its own description.
+    write_set(tmp_path, objects=[f"obj_{i}" for i in range(10)], presses=1)
+    splits = Splits.of_dataset(tmp_path)
+    assert splits.train == tuple(f"obj_{i}" for i in range(8))
+    assert splits.val == ("obj_8", "obj_9") and splits.descriptions["obj_8"] == "obj 8"
+    one = tmp_path / "one"
+    write_set(one, objects=["hard_a"], presses=1)
+    with pytest.raises(RecordingError, match="1 class: training needs two or more"):
+        Splits.of_dataset(one)
+    # A dataset.json beside the sequences decides instead.
+    (tmp_path / "dataset.json").write_text(json.dumps({"classes": [
+        {"label": "obj_0", "split": "train"}, {"label": "obj_1", "split": "val"}]}))
+    assert Splits.of_dataset(tmp_path).val == ("obj_1",)

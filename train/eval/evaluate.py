@@ -52,7 +52,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.consistency import consistency
 from edge.core.model import OnnxEncoder, ReferenceDatabase, Space
-from train.learn import physics
+from train.learn import physics, sequences
 from train.learn.data import PressSet, Splits
 from train.ship import database
 
@@ -570,6 +570,13 @@ def _pictures(out: Path, row: Row, knn: dict[str, Any], reference: PressSet,
     spec = preprocess.DEFAULT_WINDOW
     fig, axes = plt.subplots(len(chosen), 1, figsize=(8, 1.9 * len(chosen)), squeeze=False)
     for ax, label in zip(axes[:, 0], chosen, strict=True):
+        if sequences.is_sequence(paths[label]):  # another sensor's press: no frames, no x_th
+            seq = sequences.load(paths[label])
+            own, times, stop = seq.window(spec)
+            ax.plot(times - stop, preprocess.norm(seq.samples), lw=0.8, color="C0", label="|x|")
+            ax.axvspan(-own.before_s, own.after_s, color="C2", alpha=0.12, label="crop window")
+            ax.set_title(label, fontsize=8)
+            continue
         rec = recording.load(paths[label])
         units = preprocess.recording_units(rec)
         t = rec.recv_time - rec.t_stop

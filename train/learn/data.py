@@ -11,8 +11,9 @@ the one input the robot computes.
 
 Class splits come from a file: by default the ``split`` field of the recorder's
 ``dataset.json`` (27 train + 5 validation classes); a JSON file ``{"train": [...], "val":
-[...]}`` overrides it. Ordering is deterministic: classes in the order of the split, presses
-by file path, offsets ascending.
+[...]}`` overrides it. A directory of sequences without a ``dataset.json`` splits by name
+(:func:`sequence_splits`): the last fifth of its classes validate, at least one. Ordering is
+deterministic: classes in the order of the split, presses by file path, offsets ascending.
 
 Normalisation: per-channel mean and standard deviation of the training inputs (all samples,
 all time steps). Channels a pad barely loads carry little more than sensor noise (~2 counts,
@@ -91,7 +92,26 @@ class Splits:
 
     @classmethod
     def of_dataset(cls, directory: str | Path) -> Splits:
-        return cls.from_file(Path(directory) / DATASET_INDEX)
+        """The splits of a recorded dataset; a directory of sequences without a
+        ``dataset.json``: :func:`sequence_splits`."""
+        path = Path(directory) / DATASET_INDEX
+        if not path.exists() and sequences.find(directory):
+            return sequence_splits(directory)
+        return cls.from_file(path)
+
+
+def sequence_splits(directory: str | Path) -> Splits:
+    """The classes of the sequences under ``directory`` (which carry no split) in order of
+    their labels: the last fifth validate (at least one), the rest train; each label is its
+    own description (words on how the object feels are refused by the database: write a
+    ``dataset.json`` to split or describe the classes otherwise)."""
+    labels = sorted({sequences.load(p).label for p in sequences.find(directory)})
+    if len(labels) < 2:
+        raise RecordingError(f"{directory}: sequences of {len(labels)} class"
+                             f"{'es' * (len(labels) != 1)}: training needs two or more")
+    n_val = max(1, len(labels) // 5)
+    return Splits(tuple(labels[:-n_val]), tuple(labels[-n_val:]),
+                  {label: label.replace("_", " ") for label in labels})
 
 
 @dataclass(frozen=True, eq=False)
