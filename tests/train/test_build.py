@@ -379,11 +379,18 @@ def test_a_build_chooses_its_embedding_on_the_validation_classes_and_says_why(la
         print(name, val, f["top3_consistency"]["mean"])
     assert figures["mean"]["loo_1nn_val_classes"]["min"] == \
         figures["mean"]["loo_1nn_val_classes"]["max"]  # nothing random in a channel mean
+    # The best challenger replaces the shipped network only on a lead beyond the noise.
+    val = {name: f["loo_1nn_val_classes"] for name, f in figures.items()}
+    challenger = choice["challenger"]
+    assert val[challenger]["mean"] == max(v["mean"] for n, v in val.items() if n != "shipped")
+    assert choice["validation_presses"] == 3
+    assert choice["noise_floor"] == pytest.approx(0.5 / 3 ** 0.5)
+    lead = val[challenger]["mean"] - val["shipped"]["mean"]
+    replaces = lead > choice["noise_floor"] and val[challenger]["min"] > val["shipped"]["max"]
     winner = choice["winner"]
-    best = max(f["loo_1nn_val_classes"]["mean"] for f in figures.values())
-    assert figures[winner]["loo_1nn_val_classes"]["mean"] == best
+    assert winner == (challenger if replaces else "shipped")
     assert choice["margin"] == pytest.approx(
-        best - figures[choice["runner_up"]]["loo_1nn_val_classes"]["mean"])
+        val[winner]["mean"] - val[choice["runner_up"]]["mean"])
     # The winner is what the directory deploys, served as its kind.
     assert manifest["encoder"]["embedding"] == winner
     assert manifest["encoder"]["kind"] == ("mean" if winner == "mean" else "onnx")
@@ -393,8 +400,13 @@ def test_a_build_chooses_its_embedding_on_the_validation_classes_and_says_why(la
     print(section)
     assert f"| {winner} (deployed) |" in section
     assert all(f"| {name}" in section for name in EMBEDDINGS)
-    assert f"`{winner}` won, {choice['margin']:.3f} above `{choice['runner_up']}`" in section
-    assert ("beyond the seed spread" in section) == choice["beyond_spread"]
+    if winner != "shipped":
+        assert f"`{winner}` replaced `shipped`, {choice['margin']:.3f} above it" in section
+    elif lead > 0:
+        assert "within the noise: kept the shipped network" in section
+    else:
+        assert f"`shipped` won, {choice['margin']:.3f} above `{challenger}`" in section
+        assert ("beyond the seed spread" in section) == choice["beyond_spread"]
     assert "--seeds 2" in manifest["created_by"]
     # A rerun trains nothing again.
     again = build(quick(lab_food, out, embedding=None, seeds=2), Progress(enabled=False))
@@ -415,20 +427,50 @@ def test_the_choice_without_a_validation_class_is_refused_before_any_training(la
     assert not (partial_dir(tmp_path / "m") / "training").exists()
 
 
-def test_the_choice_says_whether_a_difference_is_beyond_the_seed_spread():
-    def scores(shipped, paper, mean):
-        return {name: {"loo_1nn_val_classes": v, "top3_consistency": [0.5] * len(v)}
-                for name, v in (("shipped", shipped), ("paper", paper), ("mean", mean))}
+def scores(shipped, paper, mean):
+    """Each candidate's validation figure per seed (the consistency alike throughout)."""
+    return {name: {"loo_1nn_val_classes": v, "top3_consistency": [0.5] * len(v)}
+            for name, v in (("shipped", shipped), ("paper", paper), ("mean", mean))}
 
-    apart = choice_of(scores([0.9, 0.8], [0.5, 0.6], [0.7, 0.7]), 2)
+
+def test_the_choice_says_whether_a_difference_is_beyond_the_seed_spread():
+    apart = choice_of(scores([0.9, 0.8], [0.5, 0.6], [0.7, 0.7]), 2, 25)
     assert apart["winner"] == "shipped" and apart["runner_up"] == "mean"
     assert apart["beyond_spread"] and apart["margin"] == pytest.approx(0.15)
-    close = choice_of(scores([0.9, 0.6], [0.5, 0.6], [0.7, 0.7]), 2)
+    close = choice_of(scores([0.9, 0.6], [0.5, 0.6], [0.7, 0.7]), 2, 25)
     assert close["winner"] == "shipped" and not close["beyond_spread"]
     assert "does not tell them apart" in choice_markdown(close)
-    one = choice_of(scores([0.9], [0.5], [0.7]), 1)
+    one = choice_of(scores([0.9], [0.5], [0.7]), 1, 25)
     assert not one["beyond_spread"] and "one seed" in choice_markdown(one)
-    tie = choice_of(scores([0.7], [0.7], [0.7]), 1)
+    tie = choice_of(scores([0.7], [0.7], [0.7]), 1, 25)
     assert tie["winner"] == "shipped"  # the candidates' order breaks a full tie
     with pytest.raises(ModelError, match="no validation class"):
-        choice_of(scores([], [], []), 1)
+        choice_of(scores([], [], []), 1, 0)
+
+
+def test_a_challenger_replaces_the_shipped_network_only_on_a_lead_beyond_the_noise():
+    # One seed of 5 validation presses: the floor is 0.5 / sqrt(5) = 0.224. One press (0.2)
+    # is the lead build saw come and go between runs; two presses (0.4) are beyond it.
+    one_press = choice_of(scores([0.8], [0.6], [1.0]), 1, 5)
+    print(one_press["noise_floor"])
+    assert one_press["noise_floor"] == pytest.approx(0.2236, abs=1e-4)
+    assert one_press["winner"] == "shipped" and one_press["challenger"] == "mean"
+    assert one_press["kept_within_noise"] and one_press["lead"] == pytest.approx(0.2)
+    md = choice_markdown(one_press)
+    assert "| shipped (deployed) |" in md
+    assert "`mean` led `shipped` by 0.200" in md
+    assert "within the noise: kept the shipped network" in md
+    two_presses = choice_of(scores([0.6], [0.6], [1.0]), 1, 5)
+    assert two_presses["winner"] == "mean" and two_presses["runner_up"] == "shipped"
+    assert not two_presses["kept_within_noise"]
+    assert "`mean` replaced `shipped`, 0.400 above it" in choice_markdown(two_presses)
+    # Over seeds, a lead above the floor still needs the challenger's lowest seed above the
+    # network's highest.
+    spread = choice_of(scores([0.4, 0.96], [0.5, 0.5], [0.95, 0.95]), 2, 25)
+    assert spread["lead"] > spread["noise_floor"] and spread["winner"] == "shipped"
+    assert spread["kept_within_noise"]
+    clear = choice_of(scores([0.4, 0.5], [0.6, 0.7], [0.95, 0.95]), 2, 25)
+    assert clear["winner"] == "mean" and clear["beyond_spread"]
+    # The best challenger by its mean is the one compared: here the paper's network.
+    paper = choice_of(scores([0.2, 0.3], [0.9, 1.0], [0.6, 0.6]), 2, 25)
+    assert paper["winner"] == "paper" and paper["runner_up"] == "shipped"

@@ -3,21 +3,31 @@
 ``vt-train release`` regenerates the shipped model from the *simulated* reference set; this
 builds one from a lab's own presses (a ``vt-edge collect`` dataset directory: ``dataset.json``
 with the classes, their split, description, ``x_th`` and the data's ``origin``, and
-``<label>/<label>_NNN.press.npz``). Steps, each kept in ``OUT.partial`` with the hash of its
+``<label>/<label>_NNN.press.npz``), or from another sensor's labelled sequences (a directory
+of ``*.seq.npz``, :mod:`train.learn.sequences`; a ``dataset.json`` beside them is optional:
+without one the classes split by name, :func:`train.learn.data.sequence_splits`): the
+window is cut at the sequences' own rate and the model takes their channels, and the
+manifest says so (``sequences``: the robot's runtime refuses such a model, ``vt-train eval``
+reads it). Steps, each kept in ``OUT.partial`` with the hash of its
 inputs, so a rerun after an interruption skips what is done and says so:
 
 1. check the presses: one threshold and one origin (recording source and sensor model) per
    class, every reference class present (refused, naming the class and the presses); every
    class at one stream rate (within ``preprocess.RATE_TOLERANCE``: a class pressed at
-   100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``;
+   100 frames/s embeds elsewhere than one at 125), unless ``--mixed-rates``; sequences: one
+   rate and one channel count in all;
 2. choose the embedding to deploy by held-out evidence (step "choose"): the candidates
    ``shipped`` (the VQ-VAE with the paper's decoder, z of 16 and the metric term),
    ``paper`` (the same in the paper's configuration: z of 4, reconstruction only) and
    ``mean`` (the trivial feature, each channel's mean over the window after the normaliser:
-   nothing to train) are trained over ``--seeds`` seeds and the one whose validation
-   classes' presses have their own class nearest most often (leave one press out, among every
-   reference press) wins, the unseen top-3 consistency breaking a tie; ``eval.md`` says what
-   won, by how much, and whether beyond the seed spread. ``--embedding NAME`` deploys that
+   nothing to train) are trained over ``--seeds`` seeds and scored by how often the
+   validation classes' presses have their own class nearest (leave one press out, among every
+   reference press; the unseen top-3 consistency breaks a tie). The best challenger replaces
+   the shipped network only where its lead is beyond the noise: its lowest seed above the
+   network's highest, and the lead above the binomial standard error of that figure at its
+   widest, 1 / (2 sqrt(validation presses)): a tiny set's choice would otherwise turn on one
+   press and on training that is not bit-for-bit repeatable. ``eval.md`` says what won, by
+   how much, and whether beyond the noise. ``--embedding NAME`` deploys that
    one and trains nothing else. Then the deployed network is trained (the first seed's
    training is the choice's own, kept) and, with ``--variant``, the beta-VAE and the
    zero-input decoder for the comparison rows of the evaluation and of Table I;
@@ -40,6 +50,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import shutil
 import time
 from collections.abc import Callable
@@ -58,18 +69,22 @@ from edge.core.model import (
     DATABASE_INDEX,
     ENCODER_FILES,
     MEAN_ENCODER_FILE,
+    SEQUENCES,
     MeanEncoder,
     OnnxEncoder,
     Origin,
 )
 from edge.core.recording import DATASET_INDEX
+from edge.core.recording import find as find_recordings
 from train.eval import evaluate
+from train.learn import sequences
 from train.learn.data import (
     STD_FLOOR_FRACTION,
     Normaliser,
     PressSet,
     Splits,
     load_presses,
+    sequence_splits,
     training_data_of,
 )
 from train.learn.model import PAPER, ModelConfig
@@ -104,6 +119,7 @@ CHOICE_DIR = "choice"  # under OUT: the choice's evaluations (and its further se
 # The choice's figure, and the one that breaks a tie (evaluate's row keys).
 CHOICE_METRIC = ("loo_1nn_val_classes", "validation classes' LOO 1-NN")
 CHOICE_TIE = ("top3_consistency", "unseen top-3 consistency")
+SHIPPED = "shipped"  # the embedding a challenger must beat beyond the noise to replace
 
 
 @dataclass(frozen=True)
@@ -154,6 +170,15 @@ class Dataset:
     rate_hz: dict[str, float | None] = field(default_factory=dict)  # per class, as pressed
     # The reference presses by content (database.press_digests).
     press_sha256: dict[str, str] = field(default_factory=dict)
+    # Where the model's input is cut, at the data's rate.
+    window: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW
+    # Another sensor's sequences: their rate and channels (the manifest's ``sequences``);
+    # None for the robot's own presses.
+    sequences: dict[str, Any] | None = None
+
+    @property
+    def channels(self) -> int:
+        return self.layout.channels if self.sequences is None else self.sequences["channels"]
 
 
 def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool = False
@@ -163,6 +188,12 @@ def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool
     ``mixed_rates``."""
     directory = Path(directory)
     path = directory / DATASET_INDEX
+    if directory.is_dir() and sequences.find(directory):
+        if find_recordings(directory):
+            raise RecordingError(f"{directory}: holds both the robot's press recordings "
+                                 f"and other sensors' sequences ({sequences.SUFFIX}): a model "
+                                 "is built from one sensor's presses; move one kind out")
+        return read_sequences(directory)
     try:
         index = json.loads(path.read_text())
     except OSError as exc:
@@ -229,6 +260,63 @@ def read_dataset(directory: str | Path, progress: bool = True, mixed_rates: bool
                    {c: sum(map(len, t.values())) for c, t in thresholds.items()},
                    digest.hexdigest(), next(iter(mixed_pads), XR1944), rates,
                    database.press_digests(m for m in metas if m.label in splits.classes))
+
+
+def read_sequences(directory: Path) -> Dataset:
+    """Read and check a directory of another sensor's sequences: one rate and one channel
+    count in all (the model's window is cut at that rate), splits and descriptions from a
+    ``dataset.json`` beside them if there is one, else by name (:func:`sequence_splits`)."""
+    path = directory / DATASET_INDEX
+    if path.exists():
+        try:
+            index = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise RecordingError(f"{path}: cannot read: {exc}") from None
+        splits = Splits.from_file(path)
+        test = tuple(c["label"] for c in index.get("classes", []) if c.get("split") == "test")
+    else:
+        splits, test = sequence_splits(directory), ()
+        log.info("%s has no %s: classes split by name, train %s, val %s (write one to split "
+                 "or describe them otherwise)", directory, DATASET_INDEX,
+                 ", ".join(splits.train), ", ".join(splits.val))
+        index = {"dataset": directory.name, "recorder": f"sequences ({sequences.SUFFIX})",
+                 "classes": [{"label": c, "split": "train" if c in splits.train else "val",
+                              "description": splits.descriptions[c]} for c in splits.classes]}
+    digest = hashlib.sha256(path.read_bytes() if path.exists() else b"")
+    seqs = []
+    for file in sequences.find(directory):
+        digest.update(file.relative_to(directory).as_posix().encode())
+        digest.update(hashlib.sha256(file.read_bytes()).digest())
+        seqs.append(sequences.load(file))
+    kinds: dict[tuple[float, int], list[str]] = {}
+    for seq in seqs:
+        kinds.setdefault((seq.rate_hz, seq.samples.shape[1]), []).append(seq.label)
+    if len(kinds) > 1:
+        raise RecordingError(f"{directory}: sequences at different rates or channel counts: "
+                             + "; ".join(f"{rate:g} Hz x {channels} channels (class "
+                                         f"{', '.join(dict.fromkeys(labels))})"
+                                         for (rate, channels), labels in kinds.items())
+                             + ": a model is cut at one rate from one sensor's channels")
+    (rate, channels), = kinds
+    counts = {c: sum(seq.label == c for seq in seqs) for c in splits.classes + test}
+    missing = [c for c, n in counts.items() if not n]
+    if missing:
+        raise RecordingError(f"{directory}: no sequences of class {', '.join(missing)}")
+    origin = index.get("origin") or {
+        "kind": "robot", "recorder": f"another sensor's sequences ({sequences.SUFFIX}) in "
+        f"{directory}", "robot": None, "sensor": None}
+    try:
+        origin = Origin.from_json(origin, str(path)).to_json()
+    except ModelError as exc:
+        raise RecordingError(str(exc)) from None
+    return Dataset(
+        directory, index, origin, splits, test, {}, counts, digest.hexdigest(),
+        rate_hz={c: rate for c in counts},
+        press_sha256={hashlib.sha256(seq.samples.tobytes()).hexdigest():
+                      f"{seq.label}/{Path(seq.path).name}" for seq in seqs
+                      if seq.label in splits.classes},
+        window=preprocess.DEFAULT_WINDOW.at_rate(rate),
+        sequences={"rate_hz": rate, "channels": channels, "format": sequences.SUFFIX})
 
 
 # --------------------------------------------------------------------------------------
@@ -384,8 +472,8 @@ def _start(cfg: BuildConfig, ds: Dataset, progress: Progress | None) -> Job:
     unseen = PressSet.concat(*unseen_sets) if unseen_sets else None
     unseen_key = _key(ds.test, [(str(p), _sha(Path(p))) for p in unseen.paths]
                       if unseen else [])
-    # The model takes the channels of the pads the presses were made with.
-    model_config = replace(ModelConfig(), channels=ds.layout.channels)
+    # The model takes the channels the presses were made with, in the steps of their window.
+    model_config = replace(ModelConfig(), channels=ds.channels, steps=ds.window.n_steps)
     return Job(cfg, ds, work, Steps(work), unseen, unseen_key, model_config, progress,
                cfg.embedding or "shipped")
 
@@ -452,18 +540,29 @@ def _choose(job: Job) -> dict[str, Any]:
                     value = rows[name].get(key)
                     if value is not None:
                         scores[name][key].append(float(value))
-        return choice_of(scores, cfg.seeds)
+        return choice_of(scores, cfg.seeds,
+                         sum(job.ds.presses[c] for c in job.ds.splits.val))
 
     shas = [{n: _sha(job.work / t["checkpoint"]) for n, t in runs.items()} for runs in trained]
     return job.steps.run("choose", _key(job.ds.sha256, job.unseen_key, shas, cfg.std_floor),
                          [], choose)
 
 
-def choice_of(scores: dict[str, dict[str, list[float]]], seeds: int) -> dict[str, Any]:
-    """The winner by the mean of ``CHOICE_METRIC`` over the seeds (``CHOICE_TIE`` breaking a
-    tie, then the candidates' order), the runner-up, and whether the gap is beyond the seed
-    spread (the winner's lowest seed above the runner-up's highest; one seed of a network:
-    no spread to judge by)."""
+def noise_floor(presses: int) -> float:
+    """The binomial standard error of a share of ``presses`` at its widest (a share of 1/2):
+    the least lead on ``CHOICE_METRIC`` that is more than one press's luck."""
+    return 0.5 / math.sqrt(presses)
+
+
+def choice_of(scores: dict[str, dict[str, list[float]]], seeds: int, presses: int
+              ) -> dict[str, Any]:
+    """The embedding to deploy from each candidate's ``CHOICE_METRIC`` over the seeds, on
+    ``presses`` validation presses. The best challenger (by the mean, ``CHOICE_TIE`` then
+    the candidates' order breaking a tie) replaces the shipped network only where its lead is
+    beyond the noise: its lowest seed above the network's highest and the lead above
+    :func:`noise_floor`. Returned: the winner, the runner-up, the margin between them, the
+    challenger's lead, whether the winner's lowest seed is above the runner-up's highest
+    (``beyond_spread``) and whether the shipped network was kept though behind."""
     # None where the figure was not measured (no validation or no unseen classes).
     figures = {name: {key: {"mean": float(np.mean(v)), "min": min(v), "max": max(v),
                             "seeds": v} if v else None
@@ -475,14 +574,21 @@ def choice_of(scores: dict[str, dict[str, list[float]]], seeds: int) -> dict[str
         return (metric["mean"] if metric else -1.0, tie["mean"] if tie else -1.0,
                 -order.index(name))
 
-    winner, runner = sorted(EMBEDDINGS, key=rank, reverse=True)[:2]
-    w, r = figures[winner][CHOICE_METRIC[0]], figures[runner][CHOICE_METRIC[0]]
-    if w is None or r is None:
+    challenger = max((n for n in EMBEDDINGS if n != SHIPPED), key=rank)
+    c, s = figures[challenger][CHOICE_METRIC[0]], figures[SHIPPED][CHOICE_METRIC[0]]
+    if c is None or s is None or presses < 1:
         raise _no_validation_class()
-    one_seed = seeds < 2 and any(EMBEDDINGS[n] is not None for n in (winner, runner))
+    lead, floor = c["mean"] - s["mean"], noise_floor(presses)
+    replaces = lead > floor and c["min"] > s["max"]
+    winner, runner = (challenger, SHIPPED) if replaces else (SHIPPED, challenger)
+    w, r = figures[winner][CHOICE_METRIC[0]], figures[runner][CHOICE_METRIC[0]]
+    one_seed = seeds < 2
     return {"winner": winner, "runner_up": runner, "metric": CHOICE_METRIC[0],
             "tie_break": CHOICE_TIE[0], "seeds": seeds, "margin": w["mean"] - r["mean"],
+            "challenger": challenger, "lead": lead, "noise_floor": floor,
+            "validation_presses": presses,
             "beyond_spread": bool(w["min"] > r["max"] and not one_seed),
+            "kept_within_noise": not replaces and lead > 0,
             "one_seed": one_seed, "figures": figures}
 
 
@@ -504,24 +610,36 @@ def choice_markdown(choice: dict[str, Any]) -> str:
             f"{f['mean']:.3f} ({f['min']:.3f}-{f['max']:.3f})"
 
     seeds = choice["seeds"]
+    noise = (f"the seed spread, and the binomial standard error of {choice['validation_presses']}"
+             f" validation presses at its widest, {choice['noise_floor']:.3f}")
     lines = ["", "## The embedding deployed", "",
              f"Chosen by {metric} (each validation-class press's nearest reference press, "
              f"its own press left out; {tie} breaks a tie) over {seeds} seed"
              f"{'s' * (seeds != 1)} (`vt-train build --seeds N`; `--embedding NAME` deploys "
-             "one without the choice):", "",
+             f"one without the choice). A challenger replaces `{SHIPPED}` only with a lead "
+             f"beyond the noise: {noise}.", "",
              f"| candidate | {metric} | {tie} |", "| --- | --- | --- |"]
     for name, f in figures.items():
         mark = " (deployed)" if name == winner else ""
         lines.append(f"| {name}{mark} | {cell(f[CHOICE_METRIC[0]])} | "
                      f"{cell(f[CHOICE_TIE[0]])} |")
     if choice["beyond_spread"]:
-        verdict = "beyond the seed spread"
+        spread = "beyond the seed spread"
     elif choice["one_seed"]:
-        verdict = "one seed, so no spread to judge it by (--seeds)"
+        spread = "one seed, so no spread to judge it by (--seeds)"
     else:
-        verdict = "inside the seed spread: this data does not tell them apart"
-    lines += ["", f"`{winner}` won, {choice['margin']:.3f} above `{runner}` on {metric}: "
-              f"{verdict}."]
+        spread = "inside the seed spread: this data does not tell them apart"
+    if winner != SHIPPED:
+        verdict = (f"`{winner}` replaced `{SHIPPED}`, {choice['margin']:.3f} above it on "
+                   f"{metric}: beyond the noise (above {choice['noise_floor']:.3f}; "
+                   + ("one seed, no spread measured: --seeds N" if choice["one_seed"] else
+                      "its lowest seed above the network's highest") + ").")
+    elif choice["kept_within_noise"]:
+        verdict = (f"`{choice['challenger']}` led `{SHIPPED}` by {choice['lead']:.3f} on "
+                   f"{metric}, within the noise: kept the shipped network.")
+    else:
+        verdict = f"`{winner}` won, {choice['margin']:.3f} above `{runner}` on {metric}: {spread}."
+    lines += ["", verdict]
     return "\n".join(lines) + "\n"
 
 
@@ -635,12 +753,10 @@ def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: d
     sections: dict[str, Any] = {
         "created_by": cfg.command(),
         "origin": ds.origin,
-        database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes},
+        database.CLASS_X_TH: {c: ds.x_th[c] for c in ds.splits.classes if c in ds.x_th},
         database.CLASS_RATE_HZ: {c: ds.rate_hz.get(c) for c in ds.splits.classes},
         database.PRESS_SHA256: ds.press_sha256,
         "encoder": _encoder_section(job, exported),
-        "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
-                          "taxel_rows": ds.layout.rows},
         "training": {
             "dataset": {"simulated": ds.origin["kind"] == "emulated",
                         "directory": str(ds.directory), "sha256": ds.sha256,
@@ -661,13 +777,29 @@ def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: d
                                          "steps_skipped": job.steps.skipped},
         "versions": versions(),
     }
+    if ds.sequences is None:
+        sections["sensor_layout"] = {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
+                                     "taxel_rows": ds.layout.rows}
+    else:
+        # (null, not absent: a robot build's left in OUT by an earlier build would stay)
+        sections |= {SEQUENCES: ds.sequences, "sensor_layout": None}
     if ds.index.get("plan_sha256"):
         sections["plan_sha256"] = ds.index["plan_sha256"]
     return sections
 
 
 def _encoder_section(job: Job, exported: dict[str, Any]) -> dict[str, Any]:
-    """The manifest's ``encoder``, with its ``kind`` (``onnx`` or ``mean``)."""
+    """The manifest's ``encoder``, with its ``kind`` (``onnx`` or ``mean``); another sensor's
+    sequences: their window and units."""
+    section = _encoder_of_kind(job, exported)
+    if job.ds.sequences is not None:
+        section |= {"window": {k: getattr(job.ds.window, k) for k in window_section()},
+                    "input_units": f"the sensor's own units, as in its {sequences.SUFFIX} "
+                                   "files (train.learn.sequences)"}
+    return section
+
+
+def _encoder_of_kind(job: Job, exported: dict[str, Any]) -> dict[str, Any]:
     if job.network is not None:
         config = replace(job.model_config, **VARIANTS.get(job.network, {}))
         return {"kind": "onnx", "embedding": job.embedding} | encoder_section(
