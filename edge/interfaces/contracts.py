@@ -7,11 +7,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from edge.runtime.domain import Episode, Health
+from edge.runtime.domain import Episode, Health, TeachRun
 from edge.runtime.recognition import Presses
 from edge.runtime.references import Source, TaughtReference
 from edge.runtime.taps import LiveTaps
-from edge.runtime.teaching import PAUSE_S, TeachRun
+from edge.runtime.teaching import PAUSE_S
 
 T = TypeVar("T")
 

@@ -61,9 +61,9 @@ from edge.runtime.domain import (
     Label,
     PressSummary,
     StateChanged,
+    TeachProgress,
     VLMRefused,
 )
-from edge.runtime.teaching import TeachProgress
 
 log = logging.getLogger(__name__)
 

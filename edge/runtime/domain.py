@@ -22,7 +22,7 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 from edge.core.errors import StoreError
 
@@ -407,6 +407,61 @@ class PressAgain:
                 "message": self.message}
 
 
+# A teaching's steps, in the order they come (each press: pressing, taught, then move
+# before the next), and its end.
+TeachStep = Literal["pressing", "taught", "move", "done", "failed"]
+
+
+@dataclass
+class TeachRun:
+    """One teaching as it goes: its request, and the episodes pressed and references taught
+    so far (``status``: running, done, or failed with ``error``)."""
+
+    label: str
+    description: str
+    presses: int
+    append: bool
+    source: str
+    status: Literal["running", "done", "failed"] = "running"
+    episodes: list[str] = field(default_factory=list)
+    references: list[str] = field(default_factory=list)
+    error: str | None = None
+    started: float = field(default_factory=time.time)
+    # Seconds from a press's start to its reference written, one per taught press.
+    press_s: list[float] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"label": self.label, "description": self.description,
+                "presses": self.presses, "append": self.append, "source": self.source,
+                "status": self.status, "episodes": list(self.episodes),
+                "references": list(self.references), "error": self.error,
+                "started": self.started, "press_s": [round(s, 3) for s in self.press_s]}
+
+
+@dataclass(frozen=True)
+class TeachProgress:
+    """A teaching's progress: press ``press`` of ``presses`` is ``pressing``, was
+    ``taught`` (as ``reference``), the operator is asked to ``move`` the object before
+    the next, or the teaching is ``done`` or ``failed`` (``message`` says why)."""
+
+    kind: ClassVar[str] = "teach"
+    label: str
+    step: TeachStep
+    press: int
+    presses: int
+    episode: str | None = None
+    reference: str | None = None
+    message: str | None = None
+    # The teaching as of this step (its readers need no other look at the teacher).
+    run: TeachRun | None = None
+    t: float = field(default_factory=time.time)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "type": self.kind, "label": self.label, "step": self.step,
+                "press": self.press, "presses": self.presses, "episode": self.episode,
+                "reference": self.reference, "message": self.message}
+
+
 @dataclass(frozen=True)
 class TactileResult:
     """The press's analysis, once the episode holding it is stored."""
@@ -481,5 +536,5 @@ class EpisodeFinished:
                 "status": "finished"}
 
 
-Event = (Hello | StateChanged | EpisodeStarted | PressAgain | TactileResult | Label | VLMRefused
-         | VLMUnreachable | EpisodeFinished)
+Event = (Hello | StateChanged | EpisodeStarted | PressAgain | TeachProgress | TactileResult
+         | Label | VLMRefused | VLMUnreachable | EpisodeFinished)

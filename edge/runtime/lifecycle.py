@@ -41,7 +41,7 @@ from edge.core.model import ModelRef
 from edge.hw.contracts import Devices
 from edge.runtime import signals, taps
 from edge.runtime.compute import ComputeWorker, reload_model, warm_up
-from edge.runtime.domain import Episode, Health, Hello, PressState, StateChanged
+from edge.runtime.domain import Episode, Health, Hello, PressState, StateChanged, TeachRun
 from edge.runtime.events import EventBus, Subscription
 from edge.runtime.metrics import Metrics
 from edge.runtime.press import PressController
@@ -52,7 +52,7 @@ from edge.runtime.sensor import Sampler, SensorTask
 from edge.runtime.store import EpisodeStore
 from edge.runtime.systemd import Notifier, watchdog_period_s
 from edge.runtime.taps import Rows
-from edge.runtime.teaching import PAUSE_S, Teacher, TeachRun
+from edge.runtime.teaching import PAUSE_S, Teacher
 from edge.vlm.client import VLMClient
 
 log = logging.getLogger(__name__)

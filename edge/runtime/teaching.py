@@ -24,14 +24,13 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any
 
 from edge.core import recording
 from edge.core.errors import BadRequest, BusyError, EdgeError, NotFoundError, StateError
 from edge.core.model import ModelRef
 from edge.runtime.compute import model_for, teach_press
-from edge.runtime.domain import Status
+from edge.runtime.domain import Status, TeachProgress, TeachRun, TeachStep
 from edge.runtime.references import ReferenceStore, Source, TaughtReference
 
 if TYPE_CHECKING:
@@ -48,59 +47,6 @@ PAUSE_S = 5.0
 MAX_PAUSE_S = 60.0
 # The recording of a taught episode's press, as the store keeps it.
 PRESS_FILE = "press.press.npz"
-
-Step = Literal["pressing", "taught", "move", "done", "failed"]
-
-
-@dataclass(frozen=True)
-class TeachProgress:
-    """A teaching's progress: press ``press`` of ``presses`` is ``pressing``, was
-    ``taught`` (as ``reference``), the operator is asked to ``move`` the object before
-    the next, or the teaching is ``done`` or ``failed`` (``message`` says why)."""
-
-    kind: ClassVar[str] = "teach"
-    label: str
-    step: Step
-    press: int
-    presses: int
-    episode: str | None = None
-    reference: str | None = None
-    message: str | None = None
-    # The teaching as of this step (its readers need no other look at the teacher).
-    run: TeachRun | None = None
-    t: float = field(default_factory=time.time)
-
-    def to_json(self) -> dict[str, Any]:
-        return {"t": self.t, "type": self.kind, "label": self.label, "step": self.step,
-                "press": self.press, "presses": self.presses, "episode": self.episode,
-                "reference": self.reference, "message": self.message}
-
-
-@dataclass
-class TeachRun:
-    """One teaching as it goes: its request, and the episodes pressed and references taught
-    so far (``status``: running, done, or failed with ``error``)."""
-
-    label: str
-    description: str
-    presses: int
-    append: bool
-    source: str
-    status: Literal["running", "done", "failed"] = "running"
-    episodes: list[str] = field(default_factory=list)
-    references: list[str] = field(default_factory=list)
-    error: str | None = None
-    started: float = field(default_factory=time.time)
-    # Seconds from a press's start to its reference written, one per taught press.
-    press_s: list[float] = field(default_factory=list)
-
-    def to_json(self) -> dict[str, Any]:
-        return {"label": self.label, "description": self.description,
-                "presses": self.presses, "append": self.append, "source": self.source,
-                "status": self.status, "episodes": list(self.episodes),
-                "references": list(self.references), "error": self.error,
-                "started": self.started, "press_s": [round(s, 3) for s in self.press_s]}
-
 
 def check_teach(ref: ModelRef, label: str, description: str | None, source: Source,
                 append: bool, x_th: float, rate_hz: float | None) -> str:
@@ -237,7 +183,7 @@ class Teacher:
             teach_file, self.recognizer.setup.model, str(path), label, description, source,
             episode_id, append)
 
-    def _publish(self, teaching: TeachRun, step: Step, press: int, episode: str | None = None,
+    def _publish(self, teaching: TeachRun, step: TeachStep, press: int, episode: str | None = None,
                  reference: str | None = None, message: str | None = None) -> None:
         self.events.publish(TeachProgress(
             teaching.label, step, press, teaching.presses, episode, reference, message,
@@ -297,5 +243,5 @@ def listed(ref: TaughtReference) -> dict[str, Any]:
     return {k: v for k, v in ref.to_json().items() if k not in ("z", "code")}
 
 
-__all__ = ["MAX_PAUSE_S", "MAX_PRESSES", "PAUSE_S", "TeachProgress", "TeachRun", "Teacher",
+__all__ = ["MAX_PAUSE_S", "MAX_PRESSES", "PAUSE_S", "Teacher",
            "check_teach", "listed", "teach_file"]

@@ -9,6 +9,7 @@ import dataclasses
 import json
 import re
 import time
+import typing
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,16 +22,20 @@ from edge.runtime.domain import (
     Episode,
     EpisodeFinished,
     EpisodeStarted,
+    Event,
     Health,
     Hello,
     Label,
     Neighbour,
+    PressAgain,
     PressResult,
     PressState,
     PressSummary,
     StateChanged,
     Status,
     TactileResult,
+    TeachProgress,
+    TeachRun,
     VLMRefused,
     VLMUnreachable,
 )
@@ -172,15 +177,24 @@ def test_the_events_on_the_wire_are_the_json_they_always_were():
     refused = done.with_(status=Status.VLM_ERROR, label=None, last_error="HTTP 400")
     pending = done.with_(status=Status.PENDING, label=None, last_error="unreachable")
     t = 1700000000.5
-    wires = [json.loads(json.dumps(event.to_json())) for event in (
+    events = (
         Hello(PressState.IDLE, None), StateChanged(PressState.CLOSING, "e1", t),
-        EpisodeStarted("e1", t), TactileResult(done, t), Label(done, t), VLMRefused(refused, t),
-        VLMUnreachable(pending, t), EpisodeFinished(done, t))]
+        EpisodeStarted("e1", t), PressAgain("e1", 2, 3, 5.0, "move it", t),
+        TeachProgress("lab_macaron", "taught", 1, 2, "e1", "r1", None,
+                      TeachRun("lab_macaron", "lab macaron", 2, False, "api"), t),
+        TactileResult(done, t), Label(done, t), VLMRefused(refused, t),
+        VLMUnreachable(pending, t), EpisodeFinished(done, t))
+    assert {type(event) for event in events} == set(typing.get_args(Event))
+    wires = [json.loads(json.dumps(event.to_json())) for event in events]
     print(wires)
     assert wires == [
         {"type": "hello", "state": "idle", "episode": None},
         {"t": t, "type": "state", "state": "closing", "episode": "e1"},
         {"t": t, "type": "episode", "episode": "e1", "status": "running"},
+        {"t": t, "type": "press_again", "episode": "e1", "press": 2, "presses": 3,
+         "pause_s": 5.0, "message": "move it"},
+        {"t": t, "type": "teach", "label": "lab_macaron", "step": "taught", "press": 1,
+         "presses": 2, "episode": "e1", "reference": "r1", "message": None},
         {"t": t, "type": "tactile", "episode": "e1", "description": "soft",
          "topk": [{"label": "a", "distance": 0.25}, {"label": "b", "distance": 0.5}],
          "familiarity": 97.5, "unfamiliar": True},
