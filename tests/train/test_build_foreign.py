@@ -79,10 +79,13 @@ def test_a_build_from_sequences_records_their_rate_and_channels_and_the_robot_re
     assert manifest["database"]["references"] == 4 * 5 * 4
     choice = manifest["metrics"]["choice"]
     assert choice["winner"] == "shipped" and choice["lead"] <= choice["noise_floor"]
+    # No test classes: no consistency measured, said as such.
+    assert all(f["top3_consistency"] is None for f in choice["figures"].values())
     md = (out / "eval" / "eval.md").read_text()
-    assert "| shipped (deployed) |" in md
+    section = md[md.index("## The embedding deployed"):]
+    assert "| shipped (deployed) |" in section and "nan" not in section
     if choice["lead"] > 0:
-        assert "within the noise: kept the shipped network" in md
+        assert "within the noise: kept the shipped network" in section
 
     # The robot's runtime refuses it, naming the rate and the channels.
     with pytest.raises(ModelError, match=r"another sensor's sequences, 100 Hz x 12 channels"

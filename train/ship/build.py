@@ -538,7 +538,7 @@ def _choose(job: Job) -> dict[str, Any]:
             for name in EMBEDDINGS:
                 for key in scores[name]:
                     value = rows[name].get(key)
-                    if value is not None:
+                    if value is not None and math.isfinite(value):  # nan: not measured
                         scores[name][key].append(float(value))
         return choice_of(scores, cfg.seeds,
                          sum(job.ds.presses[c] for c in job.ds.splits.val))
