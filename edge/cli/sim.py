@@ -105,6 +105,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                             "and boiled_kiri_mochi; none: skip it)")
     teach.add_argument("--seed", type=int, default=0)
     teach.add_argument("--workers", type=int, default=2, help="recorder processes")
+    teach.add_argument("--only", default=None,
+                       help="measure only this: familiarity (its ROC AUC; no teaching, no "
+                            "daemon)")
     teach.add_argument("--models", default="models")
     config_option(teach, "configs/sim.toml")
     teach.add_argument("--out", default=None, help="write teaching.md/.json here")
@@ -282,7 +285,7 @@ def _cmd_sim_teaching(args: argparse.Namespace) -> int:
     command = " ".join(["vt-edge sim teaching", *sys.argv[3:]])
     report = run_teaching(args.classes, args.ks, args.fresh, args.reference_presses,
                           args.held_out, args.e2e_classes, args.seed, args.models, args.config,
-                          args.out, command=command, workers=args.workers)
+                          args.out, command=command, workers=args.workers, only=args.only)
     print(markdown(report))
     e2e = report["end_to_end"]
     return 0 if e2e is None or e2e["agree"] else 1

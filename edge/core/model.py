@@ -66,9 +66,13 @@ DEFAULT_ENCODER_KIND = "onnx"
 MANIFEST_SCHEMA = 1
 DATABASE_SCHEMA = 1
 DEFAULT_K = 3
-# Rows of the leave-one-out distance matrix computed at once (N x LOO_BLOCK float32: 6.5 MB
+# Rows of the leave-one-out distance matrix computed at once (N x LOO_BLOCK float64: 13 MB
 # for a database of 1600 references).
 LOO_BLOCK = 1024
+# Familiarity compares the nearest class's distance with this-many-th nearest class's: the
+# best of 2..32 on FoodReplica against half the known classes' fresh presses (docs/method.md,
+# 'Familiarity').
+FAMILIARITY_CLASSES = 8
 # ONNX input/output names: the contract between train/ship/export.py and this module.
 INPUT_NAME = "x"
 OUTPUT_NAMES = ("z", "code")
@@ -358,27 +362,27 @@ class ReferenceDatabase:
         return [(self._labels[c], d) for d, c in ranked]
 
     def nearest_other_press(self, block: int = LOO_BLOCK) -> np.ndarray:
-        """Each reference's distance to its nearest reference from another press (float64,
-        in the retrieval space; inf where every reference is of its own press): the
-        leave-one-out nearest-neighbour distances :class:`Familiarity` ranks a query among.
+        """Each reference's distance to each class's nearest reference from another press,
+        (N, classes) float64 in the retrieval space (inf where a class holds only the
+        reference's own press): the leave-one-out figures :class:`Familiarity` ranks a query
+        among.
 
         A press is a ``source`` within a class: its offsets are one touch seen on shifted
-        grids, so they are left out together. ``block`` rows of squared distances at a time
-        bound the memory (N x block float32); the winners are recomputed exactly."""
+        grids, so they are left out together. ``block`` rows at a time bound the memory
+        (N x block float64); squared distances are expanded as ``|a|^2 + |b|^2 - 2 a.b`` in
+        float64, exact to about 1e-12 for embeddings of unit scale."""
         n = len(self)
         press = np.unique(np.char.add(self.label_index.astype(str),
                                       np.char.add("/", self.source)), return_inverse=True)[1]
-        nearest = np.zeros(n, dtype=np.intp)
-        found = np.zeros(n, dtype=bool)
+        refs = self._refs.astype(np.float64)
+        norms = np.einsum("ij,ij->i", refs, refs)
+        out = np.empty((n, len(self.classes)), dtype=np.float64)
         for start in range(0, n, block):
             stop = min(start + block, n)
-            d2 = self._norms[start:stop, None] + self._norms[None, :] \
-                - 2.0 * (self._refs[start:stop] @ self._refs.T)
+            d2 = norms[start:stop, None] + norms[None, :] - 2.0 * (refs[start:stop] @ refs.T)
             d2[press[start:stop, None] == press[None, :]] = np.inf
-            nearest[start:stop] = np.argmin(d2, axis=1)
-            found[start:stop] = np.isfinite(d2.min(axis=1))
-        diff = self._refs.astype(np.float64) - self._refs[nearest].astype(np.float64)
-        return np.where(found, np.sqrt(np.einsum("ij,ij->i", diff, diff)), np.inf)
+            out[start:stop] = np.minimum.reduceat(d2, self._starts, axis=1)
+        return np.sqrt(np.maximum(out, 0.0))
 
     # ----- building and storage
 
@@ -492,27 +496,57 @@ class ReferenceDatabase:
 
 
 class Familiarity:
-    """How familiar a query is: its nearest-reference distance ranked among the database's own
-    leave-one-out nearest-neighbour distances (:meth:`ReferenceDatabase.nearest_other_press`).
+    """How familiar a query is: how much nearer its nearest class is than its
+    :data:`FAMILIARITY_CLASSES`-th nearest (the *ratio* of their distances, 0 to 1), ranked
+    among the same ratio of every reference against the rest of the database, its own press
+    left out (:meth:`ReferenceDatabase.nearest_other_press`), computed when the database
+    loads.
 
-    :meth:`percentile` is the share of references whose nearest reference from another press
-    is strictly closer than the query's nearest reference, in percent: 0 = the query is
-    closer to the database than every reference is to the rest of it; 100 = farther than all
-    (a touch like nothing the database holds). A press of a known object lands where that
-    object's references do among the others; a different object lands high.
+    Why a ratio, not the nearest distance alone: fresh presses of a known object lie farther
+    from the references than the references (the encoder's training presses) lie from each
+    other, so a distance ranked them high, as far as a touch of something new; what tells a new
+    object is that it lands *between* classes, about as near the eighth as the first
+    (docs/method.md, 'Familiarity', has the measurement).
+
+    :meth:`percentile` is the share of references whose ratio is strictly below the
+    query's, in percent: 0 = the query is more clearly inside one class than every reference
+    is; 100 = less clearly than all (a touch like nothing the database holds).
     """
 
     def __init__(self, database: ReferenceDatabase) -> None:
-        loo = database.nearest_other_press()
-        self.loo = np.sort(loo[np.isfinite(loo)])
+        self.database = database
+        ratios = _class_ratios(database.nearest_other_press())
+        self.loo = np.sort(ratios[np.isfinite(ratios)])
 
-    def percentile(self, distance: float) -> float | None:
-        """The percentile of ``distance`` (the query's nearest reference, as :meth:`topk`
-        gives it); None where the database has no two presses to compare."""
-        if self.loo.size == 0:
+    def ratio(self, z: np.ndarray) -> float | None:
+        """The query's ratio (its nearest class's distance over its
+        :data:`FAMILIARITY_CLASSES`-th nearest's); None where the database has one class."""
+        ranked = self.database.topk(z, FAMILIARITY_CLASSES)
+        if len(ranked) < 2:
             return None
-        below = int(np.searchsorted(self.loo, distance, side="left"))
+        return float(_class_ratios(np.array([[d for _, d in ranked]]))[0])
+
+    def percentile(self, z: np.ndarray) -> float | None:
+        """The percentile of the query embedding ``z``'s ratio among the references'; None
+        where the database has one class or no two presses to compare."""
+        ratio = self.ratio(z)
+        if ratio is None or self.loo.size == 0:
+            return None
+        below = int(np.searchsorted(self.loo, ratio, side="left"))
         return 100.0 * below / self.loo.size
+
+
+def _class_ratios(per_class: np.ndarray) -> np.ndarray:
+    """Each row's nearest class distance over its :data:`FAMILIARITY_CLASSES`-th nearest
+    (the farthest where fewer classes are finite); NaN where fewer than two are. Where both
+    are 0 (quantised embeddings of one code) the query is as ambiguous as can be: 1."""
+    d = np.sort(per_class, axis=1)
+    finite = np.isfinite(d).sum(axis=1)
+    k = np.minimum(finite, FAMILIARITY_CLASSES) - 1
+    far = d[np.arange(len(d)), np.maximum(k, 0)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(far > 0, d[:, 0] / np.where(far > 0, far, 1.0), 1.0)
+    return np.where(k >= 1, ratio, np.nan)
 
 
 def synthetic_database(n_refs: int, n_classes: int, dim: int = 4,

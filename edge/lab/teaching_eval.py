@@ -16,9 +16,13 @@ familiarity figure's ROC AUC and teaching end to end through the running daemon.
   set's labels), the simulated camera's photo, the touch sentence the daemon builds from the
   nearest classes of the taught database. It is not a real VLM.
 - **Familiarity.** Its ROC AUC for telling presses of the unseen classes from held-out presses
-  of the reference classes (the shipped database, nothing taught), beside the trivial
-  baseline's: the same percentile computed on each channel's mean over the model input,
-  standardised with the baseline's reference presses (train/eval/evaluate.py's baseline).
+  of the reference classes (the shipped database, nothing taught), beside the figure it
+  replaced (the nearest reference's distance among the references' leave-one-out nearest
+  distances) and the trivial baseline's: that percentile computed on each channel's mean over
+  the model input, standardised with the baseline's reference presses
+  (train/eval/evaluate.py's baseline). Three ways: FoodReplica against the held-out presses
+  of every other reference class from the first (where the familiarity was chosen), Cube
+  against the rest, and all together. ``--only familiarity`` measures it alone.
 - **End to end.** Classes taught through ``POST /v1/teach`` on ``vt-edge run`` on the emulated
   robot (:func:`edge.lab.stack.sim_stack`), then recognised through ``POST /v1/recognize``:
   their nearest-class share against the recorder path's for the same classes taught together
@@ -43,7 +47,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.descriptions import tactile_words
 from edge.core.errors import EdgeError
-from edge.core.model import ModelRef, model_ref
+from edge.core.model import Familiarity, ModelRef, model_ref
 from edge.core.progress import Progress
 from edge.lab.consistency import (
     daemon_press,
@@ -66,6 +70,8 @@ FRESH_PRESSES = 5  # per unseen class, after teaching
 REFERENCE_PRESSES = 10  # per reference class, the trivial baseline's reference presses
 HELD_OUT_PRESSES = 5  # per reference class, fresh presses of known objects
 E2E_CLASSES = ("macaron", "boiled_kiri_mochi")
+# What ``--only`` may name: the familiarity's AUC alone (no teaching, no daemon).
+ONLY = ("familiarity",)
 # Who taught, in each reference's entry.
 SOURCE: Source = "cli"
 # One teaching through the daemon: each press, with its arm moves, takes a few seconds.
@@ -240,31 +246,67 @@ def teaching_curve(models: str | Path, classes: Sequence[str], ks: Sequence[int]
                                 for s, names in sets.items() if names}}}
 
 
+def nearest_percentiles(familiarity: Familiarity, zs: Sequence[np.ndarray]) -> np.ndarray:
+    """The figure :class:`Familiarity` replaced: each query's nearest reference distance
+    among the references' own nearest distances to another press."""
+    db = familiarity.database
+    loo = db.nearest_other_press().min(axis=1)
+    loo = np.sort(loo[np.isfinite(loo)])
+    nearest = [db.topk(z, 1)[0][1] for z in zs]
+    return 100.0 * np.searchsorted(loo, nearest, side="left") / loo.size
+
+
 def familiarity_auc(models: str | Path, unseen: dict[str, list[recording.Recording]],
-                    held_out: Sequence[recording.Recording],
+                    held_out: dict[str, list[recording.Recording]],
                     references: Sequence[recording.Recording]) -> dict:
-    """The familiarity's ROC AUC (nothing taught) beside the trivial baseline's, and each
-    unseen class's median percentile."""
+    """The familiarity's ROC AUC (nothing taught) beside the figure it replaced and the
+    trivial baseline's, on the choosing split (FoodReplica against the held-out presses of
+    the reference classes at even places), the reporting one (Cube against the odd ones) and
+    all together; and each unseen class's median percentile."""
     ref = model_ref(models)
-    flat = [r for recs in unseen.values() for r in recs]
-    fam_u = [analyse_press(ref, r).familiarity for r in flat]
-    fam_h = [analyse_press(ref, r).familiarity for r in held_out]
-    base_u = baseline_percentiles(references, flat, ref.window)
-    base_h = baseline_percentiles(references, held_out, ref.window)
-    by_class, start = {}, 0
-    for c, recs in unseen.items():
-        end = start + len(recs)
-        by_class[c] = {"familiarity": float(np.median(fam_u[start:end])),
-                       "baseline": float(np.median(base_u[start:end]))}
-        start = end
-    return {"auc": roc_auc(fam_u, fam_h), "baseline_auc": roc_auc(base_u, base_h),
-            "unseen_presses": len(flat), "held_out_presses": len(held_out),
+    familiarity = Familiarity(model_for(ref).database)
+    names = list(held_out)
+    splits = {"choosing": ([c for c in unseen if set_of(c) == "foodreplica"], names[0::2]),
+              "reporting": ([c for c in unseen if set_of(c) == "cube"], names[1::2]),
+              "all": (list(unseen), names)}
+    groups = {**unseen, **held_out}
+    recs = [r for recs in groups.values() for r in recs]
+    zs = [np.asarray(analyse_press(ref, r).z) for r in recs]
+    base = baseline_percentiles(references, recs, ref.window)
+    scores = {"familiarity": np.array([familiarity.percentile(z) for z in zs]),
+              "nearest_distance": nearest_percentiles(familiarity, zs), "baseline": base}
+    at, start = {}, 0
+    for c, rs in groups.items():
+        at[c] = slice(start, start + len(rs))
+        start += len(rs)
+
+    def pooled(score: str, classes: Sequence[str]) -> np.ndarray:
+        return np.concatenate([scores[score][at[c]] for c in classes]) if classes \
+            else np.zeros(0)
+
+    auc = {}
+    for split, (pos, neg) in splits.items():
+        if pos and neg:
+            auc[split] = {score: roc_auc(pooled(score, pos), pooled(score, neg))
+                          for score in scores}
+            auc[split]["presses"] = [sum(len(unseen[c]) for c in pos),
+                                     sum(len(held_out[c]) for c in neg)]
+    flat_u, flat_h = list(unseen), names
+    return {"auc": auc["all"]["familiarity"],
+            "nearest_distance_auc": auc["all"]["nearest_distance"],
+            "baseline_auc": auc["all"]["baseline"], "splits": auc,
+            "unseen_presses": sum(len(v) for v in unseen.values()),
+            "held_out_presses": sum(len(v) for v in held_out.values()),
             "baseline_reference_presses": len(references),
-            "median_percentile": {"unseen": float(np.median(fam_u)),
-                                  "held_out": float(np.median(fam_h))},
-            "baseline_median_percentile": {"unseen": float(np.median(base_u)),
-                                           "held_out": float(np.median(base_h))},
-            "unseen_median_by_class": by_class}
+            "median_percentile": {
+                key: {"unseen": float(np.median(pooled(key, flat_u))),
+                      "held_out": float(np.median(pooled(key, flat_h)))} for key in scores},
+            "flagged_at_95": {"unseen": float(np.mean(pooled("familiarity", flat_u) >= 95)),
+                              "held_out": float(np.mean(pooled("familiarity", flat_h) >= 95))},
+            "unseen_median_by_class": {
+                c: {"familiarity": float(np.median(scores["familiarity"][at[c]])),
+                    "baseline": float(np.median(scores["baseline"][at[c]]))}
+                for c in unseen}}
 
 
 def end_to_end(classes: Sequence[str], presses: int, fresh: int, config: str | Path,
@@ -325,8 +367,9 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
                  seed: int = 0, models: str | Path = "models",
                  config: str | Path = "configs/sim.toml", out: str | Path | None = None,
                  command: str = "vt-edge sim teaching", workers: int = 2,
-                 progress: bool = True) -> dict:
-    """Measure (progress on stderr); write teaching.md/.json into ``out`` if given."""
+                 progress: bool = True, only: str | None = None) -> dict:
+    """Measure (progress on stderr); write teaching.md/.json into ``out`` if given. ``only``
+    (one of :data:`ONLY`) measures that alone."""
     started = time.monotonic()
     ref = model_ref(models)
     unknown = unseen_classes(ref)
@@ -335,6 +378,8 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
         if c not in unknown:
             raise EdgeError(f"teaching: {c!r} is not an unseen class of the model (one of "
                             f"{', '.join(unknown)})")
+    if only is not None and only not in ONLY:
+        raise EdgeError(f"teaching --only {only!r}: one of {', '.join(ONLY)}")
     ks = sorted(set(ks))
     if not ks or ks[0] < 1:
         raise EdgeError(f"teaching --ks must be presses of at least 1, got {ks}")
@@ -343,6 +388,8 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
         if n < least:
             raise EdgeError(f"teaching {what} must be at least {least}, got {n}")
     e2e = [c for c in E2E_CLASSES if c in classes] or classes[:2] if e2e is None else list(e2e)
+    if only is not None:
+        e2e = []
     for c in e2e:
         if c not in classes:
             raise EdgeError(f"teaching --e2e-classes: {c!r} is not among the classes measured")
@@ -355,20 +402,13 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
                                   dataset_transport(models), ref.window, workers, bar)[0]
     teach = {c: recs[c][:ks[-1]] for c in classes}
     fresh_recs = {c: recs[c][ks[-1]:per_unseen] for c in classes}
-    with tempfile.TemporaryDirectory(prefix="vtzero-teaching-") as tmp, \
-            Progress("teaching: taught and looked up", len(classes) + len(ks) + 1, "steps",
-                     enabled=progress) as bar:
-        curve = teaching_curve(models, classes, ks, teach, fresh_recs, Path(tmp),
-                               lambda note: bar.update(note=note))
-        recorder_e2e: dict[str, Looked] = {}
-        if e2e:
-            teacher = Teacher(models, Path(tmp) / "e2e")
-            for c in e2e:
-                teacher.teach(c, teach[c])
-            recorder_e2e = {c: look_up(teacher.ref, c, fresh_recs[c], ask=False) for c in e2e}
+    curve, recorder_e2e = None, {}
+    if only is None:
+        curve, recorder_e2e = _curve_and_recorder(models, classes, ks, teach, fresh_recs, e2e,
+                                                  progress)
     familiarity = familiarity_auc(
         models, {c: recs[c][:per_unseen] for c in classes},
-        [r for c in references for r in recs[c][reference_presses:per_ref]],
+        {c: recs[c][reference_presses:per_ref] for c in references},
         [r for c in references for r in recs[c][:reference_presses]])
     e2e_report = None
     if e2e:
@@ -379,7 +419,7 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
                                    daemon["press_s"])
     report = {"command": command, "model": {"directory": str(ref.directory),
                                             "digest": ref.digest},
-              "seed": seed, "ks": ks, "fresh_presses": fresh,
+              "seed": seed, "only": only, "ks": ks, "fresh_presses": fresh,
               "reference_presses": reference_presses, "held_out_presses": held_out,
               "transport": "the model's reference dataset's (its manifest)",
               "curve": curve, "familiarity": familiarity, "end_to_end": e2e_report,
@@ -393,15 +433,32 @@ def run_teaching(classes: Sequence[str] | None = None, ks: Sequence[int] = KS,
     return report
 
 
+def _curve_and_recorder(models: str | Path, classes: Sequence[str], ks: Sequence[int],
+                        teach: dict[str, list[recording.Recording]],
+                        fresh: dict[str, list[recording.Recording]], e2e: Sequence[str],
+                        progress: bool) -> tuple[dict, dict[str, Looked]]:
+    """The teaching curve, and the recorder path's lookups of the classes taught through
+    the daemon too (taught together, as the daemon does)."""
+    with tempfile.TemporaryDirectory(prefix="vtzero-teaching-") as tmp, \
+            Progress("teaching: taught and looked up", len(classes) + len(ks) + 1, "steps",
+                     enabled=progress) as bar:
+        curve = teaching_curve(models, classes, ks, teach, fresh, Path(tmp),
+                               lambda note: bar.update(note=note))
+        recorder: dict[str, Looked] = {}
+        if e2e:
+            teacher = Teacher(models, Path(tmp) / "e2e")
+            for c in e2e:
+                teacher.teach(c, teach[c])
+            recorder = {c: look_up(teacher.ref, c, fresh[c], ask=False) for c in e2e}
+    return curve, recorder
+
+
 def _pct(x: float | None) -> str:
     return "-" if x is None else f"{x:.0%}"
 
 
 def markdown(r: dict) -> str:
-    ks, curve = r["ks"], r["curve"]
-    kmax = ks[-1]
     fam, e2e = r["familiarity"], r["end_to_end"]
-    n = len(curve["classes"])
     lines = [
         "# Teaching the robot: the curve, familiarity and the daemon",
         "",
@@ -410,13 +467,56 @@ def markdown(r: dict) -> str:
         "dataset recorder's (the robot's press controller on the virtual clock, with the "
         "transport timing of the model's reference dataset); they are taught through the "
         "daemon's teaching code (`teach_press` into a references overlay in a temporary "
-        "state directory) and looked up as every recognition is (`analyse_press`).",
+        "state directory) and looked up as every recognition is (`analyse_press`)."
+        + (f" Only the {r['only']} was measured here." if r["only"] else ""),
         "",
         "**The VLM here is simulated, not a real one** (`edge/sim/standin_vlm.py`: it "
         "compares the photo with each candidate's picture and knows by name how much objects "
         "give). Its figures check the chain press -> taught database -> touch sentence -> "
         "label; they say nothing about any real VLM.",
         "",
+    ]
+    if r["curve"] is not None:
+        lines += _curve_lines(r)
+    lines += _familiarity_lines(fam)
+    if e2e is not None:
+        s = e2e["seconds_per_taught_press"]
+        lines += [
+            "## End to end: teaching through the running daemon",
+            "",
+            f"{', '.join(row['name'] for row in e2e['classes'])}: each taught "
+            f"{e2e['taught_presses']} press{'es' * (e2e['taught_presses'] != 1)} through "
+            "`POST /v1/teach` on `vt-edge run` on "
+            "the emulated robot (`vt-edge sim serve`), then recognised through "
+            "`POST /v1/recognize`; beside them the recorder path with the same classes "
+            "taught together, the same number of presses.",
+            "",
+            "| class | daemon: nearest is the taught class | recorder path |",
+            "|---|---:|---:|",
+        ]
+        lines += [f"| {row['name']} | {_pct(row['daemon'])} ({row['presses'][0]} presses) | "
+                  f"{_pct(row['recorder'])} ({row['presses'][1]} presses) |"
+                  for row in e2e["classes"]]
+        lines += [
+            "",
+            f"Pooled: daemon {_pct(e2e['daemon'])}, recorder {_pct(e2e['recorder'])}; noise "
+            f"allows a difference of {e2e['allowed_difference']:.2f} ({AGREE_Z} standard "
+            "errors of the pooled share's difference plus the continuity correction): "
+            f"**{'they agree' if e2e['agree'] else 'they do NOT agree'}**.",
+            "",
+            f"Seconds per taught press on the daemon (its start to its reference written): "
+            f"median {s['median']:.2f} s ({s['min']:.2f}-{s['max']:.2f} s over "
+            f"{len(s['all'])} presses, pauses between presses 0 s).",
+            "",
+        ]
+    return "\n".join(lines)
+
+
+def _curve_lines(r: dict) -> list[str]:
+    ks, curve = r["ks"], r["curve"]
+    kmax = ks[-1]
+    n = len(curve["classes"])
+    lines = [
         "## Teaching curve",
         "",
         f"{n} unseen classes; each taught k presses, then {r['fresh_presses']} fresh presses "
@@ -459,60 +559,53 @@ def markdown(r: dict) -> str:
         lines.append(f"| {s} | " + " | ".join(_pct(v[k]) for k in keys) + " |")
     lines += ["| **all** | " + " | ".join(f"**{_pct(curve['vlm']['overall'][k])}**"
                                         for k in keys) + " |", ""]
-    lines += [
+    return lines
+
+
+def _familiarity_lines(fam: dict) -> list[str]:
+    splits, med = fam["splits"], fam["median_percentile"]
+    titles = {"choosing": "FoodReplica against half the known classes (where it was chosen)",
+              "reporting": "Cube against the other half", "all": "all together"}
+    lines = [
         "## Familiarity",
         "",
-        f"ROC AUC for telling {fam['unseen_presses']} presses of the unseen classes from "
-        f"{fam['held_out_presses']} held-out presses of the reference classes (fresh "
-        "presses, nothing taught), scored by the daemon's familiarity percentile: "
-        f"**{fam['auc']:.3f}**; the trivial baseline (the same percentile on each channel's "
-        "mean over the model input, standardised, among "
-        f"{fam['baseline_reference_presses']} reference presses): **{fam['baseline_auc']:.3f}**. "
-        f"Median percentile unseen / held-out: {fam['median_percentile']['unseen']:.0f} / "
-        f"{fam['median_percentile']['held_out']:.0f} (baseline "
-        f"{fam['baseline_median_percentile']['unseen']:.0f} / "
-        f"{fam['baseline_median_percentile']['held_out']:.0f}).",
+        "ROC AUC for telling presses of the unseen classes from held-out presses of the "
+        "reference classes (fresh presses, nothing taught). *Familiarity* is the daemon's "
+        "percentile (`edge.core.model.Familiarity`: how much nearer the nearest class is than "
+        "the eighth nearest, ranked among the references' own figures, each reference's "
+        "press left out); *nearest distance* the figure it replaced (the nearest reference's "
+        "distance among the references' nearest distances to another press); the trivial "
+        "baseline that percentile on each channel's mean over the model input, standardised, "
+        f"among {fam['baseline_reference_presses']} reference presses.",
+        "",
+        "| presses | unseen / held-out | familiarity | nearest distance | baseline |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    lines += [f"| {titles[k]} | {v['presses'][0]} / {v['presses'][1]} | "
+              f"**{v['familiarity']:.3f}** | {v['nearest_distance']:.3f} | "
+              f"{v['baseline']:.3f} |" for k, v in splits.items()]
+    lines += [
+        "",
+        "Median percentile unseen / held-out: "
+        + "; ".join(f"{name} {med[key]['unseen']:.0f} / {med[key]['held_out']:.0f}"
+                    for key, name in (("familiarity", "familiarity"),
+                                      ("nearest_distance", "nearest distance"),
+                                      ("baseline", "baseline")))
+        + f". Flagged unfamiliar at the default 95th percentile: "
+        f"{_pct(fam['flagged_at_95']['unseen'])} of the unseen presses, "
+        f"{_pct(fam['flagged_at_95']['held_out'])} of the known objects' fresh ones.",
         "",
         "Unseen classes whose median percentile is at or below the held-out presses' (they "
         "look as familiar as known objects): "
         + (", ".join(f"{c} ({v['familiarity']:.0f})"
                      for c, v in fam["unseen_median_by_class"].items()
-                     if v["familiarity"] <= fam["median_percentile"]["held_out"]) or "none")
+                     if v["familiarity"] <= med["familiarity"]["held_out"]) or "none")
         + ".",
         "",
     ]
-    if e2e is not None:
-        s = e2e["seconds_per_taught_press"]
-        lines += [
-            "## End to end: teaching through the running daemon",
-            "",
-            f"{', '.join(row['name'] for row in e2e['classes'])}: each taught "
-            f"{e2e['taught_presses']} press{'es' * (e2e['taught_presses'] != 1)} through "
-            "`POST /v1/teach` on `vt-edge run` on "
-            "the emulated robot (`vt-edge sim serve`), then recognised through "
-            "`POST /v1/recognize`; beside them the recorder path with the same classes "
-            "taught together, the same number of presses.",
-            "",
-            "| class | daemon: nearest is the taught class | recorder path |",
-            "|---|---:|---:|",
-        ]
-        lines += [f"| {row['name']} | {_pct(row['daemon'])} ({row['presses'][0]} presses) | "
-                  f"{_pct(row['recorder'])} ({row['presses'][1]} presses) |"
-                  for row in e2e["classes"]]
-        lines += [
-            "",
-            f"Pooled: daemon {_pct(e2e['daemon'])}, recorder {_pct(e2e['recorder'])}; noise "
-            f"allows a difference of {e2e['allowed_difference']:.2f} ({AGREE_Z} standard "
-            "errors of the pooled share's difference plus the continuity correction): "
-            f"**{'they agree' if e2e['agree'] else 'they do NOT agree'}**.",
-            "",
-            f"Seconds per taught press on the daemon (its start to its reference written): "
-            f"median {s['median']:.2f} s ({s['min']:.2f}-{s['max']:.2f} s over "
-            f"{len(s['all'])} presses, pauses between presses 0 s).",
-            "",
-        ]
-    return "\n".join(lines)
+    return lines
 
 
-__all__ = ["Looked", "Teacher", "agree_margin", "baseline_percentiles", "roc_auc",
-           "run_teaching", "unseen_classes"]
+__all__ = ["ONLY", "Looked", "Teacher", "agree_margin", "baseline_percentiles",
+           "familiarity_auc", "nearest_percentiles", "roc_auc", "run_teaching",
+           "unseen_classes"]

@@ -267,9 +267,9 @@ class Analysis:
     topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
     description: str
     model_io_npz: bytes  # the crop, the model input and the embedding
-    # The nearest reference's distance as a percentile of the database's own leave-one-out
-    # nearest-neighbour distances (edge.core.model.Familiarity: 0 = closer than every
-    # reference's nearest other press, 100 = farther than all); None: a database of one press.
+    # How clearly the press lies in its nearest class, as a percentile of the database's own
+    # leave-one-out figures (edge.core.model.Familiarity: 0 = more clearly than every
+    # reference, 100 = less than all); None: a database of one class or one press.
     familiarity: float | None = None
     # At or past the configured percentile ([runtime] unfamiliar_percentile).
     unfamiliar: bool = False
@@ -327,7 +327,7 @@ def _offset_embeddings(model: Model, window: np.ndarray, offsets: list[int]
 def _analysis(lookup: Lookup, z: np.ndarray, code: int, topk: list[tuple[str, float]],
               model_io: bytes, unfamiliar_percentile: float, agreement: float | None
               ) -> Analysis:
-    familiarity = lookup.familiarity.percentile(topk[0][1])
+    familiarity = lookup.familiarity.percentile(z)
     return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
                     lookup.database.describe([label for label, _ in topk]), model_io,
                     familiarity,
@@ -352,8 +352,7 @@ def fuse_presses(ref: ModelRef, recs: list[recording.Recording], fusion: str,
 
     ``z`` and ``code`` are the mean embedding's (its nearest codebook entry); ``agreement``
     the share of the (press, offset) embeddings whose nearest class is the fused first. The
-    familiarity is of the fused first class's distance: with votes the nearest of many
-    looks, so lower (more familiar) than one press's would be."""
+    familiarity is the mean embedding's, with either fusion."""
     if fusion not in FUSIONS:
         raise ValueError(f"fusion {fusion!r}: one of {', '.join(FUSIONS)}")
     if not recs:
