@@ -273,9 +273,9 @@ class RuntimeConfig:
     # store_max_mb (0: no bound by size), or its filesystem has less than keep_free_mb free.
     store_max_mb: float = 0.0
     keep_free_mb: float = 200.0
-    # A press whose nearest reference is as far as or farther than this percentile of the
-    # reference database's own leave-one-out nearest-neighbour distances is flagged
-    # unfamiliar (edge.core.model.Familiarity; 100: only one farther than every reference's).
+    # A press whose familiarity (edge.core.model.Familiarity: how clearly it lies in its
+    # nearest class, a percentile of the reference database's own leave-one-out figures) is
+    # at or past this is flagged unfamiliar (100: only one less clear than every reference).
     unfamiliar_percentile: float = 95.0
     # How the presses of a recognition of several presses ({"presses": N}) are fused into one
     # top-k (edge.runtime.compute.fuse_presses): "votes" (each press and subsampling

@@ -84,8 +84,8 @@ class Metrics:
         lines += self.vlm_latency.render("vtzero_vlm_latency_seconds",
                                          "Duration of successful VLM calls.")
         lines += self.familiarity.render(
-            "vtzero_familiarity_percentile", "Analysed presses' nearest-reference distance as "
-            "a percentile of the database's own leave-one-out nearest-neighbour distances.")
+            "vtzero_familiarity_percentile", "Analysed presses' familiarity: how clearly each "
+            "lies in its nearest class, a percentile of the database's own leave-one-out figures.")
         lines += [
             "# HELP vtzero_unfamiliar_presses_total Analysed presses at or past [runtime] "
             "unfamiliar_percentile (like no reference).",
