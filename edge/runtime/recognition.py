@@ -427,9 +427,15 @@ class OneRecognition:
                 outcome = await self.window_complete(pressing)  # the arm still to return
                 episode, files = await self.analysis(outcome)
                 if self.again(episode):
-                    earlier |= await self.kept_earlier(pressing, files)
-                    await self.pause()
-                    continue
+                    outcome = await pressing  # the arm back from it, or not
+                    if outcome.contact:
+                        earlier |= await self.kept_earlier(outcome, files)
+                        await self.pause()
+                        continue
+                    # It did not return: no further press, and the recognition fails with
+                    # every press so far kept, as where a later press fails.
+                    episode = episode.with_(status=Status.FAILED,
+                                            error=outcome.message or str(outcome.result))
                 self.last_press(pressing)
                 episode, files = await self.fused(episode, files, earlier)
                 photo = await self.photo if self.photo is not None else NO_PHOTO
@@ -502,16 +508,13 @@ class OneRecognition:
             return n == 1 and (bool(first["unfamiliar"]) or first["agreement"] < 1.0)
         return n < self.presses
 
-    async def kept_earlier(self, pressing: asyncio.Task[PressOutcome],
-                           files: dict[str, bytes]) -> dict[str, bytes]:
-        """A press before the last, once its arm is back: its files (numbered from the
-        second press on), for the episode written at the end."""
+    async def kept_earlier(self, outcome: PressOutcome, files: dict[str, bytes]
+                           ) -> dict[str, bytes]:
+        """A press before the last, its arm back: its files (numbered from the second
+        press on), for the episode written at the end."""
         n = len(self.pressed)
-        outcome = await pressing
         self.recognizer.metrics.observe_press(outcome)
         self.pressed[-1]["press_s"] = time.monotonic() - self.press_t0
-        if not outcome.contact:
-            raise StateError(f"press {n}: {outcome.message or outcome.result}")
         return {_numbered(name, n): data
                 for name, data in (files | await self._press_file(outcome)).items()}
 
@@ -530,12 +533,13 @@ class OneRecognition:
     async def fused(self, episode: Episode, files: dict[str, bytes],
                     earlier: dict[str, bytes]) -> tuple[Episode, dict[str, bytes]]:
         """The last press's episode with the presses' fused analysis, where there were
-        several; a failed last press fails the recognition, naming the press."""
-        n = len(self.pressed)
-        if n <= 1:
+        several; a failed press of a recognition of several fails it, naming the press,
+        with every press so far."""
+        n, failed = len(self.pressed), episode.status == Status.FAILED
+        if self.presses == 1 or (n == 1 and not failed):  # (auto: one press was enough)
             return episode, files
         files = earlier | {_numbered(name, n): data for name, data in files.items()}
-        if episode.status == Status.FAILED:
+        if failed:
             return episode.with_(error=f"press {n}: {episode.error}",
                                  presses=self.pressed), files
         setup, t = self.setup, time.monotonic()
@@ -663,14 +667,17 @@ class OneRecognition:
         files.update({_numbered(name, n): data
                       for name, data in (await self._press_file(outcome)).items()})
         recognizer.metrics.observe_press(outcome)
-        if episode.presses is not None:
-            self.pressed[-1]["press_s"] = time.monotonic() - self.press_t0
+        if episode.presses is not None:  # (as it ended: an arm that did not return, say)
+            self.pressed[-1].update(press_s=time.monotonic() - self.press_t0,
+                                    result=str(outcome.result))
         episode = episode.with_(press=outcome.summary(),
                                 timings={"press_s": time.monotonic() - self.t0,
                                          **episode.timings})
         if episode.status in (Status.PENDING, Status.PRESSED) and not outcome.contact:
-            # The return failed after the window: said on the episode, as without a label.
-            episode = episode.with_(status=Status.FAILED, error=outcome.message)
+            # The return failed after the window: said on the episode (naming the press, of
+            # several), as without a label.
+            press = "" if episode.presses is None else f"press {n}: "
+            episode = episode.with_(status=Status.FAILED, error=press + outcome.message)
         # The durable write (~10 ms of fsyncs) overlaps the VLM request. A crash before
         # the write completes loses the press, as it would have a moment earlier.
         await asyncio.to_thread(recognizer.store.create, episode, files)

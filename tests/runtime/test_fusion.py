@@ -28,8 +28,19 @@ from tests.runtime.test_recognition import (
     pressed,
     recognizer,
 )
+from tests.support.daemon import (
+    FOOD,
+    base_config,
+    gripper_open,
+    recording_events,
+    sim_daemon,
+    store_consistent,
+    wait_health,
+)
 from tests.support.presses import recording_of
 from tests.support.waits import wait_until
+
+JOINT = 12
 
 
 def with_fusion(fusion: str) -> Config:
@@ -96,6 +107,42 @@ async def test_a_later_press_that_fails_fails_the_recognition_naming_it(tmp_path
     assert not vlm.asked and not rec.lock.locked()
     files = sorted(p.name for p in (tmp_path / "episodes" / episode.id).iterdir())
     assert "press.press.npz" in files and "model_io.npz" in files  # the first kept
+
+
+@pytest.mark.asyncio
+@pytest.mark.parametrize("lost", [1, 2])
+async def test_an_arm_lost_after_a_press_keeps_every_press_so_far(tmp_path, lost):
+    # On the emulated robot: a joint stops answering while the arm returns from press
+    # ``lost`` of 2 (slow moves: the return takes 2 s).
+    cfg = base_config(move_time_s=2.0, tare_s=0.15)
+    async with sim_daemon(tmp_path / "state", cfg=cfg) as (robot, d), \
+            recording_events(d) as events:
+        status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "presses": 2,
+                                                     "pause_s": 0})
+        assert status == 202, ep
+        for _ in range(lost):  # (held at the threshold: the press touched)
+            await d.wait_press_state({"holding"})
+            await d.wait_press_state({"returning"})
+        robot.dxl.set_missing(JOINT)
+        ep = await d.wait_status(ep["id"], {"failed"}, 30)
+        print(f"arm lost after press {lost}: {ep['error']}")
+        # The gripper opened, as on every fault path; no press after the one lost.
+        assert gripper_open(robot)
+        assert sum(e["type"] == "press_again" for e in events) == lost - 1
+        assert ep["error"].startswith(f"press {lost}: return failed") and "motor 12" in ep["error"]
+        assert [p["result"] for p in ep["presses"]] == ["ok"] * (lost - 1) + ["error"]
+        assert all(p["topk"] and p["press_s"] > 0 for p in ep["presses"])
+        assert ep["press"]["result"] == "error" and ep["topk"]
+        # Every press so far kept, whole: its recording and the model's input and output.
+        (kept,) = store_consistent(d.store.root)
+        assert kept["id"] == ep["id"] and kept["status"] == "failed"
+        files = sorted(p.name for p in (d.store.root / ep["id"]).iterdir())
+        presses = {1: ["model_io.npz", "press.press.npz"],
+                   2: ["model_io-2.npz", "model_io-fused.npz", "model_io.npz",
+                       "press-2.press.npz", "press.press.npz"]}[lost]
+        assert files == sorted(["episode.json", "image.jpg", *presses]), files
+        robot.dxl.set_missing(JOINT, False)
+        await wait_health(d, True, 10)
 
 
 @pytest.mark.asyncio
