@@ -6,6 +6,7 @@ them). selenium never downloads anything here: the driver and the browser are gi
 """
 
 import asyncio
+import json
 import os
 import shutil
 import time
@@ -14,8 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from edge.core.model import load_model
+from edge.runtime.references import ReferenceStore, references_dir
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.support.daemon import CUBE, fast_config, recognize, sim_daemon
+from tests.support.daemon import CUBE, ROOT, fast_config, recognize, sim_daemon
+from tests.support.presses import recording_of
 from tests.support.waits import wait_until_sync
 
 CHROMIUM = next((p for p in (shutil.which("chromium"), shutil.which("chromium-browser"))
@@ -290,6 +294,9 @@ def recognize_twice_on_the_page(url: str, tmp: Path, candidates: list[str]) -> d
         driver.get_log("browser")
         wait_until(driver, "document.getElementById('health').textContent === 'healthy'",
                    what="the health badge")
+        found["warning"] = wait_until(
+            driver, "document.getElementById('health-warning').textContent", 10,
+            "the stale reference's warning")
         found["choices"] = [o.get_attribute("value") for o in
                             Select(driver.find_element(By.ID, "presses")).options]
         found["default"] = driver.find_element(By.ID, "presses").get_attribute("value")
@@ -325,17 +332,31 @@ def recognize_twice_on_the_page(url: str, tmp: Path, candidates: list[str]) -> d
     return found
 
 
-async def test_a_recognition_of_two_presses_from_the_page(tmp_path):
+def stale_reference(state: Path) -> None:
+    """A reference taught in ``state`` as if before the model was replaced (its embedding
+    another model's: kept, never used)."""
+    store = ReferenceStore(references_dir(state))
+    store.add(load_model(ROOT / "models"), replace(recording_of("macaron", 1), label="x"),
+              TAUGHT, "lab macaron (a French sandwich cookie)", source="cli")
+    index = json.loads(store.index.read_text())
+    index["references"][0]["model"] = "0" * 64
+    store.index.write_text(json.dumps(index))
+
+
+async def test_two_presses_from_the_page_and_the_warning_of_stale_references(tmp_path):
     cfg = fast_config()
     cfg = replace(cfg, api=replace(cfg.api, token=TOKEN))
+    stale_reference(tmp_path / "state")  # (the header warns of it)
     async with sim_daemon(tmp_path / "state", "macaron", cfg=cfg,
                           headers={"Authorization": f"Bearer {TOKEN}"}) as (_robot, d):
         found = await asyncio.to_thread(recognize_twice_on_the_page, d.url, tmp_path,
                                         ["macaron", *CUBE])
         status, ep = await d.get(f"/v1/episodes/{found['episode_id']}")
         assert status == 200, ep
-    print(f"{found['started']}\n{found['cue']}\n{found['timings']}\n{found['summary']}\n"
+    print(f"{found['warning']}\n{found['started']}\n{found['cue']}\n{found['timings']}\n{found['summary']}\n"
           + "\n".join(found["presses"]))
+    assert found["warning"].startswith("1 taught reference(s) not used") \
+        and f"({TAUGHT})" in found["warning"]
     assert found["choices"] == ["1", "2", "3", "4", "5", "auto"] and found["default"] == "1"
     assert "(2 presses)" in found["started"] and "press 2 of 2" in found["cue"]
     # The episode as stored: two presses, fused, each as the page lists it.
