@@ -36,6 +36,14 @@ DEFAULT_PROMPT_DIR = Path(__file__).resolve().parents[2] / "models" / "prompts"
 # A label is a short identifier-like name; refuse anything that could not be one.
 MAX_LABEL_CHARS = 200
 
+# What the weak-match ablation adds to the tactile description of an unfamiliar press (Table
+# I's ``vq_top3_weak`` row); the paper's prompt, the default, never says it.
+WEAK_MATCH = "but only weakly: the touch matched none of them closely"
+
+
+def weak_match(description: str) -> str:
+    """``description`` (the nearest classes' names) saying that the match is weak."""
+    return f"{description}, {WEAK_MATCH}"
 
 
 

@@ -8,12 +8,18 @@ import asyncio
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from edge.core.config import VLMConfig
+from edge.core.errors import EvalVLMError
+from edge.core.model import Familiarity, load_model
 from edge.sim.standin_vlm import StandIn
+from edge.vlm.prompt import WEAK_MATCH
 from tests.support.vlm_thread import fake_in_thread
 from train.eval import fig6, table1
+from train.eval.eval_vlm.config import EvalVLMConfig
+from train.eval.eval_vlm.plan import prepare
 from train.learn.data import Splits
 
 from .conftest import PRESSES
@@ -43,7 +49,7 @@ async def test_table1_against_the_simulated_vlm(released, work, tmp_path):
     assert [m["beside"] for m in report["models"]] == ["GPT-4V", "LLaVA"]
     rows = {(m["model"], r["condition"]): r for m in report["models"] for r in m["rows"]}
     assert {c for _, c in rows} == {"vision_only", "vq_top3", "vq_top1", "beta_top3",
-                                    "vq_zeros_top3", "vq_top3_adjectives"}
+                                    "vq_zeros_top3", "vq_top3_adjectives", "vq_top3_weak"}
     for row in rows.values():
         cube = row["sets"]["cube"]
         assert cube["n"] == len(CUBE) * PRESSES and cube["invalid_answer"] == 0
@@ -72,6 +78,38 @@ async def test_table1_against_the_simulated_vlm(released, work, tmp_path):
     again = await table1.run(cfg, progress=False)
     assert [lines(p) for p in caches] == before
     assert again["models"] == report["models"]
+
+
+def test_the_weak_match_row_says_so_exactly_where_the_daemon_flags_the_press(released, work,
+                                                                            tmp_path):
+    # Every question of the row is the paper's, but for the presses the daemon's familiarity
+    # flags unfamiliar (at the default 95th percentile), whose touch sentence says the match
+    # is weak.
+    cfg = EvalVLMConfig(vlm=VLMConfig(), out=tmp_path / "o", model_dir=released,
+                        unseen=(work / "recordings" / "cube",),
+                        conditions=("vq_top3", "vq_top3_weak"))
+    plan = prepare(cfg, endpoint=False)
+    model = load_model(released)
+    familiarity = Familiarity(model.database)
+    x = plan.sets[0].presses.inputs(0)
+    flagged = [familiarity.percentile(z) >= 95 for z in np.asarray(model.encode(x)[0])]
+    jobs = {(j.press, j.condition.name): j for j in plan.jobs}
+    said = []
+    for press in plan.sets[0].press_ids:
+        paper, weak = jobs[(press, "vq_top3")], jobs[(press, "vq_top3_weak")]
+        assert WEAK_MATCH not in paper.prompt and weak.topk == paper.topk
+        said.append(WEAK_MATCH in weak.prompt)
+        names = f"similar to {paper.description}."
+        assert weak.prompt == (paper.prompt.replace(names, f"similar to {paper.description}, "
+                                                           f"{WEAK_MATCH}.")
+                               if said[-1] else paper.prompt)
+    print(f"weak match said for {sum(said)} of {len(said)} presses")
+    assert said == flagged
+    # Asked for alone, with its twin; an unknown row is refused naming the known ones.
+    only = table_config(released, work, tmp_path, rows=("vq_top3", "vq_top3_weak"))
+    assert only.conditions() == ("vq_top3", "vq_top3_weak")
+    with pytest.raises(EvalVLMError, match=r"unknown Table I row.*vq_top3_weak"):
+        table1.validate(table_config(released, work, tmp_path, rows=("vq_top4",)))
 
 
 def test_table1_against_an_endpoint_with_two_models(released, work, tmp_path, capsys):

@@ -7,9 +7,13 @@ accuracy on each test set (any name: the recorder's FoodReplica and Cube, or a l
 the paper's own numbers beside a set named or mapped (``--paper-set lab_food=foodreplica``) to
 FoodReplica or Cube. The report says where the presses came from (each set's ``dataset.json``
 origin: the emulated robot, or which robot and sensor), which decoder the tactile model has,
-and how to train a missing variant from the data the model was built from. Extra rows when their
-checkpoint exists: the zero-input decoder (``vq_zeros_top3``) and the tactile-adjective
-ablation (``vq_top3_adjectives``).
+and how to train a missing variant from the data the model was built from. Extra rows: the
+zero-input decoder (``vq_zeros_top3``, when its checkpoint exists), the tactile-adjective
+ablation (``vq_top3_adjectives``) and the weak-match ablation (``vq_top3_weak``: the method's
+prompt, but where the press is unfamiliar by the daemon's flag (``edge.core.model.
+Familiarity`` at the default ``[runtime] unfamiliar_percentile``) the touch sentence also says
+that it matched the named objects only weakly; the paper's prompt never says so).
+``Table1Config.rows`` asks only the rows named (a row and its paper twin, say).
 
 Each model's questions are asked by :mod:`train.eval.eval_vlm` (the robot's prompts and client,
 answers cached in ``WORK/<model>/answers.jsonl``: an interrupted run continues, a finished
@@ -40,6 +44,7 @@ from edge.core.atomic import atomic_write_text
 from edge.core.config import VLMConfig
 from edge.core.errors import EvalVLMError
 from edge.core.model import read_manifest
+from edge.vlm.prompt import WEAK_MATCH
 from train.eval import eval_vlm
 from train.eval.eval_vlm.config import DEFAULT_CONCURRENCY, EvalVLMConfig
 from train.eval.eval_vlm.paper import DATASET_TITLES, PAPER_SETS, paper_set, set_title
@@ -57,7 +62,7 @@ log = logging.getLogger(__name__)
 REPORT_MD = "table1.md"
 REPORT_JSON = "table1.json"
 TABLE_CONDITIONS = ("vision_only", "vq_top3", "vq_top1", "beta_top3")
-EXTRA_CONDITIONS = ("vq_zeros_top3", "vq_top3_adjectives")
+EXTRA_CONDITIONS = ("vq_zeros_top3", "vq_top3_adjectives", "vq_top3_weak")
 SETS = PAPER_SETS
 # The comparison conditions and the `--variant` of vt-train build that trains their model.
 VARIANT_OF = {"beta_top3": "beta", "vq_zeros_top3": "zeros"}
@@ -87,6 +92,7 @@ class Table1Config:
     concurrency: int = DEFAULT_CONCURRENCY
     extras: bool = True  # add the extra rows whose checkpoints exist
     paper_sets: Mapping[str, str] = dataclasses.field(default_factory=dict)  # ours -> paper's
+    rows: tuple[str, ...] | None = None  # only these rows (None: every row that can run)
 
     @property
     def standin(self) -> bool:
@@ -95,7 +101,7 @@ class Table1Config:
     def missing(self) -> dict[str, str]:
         """The comparison rows that cannot run here, each with how to make its model."""
         have = {"beta_top3": self.beta, "vq_zeros_top3": self.zeros}
-        wanted = (*TABLE_CONDITIONS, *(EXTRA_CONDITIONS if self.extras else ()))
+        wanted = self.wanted()
         facts = model_facts(read_manifest(self.model_dir))
         out = {}
         for name in wanted:
@@ -109,13 +115,17 @@ class Table1Config:
                              + variant_advice(facts, self.model_dir, VARIANT_OF[name]))
         return out
 
+    def wanted(self) -> tuple[str, ...]:
+        """The rows asked for: ``rows``, or all (the extras unless left out)."""
+        if self.rows is not None:
+            return tuple(c for c in (*TABLE_CONDITIONS, *EXTRA_CONDITIONS) if c in self.rows)
+        return (*TABLE_CONDITIONS, *(EXTRA_CONDITIONS if self.extras else ()))
+
     def conditions(self) -> tuple[str, ...]:
         missing = self.missing()
         for name, why in missing.items():
             log.warning("%s skipped: %s", name, why)
-        return tuple(name for name in (*TABLE_CONDITIONS,
-                                       *(EXTRA_CONDITIONS if self.extras else ()))
-                     if name not in missing)
+        return tuple(name for name in self.wanted() if name not in missing)
 
 
 def _cache_dir(work: Path, model: str, standin: bool) -> Path:
@@ -262,6 +272,7 @@ def markdown(s: Mapping[str, Any]) -> str:
         for row in m["rows"]:
             lines.append(f"| `{m['model']}` | {row['title']} | " + " | ".join(
                 str(row["sets"][name]["invalid_answer"]) for name in names) + " |")
+    lines += _weak_match(s)
     lines += _decoders(s)
     if s.get("missing"):
         lines += ["", "Rows left out:", "", *(f"- `{name}`: {why}."
@@ -285,6 +296,19 @@ def _test_presses(added: Sequence[Mapping[str, Any]]) -> list[str]:
         f"{a['presses']} presses of {a['label']} from the test split of {a['dataset']}"
         for a in added) + " (`vt-train db add --allow-test`). A set that shares them scores "
         "on presses the database learned.", ""]
+
+
+def _weak_match(s: Mapping[str, Any]) -> list[str]:
+    """What the weak-match row can say here: against the simulated VLM, nothing."""
+    if not any(r["condition"] == "vq_top3_weak" for m in s["models"] for r in m["rows"]):
+        return []
+    line = ("The weak-match row asks the method's question, but where the daemon flags the "
+            "press unfamiliar the touch sentence ends \"" + WEAK_MATCH + "\".")
+    if s["simulated_vlm"]:
+        line += (" The simulated VLM reads only the object names in that sentence, so it "
+                 "cannot react to it: the row equals the method's by the stand-in's "
+                 "construction, not as evidence. Run it against a real VLM (`--url`).")
+    return ["", line]
 
 
 def _decoders(s: Mapping[str, Any]) -> list[str]:
@@ -330,6 +354,11 @@ def validate(cfg: Table1Config) -> None:
                            "second model)")
     if cfg.first.configured and not cfg.first.model:
         raise EvalVLMError("--url needs --model")
+    known = (*TABLE_CONDITIONS, *EXTRA_CONDITIONS)
+    unknown = [row for row in cfg.rows or () if row not in known]
+    if unknown or cfg.rows == ():
+        raise EvalVLMError(f"unknown Table I row(s) {', '.join(unknown) or '(none given)'}; "
+                           f"known: {', '.join(known)}")
     missing = [str(d) for d in cfg.unseen if not d.exists()]
     if missing:
         raise EvalVLMError(f"no recordings at {', '.join(missing)} (a dataset directory of "

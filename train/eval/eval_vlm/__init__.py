@@ -17,7 +17,9 @@ description), ``beta_top3`` (the beta-VAE's embeddings and its own reference dat
 from the reference recordings: every offset of every press, like the shipped one), and, not
 in the default set, ``vq_zeros_top3`` (the VQ-VAE with the zero-input decoder, from its
 checkpoint, the same way), ``vq_top3_adjectives`` (the method with the references described
-in hand-written tactile adjectives, :mod:`train.eval.ablation`) and ``tactile_only``.
+in hand-written tactile adjectives, :mod:`train.eval.ablation`), ``vq_top3_weak`` (the
+method, its touch sentence saying the match is weak where the daemon's familiarity flags the
+press unfamiliar) and ``tactile_only``.
 
 Every answer is appended to ``answers.jsonl`` in the output directory as soon as it arrives
 (one ``write`` of one line, ``O_APPEND``, fsync), keyed by condition, dataset, press, VLM

@@ -24,8 +24,9 @@ class Condition:
     mode: str  # the prompt template: vision_only / vision_tactile / tactile_only
     variant: str | None  # the tactile encoder: vq / beta / vq_zeros, None: no tactile sentence
     k: int  # distinct reference classes in the description (0: none)
-    # Where the descriptions come from: the database (object names, the method) or the
-    # ablation's hand-written tactile adjectives.
+    # Where the descriptions come from: the database (object names, the method), the
+    # ablation's hand-written tactile adjectives, or the names saying the match is weak where
+    # the press is unfamiliar (the weak-match ablation).
     descriptions: str = "names"
 
 
@@ -38,6 +39,8 @@ CONDITIONS: dict[str, Condition] = {c.name: c for c in (
               "vision_tactile", "vq_zeros", 3),
     Condition("vq_top3_adjectives", "Vision + tactile (VQ-VAE, top-3), descriptions in "
               "tactile adjectives (ablation)", "vision_tactile", "vq", 3, "adjectives"),
+    Condition("vq_top3_weak", "Vision + tactile (VQ-VAE, top-3), an unfamiliar touch said to "
+              "match only weakly (ablation)", "vision_tactile", "vq", 3, "weak"),
     Condition("tactile_only", "Tactile only (VQ-VAE, top-3, no image)", "tactile_only", "vq",
               3),
 )}

@@ -10,6 +10,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from edge.core.config import RuntimeConfig
 from edge.core.errors import EvalVLMError
 from edge.core.model import ReferenceDatabase, load_model
 from edge.vlm.client import VLMAnswer
@@ -18,7 +19,13 @@ from train.eval.eval_vlm.cache import CACHE_SCHEMA
 from train.eval.eval_vlm.config import CHECKPOINT_VARIANTS, CONDITIONS, Condition, EvalVLMConfig
 from train.eval.eval_vlm.images import ImageSource
 from train.eval.eval_vlm.sets import UnseenSet, load_sets
-from train.eval.eval_vlm.tactile import Tactile, checkpoint_tactile, describe, vq_tactile
+from train.eval.eval_vlm.tactile import (
+    Tactile,
+    checkpoint_tactile,
+    describe,
+    unfamiliar,
+    vq_tactile,
+)
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +118,8 @@ def build_jobs(sets: Sequence[UnseenSet],
     for ts in sets:
         x = ts.presses.inputs(0)  # the one input the robot computes
         retrieved: dict[int, list[list[tuple[str, float]]]] = {}
+        # The daemon's unfamiliar flag of each press, where a condition says a match is weak.
+        flagged: dict[int, list[bool]] = {}
         for cond, source in conditions:
             if cond.variant is not None:
                 if source is None:
@@ -118,6 +127,9 @@ def build_jobs(sets: Sequence[UnseenSet],
                 if id(source) not in retrieved:
                     k = max(c.k for c, s in conditions if s is source)
                     retrieved[id(source)] = source.topk(x, k)
+                if cond.descriptions == "weak" and id(source) not in flagged:
+                    flagged[id(source)] = unfamiliar(source, x,
+                                                     RuntimeConfig.unfamiliar_percentile)
         for i, (press, label) in enumerate(zip(ts.press_ids, ts.presses.labels, strict=True)):
             image = images.get(ts.name, press, label, ts.directory / press) \
                 if with_image else None
@@ -128,7 +140,9 @@ def build_jobs(sets: Sequence[UnseenSet],
                 if cond.variant is not None:
                     assert source is not None
                     topk = tuple(retrieved[id(source)][i][:cond.k])
-                    description = describe(cond, source.database, [lab for lab, _ in topk])
+                    weak = id(source) in flagged and flagged[id(source)][i]
+                    description = describe(cond, source.database, [lab for lab, _ in topk],
+                                           weak)
                 sent = image if template.uses_image else None
                 assert not template.uses_image or sent is not None
                 jobs.append(Job(

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from edge.core.errors import ModelError
-from edge.core.model import ReferenceDatabase
+from edge.core.model import Familiarity, ReferenceDatabase
+from edge.vlm.prompt import weak_match
 from train.eval.eval_vlm.config import Condition
 from train.learn.data import PressSet, load_presses
 
@@ -33,6 +34,14 @@ class Tactile:
 def vq_tactile(model: Any) -> Tactile:
     """The shipped model: ONNX encoder, shipped database (what the robot runs)."""
     return Tactile("vq", lambda x: np.asarray(model.encode(x)[0]), model.database)
+
+
+def unfamiliar(source: Tactile, x: np.ndarray, percentile: float) -> list[bool]:
+    """Whether each press of ``x`` is flagged unfamiliar as the daemon flags it (its
+    familiarity at or past ``percentile``)."""
+    familiarity = Familiarity(source.database)
+    return [(p := familiarity.percentile(z)) is not None and p >= percentile
+            for z in source.embed(x)]
 
 
 def checkpoint_tactile(variant: str, checkpoint: Path, reference: Path, spec: Any,
@@ -80,9 +89,13 @@ def torch_tactile(variant: str, model: Any, norm: Any, reference: tuple[PressSet
     return Tactile(variant, embed_z, db)
 
 
-def describe(condition: Condition, db: ReferenceDatabase, labels: Sequence[str]) -> str:
+def describe(condition: Condition, db: ReferenceDatabase, labels: Sequence[str],
+             unfamiliar: bool = False) -> str:
     """The touch sentence of ``labels`` under ``condition``: the database's descriptions
-    (object names), or for the ablation the hand-written tactile adjectives."""
+    (object names), for the adjective ablation the hand-written tactile adjectives, for the
+    weak-match one the names saying so where the press is ``unfamiliar``."""
+    if condition.descriptions == "weak" and unfamiliar:
+        return weak_match(db.describe(labels))
     if condition.descriptions == "adjectives":
         from train.eval.ablation import TACTILE_ADJECTIVES
 
