@@ -317,8 +317,10 @@ def _cmd_build(args: argparse.Namespace) -> int:
           f"{manifest['database']['references']} references of "
           f"{manifest['database']['classes']} classes; LOO 1-NN {m['loo_1nn']:.3f} "
           f"(trivial baseline {base.get('loo_1nn', float('nan')):.3f}); report "
-          f"{cfg.out / 'eval' / 'eval.md'}; load it with SIGHUP "
-          "(systemctl reload vtzero-edge) where [runtime] models_dir names it")
+          f"{cfg.out / 'eval' / 'eval.md'}; " + (
+              "load it with SIGHUP (systemctl reload vtzero-edge) where [runtime] models_dir "
+              "names it" if manifest.get("sequences") is None else
+              "another sensor's model: `vt-train eval` reads it, the robot's daemon refuses it"))
     return 0
 
 

@@ -777,11 +777,13 @@ def _manifest_sections(job: Job, trained: dict[str, dict[str, Any]], exported: d
                                          "steps_skipped": job.steps.skipped},
         "versions": versions(),
     }
+    # Both keys written either way (null, not absent): the manifest merges into what OUT.partial
+    # holds, so a key an earlier build of the other kind left there would otherwise stay.
     if ds.sequences is None:
-        sections["sensor_layout"] = {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
-                                     "taxel_rows": ds.layout.rows}
+        sections |= {SEQUENCES: None,
+                     "sensor_layout": {"pads": ds.layout.pads, "taxels_per_pad": ds.layout.taxels,
+                                       "taxel_rows": ds.layout.rows}}
     else:
-        # (null, not absent: a robot build's left in OUT by an earlier build would stay)
         sections |= {SEQUENCES: ds.sequences, "sensor_layout": None}
     if ds.index.get("plan_sha256"):
         sections["plan_sha256"] = ds.index["plan_sha256"]
