@@ -24,6 +24,7 @@ from tests.support.lab_data import ORIGIN, PLAN_SHA256, write_lab_dataset
 from tests.support.waits import wait_until
 from train.cli import main
 from train.eval import evaluate
+from train.learn.data import STD_FLOOR_FRACTION
 from train.learn.trainer import Progress
 from train.ship.build import (
     EMBEDDINGS,
@@ -100,7 +101,8 @@ async def test_build_gives_a_directory_the_daemon_takes_with_sighup(lab_food, tm
     assert set(manifest["class_rate_hz"]) == set(REFERENCE)
     assert all(abs(r - 125) < 1 for r in manifest["class_rate_hz"].values())
     assert manifest["training"]["vq"]["config"]["model"]["decoder"] == "teacher"
-    assert manifest["training"]["std_floor_fraction"] == 1.0  # the normaliser's, recorded
+    assert manifest["training"]["std_floor_fraction"] == STD_FLOOR_FRACTION  # recorded
+    assert manifest["sequences"] is None  # a robot build, whatever OUT held before
     assert manifest["encoder"]["parity"]["max_abs_diff_z"] < 1e-5
     report = json.loads((models / "eval" / "eval.json").read_text())
     rows = {(r["variant"], r["space"]) for r in report["rows"]}
