@@ -235,13 +235,16 @@ class ReferenceDatabase:
     gives one reference per offset; a database written before offsets were stored reads as
     offset 0 throughout), ``codebook`` (K, D) float32. ``space`` says which embedding
     retrieval compares: ``z`` (continuous, the default) or ``z_q`` (the query is quantised
-    to its nearest code first).
+    to its nearest code first). ``feature`` (N, channels) float32, or None (a database
+    written before it was stored): each reference's per-channel mean over its model input
+    window (tactile units, at its own offset), the space :class:`Familiarity` ranks in.
     """
 
     def __init__(self, classes: Sequence[ClassInfo], z: np.ndarray, z_q: np.ndarray,
                  code: np.ndarray, label_index: np.ndarray, source: Sequence[str],
                  codebook: np.ndarray, space: Space = "z", k: int = DEFAULT_K,
-                 name: str = DATABASE_ARRAYS, offset: np.ndarray | None = None) -> None:
+                 name: str = DATABASE_ARRAYS, offset: np.ndarray | None = None,
+                 feature: np.ndarray | None = None) -> None:
         classes = tuple(classes)
         z = np.asarray(z, dtype=np.float32)
         n = z.shape[0] if z.ndim == 2 else -1
@@ -259,6 +262,10 @@ class ReferenceDatabase:
                     problems.append(f"{key} has shape {np.shape(arr)}, expected ({n},)")
             if np.ndim(codebook) != 2 or np.shape(codebook)[1] != z.shape[1]:
                 problems.append(f"codebook shape {np.shape(codebook)} does not match D")
+            if feature is not None and (np.ndim(feature) != 2 or len(feature) != n
+                                        or not np.all(np.isfinite(feature))):
+                problems.append(f"feature must be (N={n}, channels) finite values, got "
+                                f"shape {np.shape(feature)}")
         if space not in ("z", "z_q"):
             problems.append(f"space must be 'z' or 'z_q', got {space!r}")
         if not isinstance(k, int) or k < 1:
@@ -295,6 +302,8 @@ class ReferenceDatabase:
         self.label_index = label_index[order]
         self.source = np.asarray(source, dtype=str)[order]
         self.offset = np.asarray(offset, dtype=np.int8)[order]
+        self.feature = (None if feature is None
+                        else np.ascontiguousarray(np.asarray(feature, np.float32)[order]))
         self.codebook = codebook
         self.space: Space = space
         self.k = k
@@ -361,11 +370,12 @@ class ReferenceDatabase:
         ranked = sorted(zip(exact, cand.tolist(), strict=True))
         return [(self._labels[c], d) for d, c in ranked]
 
-    def nearest_other_press(self, block: int = LOO_BLOCK) -> np.ndarray:
+    def nearest_other_press(self, block: int = LOO_BLOCK, points: np.ndarray | None = None
+                            ) -> np.ndarray:
         """Each reference's distance to each class's nearest reference from another press,
-        (N, classes) float64 in the retrieval space (inf where a class holds only the
-        reference's own press): the leave-one-out figures :class:`Familiarity` ranks a query
-        among.
+        (N, classes) float64 in the retrieval space, or between ``points`` (N, d) given one
+        row per reference (inf where a class holds only the reference's own press): the
+        leave-one-out figures :class:`Familiarity` ranks a query among.
 
         A press is a ``source`` within a class: its offsets are one touch seen on shifted
         grids, so they are left out together. ``block`` rows at a time bound the memory
@@ -374,7 +384,7 @@ class ReferenceDatabase:
         n = len(self)
         press = np.unique(np.char.add(self.label_index.astype(str),
                                       np.char.add("/", self.source)), return_inverse=True)[1]
-        refs = self._refs.astype(np.float64)
+        refs = np.asarray(self._refs if points is None else points, dtype=np.float64)
         norms = np.einsum("ij,ij->i", refs, refs)
         out = np.empty((n, len(self.classes)), dtype=np.float64)
         for start in range(0, n, block):
@@ -387,12 +397,13 @@ class ReferenceDatabase:
     # ----- building and storage
 
     def with_class(self, info: ClassInfo, z: np.ndarray, code: np.ndarray,
-                   source: Sequence[str], offset: np.ndarray | None = None
-                   ) -> ReferenceDatabase:
-        """A new database with ``z`` (and their codes, sources and offsets) added under
-        ``info.label``.
+                   source: Sequence[str], offset: np.ndarray | None = None,
+                   feature: np.ndarray | None = None) -> ReferenceDatabase:
+        """A new database with ``z`` (and their codes, sources, offsets and features) added
+        under ``info.label``.
 
         An existing label keeps its references, gains these, and takes the new description.
+        The new database has features only where this one and the added references both do.
         """
         z = np.asarray(z, dtype=np.float32)
         code = np.asarray(code, dtype=np.int64)
@@ -413,7 +424,9 @@ class ReferenceDatabase:
             np.concatenate([self.label_index, np.full(len(z), idx, dtype=np.int32)]),
             [*self.source.tolist(), *source],
             self.codebook, self.space, self.k,
-            offset=np.concatenate([self.offset, np.asarray(offset, dtype=np.int8)]))
+            offset=np.concatenate([self.offset, np.asarray(offset, dtype=np.int8)]),
+            feature=(None if self.feature is None or feature is None
+                     else np.concatenate([self.feature, np.asarray(feature, np.float32)])))
 
     @property
     def offsets(self) -> list[int]:
@@ -442,10 +455,11 @@ class ReferenceDatabase:
         """Write ``database.npz`` and ``database.json`` atomically (each file)."""
         directory = Path(directory)
         buf = io.BytesIO()
+        feature = {} if self.feature is None else {"feature": self.feature}
         np.savez_compressed(
             buf, z=self.z, z_q=self.z_q, code=self.code, label_index=self.label_index,
             classes=np.array(self._labels, dtype=str), source=self.source,
-            offset=self.offset, codebook=self.codebook)
+            offset=self.offset, codebook=self.codebook, **feature)
         atomic_write_bytes(directory / DATABASE_ARRAYS, buf.getvalue())
         atomic_write_text(directory / DATABASE_INDEX,
                           json.dumps(self.index_json(extra), indent=2) + "\n")
@@ -476,6 +490,7 @@ class ReferenceDatabase:
                     raise ModelError(f"{npz_name}: missing arrays {', '.join(missing)}")
                 a = {key: npz[key] for key in keys}
                 offset = npz["offset"] if "offset" in npz.files else None
+                feature = npz["feature"] if "feature" in npz.files else None
         except ModelError:
             raise
         except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError) as exc:
@@ -484,7 +499,7 @@ class ReferenceDatabase:
             raise ModelError(f"{npz_name} and {json_name} list different classes")
         return cls(classes, a["z"], a["z_q"], a["code"], a["label_index"],
                    a["source"].tolist(), a["codebook"], space, k, name=npz_name,
-                   offset=offset)
+                   offset=offset, feature=feature)
 
     @classmethod
     def load(cls, directory: str | Path) -> ReferenceDatabase:
@@ -496,27 +511,42 @@ class ReferenceDatabase:
 
 
 class Familiarity:
-    """How familiar a query is: how much nearer its nearest class is than its
-    :data:`FAMILIARITY_CLASSES`-th nearest (the *ratio* of their distances, 0 to 1), ranked
-    among the same ratio of every reference against the rest of the database, its own press
-    left out (:meth:`ReferenceDatabase.nearest_other_press`), computed when the database
-    loads.
+    """How familiar a query is, as a percentile among the database's own references (each
+    against the rest, its whole press left out: :meth:`ReferenceDatabase.nearest_other_press`),
+    computed when the database loads.
 
-    Why a ratio, not the nearest distance alone: fresh presses of a known object lie farther
-    from the references than the references (the encoder's training presses) lie from each
-    other, so a distance ranked them high, as far as a touch of something new; what tells a new
-    object is that it lands *between* classes, about as near the eighth as the first
-    (docs/method.md, 'Familiarity', has the measurement).
+    Where the database has features (:attr:`ReferenceDatabase.feature`), in the *channel-mean
+    space*: the query's per-channel mean over its model input window, standardised with the
+    references' feature mean and std (a channel that never moves left unscaled); its distance
+    to the nearest reference, ranked among every reference's nearest distance to another
+    press. Why there and not in the embedding: the encoder's metric term draws its training
+    presses (the references) tight, so fresh presses of known objects land as far from them
+    as touches of new ones; a space the encoder did not learn has no such bias (docs/method.md,
+    'Familiarity', has the measurement).
 
-    :meth:`percentile` is the share of references whose ratio is strictly below the
-    query's, in percent: 0 = the query is more clearly inside one class than every reference
-    is; 100 = less clearly than all (a touch like nothing the database holds).
+    Where it has none (a model directory older than the features), or with ``embedding``
+    (for comparison), in the embedding: how much nearer the nearest class is than the
+    :data:`FAMILIARITY_CLASSES`-th nearest (the *ratio* of their distances), ranked among the
+    references' same ratio.
+
+    :meth:`percentile` is the share of references whose figure is strictly below the
+    query's, in percent: 0 = the query is nearer the references than every reference is to
+    the others; 100 = farther than all (a touch like nothing the database holds).
     """
 
-    def __init__(self, database: ReferenceDatabase) -> None:
+    def __init__(self, database: ReferenceDatabase, embedding: bool = False) -> None:
         self.database = database
-        ratios = _class_ratios(database.nearest_other_press())
-        self.loo = np.sort(ratios[np.isfinite(ratios)])
+        self.uses_feature = database.feature is not None and not embedding
+        if self.uses_feature:
+            feature = database.feature.astype(np.float64)
+            self._mean = feature.mean(axis=0)
+            std = feature.std(axis=0)
+            self._std = np.where(std > 0, std, 1.0)
+            self._refs = (feature - self._mean) / self._std
+            figures = database.nearest_other_press(points=self._refs).min(axis=1)
+        else:
+            figures = _class_ratios(database.nearest_other_press())
+        self.loo = np.sort(figures[np.isfinite(figures)])
 
     def ratio(self, z: np.ndarray) -> float | None:
         """The query's ratio (its nearest class's distance over its
@@ -526,13 +556,31 @@ class Familiarity:
             return None
         return float(_class_ratios(np.array([[d for _, d in ranked]]))[0])
 
-    def percentile(self, z: np.ndarray) -> float | None:
-        """The percentile of the query embedding ``z``'s ratio among the references'; None
-        where the database has one class or no two presses to compare."""
-        ratio = self.ratio(z)
-        if ratio is None or self.loo.size == 0:
+    def distance(self, feature: np.ndarray) -> float:
+        """The standardised query ``feature``'s (channels,) distance to its nearest
+        reference."""
+        q = np.asarray(feature, dtype=np.float64).reshape(-1)
+        if q.shape[0] != self._refs.shape[1] or not np.all(np.isfinite(q)):
+            raise ModelError(f"query feature must be {self._refs.shape[1]} finite values, "
+                             f"got {q.shape}")
+        diff = self._refs - (q - self._mean) / self._std
+        return math.sqrt(float(np.einsum("ij,ij->i", diff, diff).min()))
+
+    def percentile(self, z: np.ndarray, feature: np.ndarray | None = None) -> float | None:
+        """The percentile of the query among the references: its ``feature`` (the model
+        input's per-channel mean, required where the database has features) or its embedding
+        ``z``'s ratio; None where the database has one class (the ratio) or no two presses
+        to compare."""
+        if self.uses_feature:
+            if feature is None:
+                raise ModelError("the database ranks familiarity on features: the query's "
+                                 "feature (its model input's per-channel mean) is needed")
+            figure: float | None = self.distance(feature)
+        else:
+            figure = self.ratio(z)
+        if figure is None or self.loo.size == 0:
             return None
-        below = int(np.searchsorted(self.loo, ratio, side="left"))
+        below = int(np.searchsorted(self.loo, figure, side="left"))
         return 100.0 * below / self.loo.size
 
 
@@ -947,6 +995,10 @@ def load_model(models_dir: str | Path, *, threads: int = 1, any_sensor: bool = F
     if encoder.dim is not None and encoder.dim != database.dim:
         raise ModelError(f"{directory / DATABASE_ARRAYS}: embeddings have {database.dim} "
                          f"dims, the encoder gives {encoder.dim}")
+    if database.feature is not None and database.feature.shape[1] != encoder.channels:
+        raise ModelError(f"{directory / DATABASE_ARRAYS}: features have "
+                         f"{database.feature.shape[1]} channels, the encoder takes "
+                         f"{encoder.channels}")
     log.info("model %s: %s encoder, %d reference presses of %d classes, retrieval in %s "
              "space", directory, kind, len(database), len(database.classes), database.space)
     return Model(directory, manifest, encoder, database, window)

@@ -267,9 +267,9 @@ class Analysis:
     topk: list[tuple[str, float]]  # nearest distinct reference classes, nearest first
     description: str
     model_io_npz: bytes  # the crop, the model input and the embedding
-    # How clearly the press lies in its nearest class, as a percentile of the database's own
-    # leave-one-out figures (edge.core.model.Familiarity: 0 = more clearly than every
-    # reference, 100 = less than all); None: a database of one class or one press.
+    # How far the press lies from the references, as a percentile of the database's own
+    # leave-one-out figures (edge.core.model.Familiarity: 0 = nearer than every reference
+    # to the others, 100 = farther than all); None: a database of one class or one press.
     familiarity: float | None = None
     # At or past the configured percentile ([runtime] unfamiliar_percentile).
     unfamiliar: bool = False
@@ -309,7 +309,8 @@ def analyse_press(ref: ModelRef, rec: recording.Recording,
         share = (1 + sum(label == topk[0][0] for label in nearest)) / (1 + len(nearest))
     buf = io.BytesIO()
     np.savez(buf, window=window, x=x, z=z, code=np.asarray(code))
-    return _analysis(lookup, z, code, topk, buf.getvalue(), unfamiliar_percentile, share)
+    return _analysis(lookup, z, x.mean(axis=0), code, topk, buf.getvalue(),
+                     unfamiliar_percentile, share)
 
 
 def _window(model: Model, rec: recording.Recording) -> np.ndarray:
@@ -324,10 +325,10 @@ def _offset_embeddings(model: Model, window: np.ndarray, offsets: list[int]
             .reshape(-1) for o in offsets]
 
 
-def _analysis(lookup: Lookup, z: np.ndarray, code: int, topk: list[tuple[str, float]],
-              model_io: bytes, unfamiliar_percentile: float, agreement: float | None
-              ) -> Analysis:
-    familiarity = lookup.familiarity.percentile(z)
+def _analysis(lookup: Lookup, z: np.ndarray, feature: np.ndarray, code: int,
+              topk: list[tuple[str, float]], model_io: bytes, unfamiliar_percentile: float,
+              agreement: float | None) -> Analysis:
+    familiarity = lookup.familiarity.percentile(z, feature)
     return Analysis([float(v) for v in z], code, [(label, float(d)) for label, d in topk],
                     lookup.database.describe([label for label, _ in topk]), model_io,
                     familiarity,
@@ -352,7 +353,8 @@ def fuse_presses(ref: ModelRef, recs: list[recording.Recording], fusion: str,
 
     ``z`` and ``code`` are the mean embedding's (its nearest codebook entry); ``agreement``
     the share of the (press, offset) embeddings whose nearest class is the fused first. The
-    familiarity is the mean embedding's, with either fusion."""
+    familiarity is the mean of the presses' features (or, on a database without them, the
+    mean embedding's), with either fusion."""
     if fusion not in FUSIONS:
         raise ValueError(f"fusion {fusion!r}: one of {', '.join(FUSIONS)}")
     if not recs:
@@ -379,7 +381,9 @@ def fuse_presses(ref: ModelRef, recs: list[recording.Recording], fusion: str,
     agreement = sum(each[0][0] == topk[0][0] for each in ranked) / len(ranked)
     buf = io.BytesIO()
     np.savez(buf, windows=np.stack(windows), z=zs, mean=mean, code=np.asarray(code))
-    return _analysis(lookup, mean, code, topk, buf.getvalue(), unfamiliar_percentile,
+    feature = np.mean([preprocess.subsample(w, 0, model.window).mean(axis=0) for w in windows],
+                      axis=0)
+    return _analysis(lookup, mean, feature, code, topk, buf.getvalue(), unfamiliar_percentile,
                      agreement)
 
 

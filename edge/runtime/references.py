@@ -11,9 +11,11 @@ the read-modify-write of an add or a removal holds a file lock, so two writers (
 and a CLI run) never lose one another's change.
 
 One entry per press, holding the embedding at every subsampling offset the model's
-database was cut at (z and code per offset), as ``vt-train db add`` adds a press: a taught
-press then weighs in retrieval as a built one does, and the query (offset 0) finds its
-nearest offset as it would for a built class.
+database was cut at (z and code per offset) and its feature there (each channel's mean over
+the model input, the space :class:`Familiarity` ranks in), as ``vt-train db add`` adds a
+press: a taught press then weighs in retrieval as a built one does, and the query (offset 0)
+finds its nearest offset as it would for a built class. An entry written before features
+were kept gets them from its press copy when merged.
 
 Loading checks every field and refuses a malformed file, naming it and the field. Entries
 embedded by another model (another manifest digest) are set aside: kept on disk and listed
@@ -47,7 +49,7 @@ from edge import __version__
 from edge.core import preprocess, recording
 from edge.core.atomic import atomic_dir, atomic_write_bytes, atomic_write_text
 from edge.core.descriptions import check_description
-from edge.core.errors import BadRequest, DescriptionError, ModelError, NotFoundError
+from edge.core.errors import BadRequest, DescriptionError, EdgeError, ModelError, NotFoundError
 from edge.core.model import (
     ClassInfo,
     Familiarity,
@@ -107,6 +109,8 @@ class TaughtReference:
     z: tuple[tuple[float, ...], ...]
     code: tuple[int, ...]
     press_sha256: str  # its frames' (recording.frames_sha256): one press is taught once
+    # Per offset, each channel's mean over the model input (None: taught before it was kept).
+    feature: tuple[tuple[float, ...], ...] | None = None
 
     @property
     def press_file(self) -> str:
@@ -117,7 +121,9 @@ class TaughtReference:
                 "episode": self.episode, "taught_at": self.taught_at, "source": self.source,
                 "x_th": self.x_th, "rate_hz": self.rate_hz, "model": self.model,
                 "offsets": list(self.offsets), "z": [list(row) for row in self.z],
-                "code": list(self.code), "press_sha256": self.press_sha256}
+                "code": list(self.code), "press_sha256": self.press_sha256,
+                **({} if self.feature is None
+                   else {"feature": [list(row) for row in self.feature]})}
 
     @classmethod
     def from_json(cls, raw: Any, where: str) -> TaughtReference:
@@ -140,10 +146,15 @@ class TaughtReference:
         offsets = field("offsets", lambda v: isinstance(v, list) and bool(v) and all(
             type(o) is int and 0 <= o < 128 for o in v), "a non-empty list of offsets")
         n = len(offsets)
-        z = field("z", lambda v: isinstance(v, list) and len(v) == n and all(
-            isinstance(row, list) and row and len(row) == len(v[0])
-            and all(type(x) in (int, float) and np.isfinite(x) for x in row) for row in v),
-            f"{n} rows (one per offset) of equally many finite numbers")
+        def rows(v: Any) -> bool:
+            return isinstance(v, list) and len(v) == n and all(
+                isinstance(row, list) and row and len(row) == len(v[0])
+                and all(type(x) in (int, float) and np.isfinite(x) for x in row) for row in v)
+
+        want = f"{n} rows (one per offset) of equally many finite numbers"
+        z = field("z", rows, want)
+        feature = (None if raw.get("feature") is None
+                   else field("feature", rows, f"null or {want}"))
         return cls(
             id=field("id", lambda v: text(v) and LABEL.fullmatch(v), "a reference id"),
             label=field("label", lambda v: text(v) and LABEL.fullmatch(v), "a label"),
@@ -159,7 +170,9 @@ class TaughtReference:
             z=tuple(tuple(float(x) for x in row) for row in z),
             code=tuple(field("code", lambda v: isinstance(v, list) and len(v) == n and all(
                 type(c) is int and c >= 0 for c in v), f"{n} codes >= 0")),
-            press_sha256=field("press_sha256", text, "a sha256"))
+            press_sha256=field("press_sha256", text, "a sha256"),
+            feature=(None if feature is None
+                     else tuple(tuple(float(x) for x in row) for row in feature)))
 
 
 @dataclass(frozen=True)
@@ -191,7 +204,8 @@ class Overlay:
     def to_json(self) -> list[dict[str, Any]]:
         """Every reference as listed (``stale``: embedded by another model, not used),
         without its embedding."""
-        return [{**{k: v for k, v in ref.to_json().items() if k not in ("z", "code")},
+        return [{**{k: v for k, v in ref.to_json().items()
+                    if k not in ("z", "code", "feature")},
                  "stale": stale}
                 for refs, stale in ((self.current, False), (self.stale, True))
                 for ref in refs]
@@ -203,9 +217,10 @@ class Overlay:
             out.setdefault(ref.label, []).append(ref)
         return out
 
-    def merged(self, database: ReferenceDatabase) -> ReferenceDatabase:
-        """``database`` with every current reference added under its label (the latest
-        description of a label wins, as ``db add`` gives a class its new one)."""
+    def merged(self, model: Model) -> ReferenceDatabase:
+        """The model's database with every current reference added under its label (the
+        latest description of a label wins, as ``db add`` gives a class its new one)."""
+        database = model.database
         size = database.codebook.shape[0]
         for ref in self.current:
             where = f"{self.path}: reference {ref.id}"
@@ -214,19 +229,48 @@ class Overlay:
                                  f"{database.dim}")
             if max(ref.code) >= size:
                 raise ModelError(f"{where}: code outside the model's codebook 0..{size - 1}")
+            if (ref.feature is not None and database.feature is not None
+                    and len(ref.feature[0]) != database.feature.shape[1]):
+                raise ModelError(f"{where}: feature has {len(ref.feature[0])} channels, the "
+                                 f"model's references {database.feature.shape[1]}")
+        # A model database without features ranks in the embedding: none are needed.
+        features = ({} if database.feature is None
+                    else {ref.id: self._feature(ref, model) for ref in self.current})
+        missing = [ref_id for ref_id, f in features.items() if f is None]
+        if missing:
+            log.warning("%s: %d taught references have no feature and no readable press "
+                        "(%s): familiarity falls back to the embedding ratio; teach them "
+                        "again to restore it", self.path, len(missing), ", ".join(missing))
         for label, refs in self.labels().items():
             database = database.with_class(
                 ClassInfo(label, refs[-1].description, TAUGHT_SPLIT),
                 np.asarray([row for ref in refs for row in ref.z], dtype=np.float32),
                 np.asarray([c for ref in refs for c in ref.code], dtype=np.int64),
                 [SOURCE_PREFIX + ref.id for ref in refs for _ in ref.offsets],
-                np.asarray([o for ref in refs for o in ref.offsets], dtype=np.int8))
+                np.asarray([o for ref in refs for o in ref.offsets], dtype=np.int8),
+                None if missing or not features
+                else np.concatenate([features[ref.id] for ref in refs]))
         return database
+
+    def _feature(self, ref: TaughtReference, model: Model) -> np.ndarray | None:
+        """The reference's feature at each of its offsets: as kept, or (an entry taught
+        before features were kept) from the press copy beside the index; None where that is
+        missing or unreadable."""
+        if ref.feature is not None:
+            return np.asarray(ref.feature, dtype=np.float32)
+        if self.path is None:
+            return None
+        try:
+            rec = recording.load(self.path.parent / ref.press_file)
+        except (OSError, EdgeError) as exc:
+            log.warning("%s: reference %s: %s", self.path, ref.id, exc)
+            return None
+        return model_inputs(model, rec, ref.offsets).mean(axis=1)
 
     def lookup(self, model: Model) -> Lookup:
         """The merged database of ``model`` and its familiarity (the leave-one-out
         distances over all of it: a few tens of milliseconds for the shipped 1600)."""
-        database = self.merged(model.database)
+        database = self.merged(model)
         return Lookup(database, Familiarity(database), self)
 
 
@@ -242,16 +286,23 @@ def signature(directory: Path | None) -> tuple[int, int, int] | None:
     return st.st_ino, st.st_mtime_ns, st.st_size
 
 
-def embed_press(model: Model, rec: recording.Recording) -> tuple[np.ndarray, np.ndarray,
-                                                                  list[int]]:
-    """The press's model window at every offset the model's database holds, embedded:
-    z (offsets, D), code (offsets,) and the offsets. Blocking (milliseconds)."""
+def model_inputs(model: Model, rec: recording.Recording, offsets: Sequence[int]
+                 ) -> np.ndarray:
+    """The press's model input at each of ``offsets``: (offsets, steps, channels)."""
     spec = model.window
     window = preprocess.crop(rec.recv_time, preprocess.recording_units(rec), rec.t_stop, spec)
+    return np.stack([preprocess.subsample(window, o, spec) for o in offsets])
+
+
+def embed_press(model: Model, rec: recording.Recording
+                ) -> tuple[np.ndarray, np.ndarray, list[int], np.ndarray]:
+    """The press's model input at every offset the model's database holds, embedded:
+    z (offsets, D), code (offsets,), the offsets and the features (offsets, channels: each
+    channel's mean over the input). Blocking (milliseconds)."""
     offsets = model.database.offsets
-    x = np.stack([preprocess.subsample(window, o, spec) for o in offsets])
+    x = model_inputs(model, rec, offsets)
     z, code = model.encoder(x)
-    return z, code, offsets
+    return z, code, offsets, x.mean(axis=1)
 
 
 class ReferenceStore:
@@ -331,14 +382,15 @@ class ReferenceStore:
             if same:
                 raise BadRequest(f"this press is taught already, as {same[0].label!r} "
                                  f"(reference {same[0].id})")
-            z, code, offsets = embed_press(model, rec)
+            z, code, offsets, feature = embed_press(model, rec)
             ref = TaughtReference(
                 id=secrets.token_hex(6), label=label, description=description,
                 episode=episode, taught_at=_iso(now), source=source,
                 x_th=float(rec.threshold), rate_hz=rate_hz,
                 model=model.digest, offsets=tuple(offsets),
                 z=tuple(tuple(float(v) for v in row) for row in z),
-                code=tuple(int(c) for c in code), press_sha256=sha)
+                code=tuple(int(c) for c in code), press_sha256=sha,
+                feature=tuple(tuple(float(v) for v in row) for row in feature))
             # The press first: an index never names a press that is not on disk.
             recording.save(replace(rec, label=label), self.root / ref.press_file)
             self._write([*everything, ref])
@@ -521,5 +573,6 @@ def _iso(now: float | None) -> str:
 
 
 __all__ = ["INDEX", "LOCK", "PRESSES", "REFERENCES_DIR", "SOURCES", "Lookup", "Overlay",
-           "ReferenceStore", "Source", "TaughtReference", "embed_press", "references_dir",
+           "ReferenceStore", "Source", "TaughtReference", "embed_press", "model_inputs",
+           "references_dir",
            "signature"]

@@ -1,7 +1,10 @@
-"""Familiarity: how much nearer a query's nearest class is than its eighth nearest, as a
-percentile of the same ratio of every reference against the rest of the database, leaving
-out the reference's whole press, in the space retrieval compares; that it tells new objects'
-presses from known ones'; and the setting that flags a press unfamiliar."""
+"""Familiarity: where the database has features, the query's nearest-reference distance on
+standardised channel means, as a percentile of every reference's nearest distance to another
+press; where it has none, how much nearer its nearest class is than its eighth nearest in
+the embedding, as a percentile of the references' same ratio; a reference's whole press left
+out either way. That it tells new objects' presses from known ones' through the daemon's
+path; the database's features saved and read; and the setting that flags a press
+unfamiliar."""
 
 from __future__ import annotations
 
@@ -11,29 +14,34 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from edge.core import preprocess
+from edge.core import preprocess, recording
 from edge.core.config import config_from_dict
-from edge.core.errors import ConfigError
+from edge.core.errors import ConfigError, ModelError
 from edge.core.model import (
     FAMILIARITY_CLASSES,
     ClassInfo,
     Familiarity,
     ReferenceDatabase,
     load_model,
+    model_ref,
 )
+from edge.core.preprocess import DEFAULT_WINDOW
 from edge.lab.teaching_eval import roc_auc
+from edge.runtime.compute import analyse_press
+from tests.support.featured import FEATURED_CLASSES, featured_model
+from tests.support.lab_data import write_lab_dataset
 from tests.support.presses import recording_of
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
 
-def _db(z, label_index, source, space="z", codebook=None):
+def _db(z, label_index, source, space="z", codebook=None, feature=None):
     z = np.asarray(z, dtype=np.float32)
     codebook = z.copy() if codebook is None else np.asarray(codebook, dtype=np.float32)
     code = np.argmin(((z[:, None] - codebook) ** 2).sum(-1), axis=1)
     classes = [ClassInfo(f"c{i}", f"object {i}", "train") for i in range(max(label_index) + 1)]
     return ReferenceDatabase(classes, z, codebook[code], code, label_index, source, codebook,
-                             space)
+                             space, feature=feature)
 
 
 def test_a_press_is_left_out_whole_not_offset_by_offset():
@@ -110,7 +118,7 @@ def test_the_percentile_ranks_the_ratio_among_the_references_own():
 def test_familiarity_on_the_shipped_model():
     db = load_model(MODELS).database
     t0 = time.perf_counter()
-    fam = Familiarity(db)
+    fam = Familiarity(db, embedding=True)
     took = time.perf_counter() - t0
     print(f"leave-one-out ratios of the shipped {len(db)} references "
           f"({len(db.classes)} classes): {took * 1e3:.0f} ms; median "
@@ -125,32 +133,134 @@ def test_familiarity_on_the_shipped_model():
     assert fam.ratio(far) > 0.95 and fam.percentile(far) == 100.0
 
 
-KNOWN = ("wood_cube", "sponge_cube", "apple_piece", "marshmallow", "glass_marble", "yokan")
+def _clusters(seed: int = 0):
+    """Three classes of four presses, two offsets each; 4 channels, the last never moves.
+    Class c's channel means lie around 10 * c on the first channel (spread 1), the second
+    and third around 0 (spread 1 and 100: standardised, both count alike)."""
+    rng = np.random.default_rng(seed)
+    label_index = np.repeat([0, 1, 2], 8)
+    feature = np.column_stack([10.0 * label_index + rng.standard_normal(24),
+                               rng.standard_normal(24), 100 * rng.standard_normal(24),
+                               np.full(24, 7.0)])
+    source = [f"p{i // 2}" for i in range(24)]
+    z = rng.standard_normal((24, 3))  # the embedding plays no part
+    return _db(z, label_index, source, feature=feature), feature
+
+
+def test_with_features_a_new_cluster_of_channel_means_ranks_high_a_known_one_low():
+    db, feature = _clusters()
+    fam = Familiarity(db)
+    assert fam.uses_feature and fam.loo.size == 24
+    # The leave-one-out figures are each reference's nearest standardised distance to
+    # another press (its own press's other offset left out), brute force.
+    mean, std = feature.mean(axis=0), feature.std(axis=0)
+    std[3] = 1.0  # the channel that never moves is left unscaled
+    f = (feature - mean) / std
+    d = np.linalg.norm(f[:, None] - f[None], axis=2)
+    press = np.arange(24) // 2
+    d[press[:, None] == press[None, :]] = np.inf
+    np.testing.assert_allclose(fam.loo, np.sort(d.min(axis=1)), rtol=1e-6)
+    z = np.zeros(3)
+    known = [fam.percentile(z, [10.0 * c, 0.0, 0.0, 7.0]) for c in range(3)]
+    new = fam.percentile(z, [45.0, 0.0, 0.0, 7.0])  # beyond every class on channel 0
+    between = fam.percentile(z, [5.0, 3.0, 300.0, 7.0])
+    print(f"known clusters' centres {known}, a new cluster {new}, between {between}")
+    assert max(known) <= 50.0 and new == 100.0 and between == 100.0
+    # The channel that never moves is not scaled up: 1 unit off adds 1, not infinity.
+    assert fam.distance([0.0, 0.0, 0.0, 8.0]) == pytest.approx(
+        fam.distance([0.0, 0.0, 0.0, 7.0]) + 1.0, abs=0.5)
+    # The query's feature is needed; the embedding's ratio is there on request.
+    with pytest.raises(ModelError, match="the query's feature"):
+        fam.percentile(z)
+    with pytest.raises(ModelError, match="must be 4 finite values"):
+        fam.percentile(z, [1.0, 2.0])
+    assert not Familiarity(db, embedding=True).uses_feature
+
+
+def test_features_are_saved_and_read_and_an_older_database_falls_back(tmp_path):
+    db, feature = _clusters()
+    db.save(tmp_path)
+    back = ReferenceDatabase.load(tmp_path)
+    assert back.feature.dtype == np.float32
+    np.testing.assert_array_equal(back.feature, db.feature)
+    np.testing.assert_allclose(back.feature, feature, rtol=1e-6)
+    np.testing.assert_array_equal(Familiarity(back).loo, Familiarity(db).loo)
+    # A database.npz written before features were stored loads, and ranks in the embedding.
+    with np.load(tmp_path / "database.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files if k != "feature"}
+    np.savez_compressed(tmp_path / "database.npz", **arrays)
+    old = ReferenceDatabase.load(tmp_path)
+    assert old.feature is None
+    fam = Familiarity(old)
+    assert not fam.uses_feature
+    np.testing.assert_array_equal(fam.loo, Familiarity(db, embedding=True).loo)
+    assert fam.percentile(old.z[0]) == Familiarity(db, embedding=True).percentile(old.z[0])
+    # Malformed features are refused, naming the array.
+    with pytest.raises(ModelError, match=r"feature must be \(N=24, channels\) finite"):
+        _db(db.z, db.label_index, db.source.tolist(), feature=feature[:5])
+
+
+def test_the_feature_space_costs_little_at_the_shipped_size():
+    # The shipped database's 1600 references with features of its 96 channels.
+    db = load_model(MODELS).database
+    rng = np.random.default_rng(5)
+    with_features = ReferenceDatabase(
+        db.classes, db.z, db.z_q, db.code, db.label_index, db.source.tolist(), db.codebook,
+        offset=db.offset, feature=rng.standard_normal((len(db), 96)) * 50 + 100)
+    t0 = time.perf_counter()
+    fam = Familiarity(with_features)
+    load = time.perf_counter() - t0
+    queries = rng.standard_normal((200, 96)) * 50 + 100
+    t0 = time.perf_counter()
+    for q in queries:
+        fam.percentile(db.z[0], q)
+    query = (time.perf_counter() - t0) / len(queries)
+    print(f"{len(db)} references: load {load * 1e3:.0f} ms, a query {query * 1e3:.3f} ms")
+    assert fam.loo.size == 1600
+    assert load < 5.0 and query < 0.05  # generous: about 0.05 s and 0.1 ms on a busy host
+
+
+def test_the_builders_store_each_references_channel_means(tmp_path):
+    # vt-train db build (the featured model) and db add: each reference's feature is its
+    # press's model input at its own offset, averaged over time per channel.
+    from train.ship.database import add_class
+
+    directory = featured_model(tmp_path)
+    db = load_model(directory).database
+    assert db.feature.shape == (len(db), 96)
+    for i in (0, 7, len(db) - 1):
+        label, name = db.labels[db.label_index[i]], db.source[i]
+        rec = recording.load(tmp_path / "recordings" / label / name)
+        window = preprocess.crop(rec.recv_time, preprocess.recording_units(rec), rec.t_stop,
+                                 DEFAULT_WINDOW)
+        x = preprocess.subsample(window, int(db.offset[i]), DEFAULT_WINDOW)
+        np.testing.assert_allclose(db.feature[i], x.mean(axis=0), rtol=1e-5)
+    added = write_lab_dataset(tmp_path / "more", {"onigiri": ("train", 2, False)}, seed=9)
+    grown = add_class(directory, added / "onigiri", "onigiri", "onigiri (a rice ball)")
+    assert grown.feature.shape == (len(db) + 10, 96)
+    assert Familiarity(load_model(directory).database).uses_feature
+
+
 NEW = ("canele", "resin_replica_konjac", "chocolate", "raw_kiri_mochi", "onigiri",
        "resin_replica_macaron")
 
 
-def test_fresh_presses_of_new_objects_score_less_familiar_than_of_known_ones():
-    """Recorder presses (not references) of six known objects and six of FoodReplica and
-    Cube that the database lacks, read as the daemon reads them (offset 0)."""
-    model = load_model(MODELS)
-    fam = Familiarity(model.database)
+def test_fresh_presses_of_new_objects_score_less_familiar_than_of_known_ones(tmp_path):
+    """Recorder presses (not references) of the known objects of a database built with
+    features and of six of FoodReplica and Cube it lacks, looked up as the daemon does."""
+    ref = model_ref(featured_model(tmp_path))
 
     def score(name: str, seed: int) -> float:
-        rec = recording_of(name, seed)
-        window = preprocess.crop(rec.recv_time, preprocess.recording_units(rec), rec.t_stop,
-                                 model.window)
-        z = np.asarray(model.encode(preprocess.subsample(window, 0, model.window))[0])
-        return fam.percentile(z.reshape(-1))
+        return analyse_press(ref, recording_of(name, seed), agreement=False).familiarity
 
-    known = [score(n, s) for n in KNOWN for s in (101, 102)]
+    known = [score(n, s) for n in FEATURED_CLASSES for s in (101, 102)]
     new = [score(n, s) for n in NEW for s in (101, 102)]
     auc = roc_auc(new, known)
     print(f"known: median {np.median(known):.0f} {np.round(known)}; new: median "
           f"{np.median(new):.0f} {np.round(new)}; AUC {auc:.2f}")
-    # Measured on 420 presses: 0.77 (docs/method.md, 'Familiarity'); the figure it replaced
-    # was 0.49.
-    assert auc > 0.6 and np.median(new) > np.median(known)
+    # Here 0.58; on 420 presses against the shipped references 0.576 (docs/method.md,
+    # 'Familiarity'): the channel means tell new objects only somewhat better than chance.
+    assert auc > 0.5 and np.median(new) > np.median(known)
 
 
 @pytest.mark.parametrize("value", [0, -5, 100.5, 1000])

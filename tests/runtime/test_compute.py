@@ -16,11 +16,12 @@ import pytest
 
 from edge.core import preprocess, recording
 from edge.core.errors import ComputeError, ImageError, ModelError, PreprocessError
-from edge.core.model import load_model, model_ref
+from edge.core.model import Familiarity, load_model, model_ref
 from edge.runtime import compute
-from edge.runtime.compute import ComputeWorker, analyse_press
+from edge.runtime.compute import ComputeWorker, analyse_press, fuse_presses
 from edge.vlm.images import check_image, prepare_for_vlm
 from tests.support.daemon import ROOT
+from tests.support.featured import featured_model
 from tests.support.presses import recording_of
 from tests.vlm.helpers import image_bytes
 
@@ -53,6 +54,36 @@ async def test_analysis_in_the_worker_equals_the_model_in_process(model):
     assert max(prepared.width, prepared.height) <= 512 and len(prepared.data) <= 200_000
     assert data_url.startswith(b"data:image/jpeg;base64,")
     np.testing.assert_array_equal(recording.from_bytes(press_npz).frames, rec.frames)
+
+
+@pytest.fixture(scope="module")
+def featured(tmp_path_factory):
+    """A model directory whose database has features (made outside the test's loop: the
+    recorder runs one of its own)."""
+    return featured_model(tmp_path_factory.mktemp("featured"))
+
+
+async def test_the_familiarity_is_ranked_on_the_presses_channel_means(featured):
+    # A database with features: one press's model input at offset 0, or the mean of the
+    # presses' for a fused recognition (its embedding plays no part).
+    ref, db = model_ref(featured), load_model(featured).database
+    fam = Familiarity(db)
+    recs = [recording_of("macaron", s) for s in (3, 4)]
+    xs = [preprocess.model_input(r.recv_time, preprocess.recording_units(r), r.t_stop)
+          for r in recs]
+    async with ComputeWorker() as worker:
+        one = await worker.run(analyse_press, ref, recs[0])
+        both = await worker.run(fuse_presses, ref, recs, "votes")
+    want_one = fam.percentile(np.zeros(db.dim), xs[0].mean(axis=0))
+    want_both = fam.percentile(np.zeros(db.dim), np.mean([x.mean(axis=0) for x in xs], axis=0))
+    print(f"familiarity of one press {one.familiarity}, of two fused {both.familiarity}")
+    assert one.familiarity == want_one and both.familiarity == want_both
+    assert one.unfamiliar == (want_one >= 95)
+    # The shipped model's database has no features: the embedding's ratio, as before.
+    shipped = load_model(MODELS)
+    old = analyse_press(model_ref(MODELS), recs[0])
+    if shipped.database.feature is None:
+        assert old.familiarity == Familiarity(shipped.database).percentile(np.asarray(old.z))
 
 
 async def test_the_analysis_on_the_window_through_its_first_frame_past_equals_the_whole(model):

@@ -27,6 +27,7 @@ from edge.runtime.references import (
     references_dir,
 )
 from tests.support.daemon import ROOT
+from tests.support.featured import featured_model
 from tests.support.presses import recording_of
 
 MODELS = ROOT / "models"
@@ -38,6 +39,12 @@ KNOWN = "otedama"
 @pytest.fixture(scope="module")
 def model():
     return load_model(MODELS)
+
+
+@pytest.fixture(scope="module")
+def featured(tmp_path_factory):
+    """A model directory whose database has features (a few of the shipped classes)."""
+    return featured_model(tmp_path_factory.mktemp("featured"))
 
 
 @pytest.fixture
@@ -174,6 +181,53 @@ def test_a_press_left_by_a_crash_before_its_entry_is_not_used_and_is_cleared(mod
     assert (store.root / INDEX).read_bytes() == before
     store.add(model, _unknown(recording_of(NEW, 10)), NEW, None, source="api", append=True)
     assert not orphan.exists()
+
+
+def test_a_taught_reference_carries_its_feature_and_the_familiarity_uses_it(featured,
+                                                                            tmp_path):
+    model = load_model(featured)
+    store = ReferenceStore(references_dir(tmp_path / "state"))
+    ref = model_ref(featured, store.root)
+    rec = _unknown(recording_of(NEW, 20))
+    before = analyse_press(ref, rec, agreement=False)
+    taught = store.add(model, rec, NEW, "kiri mochi", source="api")
+    # Per offset, each channel's mean over the model input, as the database's references.
+    x = preprocess.model_input(rec.recv_time, preprocess.recording_units(rec), rec.t_stop)
+    assert np.asarray(taught.feature).shape == (5, x.shape[1])
+    np.testing.assert_allclose(taught.feature[0], x.mean(axis=0), rtol=1e-6)
+    assert "feature" not in store.load(model.digest).to_json()[0]
+    lookup = store.load(model.digest).lookup(model)
+    assert lookup.familiarity.uses_feature
+    assert lookup.database.feature.shape == (len(model.database) + 5, x.shape[1])
+    np.testing.assert_allclose(lookup.database.feature[-5:], taught.feature, rtol=1e-6)
+    # The taught press looked up again lies on its own reference: as familiar as can be.
+    after = analyse_press(ref, rec, agreement=False)
+    print(f"a press of {NEW}: familiarity {before.familiarity:.1f} before it was taught, "
+          f"{after.familiarity:.1f} after")
+    assert before.familiarity > 10.0 and after.familiarity == 0.0
+
+
+def test_an_entry_taught_before_features_gets_them_from_its_press_or_falls_back(
+        featured, tmp_path, caplog):
+    model = load_model(featured)
+    store = ReferenceStore(references_dir(tmp_path / "state"))
+    taught = store.add(model, _unknown(recording_of(NEW, 22)), NEW, "kiri mochi",
+                       source="api")
+    index = json.loads((store.root / INDEX).read_text())
+    del index["references"][0]["feature"]  # written before features were kept
+    (store.root / INDEX).write_text(json.dumps(index))
+    old = store.load(model.digest)
+    assert old.current[0].feature is None
+    lookup = old.lookup(model)  # from the press kept beside the index
+    np.testing.assert_allclose(lookup.database.feature[-5:], taught.feature, rtol=1e-6)
+    # Its press gone too: no features in the merged database, the embedding ratio, said.
+    (store.root / taught.press_file).unlink()
+    lookup = store.load(model.digest).lookup(model)
+    assert lookup.database.feature is None and not lookup.familiarity.uses_feature
+    assert f"1 taught references have no feature and no readable press ({taught.id})" \
+        in caplog.text
+    out = analyse_press(model_ref(featured, store.root), _unknown(recording_of(NEW, 23)))
+    assert out.familiarity is not None and NEW in dict(out.topk)
 
 
 @pytest.mark.asyncio

@@ -92,7 +92,8 @@ def test_the_weak_match_row_says_so_exactly_where_the_daemon_flags_the_press(rel
     model = load_model(released)
     familiarity = Familiarity(model.database)
     x = plan.sets[0].presses.inputs(0)
-    flagged = [familiarity.percentile(z) >= 95 for z in np.asarray(model.encode(x)[0])]
+    flagged = [familiarity.percentile(z, f) >= 95
+               for z, f in zip(np.asarray(model.encode(x)[0]), x.mean(axis=1), strict=True)]
     jobs = {(j.press, j.condition.name): j for j in plan.jobs}
     said = []
     for press in plan.sets[0].press_ids:

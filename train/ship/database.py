@@ -6,7 +6,9 @@ in tactile units, through onnxruntime. As in the paper's TactileReference, every
 one reference per subsampling offset (5: the same press seen on five 25 Hz grids 8 ms apart),
 so a class of 10 presses has 50 references (the offsets follow the window's subsampling:
 :func:`offsets_of`); the robot computes offset 0 of its press and finds the nearest of them.
-Stored per reference: z, z_q (= codebook[code]), code, label, source file, offset; per label:
+Stored per reference: z, z_q (= codebook[code]), code, label, source file, offset, and its
+feature (each channel's mean over that model input, in tactile units: the space the daemon's
+familiarity ranks in, :class:`edge.core.model.Familiarity`); per label:
 its description (from the recorder's ``dataset.json`` or given), which must name the object,
 never say how it feels (:mod:`edge.core.descriptions`).
 """
@@ -76,6 +78,13 @@ def reference_inputs(presses: PressSet, offsets: Sequence[int] | None = None) ->
     return np.ascontiguousarray(x.reshape(-1, *x.shape[2:]))
 
 
+def reference_features(presses: PressSet, offsets: Sequence[int] | None = None
+                       ) -> np.ndarray:
+    """Each (press, offset)'s per-channel mean over its model input, press-major:
+    (P * len(offsets), channels) float32."""
+    return reference_inputs(presses, offsets).mean(axis=1, dtype=np.float64).astype(np.float32)
+
+
 def encode_presses(encoder: OnnxEncoder, presses: PressSet,
                    offsets: Sequence[int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """z (P * len(offsets), D) and codes, press-major."""
@@ -128,7 +137,8 @@ def from_embeddings(presses: PressSet, splits: Splits, z: np.ndarray,
         np.repeat(np.asarray([index[label] for label in presses.labels], dtype=np.int32),
                   per_press),
         [Path(p).name for p in presses.paths for _ in offsets], codebook, space, k,
-        offset=np.tile(np.asarray(offsets, dtype=np.int8), len(presses)))
+        offset=np.tile(np.asarray(offsets, dtype=np.int8), len(presses)),
+        feature=reference_features(presses, offsets))
 
 
 def build_database(encoder_file: bytes, presses: PressSet, splits: Splits,
@@ -379,7 +389,11 @@ def add_class(model_dir: str | Path, recordings: str | Path, label: str,
     offsets = np.tile(np.asarray(offsets_of(presses), dtype=np.int8), len(presses))
     z, code = encode_presses(model.encoder, presses)
     db = old.with_class(ClassInfo(label, description.strip(), "added"), z, code, sources,
-                        offsets)
+                        offsets, reference_features(presses))
+    if old.feature is None:
+        log.warning("%s has no reference features (built before they were stored): the "
+                    "daemon's familiarity stays in the embedding until vt-train db build",
+                    Path(model_dir) / "database.npz")
     db.save(model_dir)
     sections: dict = {"database": summary(db),
                       PRESS_SHA256: (digests or {}) | press_digests(

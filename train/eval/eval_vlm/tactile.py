@@ -40,8 +40,8 @@ def unfamiliar(source: Tactile, x: np.ndarray, percentile: float) -> list[bool]:
     """Whether each press of ``x`` is flagged unfamiliar as the daemon flags it (its
     familiarity at or past ``percentile``)."""
     familiarity = Familiarity(source.database)
-    return [(p := familiarity.percentile(z)) is not None and p >= percentile
-            for z in source.embed(x)]
+    return [(p := familiarity.percentile(z, f)) is not None and p >= percentile
+            for z, f in zip(source.embed(x), x.mean(axis=1), strict=True)]
 
 
 def checkpoint_tactile(variant: str, checkpoint: Path, reference: Path, spec: Any,
