@@ -16,11 +16,14 @@ familiarity figure's ROC AUC and teaching end to end through the running daemon.
   set's labels), the simulated camera's photo, the touch sentence the daemon builds from the
   nearest classes of the taught database. It is not a real VLM.
 - **Familiarity.** Its ROC AUC for telling presses of the unseen classes from held-out presses
-  of the reference classes (the shipped database, nothing taught), beside the figure it
-  replaced (the nearest reference's distance among the references' leave-one-out nearest
-  distances) and the trivial baseline's: that percentile computed on each channel's mean over
-  the model input, standardised with the baseline's reference presses
-  (train/eval/evaluate.py's baseline). Three ways: FoodReplica against the held-out presses
+  of the reference classes (the shipped database, nothing taught): the daemon's figure (what
+  :func:`edge.runtime.compute.analyse_press` reports: the channel-mean space where the
+  database has features), beside the embedding's ratio (the daemon's figure on a database
+  without features), the nearest embedding distance it replaced, and the trivial baseline's:
+  the nearest distance on each channel's mean over the model input, standardised, among the
+  recorder's reference presses (train/eval/evaluate.py's baseline). The daemon's figure and
+  the baseline differ only in their references (the database's presses at every offset; the
+  recorder's at offset 0). Three ways: FoodReplica against the held-out presses
   of every other reference class from the first (where the familiarity was chosen), Cube
   against the rest, and all together. ``--only familiarity`` measures it alone.
 - **End to end.** Classes taught through ``POST /v1/teach`` on ``vt-edge run`` on the emulated
@@ -47,7 +50,7 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.descriptions import tactile_words
 from edge.core.errors import EdgeError
-from edge.core.model import Familiarity, ModelRef, model_ref
+from edge.core.model import Familiarity, ModelRef, ReferenceDatabase, model_ref
 from edge.core.progress import Progress
 from edge.lab.consistency import (
     daemon_press,
@@ -246,10 +249,9 @@ def teaching_curve(models: str | Path, classes: Sequence[str], ks: Sequence[int]
                                 for s, names in sets.items() if names}}}
 
 
-def nearest_percentiles(familiarity: Familiarity, zs: Sequence[np.ndarray]) -> np.ndarray:
-    """The figure :class:`Familiarity` replaced: each query's nearest reference distance
-    among the references' own nearest distances to another press."""
-    db = familiarity.database
+def nearest_percentiles(db: ReferenceDatabase, zs: Sequence[np.ndarray]) -> np.ndarray:
+    """The first familiarity figure: each query's nearest reference distance in the
+    embedding among the references' own nearest distances to another press."""
     loo = db.nearest_other_press().min(axis=1)
     loo = np.sort(loo[np.isfinite(loo)])
     nearest = [db.topk(z, 1)[0][1] for z in zs]
@@ -259,22 +261,26 @@ def nearest_percentiles(familiarity: Familiarity, zs: Sequence[np.ndarray]) -> n
 def familiarity_auc(models: str | Path, unseen: dict[str, list[recording.Recording]],
                     held_out: dict[str, list[recording.Recording]],
                     references: Sequence[recording.Recording]) -> dict:
-    """The familiarity's ROC AUC (nothing taught) beside the figure it replaced and the
-    trivial baseline's, on the choosing split (FoodReplica against the held-out presses of
-    the reference classes at even places), the reporting one (Cube against the odd ones) and
-    all together; and each unseen class's median percentile."""
+    """The daemon's familiarity's ROC AUC (nothing taught) beside the embedding's ratio, the
+    nearest embedding distance and the trivial baseline's, on the choosing split
+    (FoodReplica against the held-out presses of the reference classes at even places), the
+    reporting one (Cube against the odd ones) and all together; and each unseen class's
+    median percentile."""
     ref = model_ref(models)
-    familiarity = Familiarity(model_for(ref).database)
+    db = model_for(ref).database
     names = list(held_out)
     splits = {"choosing": ([c for c in unseen if set_of(c) == "foodreplica"], names[0::2]),
               "reporting": ([c for c in unseen if set_of(c) == "cube"], names[1::2]),
               "all": (list(unseen), names)}
     groups = {**unseen, **held_out}
     recs = [r for recs in groups.values() for r in recs]
-    zs = [np.asarray(analyse_press(ref, r).z) for r in recs]
-    base = baseline_percentiles(references, recs, ref.window)
-    scores = {"familiarity": np.array([familiarity.percentile(z) for z in zs]),
-              "nearest_distance": nearest_percentiles(familiarity, zs), "baseline": base}
+    looked = [analyse_press(ref, r, agreement=False) for r in recs]
+    zs = [np.asarray(a.z) for a in looked]
+    ratio = Familiarity(db, embedding=True)
+    scores = {"familiarity": np.array([a.familiarity for a in looked], dtype=np.float64),
+              "embedding_ratio": np.array([ratio.percentile(z) for z in zs], dtype=np.float64),
+              "nearest_distance": nearest_percentiles(db, zs),
+              "baseline": baseline_percentiles(references, recs, ref.window)}
     at, start = {}, 0
     for c, rs in groups.items():
         at[c] = slice(start, start + len(rs))
@@ -292,7 +298,9 @@ def familiarity_auc(models: str | Path, unseen: dict[str, list[recording.Recordi
             auc[split]["presses"] = [sum(len(unseen[c]) for c in pos),
                                      sum(len(held_out[c]) for c in neg)]
     flat_u, flat_h = list(unseen), names
-    return {"auc": auc["all"]["familiarity"],
+    return {"space": "channel means" if db.feature is not None else "embedding ratio",
+            "auc": auc["all"]["familiarity"],
+            "embedding_ratio_auc": auc["all"]["embedding_ratio"],
             "nearest_distance_auc": auc["all"]["nearest_distance"],
             "baseline_auc": auc["all"]["baseline"], "splits": auc,
             "unseen_presses": sum(len(v) for v in unseen.values()),
@@ -566,31 +574,41 @@ def _familiarity_lines(fam: dict) -> list[str]:
     splits, med = fam["splits"], fam["median_percentile"]
     titles = {"choosing": "FoodReplica against half the known classes (where it was chosen)",
               "reporting": "Cube against the other half", "all": "all together"}
+    space = ("in the channel-mean space (`edge.core.model.Familiarity`: the press's nearest "
+             "reference distance on each channel's mean over the model input, standardised "
+             "with the references', among every reference's nearest distance to another "
+             "press)" if fam["space"] == "channel means" else
+             "in the embedding: this database has no features, so the daemon ranks the "
+             "*embedding ratio*")
+    names = (("familiarity", "familiarity (the daemon's)"),
+             ("embedding_ratio", "embedding ratio"), ("nearest_distance", "nearest distance"),
+             ("baseline", "baseline"))
     lines = [
         "## Familiarity",
         "",
         "ROC AUC for telling presses of the unseen classes from held-out presses of the "
         "reference classes (fresh presses, nothing taught). *Familiarity* is the daemon's "
-        "percentile (`edge.core.model.Familiarity`: how much nearer the nearest class is than "
-        "the eighth nearest, ranked among the references' own figures, each reference's "
-        "press left out); *nearest distance* the figure it replaced (the nearest reference's "
-        "distance among the references' nearest distances to another press); the trivial "
-        "baseline that percentile on each channel's mean over the model input, standardised, "
-        f"among {fam['baseline_reference_presses']} reference presses.",
+        f"percentile, {space}; the *embedding ratio* how much nearer the nearest class is "
+        "than the eighth nearest in the embedding, ranked among the references' own (each "
+        "reference's press left out); *nearest distance* the nearest reference's embedding "
+        "distance among the references' nearest distances to another press; the trivial "
+        "baseline the daemon's channel-mean figure with other references: "
+        f"{fam['baseline_reference_presses']} presses of the dataset recorder at offset 0 "
+        "instead of the database's presses at every offset.",
         "",
-        "| presses | unseen / held-out | familiarity | nearest distance | baseline |",
-        "|---|---:|---:|---:|---:|",
+        "| presses | unseen / held-out | familiarity (the daemon's) | embedding ratio | "
+        "nearest distance | baseline |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
     lines += [f"| {titles[k]} | {v['presses'][0]} / {v['presses'][1]} | "
-              f"**{v['familiarity']:.3f}** | {v['nearest_distance']:.3f} | "
-              f"{v['baseline']:.3f} |" for k, v in splits.items()]
+              f"**{v['familiarity']:.3f}** | {v['embedding_ratio']:.3f} | "
+              f"{v['nearest_distance']:.3f} | {v['baseline']:.3f} |"
+              for k, v in splits.items()]
     lines += [
         "",
         "Median percentile unseen / held-out: "
         + "; ".join(f"{name} {med[key]['unseen']:.0f} / {med[key]['held_out']:.0f}"
-                    for key, name in (("familiarity", "familiarity"),
-                                      ("nearest_distance", "nearest distance"),
-                                      ("baseline", "baseline")))
+                    for key, name in names)
         + f". Flagged unfamiliar at the default 95th percentile: "
         f"{_pct(fam['flagged_at_95']['unseen'])} of the unseen presses, "
         f"{_pct(fam['flagged_at_95']['held_out'])} of the known objects' fresh ones.",

@@ -8,6 +8,7 @@ import pytest
 
 from edge.cli import main
 from edge.core import tomledit
+from edge.core.model import load_model
 from edge.lab.teaching_eval import agree_margin, roc_auc
 from tests.support.daemon import ROOT
 
@@ -87,6 +88,11 @@ def test_teaching_moves_the_nearest_class_through_both_paths(tmp_path, capsys):
     # The unseen presses lie less clearly in one class than known objects' fresh presses.
     assert fam["auc"] > 0.6 and fam["auc"] == fam["splits"]["all"]["familiarity"]
     assert 0.0 <= fam["nearest_distance_auc"] <= 1.0
+    assert 0.0 <= fam["embedding_ratio_auc"] <= 1.0
+    # The daemon's figure, in the space its database allows; the report names it.
+    assert fam["space"] == ("channel means" if load_model(ROOT / "models").database.feature
+                            is not None else "embedding ratio")
+    assert "familiarity (the daemon's)" in md
     assert 0.0 <= fam["baseline_auc"] <= 1.0
     e2e = doc["end_to_end"]
     assert [r["name"] for r in e2e["classes"]] == ["macaron", "boiled_kiri_mochi"]
