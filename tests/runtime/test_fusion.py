@@ -163,14 +163,25 @@ async def test_the_lock_is_held_between_the_presses_and_freed_if_cancelled(tmp_p
     assert not rec.lock.locked() and len(press.outcomes) == 1
 
 
+def seed_where(pressed_again: bool, seeds: range = range(12)) -> int:
+    """The first macaron press whose own analysis asks for (or not) a second press: its
+    subsampling offsets disagree or it is unfamiliar. Found, not pinned, so that a re-released
+    model (whose presses land elsewhere) keeps both cases tested."""
+    for seed in seeds:
+        alone = analyse_press(MODEL, recording_of("macaron", seed))
+        print(f"seed {seed}: agreement {alone.agreement}, familiarity {alone.familiarity}, "
+              f"unfamiliar {alone.unfamiliar}")
+        if (alone.agreement < 1 or alone.unfamiliar) is pressed_again:
+            return seed
+    raise AssertionError(f"no macaron press of seeds {seeds} that "
+                         f"{'asks' if pressed_again else 'does not ask'} for a second press")
+
+
 @pytest.mark.asyncio
-@pytest.mark.parametrize(("seed", "pressed_again"), [(3, False), (4, True)])
+@pytest.mark.parametrize("pressed_again", [False, True])
 async def test_auto_presses_again_only_when_the_offsets_disagree_or_unfamiliar(
-        tmp_path, seed, pressed_again):
-    alone = analyse_press(MODEL, recording_of("macaron", seed))
-    print(f"seed {seed}: agreement {alone.agreement}, familiarity {alone.familiarity}, "
-          f"unfamiliar {alone.unfamiliar}")
-    assert (alone.agreement < 1 or alone.unfamiliar) is pressed_again
+        tmp_path, pressed_again):
+    seed = seed_where(pressed_again)
     press = ScriptedPress(pressed(seed), pressed(seed + 10))
     rec, _ = recognizer(tmp_path, press, ScriptedVLM(["macaron"]))
     episode = await rec.recognize(CANDIDATES, None, True, 10, "api", presses=AUTO, pause_s=0)
@@ -198,12 +209,16 @@ def test_the_fusions_on_their_own():
     print("votes", votes.topk, votes.agreement, "mean", mean.topk, mean.agreement)
     for fused in (votes, mean):
         assert len(fused.topk) == 3 and len({lb for lb, _ in fused.topk}) == 3
-        assert 0 < fused.agreement <= 1 and len(fused.z) == len(votes.z)
+        assert 0 <= fused.agreement <= 1 and len(fused.z) == len(votes.z)
+    # Votes name a class some press's offsets found first; the mean embedding's nearest class
+    # may be one no single look found first (its agreement 0).
+    assert votes.agreement > 0
     # Both summarise the same embeddings: the mean is one vector, shared.
     assert np.allclose(votes.z, mean.z) and votes.code == mean.code
-    # One press's offsets voting keep its nearest class.
-    one = fuse_presses(MODEL, recs[:1], "votes")
-    assert one.topk[0][0] == analyse_press(MODEL, recs[0]).topk[0][0]
+    # A press whose offsets agree keeps its nearest class when they vote.
+    agreed = recording_of("macaron", seed_where(pressed_again=False))
+    one = fuse_presses(MODEL, [agreed], "votes")
+    assert one.topk[0][0] == analyse_press(MODEL, agreed).topk[0][0] and one.agreement == 1
     with pytest.raises(ValueError, match="fusion 'median'"):
         fuse_presses(MODEL, recs, "median")
 
