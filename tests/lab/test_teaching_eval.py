@@ -52,7 +52,8 @@ def test_teaching_moves_the_nearest_class_through_both_paths(tmp_path, capsys):
     config = tmp_path / "sim.toml"
     tomledit.update(ROOT / "configs" / "sim.toml", config, {"runtime": {"move_time_s": 0.1}})
     out = tmp_path / "out"
-    rc = main(["sim", "teaching", "--classes", "macaron", "boiled_kiri_mochi", "--ks", "1",
+    rc = main(["sim", "teaching", "--classes", "konjac", "boiled_kiri_mochi",
+               "--e2e-classes", "konjac", "boiled_kiri_mochi", "--ks", "1",
                "--fresh", "2", "--reference-presses", "2", "--held-out", "1",
                "--models", str(ROOT / "models"), "--config", str(config), "--out", str(out)])
     printed = capsys.readouterr().out
@@ -63,7 +64,7 @@ def test_teaching_moves_the_nearest_class_through_both_paths(tmp_path, capsys):
     assert md.strip() == printed.strip()
     assert "simulated, not a real one" in md and " min " in md
     curve = doc["curve"]
-    assert [r["name"] for r in curve["classes"]] == ["macaron", "boiled_kiri_mochi"]
+    assert [r["name"] for r in curve["classes"]] == ["konjac", "boiled_kiri_mochi"]
     for row in curve["classes"]:
         assert set(row["alone"]) == set(row["together"]) == {"1"}
         # Unknown, the presses land on some reference class, never the untaught one.
@@ -80,8 +81,8 @@ def test_teaching_moves_the_nearest_class_through_both_paths(tmp_path, capsys):
     fam = doc["familiarity"]
     assert fam["unseen_presses"] == 2 * 3 and fam["held_out_presses"] == 32
     assert fam["baseline_reference_presses"] == 64
-    assert set(fam["unseen_median_by_class"]) == {"macaron", "boiled_kiri_mochi"}
-    # Chosen on FoodReplica (macaron) against half the known classes, reported on Cube
+    assert set(fam["unseen_median_by_class"]) == {"konjac", "boiled_kiri_mochi"}
+    # Chosen on FoodReplica (konjac) against half the known classes, reported on Cube
     # (boiled_kiri_mochi) against the other half, and all together.
     assert {k: v["presses"] for k, v in fam["splits"].items()} == {
         "choosing": [3, 16], "reporting": [3, 16], "all": [6, 32]}
@@ -95,7 +96,7 @@ def test_teaching_moves_the_nearest_class_through_both_paths(tmp_path, capsys):
     assert "familiarity (the daemon's)" in md
     assert 0.0 <= fam["baseline_auc"] <= 1.0
     e2e = doc["end_to_end"]
-    assert [r["name"] for r in e2e["classes"]] == ["macaron", "boiled_kiri_mochi"]
+    assert [r["name"] for r in e2e["classes"]] == ["konjac", "boiled_kiri_mochi"]
     assert all(r["presses"] == [2, 2] for r in e2e["classes"])
     taught = e2e["seconds_per_taught_press"]
     assert len(taught["all"]) == 2 and 0 < taught["min"] <= taught["median"] <= taught["max"]
