@@ -58,7 +58,7 @@ from train.eval.eval_vlm.provenance import decoder_title, describe_origin, refer
 from train.eval.eval_vlm.report import save_png, slug
 from train.eval.eval_vlm.sets import load_sets
 from train.eval.eval_vlm.tactile import load_reference, torch_tactile
-from train.learn.data import PressSet, Splits, training_data_of
+from train.learn.data import STD_FLOOR_FRACTION, PressSet, Splits, training_data_of
 from train.learn.model import ModelConfig
 from train.learn.trainer import CHECKPOINT, Progress, TrainConfig, load_checkpoint, train
 
@@ -152,7 +152,9 @@ def _trained(cfg: Fig6Config, presses: PressSet, splits: Splits, model_config: M
     run_dir = cfg.work / f"n{size:02d}_d{index}"
     key = {"format": RESULT_FORMAT, "classes": list(classes), "val": list(splits.val),
            "seed": seed, "model": model_config.to_dict(), "max_epochs": cfg.max_epochs,
-           "patience": cfg.patience, "data": digest}
+           "patience": cfg.patience, "data": digest,
+           # (the normaliser's floor changes what is trained as much as the model does)
+           "std_floor": STD_FLOOR_FRACTION}
     result_path = run_dir / RESULT
     if result_path.exists() and (run_dir / CHECKPOINT).exists():
         try:
