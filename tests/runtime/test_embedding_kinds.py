@@ -26,7 +26,7 @@ from edge.sim.robot import SimRobot
 from tests.support.daemon import Daemon, base_config, recognize
 from tests.support.lab_data import write_lab_dataset
 from train.cli import main
-from train.learn.data import load_presses
+from train.learn.data import STD_FLOOR_FRACTION, load_presses
 
 # Four objects that feel unlike each other, four presses each; the pressed one is among them.
 REFERENCE = {"wood_cube": ("train", 4, False), "sponge_cube": ("train", 4, False),
@@ -61,7 +61,7 @@ def test_a_mean_model_is_each_channels_normalised_mean_without_a_network(mean_mo
     assert manifest["encoder"]["kind"] == "mean"
     assert MEAN_ENCODER_FILE in manifest["files"] and ENCODER_FILE not in manifest["files"]
     assert not (mean_model / ENCODER_FILE).exists()
-    assert manifest["training"]["std_floor_fraction"] == 1.0
+    assert manifest["training"]["std_floor_fraction"] == STD_FLOOR_FRACTION
     model = load_model(mean_model)
     presses = load_presses(lab, list(REFERENCE))
     x = presses.inputs(0)
@@ -69,7 +69,7 @@ def test_a_mean_model_is_each_channels_normalised_mean_without_a_network(mean_mo
     train_x = presses.select([c for c, (s, _, _) in REFERENCE.items() if s == "train"]).x
     flat = train_x.reshape(-1, train_x.shape[-1]).astype(np.float64)
     std = flat.std(0)
-    std = np.maximum(std, np.sqrt(np.mean(std ** 2)))
+    std = np.maximum(std, STD_FLOOR_FRACTION * np.sqrt(np.mean(std ** 2)))
     expected = ((x.mean(axis=1, dtype=np.float64) - flat.mean(0)) / std)
     z, code = model.encode(x)
     print(f"mean embedding: {z.shape[1]} dims, largest difference from numpy "

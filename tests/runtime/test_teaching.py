@@ -37,11 +37,13 @@ from tests.support.daemon import (
 from tests.support.presses import recording_of
 from tests.support.waits import wait_until
 
-# The object on the table and a name for it (no class of the shipped model is a macaron;
-# two presses of it embed far nearer each other than any reference class: a clear test).
-OBJECT = "macaron"
-TAUGHT = "lab_macaron"
-DESCRIPTION = "lab macaron (a French sandwich cookie)"
+# The object on the table and a name for it: no class of the shipped model is a konjac, and
+# its feel is its own (models/eval/teaching: every fresh press finds it after one taught
+# press), so a taught class must answer it: a clear test. (A macaron feels like the reference
+# cubes: on the model released at floor 0.3 two taught presses moved no fresh one.)
+OBJECT = "konjac"
+TAUGHT = "lab_konjac"
+DESCRIPTION = "lab konjac (a Japanese yam cake)"
 PRESSES = 2
 
 
