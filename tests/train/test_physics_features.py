@@ -58,37 +58,6 @@ def test_features_come_out_ordered_as_the_physics_says():
     assert physics.features(base + 1000.0) == pytest.approx(physics.features(base))
 
 
-def test_a_press_stream_is_cut_as_the_recognition_input():
-    rate = preprocess.DEFAULT_WINDOW.rate_hz
-    times = np.arange(round(2.0 * rate)) / rate
-    t_stop = 0.9
-    load = np.clip((times - (t_stop - 0.2)) / 0.2, 0, 1) * np.where(times > t_stop + 0.3, 0, 1)
-    units = np.outer(load, np.linspace(0.2, 1.0, CHANNELS))
-    got = physics.press_features(times, units, t_stop)
-    window = preprocess.model_input(times, units, t_stop)
-    assert got == pytest.approx(physics.features(window[None])[0])
-    # The load reaches its full pattern at the stop and holds it: peak its norm, no relaxation.
-    assert got[0] == pytest.approx(np.linalg.norm(np.linspace(0.2, 1.0, CHANNELS)), rel=0.05)
-    assert got[2] == pytest.approx(0.0, abs=0.01)
-
-
-@pytest.mark.parametrize("change, message", [
-    (lambda t, u, s: (t, u, None), "stop"),
-    (lambda t, u, s: (t, u, float("nan")), "stop"),
-    (lambda t, u, s: (t[:100], u[:100], s), "does not cover the window"),
-    (lambda t, u, s: (t, np.where(np.arange(len(t))[:, None] == 120, np.nan, u), s),
-     "non-finite"),
-    (lambda t, u, s: (t, u[:, 0], s), r"samples \(T, C\)"),
-    (lambda t, u, s: (t, np.zeros_like(u), s), "never changes"),
-])
-def test_hostile_presses_are_refused_with_what_is_wrong(change, message):
-    rate = preprocess.DEFAULT_WINDOW.rate_hz
-    times = np.arange(round(2.0 * rate)) / rate
-    units = np.outer(np.clip(times - 0.5, 0, 1), np.ones(CHANNELS))
-    with pytest.raises(PreprocessError, match=message):
-        physics.press_features(*change(times, units, 0.9))
-
-
 def test_windows_too_short_for_the_hold_or_not_finite_are_refused():
     with pytest.raises(PreprocessError, match="more than 15 steps"):
         physics.features(np.ones((2, HOLD_END, 3)))
@@ -96,6 +65,8 @@ def test_windows_too_short_for_the_hold_or_not_finite_are_refused():
     bad[1, 3, 2] = np.inf
     with pytest.raises(PreprocessError, match=r"window 1 .*step 3, channel 2"):
         physics.features(bad)
+    with pytest.raises(PreprocessError, match="window 1 never changes"):
+        physics.features(np.stack([press(), np.zeros_like(press())]))
 
 
 def test_the_side_by_side_embedding_weighs_each_block_alike():

@@ -83,30 +83,6 @@ def features(x: np.ndarray, spec: preprocess.WindowSpec = preprocess.DEFAULT_WIN
     return np.stack([peak, stiffness, relaxation, spread], axis=1)
 
 
-def press_features(times: np.ndarray, units: np.ndarray, t_stop: float | None,
-                   spec: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW) -> np.ndarray:
-    """``FEATURES`` of one press: its stream (``times`` (T,) s, ``units`` (T, C)) cut at
-    ``t_stop`` as the recognition input is (offset 0). Refuses a press with no stop, one too
-    short for the window or holding non-finite values, naming what is wrong."""
-    times = np.asarray(times, dtype=np.float64)
-    units = np.asarray(units, dtype=np.float64)
-    if t_stop is None or not np.isfinite(t_stop):
-        raise PreprocessError(f"physics features need the press's stop (the moment the grasp "
-                              f"stopped closing), got {t_stop}")
-    if times.ndim != 1 or units.ndim != 2 or len(times) != len(units) or len(times) < 2:
-        raise PreprocessError(f"physics features need times (T,) and samples (T, C) of one "
-                              f"length T >= 2, got {times.shape} and {units.shape}")
-    if not (np.isfinite(times).all() and np.isfinite(units).all()):
-        raise PreprocessError("physics features: the press holds a non-finite time or value")
-    first, last = t_stop - spec.before_s, t_stop + spec.last_sample_s
-    if times[0] > first + 1e-9 or times[-1] < last - 1e-9:
-        raise PreprocessError(
-            f"physics features: the press ([{times[0]:.3f}, {times[-1]:.3f}] s) does not "
-            f"cover the window [{first:.3f}, {last:.3f}] s around the stop at {t_stop:.3f} s")
-    window = preprocess.model_input(times, units, t_stop, spec)
-    return features(window[None], spec)[0]
-
-
 def standardised(x_reference: np.ndarray,
                  spec: preprocess.WindowSpec = preprocess.DEFAULT_WINDOW):
     """A function of windows giving their ``FEATURES`` standardised with the statistics of
