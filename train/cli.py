@@ -247,6 +247,7 @@ def _cmd_table1(args: argparse.Namespace) -> int:
         reference=paths["reference"], beta=paths["beta"], zeros=paths["zeros"],
         images=Path(args.images) if args.images else None, limit=args.limit,
         concurrency=args.concurrency, extras=not args.no_extras,
+        rows=tuple(args.rows) if args.rows else None,
         paper_sets=parse_paper_sets(args.paper_set))
     table1.validate(cfg)
     if not args.verbose:
@@ -511,6 +512,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "sets so named stand beside them unasked)")
     p.add_argument("--no-extras", action="store_true",
                    help="only the paper's rows (no zero-input decoder or ablation rows)")
+    p.add_argument("--rows", nargs="+", metavar="ROW",
+                   help="ask only these rows (e.g. vq_top3 vq_top3_weak: an ablation beside "
+                   "its twin against a real endpoint); default every row that can run")
     p.add_argument("--images", help="photos for real data (as eval-vlm --images; default: "
                    "the photo collect took beside each press)")
     p.add_argument("--limit", type=int, help="at most N presses per set")

@@ -17,6 +17,7 @@ from edge.core.model import Familiarity, load_model
 from edge.sim.standin_vlm import StandIn
 from edge.vlm.prompt import WEAK_MATCH
 from tests.support.vlm_thread import fake_in_thread
+from train.cli import main
 from train.eval import fig6, table1
 from train.eval.eval_vlm.config import EvalVLMConfig
 from train.eval.eval_vlm.plan import prepare
@@ -81,7 +82,7 @@ async def test_table1_against_the_simulated_vlm(released, work, tmp_path):
 
 
 def test_the_weak_match_row_says_so_exactly_where_the_daemon_flags_the_press(released, work,
-                                                                            tmp_path):
+                                                                            tmp_path, capsys):
     # Every question of the row is the paper's, but for the presses the daemon's familiarity
     # flags unfamiliar (at the default 95th percentile), whose touch sentence says the match
     # is weak.
@@ -111,6 +112,11 @@ def test_the_weak_match_row_says_so_exactly_where_the_daemon_flags_the_press(rel
     assert only.conditions() == ("vq_top3", "vq_top3_weak")
     with pytest.raises(EvalVLMError, match=r"unknown Table I row.*vq_top3_weak"):
         table1.validate(table_config(released, work, tmp_path, rows=("vq_top4",)))
+    # The command line's --rows reaches the same check, before anything is asked.
+    assert main(["table1", "--rows", "vq_top3", "vq_top4", "--out", str(tmp_path / "t1"),
+                 "--work", str(tmp_path / "t1w")]) == 2
+    assert "unknown Table I row(s) vq_top4; known:" in capsys.readouterr().err
+    assert not (tmp_path / "t1").exists()
 
 
 def test_table1_against_an_endpoint_with_two_models(released, work, tmp_path, capsys):
