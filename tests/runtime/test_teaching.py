@@ -47,10 +47,6 @@ DESCRIPTION = "lab konjac (a Japanese yam cake)"
 PRESSES = 2
 
 
-def top1(ep: dict) -> str:
-    return ep["topk"][0]["label"]
-
-
 def near(ep: dict) -> bool:
     """The taught class among a recognition's neighbours. One emulated press of the object
     can land nearer another class than the two taught ones (a restart's press found
@@ -151,9 +147,12 @@ async def test_taught_presses_answer_the_next_recognition_until_removed(tmp_path
             assert all(r["source"] == "api" and "z" not in r for r in refs)
 
             # The next recognition looks the press up with them: no restart, no retraining.
+            # (Among its neighbours, as after the reload and the restart below: which class is
+            # first moves with how deep a loaded host lets a press go; make test beside
+            # stress-ng saw a konjac press at sponge_cube 0.94, the taught class 1.52.)
             ep = await recognize(d)
             print(f"  next recognition's neighbours: {ep['topk']}")
-            assert top1(ep) == TAUGHT
+            assert near(ep)
             # A reload (what SIGHUP runs) keeps them.
             assert await d.runtime.reload()
             ep = await recognize(d)
