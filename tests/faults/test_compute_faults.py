@@ -15,7 +15,6 @@ from edge.core import recording, tomledit
 from edge.sim.robot import SimRobot
 from tests.support.daemon import (
     FOOD,
-    LOADED_HOST_ERRORS,
     LOADED_HOST_TRIES,
     QUICK_OBJECT,
     ROOT,
@@ -39,12 +38,13 @@ async def test_compute_worker_killed_during_a_press(tmp_path):
             os.kill(worker, signal.SIGKILL)  # as the OOM killer would
             failed = await d.wait_status(ep["id"], {"failed", "not_configured"})
             await d.wait_idle()
-            # A press that failed for a loaded host's reason (a stall past the Bus Watchdog)
-            # says nothing about the worker: pressed again, on the worker started since.
-            if attempt < LOADED_HOST_TRIES and any(
-                    e in (failed["error"] or "") and not failed["press"]["contact"]
-                    for e in LOADED_HOST_ERRORS):
-                print(f"  press {attempt} failed on a loaded host: {failed['error']}")
+            # A press that did not end ok says nothing about the worker: this test injects no
+            # bus fault, so it was a loaded host's doing (a stall past the Bus Watchdog, a
+            # status packet starved past its timeout as the arm returned: make test beside
+            # stress-ng saw both): pressed again, on the worker started since.
+            if attempt < LOADED_HOST_TRIES and not failed["press"]["contact"]:
+                print(f"  press {attempt} failed on a loaded host: {failed['error']}; "
+                      f"{failed['press']['message']}")
                 continue
             break
         first_worker = worker
