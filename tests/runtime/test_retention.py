@@ -9,7 +9,15 @@ from dataclasses import replace
 import pytest
 
 from edge.sim.fake_vlm import FakeVLM, Reply
-from tests.support.daemon import FOOD, QUICK_OBJECT, fast_config, sim_daemon, store_consistent
+from tests.support.daemon import (
+    FOOD,
+    LOADED_HOST_ERRORS,
+    LOADED_HOST_TRIES,
+    QUICK_OBJECT,
+    fast_config,
+    sim_daemon,
+    store_consistent,
+)
 
 pytestmark = pytest.mark.asyncio
 
@@ -37,16 +45,22 @@ async def test_store_max_mb_keeps_the_store_under_it_oldest_finished_first(tmp_p
 
         cfg = replace(cfg, runtime=replace(cfg.runtime, store_max_mb=bound_mb))
         async with sim_daemon(tmp_path, cfg=cfg) as (_, d):
-            more = []
-            for _ in range(MORE):
+            more, done, retries = [], 0, 0
+            while done < MORE:
                 status, ep = await d.post("/v1/recognize", {"candidates": FOOD, "wait": True})
-                assert status == 200 and ep["status"] == "done", ep
-                more.append(ep["id"])
+                more.append(ep["id"])  # a failed episode is a finished one: it counts too
                 assert d.store.size() <= bound_mb * 1e6
+                if (ep["status"] == "failed" and retries < LOADED_HOST_TRIES
+                        and any(e in (ep["error"] or "") for e in LOADED_HOST_ERRORS)):
+                    retries += 1  # a press a loaded host failed: pressed again
+                    print(f"  a press failed on a loaded host: {ep['error']}")
+                    continue
+                assert status == 200 and ep["status"] == "done", (ep["status"], ep["error"])
+                done += 1
             async with d.http.get(d.url + "/metrics") as resp:
                 metrics = await resp.text()
             removed = d.store.removed_episodes
-            print(f"{MORE} more: store {d.store.size() / 1e6:.3f} MB, {removed} episodes "
+            print(f"{len(more)} more: store {d.store.size() / 1e6:.3f} MB, {removed} episodes "
                   f"removed ({d.store.removed_bytes / 1e6:.2f} MB)")
 
     kept = [e["id"] for e in store_consistent(d.store.root)]
