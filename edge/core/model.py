@@ -580,8 +580,14 @@ class Familiarity:
             figure = self.ratio(z)
         if figure is None or self.loo.size == 0:
             return None
-        below = int(np.searchsorted(self.loo, figure, side="left"))
-        return 100.0 * below / self.loo.size
+        return float(rank_percentile(self.loo, figure))
+
+
+def rank_percentile(loo: np.ndarray, figures: np.ndarray | float) -> np.ndarray:
+    """The percentile of each of ``figures`` among the sorted leave-one-out figures ``loo``
+    (non-empty): the share strictly below it, in percent (the one ranking of every
+    familiarity figure, the daemon's and the evaluation's comparisons)."""
+    return 100.0 * np.searchsorted(loo, figures, side="left") / loo.size
 
 
 def _class_ratios(per_class: np.ndarray) -> np.ndarray:

@@ -50,7 +50,13 @@ from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.descriptions import tactile_words
 from edge.core.errors import EdgeError
-from edge.core.model import Familiarity, ModelRef, ReferenceDatabase, model_ref
+from edge.core.model import (
+    Familiarity,
+    ModelRef,
+    ReferenceDatabase,
+    model_ref,
+    rank_percentile,
+)
 from edge.core.progress import Progress
 from edge.lab.consistency import (
     daemon_press,
@@ -147,8 +153,7 @@ def baseline_percentiles(references: Sequence[recording.Recording],
     d = np.linalg.norm(ref_f[:, None] - ref_f[None], axis=2)
     np.fill_diagonal(d, np.inf)
     loo = np.sort(d.min(axis=1))
-    nearest = np.linalg.norm(q_f[:, None] - ref_f[None], axis=2).min(axis=1)
-    return 100.0 * np.searchsorted(loo, nearest, side="left") / loo.size
+    return rank_percentile(loo, np.linalg.norm(q_f[:, None] - ref_f[None], axis=2).min(axis=1))
 
 
 @dataclass(frozen=True)
@@ -254,8 +259,7 @@ def nearest_percentiles(db: ReferenceDatabase, zs: Sequence[np.ndarray]) -> np.n
     embedding among the references' own nearest distances to another press."""
     loo = db.nearest_other_press().min(axis=1)
     loo = np.sort(loo[np.isfinite(loo)])
-    nearest = [db.topk(z, 1)[0][1] for z in zs]
-    return 100.0 * np.searchsorted(loo, nearest, side="left") / loo.size
+    return rank_percentile(loo, [db.topk(z, 1)[0][1] for z in zs])
 
 
 def familiarity_auc(models: str | Path, unseen: dict[str, list[recording.Recording]],
