@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import spearmanr
 
-from edge.core import recording
+from edge.core import preprocess, recording
 from edge.core.atomic import atomic_write_text
 from edge.core.errors import RecordingError
 from edge.core.model import load_model
@@ -43,7 +43,7 @@ FIGURES = (("loo_1nn", "LOO 1-NN among reference classes"),
            ("top3_consistency", "unseen top-3 consistency"))
 BOOTSTRAP = 2000
 # The closing phase read for the speed: the window's lead before the stop.
-CLOSING_S = 0.4
+CLOSING_S = preprocess.DEFAULT_WINDOW.before_s
 
 
 def closing_speed(rec: recording.Recording) -> tuple[float, float, float]:
